@@ -1,0 +1,105 @@
+//! The `facegate` command line: a thin layer over the pipeline modules. Each area keeps its
+//! argument structs and its `run` in its own file.
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+pub mod detect;
+pub mod landmarks;
+pub mod morph;
+pub mod recognize;
+pub mod serve;
+
+#[derive(Parser, Debug)]
+#[command(name = "facegate", version, about = "Face verification: detection, C-ASM landmarks, 3DMM pose correction, Direct LDA")]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Run the HTTP service (enrol, verify, identify).
+    Serve(serve::ServeArgs),
+    /// Detect faces; one JSON object per image.
+    Detect(detect::DetectArgs),
+    /// Locate the 58 IMM landmarks; one JSON object per image.
+    Landmarks(landmarks::LandmarksArgs),
+    /// Fit the 3D morphable model and export a textured avatar (.glb or .obj).
+    Reconstruct(morph::ReconstructArgs),
+    /// Fit the 3D morphable model and render the face from the front.
+    Frontalize(morph::FrontalizeArgs),
+    /// Compare two photos; prints score, threshold and decision.
+    Compare(recognize::CompareArgs),
+    /// Train a model from annotated data.
+    #[command(subcommand)]
+    Train(TrainCommand),
+    /// Measure a stage on annotated data.
+    #[command(subcommand)]
+    Eval(EvalCommand),
+}
+
+#[derive(Subcommand, Debug)]
+pub enum TrainCommand {
+    /// Train the plain ASM, SIFT-ASM and C-ASM from IMM `.asf` annotations.
+    Asm(landmarks::TrainAsmArgs),
+    /// Train the Direct LDA projection from labelled folders.
+    Dlda(recognize::TrainDldaArgs),
+}
+
+#[derive(Subcommand, Debug)]
+pub enum EvalCommand {
+    /// Landmark accuracy (d_eye, mouth error) of the ASM variants on held-out IMM persons.
+    Landmarks(landmarks::EvalLandmarksArgs),
+    /// Score image pairs listed in a CSV file.
+    Pairs(recognize::EvalPairsArgs),
+    /// Verification EER, FNMR at fixed FMR, ROC and DET plots.
+    Verify(recognize::EvalVerifyArgs),
+    /// Rank-1 identification per head-pose bin, 2D against 3DMM normalisation.
+    Identify(recognize::EvalIdentifyArgs),
+}
+
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Serve(args) => serve::run(args),
+        Command::Detect(args) => detect::run(args),
+        Command::Landmarks(args) => landmarks::run(args),
+        Command::Reconstruct(args) => morph::run_reconstruct(args),
+        Command::Frontalize(args) => morph::run_frontalize(args),
+        Command::Compare(args) => recognize::run_compare(args),
+        Command::Train(TrainCommand::Asm(args)) => landmarks::run_train(args),
+        Command::Train(TrainCommand::Dlda(args)) => recognize::run_train(args),
+        Command::Eval(EvalCommand::Landmarks(args)) => landmarks::run_eval(args),
+        Command::Eval(EvalCommand::Pairs(args)) => recognize::run_eval_pairs(args),
+        Command::Eval(EvalCommand::Verify(args)) => recognize::run_eval_verify(args),
+        Command::Eval(EvalCommand::Identify(args)) => recognize::run_eval_identify(args),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("facegate: error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Print one JSON value as a line on stdout (the `--json` output contract: one object per line).
+pub fn print_json_line(value: &serde_json::Value) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let _ = writeln!(out, "{}", serde_json::to_string(value).expect("JSON values serialise"));
+}
+
+/// Progress bar on stderr for training and evaluation loops.
+pub fn progress(len: u64, what: &str) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(len);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} {elapsed_precise} eta {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    bar.set_message(what.to_string());
+    bar
+}
