@@ -1,0 +1,3 @@
+//! Evaluation: accuracy measures of each stage on held-out people, and their plots.
+
+pub mod plot;
