@@ -120,16 +120,26 @@ impl WorkPool {
             return Err(Problem::new(ProblemKind::Overloaded, "the work queue is full; retry shortly"));
         };
         let running = self.running.clone().acquire_owned().await.map_err(Problem::internal)?;
-        metrics.jobs_in_flight.inc();
-        let in_flight = metrics.jobs_in_flight.clone();
+        // Released when the job ends, even by a panic.
+        let held = InFlight { _permits: (admitted, running), gauge: metrics.jobs_in_flight.clone() };
+        held.gauge.inc();
         tokio::task::spawn_blocking(move || {
-            let result = job();
-            drop((running, admitted));
-            in_flight.dec();
-            result
+            let _held = held;
+            job()
         })
         .await
         .map_err(Problem::internal)
+    }
+}
+
+struct InFlight {
+    _permits: (tokio::sync::OwnedSemaphorePermit, tokio::sync::OwnedSemaphorePermit),
+    gauge: prometheus_client::metrics::gauge::Gauge,
+}
+
+impl Drop for InFlight {
+    fn drop(&mut self) {
+        self.gauge.dec();
     }
 }
 
