@@ -27,6 +27,15 @@ pub struct DetectorArgs {
     /// Window step in pixels of each pyramid level (Haar).
     #[arg(long, default_value_t = DetectOptions::default().step)]
     pub step: usize,
+    /// Do not rescan with step 1 when the first scan finds nothing (Haar).
+    #[arg(long)]
+    pub no_fine_rescan: bool,
+    /// Images with a shorter side below this are scanned finely with a replicated border (Haar).
+    #[arg(long, default_value_t = DetectOptions::default().small_image_side)]
+    pub small_image_side: u32,
+    /// Border added to small images, as a fraction of their size (Haar).
+    #[arg(long, default_value_t = DetectOptions::default().small_image_pad)]
+    pub small_image_pad: f32,
 }
 
 impl DetectorArgs {
@@ -37,6 +46,9 @@ impl DetectorArgs {
             profile: self.profile,
             min_neighbours: self.min_neighbours,
             step: self.step,
+            fine_rescan: !self.no_fine_rescan,
+            small_image_side: self.small_image_side,
+            small_image_pad: self.small_image_pad,
             ..DetectOptions::default()
         }
     }

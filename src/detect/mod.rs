@@ -83,11 +83,21 @@ pub struct DetectOptions {
     pub scale_step: f32,
     /// Window step in pixels of each pyramid level.
     pub step: usize,
+    /// When the scan at `step` finds nothing, scan again with step 1 before trying the profile
+    /// cascades: a large face can fall between coarse window positions, and the finer scan costs
+    /// time only on images without a face found.
+    pub fine_rescan: bool,
+    /// Images whose shorter side is below this (e.g. ORL's 92×112 crops, where the face fills the
+    /// frame) are scanned with step 1 and a replicated border, so a face as large as the frame
+    /// still gets enough overlapping windows.
+    pub small_image_side: u32,
+    /// Border added on each side of a small image, as a fraction of its size.
+    pub small_image_pad: f32,
 }
 
 impl Default for DetectOptions {
     fn default() -> Self {
-        Self { min_face: 24, min_face_fraction: 0.1, profile: ProfileMode::Fallback, min_neighbours: 3, scale_step: 1.1, step: 2 }
+        Self { min_face: 24, min_face_fraction: 0.1, profile: ProfileMode::Fallback, min_neighbours: 3, scale_step: 1.1, step: 2, fine_rescan: true, small_image_side: 200, small_image_pad: 0.1 }
     }
 }
 
@@ -168,15 +178,30 @@ impl Detector {
         let min_size = opts.min_size_for(gray.width, gray.height);
         let mut faces = match &self.engine {
             Engine::Haar { frontal, profile, profile_mirrored } => {
+                let small = gray.width.min(gray.height) < opts.small_image_side as usize;
+                let padded;
+                let (gray, offset) = if small && opts.small_image_pad > 0.0 {
+                    let (px, py) = ((gray.width as f32 * opts.small_image_pad).round() as usize, (gray.height as f32 * opts.small_image_pad).round() as usize);
+                    padded = GrayF32::from_fn(gray.width + 2 * px, gray.height + 2 * py, |x, y| {
+                        gray.get_clamped(x as isize - px as isize, y as isize - py as isize)
+                    });
+                    (&padded, [px as f32, py as f32])
+                } else {
+                    (gray, [0.0, 0.0])
+                };
                 let scan = ScanOptions {
                     min_size,
                     max_size: f32::INFINITY,
                     scale_step: opts.scale_step,
-                    step: opts.step,
+                    step: if small { 1 } else { opts.step },
                     min_neighbours: opts.min_neighbours,
                     group_eps: 0.2,
                 };
-                let mut faces: Vec<Face> = frontal.detect(gray, &scan).into_iter().map(|h| Face { rect: h.rect, score: h.neighbours as f32 }).collect();
+                let to_faces = |hits: Vec<cascade::Hit>| hits.into_iter().map(|h| Face { rect: h.rect, score: h.neighbours as f32 }).collect::<Vec<_>>();
+                let mut faces = to_faces(frontal.detect(gray, &scan));
+                if faces.is_empty() && opts.fine_rescan && scan.step > 1 {
+                    faces = to_faces(frontal.detect(gray, &ScanOptions { step: 1, ..scan }));
+                }
                 let run_profile = match opts.profile {
                     ProfileMode::Off => false,
                     ProfileMode::Fallback => faces.is_empty(),
@@ -196,6 +221,10 @@ impl Detector {
                             faces.push(t);
                         }
                     }
+                }
+                for f in &mut faces {
+                    f.rect.x -= offset[0];
+                    f.rect.y -= offset[1];
                 }
                 faces
             }
