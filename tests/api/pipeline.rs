@@ -38,19 +38,23 @@ fn flat_grey() -> Vec<u8> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn enrol_an_imm_photo_then_verify_the_same_and_another_person() {
     let app = app().await;
-    let r = app.post_form("/enroll", Some("imm-01"), &[imm("01-1m.jpg")]).await;
+    // Two photos (frontal, and turned to the side) of person 01.
+    let r = app.post_form("/enroll", Some("imm-01"), &[imm("01-1m.jpg"), imm("01-3m.jpg")]).await;
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
-    let image = &r.json()["images"][0];
-    assert_eq!(image["faces_found"], 1);
-    assert_eq!(image["landmarks"]["points"].as_array().unwrap().len(), 58);
+    assert_eq!(r.json()["templates"], 2);
+    for image in r.json()["images"].as_array().unwrap() {
+        assert_eq!(image["faces_found"], 1);
+        assert_eq!(image["landmarks"]["points"].as_array().unwrap().len(), 58);
+    }
     let r = app.post_json("/enroll", &json!({"subject": "imm-02", "images": [base64(&imm("02-1m.jpg"))]})).await;
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
 
-    // Another photo of the same person matches.
-    let r = app.post_form("/verify", Some("imm-01"), &[imm("01-2m.jpg")]).await;
+    // Another photo of the same person (lit from the side) matches.
+    let r = app.post_form("/verify", Some("imm-01"), &[imm("01-5m.jpg")]).await;
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let same = r.json();
     assert_eq!(same["match"], true, "{same}");
+    assert_eq!(same["templates_compared"], 2);
     let face = &same["face"]["box"];
     let (x, y, w, h) = (face["x"].as_f64().unwrap(), face["y"].as_f64().unwrap(), face["width"].as_f64().unwrap(), face["height"].as_f64().unwrap());
     assert!(x >= -1.0 && y >= -1.0 && w > 50.0 && h > 50.0 && x + w <= 641.0 && y + h <= 481.0, "{face}");
@@ -66,7 +70,7 @@ async fn enrol_an_imm_photo_then_verify_the_same_and_another_person() {
     assert!(other["score"].as_f64().unwrap() < same["score"].as_f64().unwrap());
 
     // Identification ranks the right person first.
-    let r = app.post_form("/identify?k=2", None, &[imm("02-2m.jpg")]).await;
+    let r = app.post_form("/identify?k=2", None, &[imm("02-6m.jpg")]).await;
     assert_eq!(r.status, 200);
     assert_eq!(r.json()["candidates"][0]["subject"], "imm-02", "{}", r.json());
 }
