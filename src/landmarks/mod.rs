@@ -1,4 +1,21 @@
-//! Landmarks on the 58-point IMM template. (Stub API: the landmarks issue fills it in.)
+//! Landmarks on the 58-point IMM template (thesis chapter 2): the plain Active Shape Model (grey-level
+//! profiles), SIFT-ASM (SIFT descriptors oriented by the contour normal) and the Combined ASM
+//! (C-ASM: the 45 internal points matched by SIFT, the 13 jaw points by profiles, each group with
+//! its own shape model, combined and constrained by the full 58-point model).
+//!
+//! - [`pdm`]: point distribution model (Procrustes, PCA, constrained fit).
+//! - [`profile`], [`sift`]: the two local texture models' features; [`mahalanobis`]: their
+//!   Gaussian models.
+//! - [`search`]: the face crop (rescaled like the thesis's 260×260 region), the 2-level pyramid and
+//!   the coarse-to-fine matching.
+//! - [`train`]: training all three variants from IMM `.asf` annotations.
+
+pub mod mahalanobis;
+pub mod pdm;
+pub mod profile;
+pub mod search;
+pub mod sift;
+pub mod train;
 
 use std::path::Path;
 
@@ -8,6 +25,9 @@ use crate::dataset::KeyPoints;
 use crate::geometry::{Point, Rect};
 use crate::imaging::GrayF32;
 
+use mahalanobis::{FullGaussian, PcaGaussian};
+use pdm::ShapeModel;
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum Variant {
@@ -15,6 +35,22 @@ pub enum Variant {
     Sift,
     #[default]
     Casm,
+}
+
+impl Variant {
+    pub const ALL: [Variant; 3] = [Variant::Asm, Variant::Sift, Variant::Casm];
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            Variant::Asm => "asm",
+            Variant::Sift => "sift",
+            Variant::Casm => "casm",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Variant> {
+        Variant::ALL.into_iter().find(|v| v.name() == s)
+    }
 }
 
 /// The 58 IMM points in image pixels, with the eye and mouth centres.
@@ -28,18 +64,164 @@ pub struct Landmarks {
 pub enum LandmarkError {
     #[error("cannot load the landmark model {path}: {message}")]
     Model { path: String, message: String },
+    #[error("cannot train the landmark model: {0}")]
+    Training(String),
 }
 
+/// Search parameters; the defaults are the thesis's where it gives them.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SearchParams {
+    /// Side of the square face crop the search runs in (thesis: 260×260).
+    pub crop_size: usize,
+    /// x extent of the mean shape in crop pixels.
+    pub ref_width: f32,
+    /// Gaussian pyramid levels searched coarse to fine (thesis: 2).
+    pub levels: usize,
+    /// Candidates along the normal on each side for grey-level profiles.
+    pub profile_radius: usize,
+    /// Half side of the 2D SIFT candidate window, per level (finest first).
+    pub sift_radius: Vec<usize>,
+    pub max_iterations: usize,
+    /// Stop when this share of points moved less than a pixel (thesis: ~90%).
+    pub converged_share: f32,
+}
+
+impl Default for SearchParams {
+    fn default() -> Self {
+        Self { crop_size: 260, ref_width: 170.0, levels: 2, profile_radius: 3, sift_radius: vec![2, 3], max_iterations: 6, converged_share: 0.9 }
+    }
+}
+
+/// Where the mean shape goes relative to the face box: learnt from the training photos' boxes.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+pub struct Placement {
+    /// Scale of the model's mean shape per box width.
+    pub scale_per_width: f32,
+    /// Shape centre minus box centre, in box widths.
+    pub dx: f32,
+    pub dy: f32,
+}
+
+/// What kind of box the placement was learnt from (the search expects the same kind).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BoxSource {
+    /// The face detector's boxes (photos it missed were left out of the placement statistics).
+    Detector,
+    /// Bounding boxes of the annotated points (no detector available at training time).
+    Annotation,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TrainInfo {
+    pub images: usize,
+    pub persons: Vec<u32>,
+    pub box_source: BoxSource,
+    /// Photos where the detector found no face over the annotation (not used for placement).
+    pub detector_misses: usize,
+}
+
+/// The trained models of all three variants (`models/asm.bin`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct AsmModel {
+    pub format: u32,
+    pub params: SearchParams,
+    /// For each point, its previous and next neighbour on its contour (the normal is
+    /// perpendicular to the line between them).
+    pub neighbours: Vec<[u16; 2]>,
+    pub full: ShapeModel,
+    /// C-ASM's facial internal region model (IMM points 13..58).
+    pub internal: ShapeModel,
+    /// C-ASM's facial contour model (IMM points 0..13).
+    pub contour: ShapeModel,
+    /// `[level][point]` grey-level profile models.
+    pub profiles: Vec<Vec<FullGaussian>>,
+    /// `[level][point]` SIFT models.
+    pub sifts: Vec<Vec<PcaGaussian>>,
+    pub placement: Placement,
+    pub info: TrainInfo,
+}
+
+pub const MODEL_FORMAT: u32 = 1;
+
 /// Trained shape and texture models of all variants (`models/asm.bin`), shareable across threads.
-pub struct Landmarker {}
+pub struct Landmarker {
+    pub model: AsmModel,
+}
 
 impl Landmarker {
     pub fn load(path: &Path) -> Result<Landmarker, LandmarkError> {
-        Err(LandmarkError::Model { path: path.display().to_string(), message: "landmarks have not landed yet".into() })
+        let err = |message: String| LandmarkError::Model { path: path.display().to_string(), message };
+        let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
+        let model: AsmModel = postcard::from_bytes(&bytes).map_err(|e| err(format!("not a landmark model: {e}")))?;
+        if model.format != MODEL_FORMAT {
+            return Err(err(format!("model format {} (expected {MODEL_FORMAT}); retrain with `facegate train asm`", model.format)));
+        }
+        if model.full.points() != crate::dataset::IMM_POINTS || model.neighbours.len() != crate::dataset::IMM_POINTS {
+            return Err(err("the model does not have 58 points".into()));
+        }
+        Ok(Landmarker { model })
     }
 
-    /// Search the 58 points of the face in `face` (a detector box).
-    pub fn fit(&self, _gray: &GrayF32, _face: &Rect, _variant: Variant) -> Landmarks {
-        unimplemented!("landmarks have not landed yet")
+    pub fn save(&self, path: &Path) -> Result<(), LandmarkError> {
+        let err = |message: String| LandmarkError::Model { path: path.display().to_string(), message };
+        let bytes = postcard::to_allocvec(&self.model).map_err(|e| err(e.to_string()))?;
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
+        }
+        std::fs::write(path, bytes).map_err(|e| err(e.to_string()))
+    }
+
+    /// Search the 58 points of the face in `face` (a box of the kind the model was trained with,
+    /// normally the detector's). Never panics: a degenerate box or image gives the placed mean shape.
+    pub fn fit(&self, gray: &GrayF32, face: &Rect, variant: Variant) -> Landmarks {
+        let points = search::fit(&self.model, gray, face, variant);
+        let keypoints = KeyPoints::from_imm(&points);
+        Landmarks { points, keypoints }
+    }
+
+    /// The initial shape (mean shape placed from the box), in image pixels.
+    pub fn initial_shape(&self, face: &Rect) -> Vec<Point> {
+        search::place(&self.model, face)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dataset::{ImmSample, list_imm};
+    use crate::geometry::{Similarity, distance};
+    use std::sync::OnceLock;
+
+    fn samples() -> Vec<ImmSample> {
+        list_imm(&crate::config::shared_dir().join("data/imm")).unwrap()
+    }
+
+    /// One model trained on the training persons' frontal photos, shared by the tests.
+    fn model() -> &'static Landmarker {
+        static MODEL: OnceLock<Landmarker> = OnceLock::new();
+        MODEL.get_or_init(|| {
+            let training: Vec<ImmSample> = samples().into_iter().filter(|s| !crate::dataset::imm_is_test_person(s.person)).collect();
+            Landmarker { model: train::train(&training, None, &train::TrainOptions::default(), &|| {}).unwrap() }
+        })
+    }
+
+    fn rms(a: &[Point], b: &[Point]) -> f32 {
+        (a.iter().zip(b).map(|(p, q)| distance(*p, *q).powi(2)).sum::<f32>() / a.len() as f32).sqrt()
+    }
+
+    #[test]
+    fn diag_search() {
+        let m = model();
+        for s in samples().iter().filter(|s| s.person == 7) {
+            let truth = s.landmarks().unwrap();
+            let photo = crate::imaging::open(&s.image).unwrap();
+            let bx = train::annotation_box(&truth);
+            let init = m.initial_shape(&bx);
+            for v in Variant::ALL {
+                let lm = m.fit(&photo.gray, &bx, v);
+                eprintln!("view {} {:?}: init rms {:.2} -> {:.2}", s.view, v, rms(&init, &truth), rms(&lm.points, &truth));
+            }
+        }
     }
 }
