@@ -84,22 +84,38 @@ pub struct SearchParams {
     pub max_iterations: usize,
     /// Stop when this share of points moved less than a pixel (thesis: ~90%).
     pub converged_share: f32,
+    /// Training photos whose first shape coefficient is beyond ± this many standard deviations
+    /// form the turned start groups; 0 disables them (one start, the mean shape).
+    pub yaw_start: f32,
+    /// Iterations each start gets on the coarsest level before the best one is kept.
+    pub probe_iterations: usize,
 }
 
 impl Default for SearchParams {
     fn default() -> Self {
-        Self { crop_size: 260, ref_width: 170.0, levels: 2, profile_radius: 3, sift_radius: vec![2, 3], max_iterations: 6, converged_share: 0.9 }
+        Self { crop_size: 260, ref_width: 170.0, levels: 2, profile_radius: 3, sift_radius: vec![2, 3], max_iterations: 6, converged_share: 0.9, yaw_start: 1.0, probe_iterations: 2 }
     }
 }
 
-/// Where the mean shape goes relative to the face box: learnt from the training photos' boxes.
+/// Where a starting shape goes relative to the face box: learnt from the training photos' boxes.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 pub struct Placement {
-    /// Scale of the model's mean shape per box width.
+    /// Scale of the starting shape per box width.
     pub scale_per_width: f32,
     /// Shape centre minus box centre, in box widths.
     pub dx: f32,
     pub dy: f32,
+}
+
+/// A starting shape: the mean shape of a group of training photos (by their first shape
+/// coefficient, yaw on IMM: turned one way, frontal, turned the other way) and its placement.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Start {
+    /// Full-model coefficients of the start shape.
+    pub b: Vec<f32>,
+    pub placement: Placement,
+    /// Training photos in the group.
+    pub photos: usize,
 }
 
 /// What kind of box the placement was learnt from (the search expects the same kind).
@@ -138,7 +154,8 @@ pub struct AsmModel {
     pub profiles: Vec<Vec<FullGaussian>>,
     /// `[level][point]` SIFT models.
     pub sifts: Vec<Vec<PcaGaussian>>,
-    pub placement: Placement,
+    /// Starting shapes, the frontal one first.
+    pub starts: Vec<Start>,
     pub info: TrainInfo,
 }
 
@@ -190,7 +207,7 @@ impl Landmarker {
 mod tests {
     use super::*;
     use crate::dataset::{ImmSample, list_imm};
-    use crate::geometry::{Similarity, distance};
+    use crate::geometry::distance;
     use std::sync::OnceLock;
 
     fn samples() -> Vec<ImmSample> {
@@ -213,15 +230,39 @@ mod tests {
     #[test]
     fn diag_search() {
         let m = model();
-        for s in samples().iter().filter(|s| s.person == 7) {
+        for s in samples().iter().filter(|s| s.person == 1 && (s.view == 3 || s.view == 4)) {
             let truth = s.landmarks().unwrap();
             let photo = crate::imaging::open(&s.image).unwrap();
             let bx = train::annotation_box(&truth);
             let init = m.initial_shape(&bx);
             for v in Variant::ALL {
+                let t = std::time::Instant::now();
                 let lm = m.fit(&photo.gray, &bx, v);
+                eprintln!("{:.1} ms", t.elapsed().as_secs_f64() * 1e3);
                 eprintln!("view {} {:?}: init rms {:.2} -> {:.2}", s.view, v, rms(&init, &truth), rms(&lm.points, &truth));
+                let k = crate::dataset::KeyPoints::from_imm(&truth);
+                eprintln!("  truth {:?} found {:?}", k, lm.keypoints);
+                for st in search::starts(&m.model, &bx) { eprintln!("  start rms {:.1}", rms(&st, &truth)); }
             }
+        }
+    }
+}
+#[cfg(test)]
+mod diag2 {
+    use super::*;
+    #[test]
+    fn diag_modes() {
+        let s = crate::dataset::list_imm(&crate::config::shared_dir().join("data/imm")).unwrap();
+        let m = train::train(&s[..60], None, &train::TrainOptions::default(), &|| {}).unwrap();
+        for v in 1..=6 {
+            let mut acc = vec![0.0f32; 4];
+            let mut n = 0.0;
+            for x in s.iter().filter(|x| x.view == v) {
+                let (_, _, b) = m.full.fit(&x.landmarks().unwrap());
+                for k in 0..4 { acc[k] += b[k] / m.full.eigenvalues[k].sqrt(); }
+                n += 1.0;
+            }
+            eprintln!("view {v}: {:?}", acc.iter().map(|a| a / n).collect::<Vec<_>>());
         }
     }
 }

@@ -145,10 +145,12 @@ fn uses_sift(variant: Variant, point: usize) -> bool {
     }
 }
 
-/// Move each point to its best candidate by its texture model (thesis eq. 2.3).
-fn suggest(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], variant: Variant, ws: &mut Workspace, out: &mut Vec<Point>) {
+/// Move each point to its best candidate by its texture model (thesis eq. 2.3). Returns the sum
+/// of the best distances (the fit's texture cost).
+fn suggest(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], variant: Variant, ws: &mut Workspace, out: &mut Vec<Point>) -> f32 {
     normals(points, &model.neighbours, &mut ws.normals);
     out.clear();
+    let mut cost = 0.0;
     let p = &model.params;
     for (i, &pt) in points.iter().enumerate() {
         let n = ws.normals[i];
@@ -156,18 +158,40 @@ fn suggest(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], varian
             let r = p.sift_radius.get(level).or(p.sift_radius.last()).copied().unwrap_or(2);
             let m = &model.sifts[level][i];
             ws.grid.fill(&lvl.gradients, pt, n, r);
-            let (mut best, mut best_d) = ((0isize, 0isize), f32::INFINITY);
+            // Coarse-to-fine over the window: every other candidate first, then the 8 neighbours
+            // of the best one (the SIFT cost surface is smooth around its minimum, thesis fig. 2.3).
             let r = r as isize;
-            for da in -r..=r {
-                for db in -r..=r {
-                    ws.grid.descriptor(da, db, &mut ws.descriptor);
-                    let d = m.distance(&ws.descriptor, &mut ws.scratch);
+            let eval = |da: isize, db: isize, ws: &mut Workspace| {
+                ws.grid.descriptor(da, db, &mut ws.descriptor);
+                m.distance(&ws.descriptor, &mut ws.scratch)
+            };
+            let (mut best, mut best_d) = ((0isize, 0isize), f32::INFINITY);
+            let mut da = -r + (r % 2);
+            while da <= r {
+                let mut db = -r + (r % 2);
+                while db <= r {
+                    let d = eval(da, db, ws);
                     if d < best_d {
                         best_d = d;
                         best = (da, db);
                     }
+                    db += 2;
+                }
+                da += 2;
+            }
+            let centre = best;
+            for (oa, ob) in [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)] {
+                let (da, db) = (centre.0 + oa, centre.1 + ob);
+                if da.abs() > r || db.abs() > r {
+                    continue;
+                }
+                let d = eval(da, db, ws);
+                if d < best_d {
+                    best_d = d;
+                    best = (da, db);
                 }
             }
+            cost += best_d;
             let (da, db) = (best.0 as f32, best.1 as f32);
             out.push([pt[0] + da * n[0] - db * n[1], pt[1] + da * n[1] + db * n[0]]);
         } else {
@@ -184,9 +208,11 @@ fn suggest(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], varian
                     best = s;
                 }
             }
+            cost += best_d;
             out.push([pt[0] + best as f32 * n[0], pt[1] + best as f32 * n[1]]);
         }
     }
+    cost
 }
 
 /// Shape constraint: the full model alone (ASM, SIFT-ASM), or C-ASM's two group models first,
@@ -204,21 +230,50 @@ fn constrain(model: &AsmModel, suggested: &[Point], variant: Variant) -> Vec<Poi
     }
 }
 
-/// Run the coarse-to-fine search on prepared pyramid levels, from `start` (level-0 crop pixels).
-pub fn search_levels(model: &AsmModel, levels: &[Level], start: &[Point], variant: Variant, ws: &mut Workspace) -> Vec<Point> {
-    let mut current: Vec<Point> = start.to_vec();
-    let mut suggested = Vec::with_capacity(start.len());
-    for level in (0..levels.len()).rev() {
+/// One search iteration on a level: suggest, constrain. Returns the texture cost and whether the
+/// shape converged (the configured share of points moved less than a pixel).
+fn iterate(model: &AsmModel, lvl: &Level, level: usize, pts: &mut Vec<Point>, variant: Variant, ws: &mut Workspace, suggested: &mut Vec<Point>) -> (f32, bool) {
+    let cost = suggest(model, lvl, level, pts, variant, ws, suggested);
+    let next = constrain(model, suggested, variant);
+    if next.iter().any(|p| !p[0].is_finite() || !p[1].is_finite()) {
+        return (cost, true);
+    }
+    let still = next.iter().zip(pts.iter()).filter(|(a, b)| crate::geometry::distance(**a, **b) < 1.0).count();
+    *pts = next;
+    (cost, still as f32 >= model.params.converged_share * pts.len() as f32)
+}
+
+/// Run the coarse-to-fine search on prepared pyramid levels, from `starts` (level-0 crop pixels):
+/// on the coarsest level each start gets `probe_iterations`, the one with the lowest texture cost
+/// goes on.
+pub fn search_levels(model: &AsmModel, levels: &[Level], starts: &[Vec<Point>], variant: Variant, ws: &mut Workspace) -> Vec<Point> {
+    let mut suggested = Vec::with_capacity(starts[0].len());
+    let top = levels.len() - 1;
+    let mut best: Option<(f32, Vec<Point>, bool, usize)> = None;
+    for start in starts {
+        let mut pts: Vec<Point> = start.iter().map(|&p| to_level(p, top)).collect();
+        let (mut cost, mut done, mut used) = (f32::INFINITY, false, 0);
+        let probe = if starts.len() > 1 { model.params.probe_iterations } else { model.params.max_iterations };
+        while used < probe.min(model.params.max_iterations) && !done {
+            (cost, done) = iterate(model, &levels[top], top, &mut pts, variant, ws, &mut suggested);
+            used += 1;
+        }
+        if best.as_ref().is_none_or(|b| cost < b.0) {
+            best = Some((cost, pts, done, used));
+        }
+    }
+    let (_, mut pts, mut done, used) = best.expect("at least one start");
+    for _ in used..model.params.max_iterations {
+        if done {
+            break;
+        }
+        done = iterate(model, &levels[top], top, &mut pts, variant, ws, &mut suggested).1;
+    }
+    let mut current: Vec<Point> = pts.iter().map(|&p| from_level(p, top)).collect();
+    for level in (0..top).rev() {
         let mut pts: Vec<Point> = current.iter().map(|&p| to_level(p, level)).collect();
         for _ in 0..model.params.max_iterations {
-            suggest(model, &levels[level], level, &pts, variant, ws, &mut suggested);
-            let next = constrain(model, &suggested, variant);
-            if next.iter().any(|p| !p[0].is_finite() || !p[1].is_finite()) {
-                break;
-            }
-            let still = next.iter().zip(&pts).filter(|(a, b)| crate::geometry::distance(**a, **b) < 1.0).count();
-            pts = next;
-            if still as f32 >= model.params.converged_share * pts.len() as f32 {
+            if iterate(model, &levels[level], level, &mut pts, variant, ws, &mut suggested).1 {
                 break;
             }
         }
@@ -227,18 +282,28 @@ pub fn search_levels(model: &AsmModel, levels: &[Level], start: &[Point], varian
     current
 }
 
-/// The pose placing the mean shape for `face`, from the learnt placement statistics.
-pub fn placement_pose(model: &AsmModel, face: &Rect) -> Similarity {
-    let pl = &model.placement;
+/// Starting shapes in image pixels, each placed from the box by its learnt placement.
+pub fn starts(model: &AsmModel, face: &Rect) -> Vec<Vec<Point>> {
+    model
+        .starts
+        .iter()
+        .map(|st| {
+            let pose = placement_pose(&st.placement, face);
+            model.full.shape(&st.b).iter().map(|&p| pose.apply(p)).collect()
+        })
+        .collect()
+}
+
+/// The pose placing a start shape for `face`.
+pub fn placement_pose(pl: &super::Placement, face: &Rect) -> Similarity {
     let c = face.center();
     let s = pl.scale_per_width * face.width;
     Similarity { a: s, b: 0.0, tx: c[0] + pl.dx * face.width, ty: c[1] + pl.dy * face.width }
 }
 
-/// The mean shape placed from the box, in image pixels.
+/// The frontal start shape placed from the box, in image pixels.
 pub fn place(model: &AsmModel, face: &Rect) -> Vec<Point> {
-    let pose = placement_pose(model, face);
-    model.full.mean.iter().map(|&p| pose.apply(p)).collect()
+    starts(model, face).swap_remove(0)
 }
 
 fn usable_box(face: &Rect, gray: &GrayF32) -> Rect {
@@ -257,12 +322,12 @@ pub fn fit(model: &AsmModel, gray: &GrayF32, face: &Rect, variant: Variant) -> V
     if gray.width < 2 || gray.height < 2 || gray.data.len() != gray.width * gray.height {
         return start;
     }
-    let pose = placement_pose(model, &face);
+    let pose = placement_pose(&model.starts[0].placement, &face);
     let frame = Frame::from_pose(&pose, model.params.crop_size);
     let crop = frame.crop(gray, model.params.crop_size);
     let levels = pyramid(crop, model.params.levels);
-    let start_crop: Vec<Point> = start.iter().map(|&p| frame.to_crop(p)).collect();
+    let starts: Vec<Vec<Point>> = starts(model, &face).iter().map(|s| s.iter().map(|&p| frame.to_crop(p)).collect()).collect();
     let mut ws = Workspace::default();
-    let found = search_levels(model, &levels, &start_crop, variant, &mut ws);
+    let found = search_levels(model, &levels, &starts, variant, &mut ws);
     found.iter().map(|&p| frame.to_image(p)).collect()
 }

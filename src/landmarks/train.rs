@@ -11,7 +11,7 @@ use crate::imaging::{self, GrayF32};
 use super::mahalanobis::{FullGaussian, PcaGaussian};
 use super::pdm::ShapeModel;
 use super::search::{Frame, normals, pyramid, to_level};
-use super::{AsmModel, BoxSource, LandmarkError, MODEL_FORMAT, Placement, SearchParams, TrainInfo, profile, sift};
+use super::{AsmModel, BoxSource, LandmarkError, MODEL_FORMAT, Placement, SearchParams, Start, TrainInfo, profile, sift};
 
 /// Training settings (thesis defaults).
 #[derive(Debug, Clone)]
@@ -50,6 +50,45 @@ fn median(v: &mut [f32]) -> f32 {
     if v.is_empty() { 0.0 } else { v[v.len() / 2] }
 }
 
+/// Group the training shapes by their first coefficient (turned one way, frontal, turned the other
+/// way, at ±`threshold` σ) and learn each group's mean shape and its placement relative to the
+/// boxes. The frontal group (all photos when `threshold` is 0) comes first.
+fn learn_starts(full: &ShapeModel, shapes: &[Vec<Point>], boxes: &[Option<Rect>], threshold: f32) -> Vec<Start> {
+    let coefs: Vec<Vec<f32>> = shapes.iter().map(|s| full.fit(s).2).collect();
+    let sigma0 = full.eigenvalues.first().map_or(1.0, |l| l.sqrt().max(1e-6));
+    let group_of = |b: &[f32]| -> usize {
+        let z = b.first().copied().unwrap_or(0.0) / sigma0;
+        if threshold <= 0.0 || z.abs() <= threshold { 0 } else if z > 0.0 { 1 } else { 2 }
+    };
+    let mut out = Vec::new();
+    for g in 0..3 {
+        let members: Vec<usize> = (0..shapes.len()).filter(|&i| group_of(&coefs[i]) == g).collect();
+        let placed: Vec<usize> = members.iter().copied().filter(|&i| boxes[i].is_some()).collect();
+        if placed.len() < 3 {
+            continue;
+        }
+        let mut b = vec![0.0f32; full.modes()];
+        for &i in &members {
+            for (a, c) in b.iter_mut().zip(&coefs[i]) {
+                *a += c / members.len() as f32;
+            }
+        }
+        let start_shape = full.shape(&b);
+        let (mut sc, mut dx, mut dy) = (Vec::new(), Vec::new(), Vec::new());
+        for &i in &placed {
+            let bx = boxes[i].expect("filtered");
+            let pose = Similarity::fit(&start_shape, &shapes[i], None);
+            let c = bx.center();
+            sc.push(pose.scale() / bx.width);
+            dx.push((pose.tx - c[0]) / bx.width);
+            dy.push((pose.ty - c[1]) / bx.width);
+        }
+        let placement = Placement { scale_per_width: median(&mut sc), dx: median(&mut dx), dy: median(&mut dy) };
+        out.push(Start { b, placement, photos: members.len() });
+    }
+    out
+}
+
 /// Neighbours of each point on its contour from the `.asf` connectivity (`from`, `to`).
 fn neighbours(sample: &ImmSample) -> Result<Vec<[u16; 2]>, LandmarkError> {
     let shape = dataset::read_asf(&sample.asf, 1.0, 1.0).map_err(|e| LandmarkError::Training(e.to_string()))?;
@@ -79,30 +118,20 @@ pub fn train(samples: &[ImmSample], detector: Option<&Detector>, options: &Train
     let n = full.points();
     let mut profile_samples: Vec<Vec<Vec<Vec<f32>>>> = vec![vec![Vec::new(); n]; p.levels];
     let mut sift_samples: Vec<Vec<Vec<Vec<f32>>>> = vec![vec![Vec::new(); n]; p.levels];
-    let mut det_stats = (Vec::new(), Vec::new(), Vec::new());
     let (mut misses, mut detected) = (0usize, 0usize);
-    let mut annotation_stats = (Vec::new(), Vec::new(), Vec::new());
+    let mut boxes: Vec<Option<Rect>> = Vec::with_capacity(samples.len());
     let mut nrm = Vec::new();
     for (sample, shape) in samples.iter().zip(&shapes) {
         let photo = imaging::open(&sample.image).map_err(|e| LandmarkError::Training(e.to_string()))?;
         let pose = Similarity::fit(&full.mean, shape, None);
-        // Placement statistics: shape pose relative to the box.
-        let record = |b: Rect, into: &mut (Vec<f32>, Vec<f32>, Vec<f32>)| {
-            let c = b.center();
-            into.0.push(pose.scale() / b.width);
-            into.1.push((pose.tx - c[0]) / b.width);
-            into.2.push((pose.ty - c[1]) / b.width);
-        };
-        record(annotation_box(shape), &mut annotation_stats);
-        if let Some(det) = detector {
-            match detector_box(det, &photo.gray, shape) {
-                Some(b) => {
-                    detected += 1;
-                    record(b, &mut det_stats);
-                }
-                None => misses += 1,
+        boxes.push(match detector {
+            Some(det) => {
+                let b = detector_box(det, &photo.gray, shape);
+                if b.is_some() { detected += 1 } else { misses += 1 }
+                b
             }
-        }
+            None => None,
+        });
         // Texture statistics at the annotated points, in the same crop the search uses.
         let frame = Frame::from_pose(&Similarity { a: pose.scale(), b: 0.0, tx: pose.tx, ty: pose.ty }, p.crop_size);
         let levels = pyramid(frame.crop(&photo.gray, p.crop_size), p.levels);
@@ -117,13 +146,17 @@ pub fn train(samples: &[ImmSample], detector: Option<&Detector>, options: &Train
         }
         tick();
     }
-    let (box_source, placement) = if detected >= 3 {
-        let (mut s, mut x, mut y) = det_stats;
-        (BoxSource::Detector, Placement { scale_per_width: median(&mut s), dx: median(&mut x), dy: median(&mut y) })
-    } else {
-        let (mut s, mut x, mut y) = annotation_stats;
-        (BoxSource::Annotation, Placement { scale_per_width: median(&mut s), dx: median(&mut x), dy: median(&mut y) })
+    // Placement from detector boxes when the detector found enough of the training faces; photos
+    // it missed are left out. Otherwise from the annotation boxes.
+    let box_source = if detected >= 3 { BoxSource::Detector } else { BoxSource::Annotation };
+    let boxes: Vec<Option<Rect>> = match box_source {
+        BoxSource::Detector => boxes,
+        BoxSource::Annotation => shapes.iter().map(|s| Some(annotation_box(s))).collect(),
     };
+    let starts = learn_starts(&full, &shapes, &boxes, p.yaw_start);
+    if starts.is_empty() {
+        return Err(LandmarkError::Training("fewer than 3 photos with a face box".into()));
+    }
     let profiles = profile_samples.iter().map(|lv| lv.iter().map(|s| FullGaussian::train(s, options.profile_ridge)).collect()).collect();
     let sifts = sift_samples.iter().map(|lv| lv.iter().map(|s| PcaGaussian::train(s, options.sift_modes)).collect()).collect();
     let mut persons: Vec<u32> = samples.iter().map(|s| s.person).collect();
@@ -137,7 +170,7 @@ pub fn train(samples: &[ImmSample], detector: Option<&Detector>, options: &Train
         contour,
         profiles,
         sifts,
-        placement,
+        starts,
         info: TrainInfo { images: samples.len(), persons, box_source, detector_misses: misses },
     })
 }
