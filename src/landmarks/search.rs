@@ -230,6 +230,25 @@ fn constrain(model: &AsmModel, suggested: &[Point], variant: Variant) -> Vec<Poi
     }
 }
 
+/// The texture cost of the points where they are (no candidates): ranks the starting shapes.
+fn texture_cost(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], variant: Variant, ws: &mut Workspace) -> f32 {
+    normals(points, &model.neighbours, &mut ws.normals);
+    let mut cost = 0.0;
+    for (i, &pt) in points.iter().enumerate() {
+        let n = ws.normals[i];
+        if uses_sift(variant, i) {
+            ws.grid.fill(&lvl.gradients, pt, n, 0);
+            ws.grid.descriptor(0, 0, &mut ws.descriptor);
+            cost += model.sifts[level][i].distance(&ws.descriptor, &mut ws.scratch);
+        } else {
+            ws.strip.fill(&lvl.image, pt, n, 0);
+            ws.strip.profile(0, &mut ws.profile);
+            cost += model.profiles[level][i].distance(&ws.profile);
+        }
+    }
+    cost
+}
+
 /// One search iteration on a level: suggest, constrain. Returns the texture cost and whether the
 /// shape converged (the configured share of points moved less than a pixel).
 fn iterate(model: &AsmModel, lvl: &Level, level: usize, pts: &mut Vec<Point>, variant: Variant, ws: &mut Workspace, suggested: &mut Vec<Point>) -> (f32, bool) {
@@ -244,8 +263,8 @@ fn iterate(model: &AsmModel, lvl: &Level, level: usize, pts: &mut Vec<Point>, va
 }
 
 /// Run the coarse-to-fine search on prepared pyramid levels, from `starts` (level-0 crop pixels):
-/// on the coarsest level each start gets `probe_iterations`, the one with the lowest texture cost
-/// goes on.
+/// on the coarsest level each start gets `probe_iterations` (0: none, its cost where it
+/// stands), the one with the lowest texture cost goes on.
 pub fn search_levels(model: &AsmModel, levels: &[Level], starts: &[Vec<Point>], variant: Variant, ws: &mut Workspace) -> Vec<Point> {
     let mut suggested = Vec::with_capacity(starts[0].len());
     let top = levels.len() - 1;
@@ -254,6 +273,9 @@ pub fn search_levels(model: &AsmModel, levels: &[Level], starts: &[Vec<Point>], 
         let mut pts: Vec<Point> = start.iter().map(|&p| to_level(p, top)).collect();
         let (mut cost, mut done, mut used) = (f32::INFINITY, false, 0);
         let probe = if starts.len() > 1 { model.params.probe_iterations } else { model.params.max_iterations };
+        if probe == 0 {
+            cost = texture_cost(model, &levels[top], top, &pts, variant, ws);
+        }
         while used < probe.min(model.params.max_iterations) && !done {
             (cost, done) = iterate(model, &levels[top], top, &mut pts, variant, ws, &mut suggested);
             used += 1;

@@ -275,27 +275,3 @@ mod tests {
         assert!(dist(&out, &descriptor(&g, p, n)) < 1e-4);
     }
 }
-
-#[cfg(test)]
-mod timing {
-    use super::*;
-    #[test]
-    fn diag_timing() {
-        let img = GrayF32::from_fn(200, 200, |x, y| ((x * 7 + y * 13) % 31) as f32 + (x as f32 * 0.1).sin() * 20.0);
-        let g = Gradients::new(&img);
-        let mut grid = DescriptorGrid::new();
-        let t = std::time::Instant::now();
-        for k in 0..100 {
-            grid.fill(&g, [100.0 + k as f32 * 0.1, 90.0], [0.6, 0.8], 3);
-        }
-        eprintln!("fill r=3: {:.2} us", t.elapsed().as_secs_f64() * 1e6 / 100.0);
-        let mut out = [0.0; DESCRIPTOR_LEN];
-        let t = std::time::Instant::now();
-        let mut acc = 0.0;
-        for k in 0..10000 {
-            grid.descriptor((k % 7) as isize - 3, ((k / 7) % 7) as isize - 3, &mut out);
-            acc += out[5];
-        }
-        eprintln!("descriptor: {:.2} us {acc}", t.elapsed().as_secs_f64() * 1e6 / 10000.0);
-    }
-}
