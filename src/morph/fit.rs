@@ -33,7 +33,7 @@ pub struct FitOptions {
 
 impl Default for FitOptions {
     fn default() -> Self {
-        Self { iterations: 5, lambda: 3.0, landmark_sigma_px: 3f64.sqrt(), expressions: false, expression_lambda: 10.0 }
+        Self { iterations: 5, lambda: 30.0, landmark_sigma_px: 3f64.sqrt(), expressions: false, expression_lambda: 10.0 }
     }
 }
 
@@ -231,36 +231,50 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
     })
 }
 
-/// Give each jaw landmark (except the chin) the vertex of its side's model contour whose projection
-/// is nearest to it.
+/// Give each jaw landmark (except the chin) the vertex of its side whose projection is nearest to
+/// it, among the model contour of that side (`sfm_model_contours.json`) and the cheek vertices that
+/// lie on the occluding boundary at the current rotation (normal nearly perpendicular to the viewing
+/// direction): as the head turns, the visible jaw outline moves over the mesh, and a fixed contour
+/// line would project inside it.
 fn update_contour(model: &FaceModel, cam: &Camera, alpha: &[f64], psi: &[f64], points: &[Point], corr: &mut [u32; IMM_POINTS]) {
-    let mut left = [[0.0f64; 2]; 64];
-    let mut right = [[0.0f64; 2]; 64];
-    let nl = model.contour_image_left.len().min(64);
-    let nr = model.contour_image_right.len().min(64);
-    for (k, &vid) in model.contour_image_left.iter().take(nl).enumerate() {
-        let q = cam.project(model.vertex(vid as usize, alpha, psi));
-        left[k] = [q[0], q[1]];
-    }
-    for (k, &vid) in model.contour_image_right.iter().take(nr).enumerate() {
-        let q = cam.project(model.vertex(vid as usize, alpha, psi));
-        right[k] = [q[0], q[1]];
-    }
-    for j in JAW {
-        if j == 6 {
+    let r2 = cam.rotation[2];
+    for (side_left, contour, cheek) in [
+        (true, &model.contour_image_left, &model.cheek_image_left),
+        (false, &model.contour_image_right, &model.cheek_image_right),
+    ] {
+        let on_boundary = cheek.iter().copied().filter(|&v| {
+            let n = model.mean_normals[v as usize];
+            (r2[0] * n[0] as f64 + r2[1] * n[1] as f64 + r2[2] * n[2] as f64).abs() < SILHOUETTE_COSINE
+        });
+        let candidates: Vec<(u32, [f64; 2])> = contour
+            .iter()
+            .copied()
+            .chain(on_boundary)
+            .map(|v| {
+                let q = cam.project(model.vertex(v as usize, alpha, psi));
+                (v, [q[0], q[1]])
+            })
+            .collect();
+        if candidates.is_empty() {
             continue;
         }
-        let (proj, ids, n) = if j < 6 { (&left, &model.contour_image_left, nl) } else { (&right, &model.contour_image_right, nr) };
-        let p = points[j];
-        let mut best = (0usize, f64::INFINITY);
-        for (k, q) in proj.iter().take(n).enumerate() {
-            let d = (q[0] - p[0] as f64).powi(2) + (q[1] - p[1] as f64).powi(2);
-            if d < best.1 {
-                best = (k, d);
+        for j in JAW {
+            if j == 6 || (j < 6) != side_left {
+                continue;
             }
-        }
-        if n > 0 {
-            corr[j] = ids[best.0];
+            let p = points[j];
+            let mut best = (candidates[0].0, f64::INFINITY);
+            for &(v, q) in &candidates {
+                let d = (q[0] - p[0] as f64).powi(2) + (q[1] - p[1] as f64).powi(2);
+                if d < best.1 {
+                    best = (v, d);
+                }
+            }
+            corr[j] = best.0;
         }
     }
 }
+
+/// |cos| between a vertex normal and the viewing direction below which the vertex counts as lying
+/// on the occluding boundary.
+const SILHOUETTE_COSINE: f64 = 0.25;

@@ -82,6 +82,12 @@ pub struct FaceModel {
     /// top of the jaw towards the chin.
     pub contour_image_left: Vec<u32>,
     pub contour_image_right: Vec<u32>,
+    /// Cheek and jaw vertices of each side (|x| > 25 mm, between chin and eye height): the
+    /// candidates for the occluding jaw outline when the head turns.
+    pub cheek_image_left: Vec<u32>,
+    pub cheek_image_right: Vec<u32>,
+    /// Unit vertex normals of the mean shape (outwards).
+    pub mean_normals: Vec<[f32; 3]>,
     /// The vertex of every IMM point (jaw points other than the chin: placeholder, updated by the fit).
     pub imm_vertices: [u32; IMM_POINTS],
     /// The mirror vertex of every vertex.
@@ -183,12 +189,28 @@ impl FaceModel {
         let projected: Vec<[f32; 3]> = shape.mean.chunks_exact(3).map(|p| [p[0], -p[1], p[2]]).collect();
         let total: f32 = shape.triangles.iter().map(|&t| render::facing_of(&projected, t, 1.0)).sum();
         let winding = if total >= 0.0 { 1.0 } else { -1.0 };
+        let mean_normals = vertex_normals(&shape.mean, &shape.triangles, winding);
+        let eye_y = shape.mean[3 * 177 + 1].max(shape.mean[3 * 610 + 1]);
+        let chin_y = shape.mean[3 * 33 + 1];
+        let cheek = |left: bool| -> Vec<u32> {
+            (0..nv as u32)
+                .filter(|&v| {
+                    let p = &shape.mean[3 * v as usize..3 * v as usize + 3];
+                    let side = if left { p[0] < -25.0 } else { p[0] > 25.0 };
+                    side && p[1] < eye_y && p[1] > chin_y
+                })
+                .collect()
+        };
+        let (cheek_image_left, cheek_image_right) = (cheek(true), cheek(false));
         Ok(FaceModel {
             shape,
             scaled_basis,
             blendshapes,
             contour_image_left,
             contour_image_right,
+            cheek_image_left,
+            cheek_image_right,
+            mean_normals,
             imm_vertices,
             symmetry,
             mirror_triangles,
@@ -358,6 +380,31 @@ impl FaceModel {
             })
             .collect()
     }
+}
+
+/// Area-weighted vertex normals, oriented outwards (towards +z on the front of the face).
+fn vertex_normals(mean: &[f32], triangles: &[[u32; 3]], winding: f32) -> Vec<[f32; 3]> {
+    let mut normals = vec![[0.0f32; 3]; mean.len() / 3];
+    let p = |i: u32| [mean[3 * i as usize], mean[3 * i as usize + 1], mean[3 * i as usize + 2]];
+    for t in triangles {
+        let (a, b, c) = (p(t[0]), p(t[1]), p(t[2]));
+        let e1 = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+        let e2 = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+        // In model coordinates (y up) the image-space winding sign flips.
+        let n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]].map(|c| -winding * c);
+        for &v in t {
+            for d in 0..3 {
+                normals[v as usize][d] += n[d];
+            }
+        }
+    }
+    for n in &mut normals {
+        let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        if len > 0.0 {
+            n.iter_mut().for_each(|c| *c /= len);
+        }
+    }
+    normals
 }
 
 #[cfg(test)]
