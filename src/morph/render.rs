@@ -107,6 +107,8 @@ pub const TEXEL_FILLED: u8 = 64;
 /// Minimal cosine between a triangle's normal and the viewing direction for its texture to be
 /// taken from the photo: grazing triangles smear a few pixels across many texels.
 const MIN_FACING: f32 = 0.2;
+/// Below this cosine a triangle's own texture is used only if its mirror faces the camera less.
+const OBLIQUE_FACING: f32 = 0.5;
 
 /// Extract the texture of the photo into the model's UV map (`size`×`size`), with z-buffer
 /// visibility; texels of hidden triangles take the photo's colour at the mirror triangle
@@ -135,8 +137,12 @@ pub fn extract_texture(
             [c[0] * fs - 0.5, c[1] * fs - 0.5]
         });
         let m = mirror_triangles[ti];
-        let direct = facing[ti] >= MIN_FACING;
-        let mirror_ok = facing_of(projected, m, winding) >= MIN_FACING;
+        // Mirroring reverses the winding of the mirror triangle's vertex order: negate.
+        let mirror_facing = -facing_of(projected, m, winding);
+        let mirror_ok = mirror_facing >= MIN_FACING;
+        // Near the outline the fitted shape and the real one disagree most (background and hair
+        // creep in): there, prefer the mirror side when it faces the camera better.
+        let direct = facing[ti] >= MIN_FACING && (facing[ti] >= OBLIQUE_FACING || facing[ti] >= mirror_facing);
         let (a, b, c) = (projected[t[0] as usize], projected[t[1] as usize], projected[t[2] as usize]);
         let (ma, mb, mc) = (projected[m[0] as usize], projected[m[1] as usize], projected[m[2] as usize]);
         raster_triangle(uv, size, size, |x, y, w| {
