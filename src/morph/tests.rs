@@ -241,3 +241,45 @@ fn imm_views_are_fitted_with_plausible_yaws() {
     // turned less than others.
     assert!((15.0..=40.0).contains(&-median(&yaws[3])) && (20.0..=40.0).contains(&median(&yaws[4])));
 }
+
+/// The pictures of docs/morph.md: for IMM views 3 and 4 of a few held-out persons, the input
+/// (cropped round the landmarks) | the frontal rendering | the avatar at yaw −45°, 0°, +45°.
+/// Run: `cargo test --lib morph::tests::write_doc_pictures -- --ignored`.
+#[test]
+#[ignore]
+fn write_doc_pictures() {
+    use image::imageops::{FilterType, resize};
+    let m = model();
+    let out_dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/img/morph");
+    std::fs::create_dir_all(&out_dir).unwrap();
+    let samples = list_imm(&crate::config::shared_dir().join("data/imm")).unwrap();
+    let tile = 160u32;
+    for person in [2u32, 5, 10] {
+        let mut sheet = image::RgbImage::new(5 * tile, 2 * tile);
+        for (row, view) in [3u32, 4].into_iter().enumerate() {
+            let s = samples.iter().find(|s| s.person == person && s.view == view).unwrap();
+            let photo = crate::imaging::open(&s.image).unwrap();
+            let pts = s.landmarks().unwrap();
+            let fit = m.fit(&pts, photo.width(), photo.height()).unwrap();
+            let r = crate::geometry::Rect::bounding(&pts).unwrap();
+            let side = 1.5 * r.width.max(r.height);
+            let (cx, cy) = (r.center()[0], r.center()[1] - 0.1 * side);
+            let x0 = (cx - side / 2.0).clamp(0.0, photo.width() as f32 - side) as u32;
+            let y0 = (cy - side / 2.0).clamp(0.0, photo.height() as f32 - side) as u32;
+            let crop = image::imageops::crop_imm(&photo.rgb, x0, y0, side as u32, side as u32).to_image();
+            let texture = m.extract_texture(&photo.rgb, &fit, 512);
+            let frontal = m.frontalize_sized(&photo, &fit, tile as usize, 512).unwrap();
+            let mut tiles = vec![resize(&crop, tile, tile, FilterType::Triangle), frontal.image];
+            for yaw in [-45.0f32, 0.0, 45.0] {
+                tiles.push(m.render_pose(&fit, &texture, Pose { yaw, pitch: 0.0, roll: 0.0 }, tile as usize, tile as usize));
+            }
+            for (col, t) in tiles.iter().enumerate() {
+                image::imageops::replace(&mut sheet, t, (col as u32 * tile) as i64, (row as u32 * tile) as i64);
+            }
+            eprintln!("{person:02}-{view}: yaw {:.1} pitch {:.1} roll {:.1}", fit.pose.yaw, fit.pose.pitch, fit.pose.roll);
+        }
+        // IMM photos are grey: store one channel.
+        let gray = image::DynamicImage::ImageRgb8(sheet).to_luma8();
+        gray.save(out_dir.join(format!("imm-{person:02}-views-3-4.png"))).unwrap();
+    }
+}
