@@ -138,3 +138,65 @@ pub fn run_frontalize(args: FrontalizeArgs) -> anyhow::Result<ExitCode> {
     }));
     Ok(ExitCode::SUCCESS)
 }
+
+#[derive(clap::Args, Debug)]
+pub struct TrainImmSfmArgs {
+    /// Surrey Face Model folder (default: FACEGATE_SFM, else ../shared/models/sfm).
+    #[arg(long)]
+    pub sfm: Option<PathBuf>,
+    /// IMM folder (default: <shared>/data/imm).
+    #[arg(long)]
+    pub imm: Option<PathBuf>,
+    /// Refinement rounds.
+    #[arg(long, default_value_t = 3)]
+    pub rounds: usize,
+    /// Search radius around each point's current vertex, millimetres on the mean shape.
+    #[arg(long, default_value_t = 12.0)]
+    pub radius_mm: f32,
+    #[arg(long, default_value = "models/imm_to_sfm.txt")]
+    pub out: PathBuf,
+}
+
+/// `facegate train imm-sfm`: refine the fixed IMM correspondences on the frontal views (1, 2) of
+/// the IMM training persons (never the held-out ones) and write the table.
+pub fn run_train_imm_sfm(args: TrainImmSfmArgs) -> anyhow::Result<ExitCode> {
+    let dir = args.sfm.clone().unwrap_or_else(crate::config::sfm_dir);
+    let mut model = FaceModel::load(&dir).context("the 3D morphable model is needed for this command")?;
+    // Start from the geometric anchors, not from a previously written table.
+    model.imm_vertices = crate::morph::correspondence::resolve(&crate::morph::correspondence::imm_anchors(), &model.shape.mean);
+    let imm = args.imm.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/imm"));
+    let mut shapes = Vec::new();
+    let mut persons = std::collections::BTreeSet::new();
+    for s in crate::dataset::list_imm(&imm)? {
+        if crate::dataset::imm_is_test_person(s.person) || !(s.view == 1 || s.view == 2) {
+            continue;
+        }
+        let (w, h) = image::image_dimensions(&s.image)?;
+        shapes.push((s.landmarks()?, w, h));
+        persons.insert(s.person);
+    }
+    if shapes.is_empty() {
+        bail!("no IMM training annotations in {}", imm.display());
+    }
+    let (table, before, after) = crate::morph::correspondence::derive_from_annotations(&mut model, &shapes, args.rounds, args.radius_mm)?;
+    let anchors = crate::morph::correspondence::imm_anchors();
+    let mut text = String::new();
+    text.push_str("# IMM point -> Surrey Face Model (sfm_shape_3448) vertex id, for the fixed points (jaw 0-12 except\n");
+    text.push_str("# the chin slide along the model contour at fit time). Written by `facegate train imm-sfm`:\n");
+    text.push_str(&format!(
+        "# geometric anchors (src/morph/correspondence.rs) refined in {} rounds within {} mm on the frontal views\n",
+        args.rounds, args.radius_mm
+    ));
+    text.push_str(&format!("# (1, 2) of IMM training persons {:?}; RMS landmark residual {before:.2} px -> {after:.2} px.\n", persons));
+    for (i, v) in table.iter().enumerate() {
+        if !matches!(anchors[i], crate::morph::correspondence::Anchor::Contour { .. }) {
+            text.push_str(&format!("{i} {v}\n"));
+        }
+    }
+    std::fs::write(&args.out, text).with_context(|| format!("cannot write {}", args.out.display()))?;
+    super::print_json_line(&serde_json::json!({
+        "shapes": shapes.len(), "persons": persons.len(), "residual_px_before": before, "residual_px_after": after,
+        "out": args.out.display().to_string(),
+    }));
+    Ok(ExitCode::SUCCESS)
+}

@@ -88,7 +88,8 @@ pub struct FaceModel {
     pub cheek_image_right: Vec<u32>,
     /// Unit vertex normals of the mean shape (outwards).
     pub mean_normals: Vec<[f32; 3]>,
-    /// The vertex of every IMM point (jaw points other than the chin: placeholder, updated by the fit).
+    /// The vertex of every IMM point (jaw points other than the chin: placeholder, updated by the
+    /// fit): the committed table `models/imm_to_sfm.txt` over the geometric anchors.
     pub imm_vertices: [u32; IMM_POINTS],
     /// The mirror vertex of every vertex.
     pub symmetry: Vec<u32>,
@@ -182,7 +183,8 @@ impl FaceModel {
         } else {
             (contour.left_contour.clone(), contour.right_contour.clone())
         };
-        let imm_vertices = correspondence::resolve(&anchors, &shape.mean);
+        let geometric = correspondence::resolve(&anchors, &shape.mean);
+        let imm_vertices = correspondence::parse_table(correspondence::DERIVED_TABLE, nv, geometric).map_err(bad)?;
         let symmetry = correspondence::complete_symmetry(reference_symmetry, &shape.mean);
         let mirror_triangles = shape.triangles.iter().map(|t| t.map(|v| symmetry[v as usize])).collect();
         // Winding: project the mean from the front and see which sign most triangle normals take.
