@@ -107,12 +107,19 @@ pub const TEXEL_FILLED: u8 = 64;
 /// Minimal cosine between a triangle's normal and the viewing direction for its texture to be
 /// taken from the photo: grazing triangles smear a few pixels across many texels.
 const MIN_FACING: f32 = 0.2;
-/// Below this cosine a triangle's own texture is used only if its mirror faces the camera less.
-const OBLIQUE_FACING: f32 = 0.5;
+/// From this cosine on, a triangle's own view is used alone.
+const FULL_FACING: f32 = 0.6;
+
+/// Weight of a view of a triangle from its facing cosine: 0 below `MIN_FACING`, 1 from `FULL_FACING`.
+#[inline]
+fn facing_ramp(cosine: f32) -> f32 {
+    ((cosine - MIN_FACING) / (FULL_FACING - MIN_FACING)).clamp(0.0, 1.0)
+}
 
 /// Extract the texture of the photo into the model's UV map (`size`×`size`), with z-buffer
-/// visibility; texels of hidden triangles take the photo's colour at the mirror triangle
-/// (symmetry completion); the rest take the mean colour of the seen texels.
+/// visibility. Each texel blends the photo at its own triangle (weight rising with the facing
+/// cosine from 0.2 to 0.6) with the photo at the mirror triangle (symmetry completion) for what the
+/// own view lacks; texels with neither take the mean colour of the seen texels.
 /// `projected`: vertex image positions and depths; `facing`: per-triangle cosine to the viewer
 /// (from [`facing_of`] with the model's `winding`).
 pub fn extract_texture(
@@ -139,10 +146,15 @@ pub fn extract_texture(
         let m = mirror_triangles[ti];
         // Mirroring reverses the winding of the mirror triangle's vertex order: negate.
         let mirror_facing = -facing_of(projected, m, winding);
-        let mirror_ok = mirror_facing >= MIN_FACING;
-        // Near the outline the fitted shape and the real one disagree most (background and hair
-        // creep in): there, prefer the mirror side when it faces the camera better.
-        let direct = facing[ti] >= MIN_FACING && (facing[ti] >= OBLIQUE_FACING || facing[ti] >= mirror_facing);
+        // Blend weights: the triangle's own view counts fully once it faces the camera well; the
+        // mirror fills in what the own view lacks. Near the outline (oblique triangles) the fitted
+        // and the real shape disagree most and background creeps in, so the mirror side takes
+        // over smoothly there instead of along a hard seam.
+        let own_weight = facing_ramp(facing[ti]);
+        let mirror_weight = facing_ramp(mirror_facing);
+        if own_weight <= 0.0 && mirror_weight <= 0.0 {
+            continue;
+        }
         let (a, b, c) = (projected[t[0] as usize], projected[t[1] as usize], projected[t[2] as usize]);
         let (ma, mb, mc) = (projected[m[0] as usize], projected[m[1] as usize], projected[m[2] as usize]);
         raster_triangle(uv, size, size, |x, y, w| {
@@ -150,34 +162,46 @@ pub fn extract_texture(
             if texels[i + 3] == TEXEL_SEEN {
                 return;
             }
-            if direct {
+            let mut own = None;
+            if own_weight > 0.0 {
                 let (px, py, pz) = (
                     w[0] * a[0] + w[1] * b[0] + w[2] * c[0],
                     w[0] * a[1] + w[1] * b[1] + w[2] * c[1],
                     w[0] * a[2] + w[1] * b[2] + w[2] * c[2],
                 );
                 if zbuf.visible(px, py, pz, depth_tolerance) {
-                    let rgb = sample_rgb(photo, px, py);
-                    texels[i..i + 3].copy_from_slice(&[rgb[0] as u8, rgb[1] as u8, rgb[2] as u8]);
-                    texels[i + 3] = TEXEL_SEEN;
-                    for k in 0..3 {
-                        sum[k] += rgb[k] as f64;
-                    }
-                    count += 1;
-                    return;
+                    own = Some(sample_rgb(photo, px, py));
                 }
             }
-            if mirror_ok && texels[i + 3] != TEXEL_MIRRORED {
+            let wo = if own.is_some() { own_weight } else { 0.0 };
+            let mut mirrored = None;
+            if wo < 1.0 && mirror_weight > 0.0 {
                 let (px, py, pz) = (
                     w[0] * ma[0] + w[1] * mb[0] + w[2] * mc[0],
                     w[0] * ma[1] + w[1] * mb[1] + w[2] * mc[1],
                     w[0] * ma[2] + w[1] * mb[2] + w[2] * mc[2],
                 );
                 if zbuf.visible(px, py, pz, depth_tolerance) {
-                    let rgb = sample_rgb(photo, px, py);
-                    texels[i..i + 3].copy_from_slice(&[rgb[0] as u8, rgb[1] as u8, rgb[2] as u8]);
-                    texels[i + 3] = TEXEL_MIRRORED;
+                    mirrored = Some(sample_rgb(photo, px, py));
                 }
+            }
+            let wm = if mirrored.is_some() { mirror_weight * (1.0 - wo) } else { 0.0 };
+            let total = wo + wm;
+            if total <= 0.0 {
+                return;
+            }
+            let (o, mr) = (own.unwrap_or([0.0; 3]), mirrored.unwrap_or([0.0; 3]));
+            for k in 0..3 {
+                texels[i + k] = ((wo * o[k] + wm * mr[k]) / total).round().clamp(0.0, 255.0) as u8;
+            }
+            if wo >= wm {
+                texels[i + 3] = TEXEL_SEEN;
+                for k in 0..3 {
+                    sum[k] += o[k] as f64;
+                }
+                count += 1;
+            } else {
+                texels[i + 3] = TEXEL_MIRRORED;
             }
         });
     }
