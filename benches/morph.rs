@@ -19,7 +19,7 @@ fn bench(c: &mut Criterion) {
     let fitted = model.fit(&points, w, h).expect("fit");
 
     c.bench_function("morph/fit", |b| b.iter(|| model.fit(std::hint::black_box(&points), w, h).unwrap()));
-    c.bench_function("morph/texture_256", |b| b.iter(|| model.extract_texture(&photo.rgb, &fitted, TEXTURE_SIZE)));
+    c.bench_function("morph/texture", |b| b.iter(|| model.extract_texture(&photo.rgb, &fitted, TEXTURE_SIZE)));
     c.bench_function("morph/fit_texture_frontal", |b| {
         b.iter(|| {
             let f = model.fit(std::hint::black_box(&points), w, h).unwrap();

@@ -10,7 +10,7 @@
 //! (the subject turned to their left), pitch > 0 when the head tilts down, roll > 0 when the head
 //! tilts so that the image-right eye rises (counter-clockwise as seen in the image).
 
-use nalgebra::{DMatrix, DVector, Matrix2x3};
+use nalgebra::Matrix2x3;
 
 use super::{Camera, FaceModel, MorphError, Pose};
 use crate::dataset::{IMM_POINTS, JAW};
@@ -161,8 +161,11 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
     let mut model_pts = [[0.0f64; 3]; IMM_POINTS];
     let omega = 1.0 / (options.landmark_sigma_px * options.landmark_sigma_px);
     let cols = m + ne;
-    let mut a_mat = DMatrix::<f64>::zeros(2 * IMM_POINTS, cols);
-    let mut b_vec = DVector::<f64>::zeros(2 * IMM_POINTS);
+    // Row-major design matrix (2 rows per landmark), normal equations.
+    let mut a_rows = vec![0.0f64; 2 * IMM_POINTS * cols];
+    let mut b_vec = vec![0.0f64; 2 * IMM_POINTS];
+    let mut lhs = vec![0.0f64; cols * cols];
+    let mut rhs = vec![0.0f64; cols];
     for iteration in 0..options.iterations.max(1) {
         for (i, mp) in model_pts.iter_mut().enumerate() {
             *mp = model.vertex(corr[i] as usize, &alpha, &psi);
@@ -175,7 +178,7 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
             }
         }
         // Shape (and expression) coefficients given the camera: rows for x and y of each point.
-        a_mat.fill(0.0);
+        a_rows.fill(0.0);
         for i in 0..IMM_POINTS {
             let vid = corr[i] as usize;
             let mean = model.mean_vertex(vid);
@@ -189,26 +192,46 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
                     let bx = model.scaled_basis(vid, 0, k);
                     let by = model.scaled_basis(vid, 1, k);
                     let bz = model.scaled_basis(vid, 2, k);
-                    a_mat[(2 * i + d, k)] = w * cam.scale * (r[0] * bx + r[1] * by + r[2] * bz);
+                    a_rows[(2 * i + d) * cols + k] = w * cam.scale * (r[0] * bx + r[1] * by + r[2] * bz);
                 }
                 for e in 0..ne {
                     let def = &model.blendshapes[e].deformation;
                     let (bx, by, bz) = (def[3 * vid] as f64, def[3 * vid + 1] as f64, def[3 * vid + 2] as f64);
-                    a_mat[(2 * i + d, m + e)] = w * cam.scale * (r[0] * bx + r[1] * by + r[2] * bz);
+                    a_rows[(2 * i + d) * cols + m + e] = w * cam.scale * (r[0] * bx + r[1] * by + r[2] * bz);
                 }
             }
         }
-        let mut lhs = a_mat.transpose() * &a_mat * omega;
-        for k in 0..cols {
-            lhs[(k, k)] += if k < m { options.lambda } else { options.expression_lambda };
+        // Normal equations by hand (our crate is optimised; nalgebra's dense products go through
+        // a dependency that is not, in the dev profile): lhs = AᵀA·ω + Λ, rhs = Aᵀb·ω.
+        lhs.fill(0.0);
+        rhs.fill(0.0);
+        for r in 0..2 * IMM_POINTS {
+            let row = &a_rows[r * cols..(r + 1) * cols];
+            let br = b_vec[r];
+            for p in 0..cols {
+                let ap = row[p] * omega;
+                if ap == 0.0 {
+                    continue;
+                }
+                rhs[p] += ap * br;
+                let lrow = &mut lhs[p * cols..(p + 1) * cols];
+                for q in p..cols {
+                    lrow[q] += ap * row[q];
+                }
+            }
         }
-        let rhs = a_mat.transpose() * &b_vec * omega;
-        let sol = lhs.cholesky().ok_or_else(|| MorphError::Degenerate("shape system is not positive definite".into()))?.solve(&rhs);
+        for p in 0..cols {
+            lhs[p * cols + p] += if p < m { options.lambda } else { options.expression_lambda };
+            for q in 0..p {
+                lhs[p * cols + q] = lhs[q * cols + p];
+            }
+        }
+        let sol = solve_spd(&mut lhs, &rhs, cols).ok_or_else(|| MorphError::Degenerate("shape system is not positive definite".into()))?;
         if !sol.iter().all(|v| v.is_finite()) {
             return Err(MorphError::Degenerate("non-finite shape coefficients".into()));
         }
-        alpha.copy_from_slice(&sol.as_slice()[..m]);
-        psi.copy_from_slice(&sol.as_slice()[m..]);
+        alpha.copy_from_slice(&sol[..m]);
+        psi.copy_from_slice(&sol[m..]);
         camera = Some(cam);
     }
     // Final camera for the final shape, and the residual it leaves.
@@ -278,3 +301,43 @@ fn update_contour(model: &FaceModel, cam: &Camera, alpha: &[f64], psi: &[f64], p
 /// |cos| between a vertex normal and the viewing direction below which the vertex counts as lying
 /// on the occluding boundary.
 const SILHOUETTE_COSINE: f64 = 0.25;
+
+/// Solve `A x = b` for a symmetric positive definite `A` (`n`×`n`, row-major, overwritten by its
+/// Cholesky factor). `None` when `A` is not positive definite.
+fn solve_spd(a: &mut [f64], b: &[f64], n: usize) -> Option<Vec<f64>> {
+    for j in 0..n {
+        let mut d = a[j * n + j];
+        for k in 0..j {
+            d -= a[j * n + k] * a[j * n + k];
+        }
+        if !(d > 0.0) {
+            return None;
+        }
+        let d = d.sqrt();
+        a[j * n + j] = d;
+        for i in j + 1..n {
+            let mut s = a[i * n + j];
+            for k in 0..j {
+                s -= a[i * n + k] * a[j * n + k];
+            }
+            a[i * n + j] = s / d;
+        }
+    }
+    let mut y = vec![0.0; n];
+    for i in 0..n {
+        let mut s = b[i];
+        for k in 0..i {
+            s -= a[i * n + k] * y[k];
+        }
+        y[i] = s / a[i * n + i];
+    }
+    let mut x = vec![0.0; n];
+    for i in (0..n).rev() {
+        let mut s = y[i];
+        for k in i + 1..n {
+            s -= a[k * n + i] * x[k];
+        }
+        x[i] = s / a[i * n + i];
+    }
+    Some(x)
+}

@@ -65,8 +65,9 @@ pub const BLENDSHAPES_FILE: &str = "expression_blendshapes_3448.bin";
 pub const CONTOURS_FILE: &str = "sfm_model_contours.json";
 pub const SYMMETRY_FILE: &str = "sfm_reference_symmetry.txt";
 
-/// Side of the UV texture extracted from photos.
-pub const TEXTURE_SIZE: usize = 256;
+/// Side of the UV texture extracted from photos on the recognition path (the frontal rendering
+/// is 144 px: a finer texture costs time without adding detail there).
+pub const TEXTURE_SIZE: usize = 128;
 /// Side of the frontal rendering handed to recognition.
 pub const FRONTAL_SIZE: usize = 144;
 

@@ -85,6 +85,18 @@ pub fn sample_rgb(img: &RgbImage, x: f32, y: f32) -> [f32; 3] {
     let (fx, fy) = (x - xf, y - yf);
     let (x0, y0) = (xf as i64, yf as i64);
     let raw = img.as_raw();
+    if x0 >= 0 && y0 >= 0 && x0 + 1 < w && y0 + 1 < h {
+        // Inside: the four neighbours without clamping.
+        let i = 3 * (y0 as usize * w as usize + x0 as usize);
+        let j = i + 3 * w as usize;
+        let mut out = [0.0; 3];
+        for k in 0..3 {
+            let top = raw[i + k] as f32 + fx * (raw[i + 3 + k] as f32 - raw[i + k] as f32);
+            let bottom = raw[j + k] as f32 + fx * (raw[j + 3 + k] as f32 - raw[j + k] as f32);
+            out[k] = top + fy * (bottom - top);
+        }
+        return out;
+    }
     let at = |xx: i64, yy: i64| {
         let i = 3 * (yy.clamp(0, h - 1) as usize * w as usize + xx.clamp(0, w - 1) as usize);
         [raw[i] as f32, raw[i + 1] as f32, raw[i + 2] as f32]

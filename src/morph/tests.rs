@@ -114,7 +114,7 @@ fn renders_of_a_fitted_face_at_known_yaws_are_fitted_back() {
     let sample = list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 1 && s.view == 1).unwrap();
     let photo = crate::imaging::open(&sample.image).unwrap();
     let fit = m.fit(&sample.landmarks().unwrap(), photo.width(), photo.height()).unwrap();
-    let texture = m.extract_texture(&photo.rgb, &fit, TEXTURE_SIZE);
+    let texture = m.extract_texture(&photo.rgb, &fit, 256);
     let seen = texture.pixels().filter(|p| p[3] == render::TEXEL_SEEN).count();
     assert!(seen > 10_000, "only {seen} texels seen");
     for yaw in [60.0f32, 45.0, 30.0, 15.0, 0.0, -15.0, -30.0, -45.0, -60.0] {
