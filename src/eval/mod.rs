@@ -1,3 +1,4 @@
 //! Evaluation: accuracy measures of each stage on held-out people, and their plots.
 
 pub mod plot;
+pub mod verification;
