@@ -39,9 +39,17 @@ pub struct NormalizeParams {
 }
 
 impl Default for NormalizeParams {
-    /// 64×64, inter-ocular distance 30 px, eye–mouth distance 31 px (the mean IMM frontal ratio,
-    /// 1.05 inter-ocular distances).
+    /// The measured default (docs/recognition.md): [`NormalizeParams::layout64`] scaled to a
+    /// 32×32 crop, histogram equalisation, elliptical mask.
     fn default() -> Self {
+        NormalizeParams { photometric: Photometric::HistogramEqualization, ..NormalizeParams::layout64().scaled(32) }
+    }
+}
+
+impl NormalizeParams {
+    /// 64×64, inter-ocular distance 30 px, eye–mouth distance 31 px (the mean IMM frontal ratio,
+    /// 1.05 inter-ocular distances), Tan–Triggs, elliptical mask.
+    pub fn layout64() -> NormalizeParams {
         NormalizeParams {
             width: 64,
             height: 64,
@@ -53,9 +61,21 @@ impl Default for NormalizeParams {
             elliptical_mask: true,
         }
     }
-}
 
-impl NormalizeParams {
+    /// The same layout in a square crop of `side` pixels (the defaults are for 64).
+    pub fn scaled(&self, side: usize) -> NormalizeParams {
+        let f = side as f32 / self.width as f32;
+        let s = |p: Point| [(p[0] + 0.5) * f - 0.5, (p[1] + 0.5) * f - 0.5];
+        NormalizeParams {
+            width: side,
+            height: (self.height as f32 * f).round() as usize,
+            left_eye: s(self.left_eye),
+            right_eye: s(self.right_eye),
+            mouth: s(self.mouth),
+            ..self.clone()
+        }
+    }
+
     /// Mask of the crop pixels used as features (all of them without the elliptical mask).
     pub fn mask(&self) -> Vec<bool> {
         let (w, h) = (self.width as f32, self.height as f32);
@@ -251,7 +271,7 @@ mod tests {
 
     #[test]
     fn normalisation_puts_the_eyes_where_it_says() {
-        let params = NormalizeParams { photometric: Photometric::None, elliptical_mask: false, ..NormalizeParams::default() };
+        let params = NormalizeParams { photometric: Photometric::None, elliptical_mask: false, ..NormalizeParams::layout64() };
         // A face 3.1 times the crop's size, rotated by 12°, somewhere in a 640×480 photo.
         let t = Similarity { a: 3.1 * 0.21f32.cos(), b: 3.1 * 0.21f32.sin(), tx: 250.0, ty: 90.0 };
         let kp = KeyPoints { left_eye: t.apply(params.left_eye), right_eye: t.apply(params.right_eye), mouth: t.apply(params.mouth) };
@@ -272,7 +292,7 @@ mod tests {
 
     #[test]
     fn photometric_normalisations_remove_global_illumination() {
-        let params = NormalizeParams::default();
+        let params = NormalizeParams::layout64();
         let mask = params.mask();
         let base = GrayF32::from_fn(64, 64, |x, y| 60.0 + 40.0 * ((x as f32 * 0.4).sin() * (y as f32 * 0.3).cos()));
         for method in [Photometric::TanTriggs, Photometric::HistogramEqualization] {

@@ -6,6 +6,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
 use super::calibration::{CALIBRATED_FMRS, Calibration};
@@ -212,6 +213,9 @@ pub struct TrainConfig {
     pub dlda: DldaParams,
     /// Add mirrored copies of the training crops.
     pub mirror: bool,
+    /// Randomly perturbed copies of each training crop (shift ±1 px, scale ±4 %, rotation ±3°),
+    /// standing in for keypoint noise.
+    pub jitter: usize,
 }
 
 impl Default for TrainConfig {
@@ -222,6 +226,7 @@ impl Default for TrainConfig {
             features: FeatureKind::Pixels,
             dlda: DldaParams::default(),
             mirror: true,
+            jitter: 0,
         }
     }
 }
@@ -273,6 +278,19 @@ pub fn combined_scores(templates: &[(String, Template)], combine: Combine) -> (V
     (genuine, impostor)
 }
 
+/// A copy of `crop` under a small random similarity about its centre.
+fn jittered(crop: &GrayF32, rng: &mut impl Rng) -> GrayF32 {
+    let angle = rng.random_range(-3.0f32..3.0).to_radians();
+    let scale = rng.random_range(0.96f32..1.04);
+    let (dx, dy) = (rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0));
+    let (cx, cy) = (0.5 * (crop.width - 1) as f32, 0.5 * (crop.height - 1) as f32);
+    let (a, b) = (scale * angle.cos(), scale * angle.sin());
+    GrayF32::from_fn(crop.width, crop.height, |x, y| {
+        let (u, v) = (x as f32 - cx, y as f32 - cy);
+        crop.sample(a * u - b * v + cx + dx, b * u + a * v + cy + dy)
+    })
+}
+
 /// Train the projection on the training persons of `aligned`, then calibrate thresholds and choose
 /// the combination rule on the held-out persons.
 pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String]) -> anyhow::Result<(Model, HeldOutReport)> {
@@ -289,12 +307,19 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
     labels.dedup();
     let mut xs = Vec::new();
     let mut ys = Vec::new();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2011);
     for a in &train {
         let y = labels.binary_search(&a.face.label).expect("label listed");
-        xs.push(features_of(&a.crop));
-        ys.push(y);
+        let mut crops = vec![a.crop.clone()];
         if config.mirror {
-            xs.push(features_of(&normalize::mirror(&a.crop)));
+            crops.push(normalize::mirror(&a.crop));
+        }
+        for base in crops {
+            for _ in 0..config.jitter {
+                xs.push(features_of(&jittered(&base, &mut rng)));
+                ys.push(y);
+            }
+            xs.push(features_of(&base));
             ys.push(y);
         }
     }
