@@ -159,6 +159,10 @@ pub struct EvalIdentifyArgs {
     pub data: Option<PathBuf>,
     #[arg(long, value_enum, default_value = "annotated")]
     pub keypoints: KeypointSource,
+    /// Add the view-1 photos of the training persons to the gallery as distractors (the probes
+    /// stay held-out persons only).
+    #[arg(long)]
+    pub distractors: bool,
     #[command(flatten)]
     pub model: ModelOptions,
 }
@@ -435,9 +439,13 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
         let (model, _) = train::train_model(&aligned, &config, &[data.display().to_string()])?;
         let recognizer = Recognizer::from_model(model);
         let held: Vec<&AlignedFace> = aligned.iter().filter(|a| a.face.held_out).collect();
-        // Gallery: the first frontal view (view 1) of each held-out person; probes: every other view.
-        let gallery: Vec<(&str, Template)> =
-            held.iter().filter(|a| a.face.view == Some(1)).map(|a| (a.face.label.as_str(), train::template_of(&recognizer, &a.crop))).collect();
+        // Gallery: the first frontal view (view 1) of each held-out person (and of the training
+        // persons with --distractors); probes: every other view of the held-out persons.
+        let gallery: Vec<(&str, Template)> = aligned
+            .iter()
+            .filter(|a| a.face.view == Some(1) && (a.face.held_out || args.distractors))
+            .map(|a| (a.face.label.as_str(), train::template_of(&recognizer, &a.crop)))
+            .collect();
         for a in held.iter().filter(|a| a.face.view != Some(1)) {
             let Some(truth) = gallery.iter().position(|(l, _)| *l == a.face.label) else { continue };
             let t = train::template_of(&recognizer, &a.crop);
@@ -449,7 +457,8 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
             entry.1[k] += (rank1(&[row], &[truth]) == 1.0) as usize;
         }
     }
-    println!("rank-1 identification of held-out IMM persons (gallery: view 1; keypoints: {sources})");
+    let gallery = if args.distractors { "view 1 of all persons (training persons as distractors)" } else { "view 1 of the held-out persons" };
+    println!("rank-1 identification of held-out IMM persons (gallery: {gallery}; keypoints: {sources})");
     let names: Vec<String> = normalizations.iter().map(|n| format!("rank1_{n}")).collect();
     println!("pose_bin,probes,{}", names.join(","));
     for (bin, (n, hits)) in &table {
