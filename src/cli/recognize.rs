@@ -75,7 +75,7 @@ pub struct ModelOptions {
     #[arg(long, default_value_t = 100)]
     pub dims: usize,
     /// ε of the regularised S_w^{-1/2}, as a fraction of the mean within-class eigenvalue.
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = 0.01)]
     pub regularization: f64,
     /// Disable the elliptical mask.
     #[arg(long)]
@@ -84,7 +84,7 @@ pub struct ModelOptions {
     #[arg(long, default_value_t = 0)]
     pub jitter: usize,
     /// Side of the square normalised crop in pixels (the canonical positions scale with it).
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = 48)]
     pub crop: usize,
 }
 
@@ -122,6 +122,10 @@ pub struct TrainDldaArgs {
     /// Where the eye and mouth centres come from.
     #[arg(long, value_enum, default_value = "annotated")]
     pub keypoints: KeypointSource,
+    /// Before training, report the EER of K-fold cross-validation over the training persons only
+    /// (how parameters are chosen without looking at the held-out persons).
+    #[arg(long)]
+    pub cv_folds: Option<usize>,
     #[command(flatten)]
     pub model: ModelOptions,
 }
@@ -196,6 +200,13 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
     let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
     let aligned = train::align_all(&front, &faces, config.normalization, &config.normalize, true);
     let data: Vec<String> = args.data.iter().map(|d| d.display().to_string()).collect();
+    if let Some(folds) = args.cv_folds {
+        let eers = train::cross_validate(&aligned, &config, folds)?;
+        let mean = eers.iter().sum::<f64>() / eers.len() as f64;
+        let folds: Vec<String> = eers.iter().map(|e| format!("{:.2}%", 100.0 * e)).collect();
+        eprintln!("cross-validation over training persons: mean EER {:.2}% (folds {})", 100.0 * mean, folds.join(", "));
+        crate::cli::print_json_line(&serde_json::json!({"cv_folds": eers.len(), "cv_eer_mean": mean, "cv_eer": eers}));
+    }
     eprintln!("training DLDA on {} photos ({} of training persons)…", aligned.len(), aligned.iter().filter(|a| !a.face.held_out).count());
     let (model, report) = train::train_model(&aligned, &config, &data)?;
     model.save(&args.out)?;

@@ -35,7 +35,7 @@ pub struct DldaParams {
 
 impl Default for DldaParams {
     fn default() -> Self {
-        DldaParams { max_dims: 100, regularization: 0.1 }
+        DldaParams { max_dims: 100, regularization: 0.01 }
     }
 }
 

@@ -360,6 +360,32 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
     Ok((model, report))
 }
 
+/// Cross-validation on the training persons only, for choosing parameters without looking at the
+/// held-out persons: the training persons are dealt into `folds` groups (by sorted label), each group
+/// in turn plays the held-out role. Returns the all-pairs EER of each fold.
+pub fn cross_validate(aligned: &[AlignedFace], config: &TrainConfig, folds: usize) -> anyhow::Result<Vec<f64>> {
+    let train: Vec<&AlignedFace> = aligned.iter().filter(|a| !a.face.held_out).collect();
+    let mut labels: Vec<&str> = train.iter().map(|a| a.face.label.as_str()).collect();
+    labels.sort();
+    labels.dedup();
+    let folds = folds.clamp(2, labels.len().max(2));
+    let mut eers = Vec::with_capacity(folds);
+    for k in 0..folds {
+        let fold: Vec<AlignedFace> = train
+            .iter()
+            .map(|a| {
+                let index = labels.binary_search(&a.face.label.as_str()).expect("label listed");
+                let mut a = (*a).clone();
+                a.face.held_out = index % folds == k;
+                a
+            })
+            .collect();
+        let (_, report) = train_model(&fold, config, &[])?;
+        eers.push(report.pairs.eer);
+    }
+    Ok(eers)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
