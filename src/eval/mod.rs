@@ -1,4 +1,5 @@
 //! Evaluation: accuracy measures of each stage on held-out people, and their plots.
 
+pub mod detection;
 pub mod plot;
 pub mod verification;
