@@ -70,9 +70,10 @@ pub fn list_faces(dirs: &[PathBuf]) -> Result<Vec<FaceImage>, dataset::DatasetEr
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum KeypointSource {
-    /// IMM `.asf` annotations where present, else the automatic pipeline (when it is loaded).
+    /// IMM `.asf` annotations where present, else the automatic front end (detector + ASM, or
+    /// detector-box keypoints while the ASM is not available).
     Annotated,
-    /// Detector + ASM landmarks for every photo.
+    /// The automatic front end for every photo.
     Pipeline,
 }
 
@@ -86,7 +87,7 @@ pub enum FrontEndError {
     NoFace,
     #[error("no annotation and no automatic front end loaded")]
     NoKeypoints,
-    #[error("the 3DMM path needs the Surrey Face Model, which is not loaded")]
+    #[error("the 3DMM path needs the Surrey Face Model and 58 landmarks, which are not available")]
     NoFaceModel,
 }
 
@@ -100,59 +101,103 @@ pub struct Prepared {
     pub keypoint_source: &'static str,
 }
 
+/// Eye and mouth centres as fixed fractions of the detector's box: the mean over annotated IMM
+/// photos of training persons. A coarse stand-in for the ASM landmarks when they are not loaded.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct BoxKeypoints {
+    pub left_eye: Point,
+    pub right_eye: Point,
+    pub mouth: Point,
+    /// Photos the means were taken over.
+    pub photos: usize,
+}
+
+impl BoxKeypoints {
+    /// Fit on the frontal views (1, 2) of the IMM training persons in `imm_dir`.
+    pub fn fit(detector: &Detector, imm_dir: &Path) -> Option<BoxKeypoints> {
+        let samples = dataset::list_imm(imm_dir).ok()?;
+        let mut sums = [[0.0f64; 2]; 3];
+        let mut n = 0usize;
+        for s in samples.iter().filter(|s| !dataset::imm_is_test_person(s.person) && s.view <= 2) {
+            let (Ok(photo), Ok(points)) = (imaging::open(&s.image), s.landmarks()) else { continue };
+            let kp = KeyPoints::from_imm(&points);
+            let Some(face) = detector.detect(&photo.gray).into_iter().find(|f| f.rect.contains(kp.left_eye) && f.rect.contains(kp.mouth)) else { continue };
+            for (sum, p) in sums.iter_mut().zip([kp.left_eye, kp.right_eye, kp.mouth]) {
+                sum[0] += ((p[0] - face.rect.x) / face.rect.width) as f64;
+                sum[1] += ((p[1] - face.rect.y) / face.rect.height) as f64;
+            }
+            n += 1;
+        }
+        (n > 0).then(|| {
+            let m = |i: usize| [(sums[i][0] / n as f64) as f32, (sums[i][1] / n as f64) as f32];
+            BoxKeypoints { left_eye: m(0), right_eye: m(1), mouth: m(2), photos: n }
+        })
+    }
+
+    pub fn keypoints(&self, rect: &crate::geometry::Rect) -> KeyPoints {
+        let at = |p: Point| [rect.x + p[0] * rect.width, rect.y + p[1] * rect.height];
+        KeyPoints { left_eye: at(self.left_eye), right_eye: at(self.right_eye), mouth: at(self.mouth) }
+    }
+}
+
 /// Keypoints (and the 3DMM) for training and evaluation.
 pub struct FrontEnd {
     pub source: KeypointSource,
-    pub automatic: Option<(Detector, Landmarker)>,
+    pub detector: Option<Detector>,
+    pub landmarker: Option<Landmarker>,
+    /// Keypoints from the detector box, used when the landmarker is not loaded.
+    pub box_keypoints: Option<BoxKeypoints>,
     pub face_model: Option<FaceModel>,
 }
 
 impl FrontEnd {
-    /// Load what is available: the automatic front end (detector + `asm.bin`) and the 3DMM are
-    /// optional; a missing part only matters for the photos that need it.
-    pub fn load(source: KeypointSource, models_dir: &Path, sfm_dir: Option<&Path>) -> FrontEnd {
-        let automatic = match (Detector::load(models_dir), Landmarker::load(&models_dir.join("asm.bin"))) {
-            (Ok(d), Ok(l)) => Some((d, l)),
-            (Err(e), _) => {
-                tracing::info!("automatic front end unavailable: {e}");
-                None
-            }
-            (_, Err(e)) => {
-                tracing::info!("automatic front end unavailable: {e}");
-                None
-            }
-        };
-        let face_model = sfm_dir.and_then(|dir| match FaceModel::load(dir) {
-            Ok(m) => Some(m),
-            Err(e) => {
-                tracing::info!("3DMM unavailable: {e}");
-                None
-            }
-        });
-        FrontEnd { source, automatic, face_model }
+    /// Annotations only (no automatic front end, no 3DMM).
+    pub fn annotations_only() -> FrontEnd {
+        FrontEnd { source: KeypointSource::Annotated, detector: None, landmarker: None, box_keypoints: None, face_model: None }
     }
 
-    /// The 58 landmarks and keypoints of a photo from the configured source.
-    fn landmarks(&self, face: &FaceImage, photo: &imaging::Photo) -> Result<(Vec<Point>, KeyPoints, &'static str), FrontEndError> {
+    /// Load what is available: the detector, the ASM landmarker (`asm.bin`) and the 3DMM are
+    /// optional; a missing part only matters for the photos that need it. Without the landmarker,
+    /// keypoints of unannotated photos come from the detector box ([`BoxKeypoints`]).
+    pub fn load(source: KeypointSource, models_dir: &Path, sfm_dir: Option<&Path>) -> FrontEnd {
+        let detector = Detector::load(models_dir).map_err(|e| tracing::info!("detector unavailable: {e}")).ok();
+        let landmarker = Landmarker::load(&models_dir.join("asm.bin")).map_err(|e| tracing::info!("landmarker unavailable: {e}")).ok();
+        let box_keypoints = match (&detector, &landmarker) {
+            (Some(d), None) => BoxKeypoints::fit(d, &crate::config::shared_dir().join("data/imm")),
+            _ => None,
+        };
+        let face_model = sfm_dir.and_then(|dir| FaceModel::load(dir).map_err(|e| tracing::info!("3DMM unavailable: {e}")).ok());
+        FrontEnd { source, detector, landmarker, box_keypoints, face_model }
+    }
+
+    /// The 58 landmarks (when there are any) and keypoints of a photo from the configured source.
+    fn landmarks(&self, face: &FaceImage, photo: &imaging::Photo) -> Result<(Option<Vec<Point>>, KeyPoints, &'static str), FrontEndError> {
         if let (KeypointSource::Annotated, Some(asf)) = (self.source, &face.asf) {
             let shape = dataset::read_asf(asf, photo.width() as f32, photo.height() as f32)?;
             if shape.points.len() == IMM_POINTS {
                 let points = shape.xy();
                 let kp = KeyPoints::from_imm(&points);
-                return Ok((points, kp, "imm-annotations"));
+                return Ok((Some(points), kp, "imm-annotations"));
             }
         }
-        let (detector, landmarker) = self.automatic.as_ref().ok_or(FrontEndError::NoKeypoints)?;
+        let detector = self.detector.as_ref().ok_or(FrontEndError::NoKeypoints)?;
         let faces = detector.detect(&photo.gray);
         let box_ = faces.first().ok_or(FrontEndError::NoFace)?;
-        let lm = landmarker.fit(&photo.gray, &box_.rect, Variant::Casm);
-        Ok((lm.points, lm.keypoints, "pipeline"))
+        if let Some(landmarker) = &self.landmarker {
+            let lm = landmarker.fit(&photo.gray, &box_.rect, Variant::Casm);
+            return Ok((Some(lm.points), lm.keypoints, "pipeline"));
+        }
+        let bk = self.box_keypoints.as_ref().ok_or(FrontEndError::NoKeypoints)?;
+        Ok((None, bk.keypoints(&box_.rect), "detector-box"))
     }
 
     pub fn prepare(&self, face: &FaceImage, normalization: Normalization) -> Result<Prepared, FrontEndError> {
         let photo = imaging::open(&face.image)?;
         let (points, keypoints, keypoint_source) = self.landmarks(face, &photo)?;
-        let fitted = self.face_model.as_ref().map(|m| (m, m.fit(&points, photo.width(), photo.height())));
+        let fitted = match (&self.face_model, &points) {
+            (Some(m), Some(points)) => Some((m, m.fit(points, photo.width(), photo.height()))),
+            _ => None,
+        };
         let pose = fitted.as_ref().map(|(_, f)| f.pose);
         match normalization {
             Normalization::TwoD => Ok(Prepared { gray: photo.gray, keypoints, pose, keypoint_source }),
@@ -407,7 +452,7 @@ mod tests {
     #[test]
     fn imm_training_gives_a_stable_projection() {
         let faces: Vec<FaceImage> = list_faces(&[crate::config::shared_dir().join("data/imm")]).unwrap().into_iter().filter(|f| !f.is_rotated_view()).collect();
-        let front = FrontEnd { source: KeypointSource::Annotated, automatic: None, face_model: None };
+        let front = FrontEnd::annotations_only();
         let config = TrainConfig::default();
         let aligned = align_all(&front, &faces, Normalization::TwoD, &config.normalize, false);
         assert_eq!(aligned.len(), faces.len());
