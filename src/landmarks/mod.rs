@@ -95,7 +95,7 @@ pub struct SearchParams {
 
 impl Default for SearchParams {
     fn default() -> Self {
-        Self { crop_size: 260, ref_width: 170.0, levels: 2, profile_radius: 3, sift_radius: vec![2, 3], max_iterations: 4, converged_share: 0.9, yaw_start: 1.0, roll_start: 12.0, probe_iterations: 0 }
+        Self { crop_size: 260, ref_width: 170.0, levels: 2, profile_radius: 3, sift_radius: vec![1, 3], max_iterations: 4, converged_share: 0.9, yaw_start: 1.0, roll_start: 12.0, probe_iterations: 0 }
     }
 }
 
