@@ -86,6 +86,12 @@ pub struct ModelOptions {
     /// Side of the square normalised crop in pixels (the canonical positions scale with it).
     #[arg(long, default_value_t = 48)]
     pub crop: usize,
+    /// Scale of the keypoint layout about the crop centre (below 1 shows more of the head).
+    #[arg(long, default_value_t = 1.0)]
+    pub zoom: f32,
+    /// Weight of the mouth centre in the alignment (the eyes weigh 1; 0 aligns the eyes only).
+    #[arg(long, default_value_t = 1.0)]
+    pub mouth_weight: f32,
 }
 
 impl ModelOptions {
@@ -107,7 +113,8 @@ impl ModelOptions {
         };
         config.normalize.elliptical_mask = !self.no_mask;
         config.jitter = self.jitter;
-        config.normalize = NormalizeParams { photometric: config.normalize.photometric, elliptical_mask: config.normalize.elliptical_mask, ..NormalizeParams::layout64().scaled(self.crop) };
+        config.normalize = NormalizeParams { photometric: config.normalize.photometric, elliptical_mask: config.normalize.elliptical_mask, ..NormalizeParams::layout64().scaled(self.crop).zoomed(self.zoom) };
+        config.normalize.mouth_weight = self.mouth_weight;
         config
     }
 }
