@@ -195,7 +195,8 @@ impl FrontEnd {
         let photo = imaging::open(&face.image)?;
         let (points, keypoints, keypoint_source) = self.landmarks(face, &photo)?;
         let fitted = match (&self.face_model, &points) {
-            (Some(m), Some(points)) => Some((m, m.fit(points, photo.width(), photo.height()))),
+            // A failed fit (degenerate landmarks) counts as no model, as in the pipeline.
+            (Some(m), Some(points)) => m.fit(points, photo.width(), photo.height()).ok().map(|f| (m, f)),
             _ => None,
         };
         let pose = fitted.as_ref().map(|(_, f)| f.pose);
@@ -203,7 +204,7 @@ impl FrontEnd {
             Normalization::TwoD => Ok(Prepared { gray: photo.gray, keypoints, pose, keypoint_source }),
             Normalization::Morph => {
                 let (model, fit) = fitted.ok_or(FrontEndError::NoFaceModel)?;
-                let frontal = model.frontalize(&photo, &fit);
+                let frontal = model.frontalize(&photo, &fit).map_err(|_| FrontEndError::NoFaceModel)?;
                 Ok(Prepared { gray: GrayF32::from_rgb(&frontal.image), keypoints: frontal.keypoints, pose, keypoint_source })
             }
         }
