@@ -86,6 +86,12 @@ pub struct ModelOptions {
     /// Side of the square normalised crop in pixels (the canonical positions scale with it).
     #[arg(long, default_value_t = 48)]
     pub crop: usize,
+    /// Scale of the keypoint layout about the crop centre (below 1 shows more of the head).
+    #[arg(long, default_value_t = 1.0)]
+    pub zoom: f32,
+    /// Weight of the mouth centre in the alignment (the eyes weigh 1; 0 aligns the eyes only).
+    #[arg(long, default_value_t = 1.0)]
+    pub mouth_weight: f32,
 }
 
 impl ModelOptions {
@@ -107,7 +113,8 @@ impl ModelOptions {
         };
         config.normalize.elliptical_mask = !self.no_mask;
         config.jitter = self.jitter;
-        config.normalize = NormalizeParams { photometric: config.normalize.photometric, elliptical_mask: config.normalize.elliptical_mask, ..NormalizeParams::layout64().scaled(self.crop) };
+        config.normalize = NormalizeParams { photometric: config.normalize.photometric, elliptical_mask: config.normalize.elliptical_mask, ..NormalizeParams::layout64().scaled(self.crop).zoomed(self.zoom) };
+        config.normalize.mouth_weight = self.mouth_weight;
         config
     }
 }
@@ -461,11 +468,20 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
             let Some(truth) = gallery.iter().position(|(l, _)| *l == a.face.label) else { continue };
             let t = train::template_of(&recognizer, &a.crop);
             let row: Vec<f32> = gallery.iter().map(|(_, g)| t.cosine(g)).collect();
-            let entry = table.entry(pose_bin(a)).or_insert_with(|| (0, vec![0; normalizations.len()]));
-            if k == 0 {
-                entry.0 += 1;
+            let hit = (rank1(&[row], &[truth]) == 1.0) as usize;
+            // Two tables: by IMM view group, and by |yaw| of the 3DMM fit when there is one.
+            let view_group = AlignedFace { pose: None, ..(*a).clone() };
+            let mut bins = vec![format!("view: {}", pose_bin(&view_group))];
+            if a.pose.is_some() {
+                bins.push(format!("pose: {}", pose_bin(a)));
             }
-            entry.1[k] += (rank1(&[row], &[truth]) == 1.0) as usize;
+            for bin in bins {
+                let entry = table.entry(bin).or_insert_with(|| (0, vec![0; normalizations.len()]));
+                if k == 0 {
+                    entry.0 += 1;
+                }
+                entry.1[k] += hit;
+            }
         }
     }
     let gallery = if args.distractors { "view 1 of all persons (training persons as distractors)" } else { "view 1 of the held-out persons" };

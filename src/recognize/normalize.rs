@@ -76,6 +76,14 @@ impl NormalizeParams {
         }
     }
 
+    /// The keypoint layout scaled by `factor` about the crop centre (below 1: more of the head in
+    /// the crop, at a lower resolution).
+    pub fn zoomed(&self, factor: f32) -> NormalizeParams {
+        let c = [0.5 * (self.width as f32 - 1.0), 0.5 * (self.height as f32 - 1.0)];
+        let z = |p: Point| [c[0] + (p[0] - c[0]) * factor, c[1] + (p[1] - c[1]) * factor];
+        NormalizeParams { left_eye: z(self.left_eye), right_eye: z(self.right_eye), mouth: z(self.mouth), ..self.clone() }
+    }
+
     /// Mask of the crop pixels used as features (all of them without the elliptical mask).
     pub fn mask(&self) -> Vec<bool> {
         let (w, h) = (self.width as f32, self.height as f32);
