@@ -1,6 +1,81 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::config::models_dir;
+use crate::detect::{DetectOptions, Detector, DetectorKind, ProfileMode};
+
+/// Options shared by `detect` and `eval detect`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct DetectorArgs {
+    /// Which detector to run.
+    #[arg(long, value_enum, default_value_t = DetectorKind::default())]
+    pub detector: DetectorKind,
+    /// Smallest face searched, in pixels.
+    #[arg(long, default_value_t = DetectOptions::default().min_face)]
+    pub min_face: u32,
+    /// Smallest face as a fraction of the image's shorter side (the larger limit applies).
+    #[arg(long, default_value_t = DetectOptions::default().min_face_fraction)]
+    pub min_face_fraction: f32,
+    /// When the Haar detector also runs the profile cascade (on the image and its mirror).
+    #[arg(long, value_enum, default_value_t = ProfileMode::default())]
+    pub profile: ProfileMode,
+    /// Overlapping raw windows needed for a detection (Haar).
+    #[arg(long, default_value_t = DetectOptions::default().min_neighbours)]
+    pub min_neighbours: usize,
+    /// Window step in pixels of each pyramid level (Haar).
+    #[arg(long, default_value_t = DetectOptions::default().step)]
+    pub step: usize,
+    /// Do not rescan with step 1 when the first scan finds nothing (Haar).
+    #[arg(long)]
+    pub no_fine_rescan: bool,
+    /// Images with a shorter side below this are scanned finely with a replicated border (Haar).
+    #[arg(long, default_value_t = DetectOptions::default().small_image_side)]
+    pub small_image_side: u32,
+    /// Border added to small images, as a fraction of their size (Haar).
+    #[arg(long, default_value_t = DetectOptions::default().small_image_pad)]
+    pub small_image_pad: f32,
+}
+
+impl DetectorArgs {
+    pub fn options(&self) -> DetectOptions {
+        DetectOptions {
+            min_face: self.min_face,
+            min_face_fraction: self.min_face_fraction,
+            profile: self.profile,
+            min_neighbours: self.min_neighbours,
+            step: self.step,
+            fine_rescan: !self.no_fine_rescan,
+            small_image_side: self.small_image_side,
+            small_image_pad: self.small_image_pad,
+            ..DetectOptions::default()
+        }
+    }
+
+    pub fn load(&self) -> anyhow::Result<Detector> {
+        Ok(Detector::load_with(&models_dir(), self.detector, self.options())?)
+    }
+}
+
+/// One line of `detect --json`, fields in the documented order (a `serde_json::Value` would sort
+/// them and widen the f32 coordinates to f64 digits).
+#[derive(serde::Serialize)]
+struct ImageFaces<'a> {
+    image: &'a str,
+    faces: &'a [crate::detect::Face],
+}
+
+#[derive(serde::Serialize)]
+struct ImageError<'a> {
+    image: &'a str,
+    error: String,
+}
+
+fn print_line<T: serde::Serialize>(value: &T) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let _ = writeln!(out, "{}", serde_json::to_string(value).expect("plain structs serialise"));
+}
+
 #[derive(clap::Args, Debug)]
 pub struct DetectArgs {
     /// Images to search (JPEG, PNG, GIF, BMP, PGM/PPM).
@@ -9,8 +84,85 @@ pub struct DetectArgs {
     /// Print one JSON object per image, line by line.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub detector: DetectorArgs,
 }
 
-pub fn run(_args: DetectArgs) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("face detection has not landed yet")
+pub fn run(args: DetectArgs) -> anyhow::Result<ExitCode> {
+    let detector = args.detector.load()?;
+    let mut failures = 0;
+    for path in &args.images {
+        let shown = path.display().to_string();
+        match crate::imaging::open(path) {
+            Ok(photo) => {
+                let faces = detector.detect(&photo.gray);
+                if args.json {
+                    print_line(&ImageFaces { image: &shown, faces: &faces });
+                } else {
+                    println!("{shown}: {} face(s)", faces.len());
+                    for f in &faces {
+                        let r = f.rect;
+                        println!("  x {:.0} y {:.0} width {:.0} height {:.0} score {:.2}", r.x, r.y, r.width, r.height, f.score);
+                    }
+                }
+            }
+            Err(e) => {
+                failures += 1;
+                if args.json {
+                    print_line(&ImageError { image: &shown, error: e.to_string() });
+                } else {
+                    eprintln!("{shown}: {e}");
+                }
+            }
+        }
+    }
+    Ok(if failures == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+}
+
+#[derive(clap::Args, Debug)]
+pub struct EvalDetectArgs {
+    /// IMM folder (`NN-V*.jpg` with `.asf` annotations).
+    #[arg(long)]
+    pub imm: Option<PathBuf>,
+    /// ORL folder (`sN/K.pgm`).
+    #[arg(long)]
+    pub orl: Option<PathBuf>,
+    /// Measure only the held-out persons (otherwise held-out and all are reported separately).
+    #[arg(long)]
+    pub test_only: bool,
+    /// Write the report as JSON to this file too.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    #[command(flatten)]
+    pub detector: DetectorArgs,
+}
+
+pub fn run_eval(args: EvalDetectArgs) -> anyhow::Result<ExitCode> {
+    let shared = crate::config::shared_dir();
+    let imm = args.imm.clone().unwrap_or_else(|| shared.join("data/imm"));
+    let orl = args.orl.clone().unwrap_or_else(|| shared.join("data/orl"));
+    let detector = args.detector.load()?;
+    let report = crate::eval::detection::evaluate(&detector, &imm, &orl, args.test_only)?;
+    let text = serde_json::to_string_pretty(&report)?;
+    println!("{}", report.summary());
+    if let Some(out) = &args.out {
+        std::fs::write(out, &text)?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::detect::Face;
+    use crate::geometry::Rect;
+
+    #[test]
+    fn json_lines_follow_the_contract() {
+        let faces = [Face { rect: Rect::new(1.5, 2.0, 30.0, 31.0), score: 7.0 }];
+        let line = serde_json::to_string(&ImageFaces { image: "a/b.jpg", faces: &faces }).unwrap();
+        assert_eq!(line, r#"{"image":"a/b.jpg","faces":[{"box":{"x":1.5,"y":2.0,"width":30.0,"height":31.0},"score":7.0}]}"#);
+        let err = serde_json::to_string(&ImageError { image: "x.png", error: "bad".into() }).unwrap();
+        assert_eq!(err, r#"{"image":"x.png","error":"bad"}"#);
+    }
 }

@@ -52,6 +52,8 @@ pub enum TrainCommand {
 
 #[derive(Subcommand, Debug)]
 pub enum EvalCommand {
+    /// Detection rate per IMM view class, false boxes, ORL rate and time per image.
+    Detect(detect::EvalDetectArgs),
     /// Landmark accuracy (d_eye, mouth error) of the ASM variants on held-out IMM persons.
     Landmarks(landmarks::EvalLandmarksArgs),
     /// Score image pairs listed in a CSV file.
@@ -73,6 +75,7 @@ pub fn main() -> ExitCode {
         Command::Compare(args) => recognize::run_compare(args),
         Command::Train(TrainCommand::Asm(args)) => landmarks::run_train(args),
         Command::Train(TrainCommand::Dlda(args)) => recognize::run_train(args),
+        Command::Eval(EvalCommand::Detect(args)) => detect::run_eval(args),
         Command::Train(TrainCommand::ImmSfm(args)) => morph::run_train_imm_sfm(args),
         Command::Eval(EvalCommand::Landmarks(args)) => landmarks::run_eval(args),
         Command::Eval(EvalCommand::Pairs(args)) => recognize::run_eval_pairs(args),
