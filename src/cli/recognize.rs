@@ -335,7 +335,7 @@ pub fn score_pairs(
                 let t = match template_of(&images.join(name)) {
                     Ok(t) => Some(t),
                     Err(e) => {
-                        warn(format!("{name}: no template ({e:#})"));
+                        warn(format!("{name}: no template ({e})"));
                         None
                     }
                 };
@@ -345,7 +345,7 @@ pub fn score_pairs(
         let s = match (&cache[pair.file_x.as_str()], &cache[pair.file_y.as_str()]) {
             (Some(a), Some(b)) => format!("{:.6}", score(a, b)),
             _ => {
-                warn(format!("{},{}: empty score (an image has no face)", pair.file_x, pair.file_y));
+                warn(format!("{},{}: empty score (an image has no face or could not be read)", pair.file_x, pair.file_y));
                 String::new()
             }
         };
