@@ -87,13 +87,15 @@ pub struct SearchParams {
     /// Training photos whose first shape coefficient is beyond ± this many standard deviations
     /// form the turned start groups; 0 disables them (one start, the mean shape).
     pub yaw_start: f32,
+    /// Extra starts tilted in the image plane by ± this many degrees; 0 disables them.
+    pub roll_start: f32,
     /// Iterations each start gets on the coarsest level before the best one is kept.
     pub probe_iterations: usize,
 }
 
 impl Default for SearchParams {
     fn default() -> Self {
-        Self { crop_size: 260, ref_width: 170.0, levels: 2, profile_radius: 3, sift_radius: vec![2, 3], max_iterations: 4, converged_share: 0.9, yaw_start: 1.0, probe_iterations: 0 }
+        Self { crop_size: 260, ref_width: 170.0, levels: 2, profile_radius: 3, sift_radius: vec![1, 3], max_iterations: 4, converged_share: 0.9, yaw_start: 1.0, roll_start: 12.0, probe_iterations: 0 }
     }
 }
 

@@ -304,16 +304,22 @@ pub fn search_levels(model: &AsmModel, levels: &[Level], starts: &[Vec<Point>], 
     current
 }
 
-/// Starting shapes in image pixels, each placed from the box by its learnt placement.
+/// Starting shapes in image pixels, each placed from the box by its learnt placement, upright and
+/// (when `roll_start` is set) tilted by ±`roll_start` degrees in the image plane.
 pub fn starts(model: &AsmModel, face: &Rect) -> Vec<Vec<Point>> {
-    model
-        .starts
-        .iter()
-        .map(|st| {
-            let pose = placement_pose(&st.placement, face);
-            model.full.shape(&st.b).iter().map(|&p| pose.apply(p)).collect()
-        })
-        .collect()
+    let roll = model.params.roll_start.to_radians();
+    let rolls: &[f32] = if roll > 0.0 { &[0.0, 1.0, -1.0] } else { &[0.0] };
+    let mut out = Vec::new();
+    for st in &model.starts {
+        let pose = placement_pose(&st.placement, face);
+        let shape = model.full.shape(&st.b);
+        for &r in rolls {
+            let (c, s) = ((r * roll).cos(), (r * roll).sin());
+            let turned = Similarity { a: pose.a * c, b: pose.a * s, tx: pose.tx, ty: pose.ty };
+            out.push(shape.iter().map(|&p| turned.apply(p)).collect());
+        }
+    }
+    out
 }
 
 /// The pose placing a start shape for `face`.

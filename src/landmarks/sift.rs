@@ -163,7 +163,7 @@ impl DescriptorGrid {
                 let gt = gx * tx + gy * ty;
                 let magnitude = (gn * gn + gt * gt).sqrt();
                 let o = (fast_atan2(gt, gn) + std::f32::consts::PI) * scale;
-                let o0 = o.floor();
+                let o0 = (o as i32) as f32; // o ≥ 0: truncation is floor, without a libm call
                 self.samples[a * self.side + b] = OrientedSample { magnitude, bin: (o0 as i32).rem_euclid(BINS as i32) as u8, frac: o - o0 };
             }
         }

@@ -29,7 +29,7 @@ pub struct TrainOptions {
 
 impl Default for TrainOptions {
     fn default() -> Self {
-        Self { params: SearchParams::default(), shape_variance: 0.98, constrain: 3.0, sift_modes: 10, profile_ridge: 0.05 }
+        Self { params: SearchParams::default(), shape_variance: 0.98, constrain: 3.0, sift_modes: 24, profile_ridge: 0.05 }
     }
 }
 

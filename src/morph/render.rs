@@ -275,8 +275,18 @@ pub fn render_textured(
             let (uf, vf) = (u.floor(), v.floor());
             let (fx, fy) = (u - uf, v - vf);
             let (x0, y0) = (uf as i64, vf as i64);
-            let at = |xx: i64, yy: i64, k: usize| traw[4 * (yy.clamp(0, th_i - 1) as usize * tw_i as usize + xx.clamp(0, tw_i - 1) as usize) + k] as f32;
             let i = 3 * (y * width + x);
+            if x0 >= 0 && y0 >= 0 && x0 + 1 < tw_i && y0 + 1 < th_i {
+                let a = 4 * (y0 as usize * tw_i as usize + x0 as usize);
+                let c = a + 4 * tw_i as usize;
+                for k in 0..3 {
+                    let top = traw[a + k] as f32 + fx * (traw[a + 4 + k] as f32 - traw[a + k] as f32);
+                    let bottom = traw[c + k] as f32 + fx * (traw[c + 4 + k] as f32 - traw[c + k] as f32);
+                    buf[i + k] = (top + fy * (bottom - top)).round().clamp(0.0, 255.0) as u8;
+                }
+                return;
+            }
+            let at = |xx: i64, yy: i64, k: usize| traw[4 * (yy.clamp(0, th_i - 1) as usize * tw_i as usize + xx.clamp(0, tw_i - 1) as usize) + k] as f32;
             for k in 0..3 {
                 let top = at(x0, y0, k) + fx * (at(x0 + 1, y0, k) - at(x0, y0, k));
                 let bottom = at(x0, y0 + 1, k) + fx * (at(x0 + 1, y0 + 1, k) - at(x0, y0 + 1, k));
