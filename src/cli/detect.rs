@@ -1,8 +1,6 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use serde_json::json;
-
 use crate::config::models_dir;
 use crate::detect::{DetectOptions, Detector, DetectorKind, ProfileMode};
 
@@ -58,6 +56,26 @@ impl DetectorArgs {
     }
 }
 
+/// One line of `detect --json`, fields in the documented order (a `serde_json::Value` would sort
+/// them and widen the f32 coordinates to f64 digits).
+#[derive(serde::Serialize)]
+struct ImageFaces<'a> {
+    image: &'a str,
+    faces: &'a [crate::detect::Face],
+}
+
+#[derive(serde::Serialize)]
+struct ImageError<'a> {
+    image: &'a str,
+    error: String,
+}
+
+fn print_line<T: serde::Serialize>(value: &T) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let _ = writeln!(out, "{}", serde_json::to_string(value).expect("plain structs serialise"));
+}
+
 #[derive(clap::Args, Debug)]
 pub struct DetectArgs {
     /// Images to search (JPEG, PNG, GIF, BMP, PGM/PPM).
@@ -79,7 +97,7 @@ pub fn run(args: DetectArgs) -> anyhow::Result<ExitCode> {
             Ok(photo) => {
                 let faces = detector.detect(&photo.gray);
                 if args.json {
-                    super::print_json_line(&json!({ "image": shown, "faces": faces }));
+                    print_line(&ImageFaces { image: &shown, faces: &faces });
                 } else {
                     println!("{shown}: {} face(s)", faces.len());
                     for f in &faces {
@@ -91,7 +109,7 @@ pub fn run(args: DetectArgs) -> anyhow::Result<ExitCode> {
             Err(e) => {
                 failures += 1;
                 if args.json {
-                    super::print_json_line(&json!({ "image": shown, "error": e.to_string() }));
+                    print_line(&ImageError { image: &shown, error: e.to_string() });
                 } else {
                     eprintln!("{shown}: {e}");
                 }
@@ -131,4 +149,20 @@ pub fn run_eval(args: EvalDetectArgs) -> anyhow::Result<ExitCode> {
         std::fs::write(out, &text)?;
     }
     Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::detect::Face;
+    use crate::geometry::Rect;
+
+    #[test]
+    fn json_lines_follow_the_contract() {
+        let faces = [Face { rect: Rect::new(1.5, 2.0, 30.0, 31.0), score: 7.0 }];
+        let line = serde_json::to_string(&ImageFaces { image: "a/b.jpg", faces: &faces }).unwrap();
+        assert_eq!(line, r#"{"image":"a/b.jpg","faces":[{"box":{"x":1.5,"y":2.0,"width":30.0,"height":31.0},"score":7.0}]}"#);
+        let err = serde_json::to_string(&ImageError { image: "x.png", error: "bad".into() }).unwrap();
+        assert_eq!(err, r#"{"image":"x.png","error":"bad"}"#);
+    }
 }

@@ -3,3 +3,4 @@
 pub mod detection;
 pub mod plot;
 pub mod landmarks;
+pub mod verification;

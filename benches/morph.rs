@@ -1,0 +1,33 @@
+//! Speed of the 3DMM path on one core: fit (58 IMM points), texture extraction, frontal rendering.
+//! Target: fit + texture + frontal rendering ≤ 10 ms per face.
+//! Run: `cargo bench --bench morph` (needs the Surrey Face Model at FACEGATE_SFM or ../shared/models/sfm).
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use facegate::dataset::list_imm;
+use facegate::morph::{FaceModel, FRONTAL_SIZE, TEXTURE_SIZE};
+
+fn bench(c: &mut Criterion) {
+    let model = FaceModel::load(&facegate::config::sfm_dir()).expect("Surrey Face Model");
+    let sample = list_imm(&facegate::config::shared_dir().join("data/imm"))
+        .expect("IMM data")
+        .into_iter()
+        .find(|s| s.person == 2 && s.view == 3)
+        .expect("IMM 02-3");
+    let photo = facegate::imaging::open(&sample.image).expect("photo");
+    let points = sample.landmarks().expect("landmarks");
+    let (w, h) = (photo.width(), photo.height());
+    let fitted = model.fit(&points, w, h).expect("fit");
+
+    c.bench_function("morph/fit", |b| b.iter(|| model.fit(std::hint::black_box(&points), w, h).unwrap()));
+    c.bench_function("morph/texture", |b| b.iter(|| model.extract_texture(&photo.rgb, &fitted, TEXTURE_SIZE)));
+    c.bench_function("morph/fit_texture_frontal", |b| {
+        b.iter(|| {
+            let f = model.fit(std::hint::black_box(&points), w, h).unwrap();
+            model.frontalize(&photo, &f).unwrap()
+        })
+    });
+    let _ = FRONTAL_SIZE;
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
