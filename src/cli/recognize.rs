@@ -52,6 +52,10 @@ pub enum PhotometricArg {
 pub enum FeaturesArg {
     Pixels,
     Lbp,
+    /// Pixels and LBP histograms concatenated.
+    PixelsLbp,
+    /// Pixels, LBP(8,1) and LBP(8,2) histograms concatenated.
+    PixelsLbpMulti,
 }
 
 /// The choices that make a model, with the measured defaults.
@@ -63,7 +67,9 @@ pub struct ModelOptions {
     pub normalization: NormalizationArg,
     #[arg(long, value_enum, default_value = "histeq")]
     pub photometric: PhotometricArg,
-    #[arg(long, value_enum, default_value = "pixels")]
+    /// Pixels + LBP(8,1) + LBP(8,2) histograms by default: cross-validated over the training persons
+    /// (docs/recognition.md), with --pca-dims 300 and --regularization 1.
+    #[arg(long, value_enum, default_value = "pixels-lbp-multi")]
     pub features: FeaturesArg,
     /// Cells per side of the LBP grid.
     #[arg(long, default_value_t = 8)]
@@ -77,8 +83,12 @@ pub struct ModelOptions {
     #[arg(long, default_value_t = 100)]
     pub dims: usize,
     /// ε of the regularised S_w^{-1/2}, as a fraction of the mean within-class eigenvalue.
-    #[arg(long, default_value_t = 0.01)]
+    #[arg(long, default_value_t = 1.0)]
     pub regularization: f64,
+    /// Principal components (whitened) kept before DLDA; 0 runs DLDA on the raw features (the
+    /// thesis's DLDA, measured with --regularization 0.01).
+    #[arg(long, default_value_t = 300)]
+    pub pca_dims: usize,
     /// Disable the elliptical mask.
     #[arg(long)]
     pub no_mask: bool,
@@ -103,8 +113,10 @@ impl ModelOptions {
             features: match self.features {
                 FeaturesArg::Pixels => FeatureKind::Pixels,
                 FeaturesArg::Lbp => FeatureKind::Lbp { grid: self.lbp_grid },
+                FeaturesArg::PixelsLbp => FeatureKind::PixelsLbp { grid: self.lbp_grid },
+                FeaturesArg::PixelsLbpMulti => FeatureKind::PixelsLbpMulti { grid: self.lbp_grid },
             },
-            dlda: DldaParams { max_dims: self.dims, regularization: self.regularization },
+            dlda: DldaParams { max_dims: self.dims, regularization: self.regularization, pca_dims: self.pca_dims },
             mirror: !self.no_mirror,
             ..TrainConfig::default()
         };
@@ -135,6 +147,13 @@ pub struct TrainDldaArgs {
     /// (how parameters are chosen without looking at the held-out persons).
     #[arg(long)]
     pub cv_folds: Option<usize>,
+    /// Keep the aligned crops in this folder between runs (keyed by everything that shapes them,
+    /// including the landmark model file), so that parameter searches skip the front end.
+    #[arg(long)]
+    pub crop_cache: Option<PathBuf>,
+    /// Only cross-validate (with --cv-folds); do not train or write the model.
+    #[arg(long)]
+    pub cv_only: bool,
     #[command(flatten)]
     pub model: ModelOptions,
 }
@@ -207,7 +226,10 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
     }
     let sfm = (config.normalization == Normalization::Morph).then(crate::config::sfm_dir);
     let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
-    let aligned = train::align_all(&front, &faces, config.normalization, &config.normalize, true);
+    let aligned = match &args.crop_cache {
+        Some(dir) => train::align_all_cached(dir, args.keypoints, &front, &faces, config.normalization, &config.normalize)?,
+        None => train::align_all(&front, &faces, config.normalization, &config.normalize, true),
+    };
     let data: Vec<String> = args.data.iter().map(|d| d.display().to_string()).collect();
     if let Some(folds) = args.cv_folds {
         let folds = train::cross_validate(&aligned, &config, folds)?;
@@ -222,6 +244,9 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
             100.0 * f3
         );
         crate::cli::print_json_line(&serde_json::json!({"cv_folds": folds, "cv_eer_mean": eer, "cv_fnmr_at_fmr_1e2_mean": f2, "cv_fnmr_at_fmr_1e3_mean": f3}));
+        if args.cv_only {
+            return Ok(ExitCode::SUCCESS);
+        }
     }
     eprintln!("training DLDA on {} photos ({} of training persons)…", aligned.len(), aligned.iter().filter(|a| !a.face.held_out).count());
     let (model, report) = train::train_model(&aligned, &config, &data)?;

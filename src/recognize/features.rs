@@ -12,6 +12,11 @@ pub enum FeatureKind {
     Pixels,
     /// Uniform LBP(8,1) histograms (59 bins) on a `grid`×`grid` layout of cells, square-rooted.
     Lbp { grid: usize },
+    /// Both, each part scaled to unit length, concatenated (pixels first).
+    PixelsLbp { grid: usize },
+    /// Pixels, LBP(8,1) and LBP(8,2) histograms (radius-2 neighbours sampled bilinearly), each part
+    /// scaled to unit length, concatenated.
+    PixelsLbpMulti { grid: usize },
 }
 
 impl FeatureKind {
@@ -22,6 +27,8 @@ impl FeatureKind {
                 let _ = (width, height);
                 grid * grid * LBP_BINS
             }
+            FeatureKind::PixelsLbp { grid } => FeatureKind::Pixels.dims(width, height, mask) + FeatureKind::Lbp { grid }.dims(width, height, mask),
+            FeatureKind::PixelsLbpMulti { grid } => FeatureKind::Pixels.dims(width, height, mask) + 2 * FeatureKind::Lbp { grid }.dims(width, height, mask),
         }
     }
 
@@ -30,8 +37,27 @@ impl FeatureKind {
         match *self {
             FeatureKind::Pixels => pixels(crop, mask),
             FeatureKind::Lbp { grid } => lbp_histograms(crop, grid),
+            FeatureKind::PixelsLbp { grid } => {
+                let mut out = unit(pixels(crop, mask));
+                out.extend(unit(lbp_histograms(crop, grid)));
+                out
+            }
+            FeatureKind::PixelsLbpMulti { grid } => {
+                let mut out = unit(pixels(crop, mask));
+                out.extend(unit(lbp_histograms(crop, grid)));
+                out.extend(unit(lbp2_histograms(crop, grid)));
+                out
+            }
         }
     }
+}
+
+fn unit(mut v: Vec<f32>) -> Vec<f32> {
+    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    if norm > 1e-12 {
+        v.iter_mut().for_each(|x| *x /= norm);
+    }
+    v
 }
 
 fn pixels(crop: &GrayF32, mask: &[bool]) -> Vec<f32> {
@@ -95,6 +121,37 @@ fn lbp_histograms(crop: &GrayF32, grid: usize) -> Vec<f32> {
     hist
 }
 
+/// Uniform LBP(8,2): eight neighbours on a circle of radius 2, sampled bilinearly.
+fn lbp2_histograms(crop: &GrayF32, grid: usize) -> Vec<f32> {
+    let table = uniform_table();
+    let (w, h) = (crop.width, crop.height);
+    let grid = grid.max(1);
+    let mut hist = vec![0.0f32; grid * grid * LBP_BINS];
+    let d = std::f32::consts::FRAC_1_SQRT_2 * 2.0;
+    let offsets: [(f32, f32); 8] = [(-d, -d), (0.0, -2.0), (d, -d), (2.0, 0.0), (d, d), (0.0, 2.0), (-d, d), (-2.0, 0.0)];
+    for y in 2..h.saturating_sub(2) {
+        let cy = (y * grid / h).min(grid - 1);
+        for x in 2..w.saturating_sub(2) {
+            let cx = (x * grid / w).min(grid - 1);
+            let centre = crop.data[y * w + x];
+            let mut code = 0u8;
+            for (bit, (dx, dy)) in offsets.iter().enumerate() {
+                if crop.sample(x as f32 + dx, y as f32 + dy) >= centre {
+                    code |= 1 << bit;
+                }
+            }
+            hist[(cy * grid + cx) * LBP_BINS + table[code as usize] as usize] += 1.0;
+        }
+    }
+    for cell in hist.chunks_mut(LBP_BINS) {
+        let s: f32 = cell.iter().sum();
+        if s > 0.0 {
+            cell.iter_mut().for_each(|v| *v = (*v / s).sqrt());
+        }
+    }
+    hist
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -110,5 +167,13 @@ mod tests {
         // Unit sum before the square root: the squares of each cell sum to one.
         let s: f32 = f[..LBP_BINS].iter().map(|v| v * v).sum();
         assert!((s - 1.0).abs() < 1e-4);
+        // The concatenations: unit length per part, dims as declared.
+        let mask = vec![true; 1024];
+        for kind in [FeatureKind::PixelsLbp { grid: 4 }, FeatureKind::PixelsLbpMulti { grid: 4 }] {
+            let f = kind.extract(&crop, &mask);
+            assert_eq!(f.len(), kind.dims(32, 32, &mask));
+            let pixel_norm: f32 = f[..1024].iter().map(|v| v * v).sum();
+            assert!((pixel_norm - 1.0).abs() < 1e-3);
+        }
     }
 }

@@ -250,6 +250,57 @@ pub fn align_all(front_end: &FrontEnd, faces: &[FaceImage], normalization: Norma
     out
 }
 
+/// [`align_all`] through a cache file in `dir`, keyed by the SHA-256 of everything that shapes the
+/// crops: the photos, the keypoint source, the normalisation path and parameters, and the bytes of
+/// the landmark model (`asm.bin`). Photos the front end skipped stay skipped.
+pub fn align_all_cached(
+    dir: &Path,
+    source: KeypointSource,
+    front_end: &FrontEnd,
+    faces: &[FaceImage],
+    normalization: Normalization,
+    params: &NormalizeParams,
+) -> anyhow::Result<Vec<AlignedFace>> {
+    use sha2::{Digest, Sha256};
+    type Entry = (String, usize, usize, Vec<f32>, String);
+    let mut hasher = Sha256::new();
+    hasher.update(postcard::to_stdvec(&(normalization, params))?);
+    hasher.update(format!("{source:?}"));
+    for f in faces {
+        hasher.update(f.image.display().to_string());
+        hasher.update([f.asf.is_some() as u8]);
+    }
+    if let Ok(asm) = std::fs::read(crate::config::models_dir().join("asm.bin")) {
+        hasher.update(&asm);
+    }
+    let key: String = hasher.finalize().iter().take(8).map(|b| format!("{b:02x}")).collect();
+    let path = dir.join(format!("crops-{key}.bin"));
+    let source_name = |s: &str| -> &'static str {
+        match s {
+            "imm-annotations" => "imm-annotations",
+            "pipeline" => "pipeline",
+            _ => "detector-box",
+        }
+    };
+    if let Ok(bytes) = std::fs::read(&path) {
+        let entries: Vec<Entry> = postcard::from_bytes(&bytes)?;
+        let by_path: BTreeMap<String, &Entry> = entries.iter().map(|e| (e.0.clone(), e)).collect();
+        eprintln!("aligned crops from cache {}", path.display());
+        return Ok(faces
+            .iter()
+            .filter_map(|f| by_path.get(&f.image.display().to_string()))
+            .zip(faces.iter().filter(|f| by_path.contains_key(&f.image.display().to_string())))
+            .map(|(e, f)| AlignedFace { face: f.clone(), crop: GrayF32 { width: e.1, height: e.2, data: e.3.clone() }, pose: None, keypoint_source: source_name(&e.4) })
+            .collect());
+    }
+    let aligned = align_all(front_end, faces, normalization, params, true);
+    let entries: Vec<Entry> =
+        aligned.iter().map(|a| (a.face.image.display().to_string(), a.crop.width, a.crop.height, a.crop.data.clone(), a.keypoint_source.to_string())).collect();
+    std::fs::create_dir_all(dir)?;
+    std::fs::write(&path, postcard::to_stdvec(&entries)?)?;
+    Ok(aligned)
+}
+
 /// What a training run is made of.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TrainConfig {
