@@ -315,7 +315,8 @@ impl Cascade {
         if w < self.window_width || h < self.window_height {
             return;
         }
-        let first_scale = (opts.min_size / ww.min(wh)).max(opts.min_size.min(1.0)).max(1e-3);
+        // Below 1 the image is upscaled (faces smaller than the window); at most 4× to bound memory.
+        let first_scale = (opts.min_size / ww.min(wh)).max(0.25);
         // Working downscale: halve (2×2 average, which also low-passes) while the smallest scale
         // stays at or above 2, so each level is a mild bilinear resize of a small base image.
         let mut base_cow: Option<GrayF32> = None;
