@@ -103,10 +103,11 @@ impl Pipeline {
         timings.landmarks_ms = ms(t);
 
         let t = Instant::now();
-        let fitted = self.face_model.as_ref().map(|m| (m, m.fit(&landmarks.points, photo.width(), photo.height())));
+        // A failed fit (degenerate landmarks) falls back to 2D alignment, like a missing model.
+        let fitted = self.face_model.as_ref().and_then(|m| m.fit(&landmarks.points, photo.width(), photo.height()).ok().map(|f| (m, f)));
         let pose = fitted.as_ref().map(|(_, f)| f.pose);
         let frontal = match (&fitted, self.recognizer.normalization()) {
-            (Some((model, fit)), Normalization::Morph) => Some(model.frontalize(photo, fit)),
+            (Some((model, fit)), Normalization::Morph) => model.frontalize(photo, fit).ok(),
             _ => None,
         };
         timings.morph_ms = ms(t);

@@ -1,6 +1,13 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use anyhow::Context;
+use serde_json::json;
+
+use crate::dataset;
+use crate::detect::Detector;
+use crate::landmarks::{Landmarker, Variant, train};
+
 #[derive(clap::Args, Debug)]
 pub struct LandmarksArgs {
     #[arg(required = true)]
@@ -19,22 +26,105 @@ pub struct TrainAsmArgs {
     pub imm: PathBuf,
     #[arg(long, default_value = "models/asm.bin")]
     pub out: PathBuf,
+    /// Train only on the persons of the person-disjoint training split (leave out
+    /// `dataset::imm_is_test_person`), for measurements.
+    #[arg(long)]
+    pub train_split: bool,
 }
 
 #[derive(clap::Args, Debug)]
 pub struct EvalLandmarksArgs {
     #[arg(long)]
     pub imm: PathBuf,
+    /// Folder for the cumulative curves (SVG) and the JSON summary.
+    #[arg(long, default_value = "target/eval-landmarks")]
+    pub out: PathBuf,
 }
 
-pub fn run(_args: LandmarksArgs) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("landmarks have not landed yet")
+/// The detector, or `None` with a warning when it cannot be loaded.
+fn load_detector() -> Option<Detector> {
+    match Detector::load(&crate::config::models_dir()) {
+        Ok(d) => Some(d),
+        Err(e) => {
+            eprintln!("facegate: warning: no face detector ({e}); using boxes from the annotations");
+            None
+        }
+    }
 }
 
-pub fn run_train(_args: TrainAsmArgs) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("ASM training has not landed yet")
+pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
+    let variant = Variant::parse(&args.variant).context("unknown variant")?;
+    let path = crate::config::models_dir().join("asm.bin");
+    let landmarker = Landmarker::load(&path)?;
+    let detector = Detector::load(&crate::config::models_dir())?;
+    let mut failed = false;
+    for image in &args.images {
+        let photo = match crate::imaging::open(image) {
+            Ok(p) => p,
+            Err(e) => {
+                eprintln!("facegate: {}: {e}", image.display());
+                failed = true;
+                continue;
+            }
+        };
+        let faces: Vec<serde_json::Value> = detector
+            .detect(&photo.gray)
+            .iter()
+            .map(|f| {
+                let lm = landmarker.fit(&photo.gray, &f.rect, variant);
+                json!({
+                    "box": f.rect,
+                    "points": lm.points,
+                    "left_eye": lm.keypoints.left_eye,
+                    "right_eye": lm.keypoints.right_eye,
+                    "mouth": lm.keypoints.mouth,
+                })
+            })
+            .collect();
+        let value = json!({ "image": image.display().to_string(), "variant": variant.name(), "faces": faces });
+        if args.json {
+            crate::cli::print_json_line(&value);
+        } else {
+            println!("{}: {} face(s)", image.display(), faces.len());
+            for f in &faces {
+                println!("  box {}  left eye {}  right eye {}  mouth {}", f["box"], f["left_eye"], f["right_eye"], f["mouth"]);
+            }
+        }
+    }
+    Ok(if failed { ExitCode::FAILURE } else { ExitCode::SUCCESS })
 }
 
-pub fn run_eval(_args: EvalLandmarksArgs) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("landmark evaluation has not landed yet")
+pub fn run_train(args: TrainAsmArgs) -> anyhow::Result<ExitCode> {
+    let mut samples = dataset::list_imm(&args.imm)?;
+    if args.train_split {
+        samples.retain(|s| !dataset::imm_is_test_person(s.person));
+    }
+    anyhow::ensure!(!samples.is_empty(), "no annotated IMM photos in {}", args.imm.display());
+    let detector = load_detector();
+    let bar = crate::cli::progress(samples.len() as u64, "train asm");
+    let model = train::train(&samples, detector.as_ref(), &train::TrainOptions::default(), &|| bar.inc(1))?;
+    bar.finish();
+    let info = model.info.clone();
+    let landmarker = Landmarker { model };
+    landmarker.save(&args.out)?;
+    let size = std::fs::metadata(&args.out).map(|m| m.len()).unwrap_or(0);
+    eprintln!(
+        "trained on {} photos of {} persons; placement from {:?} boxes ({} detector misses); shape modes full/internal/contour {}/{}/{}; wrote {} ({} kB)",
+        info.images,
+        info.persons.len(),
+        info.box_source,
+        info.detector_misses,
+        landmarker.model.full.modes(),
+        landmarker.model.internal.modes(),
+        landmarker.model.contour.modes(),
+        args.out.display(),
+        size / 1024
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+pub fn run_eval(args: EvalLandmarksArgs) -> anyhow::Result<ExitCode> {
+    let detector = load_detector();
+    crate::eval::landmarks::run(&args.imm, detector.as_ref(), &args.out)?;
+    Ok(ExitCode::SUCCESS)
 }

@@ -46,6 +46,8 @@ pub enum TrainCommand {
     Asm(landmarks::TrainAsmArgs),
     /// Train the Direct LDA projection from labelled folders.
     Dlda(recognize::TrainDldaArgs),
+    /// Derive the IMM point → Surrey Face Model vertex table from IMM training annotations.
+    ImmSfm(morph::TrainImmSfmArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -74,6 +76,7 @@ pub fn main() -> ExitCode {
         Command::Train(TrainCommand::Asm(args)) => landmarks::run_train(args),
         Command::Train(TrainCommand::Dlda(args)) => recognize::run_train(args),
         Command::Eval(EvalCommand::Detect(args)) => detect::run_eval(args),
+        Command::Train(TrainCommand::ImmSfm(args)) => morph::run_train_imm_sfm(args),
         Command::Eval(EvalCommand::Landmarks(args)) => landmarks::run_eval(args),
         Command::Eval(EvalCommand::Pairs(args)) => recognize::run_eval_pairs(args),
         Command::Eval(EvalCommand::Verify(args)) => recognize::run_eval_verify(args),

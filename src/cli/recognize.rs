@@ -1,5 +1,17 @@
-use std::path::PathBuf;
+//! `facegate compare`, `train dlda`, `eval pairs`, `eval verify`, `eval identify`.
+
+use std::collections::HashMap;
+use std::io::{BufRead, Write};
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+
+use anyhow::Context;
+
+use crate::eval::verification::{self, rank1, summarize};
+use crate::pipeline::{Pipeline, PipelineConfig};
+use crate::recognize::calibration::DEFAULT_FMR;
+use crate::recognize::train::{self, AlignedFace, FrontEnd, KeypointSource, TrainConfig};
+use crate::recognize::{DldaParams, FeatureKind, NormalizeParams, Normalization, Photometric, Recognizer, Template};
 
 #[derive(clap::Args, Debug)]
 pub struct CompareArgs {
@@ -7,6 +19,104 @@ pub struct CompareArgs {
     pub b: PathBuf,
     #[arg(long)]
     pub json: bool,
+    /// Operating point: the calibrated false match rate closest to this (1e-2, 1e-3 or 1e-4).
+    #[arg(long, default_value_t = DEFAULT_FMR)]
+    pub fmr: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum NormalizationArg {
+    #[value(name = "2d")]
+    TwoD,
+    #[value(name = "3dmm")]
+    Morph,
+}
+
+impl From<NormalizationArg> for Normalization {
+    fn from(n: NormalizationArg) -> Self {
+        match n {
+            NormalizationArg::TwoD => Normalization::TwoD,
+            NormalizationArg::Morph => Normalization::Morph,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PhotometricArg {
+    None,
+    Histeq,
+    TanTriggs,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum FeaturesArg {
+    Pixels,
+    Lbp,
+}
+
+/// The choices that make a model, with the measured defaults.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ModelOptions {
+    #[arg(long, value_enum, default_value = "2d")]
+    pub normalization: NormalizationArg,
+    #[arg(long, value_enum, default_value = "histeq")]
+    pub photometric: PhotometricArg,
+    #[arg(long, value_enum, default_value = "pixels")]
+    pub features: FeaturesArg,
+    /// Cells per side of the LBP grid.
+    #[arg(long, default_value_t = 8)]
+    pub lbp_grid: usize,
+    /// Do not add mirrored copies of the training photos.
+    #[arg(long)]
+    pub no_mirror: bool,
+    /// Leave the IMM rotated views (3, 4) out of training.
+    #[arg(long)]
+    pub train_frontal_only: bool,
+    #[arg(long, default_value_t = 100)]
+    pub dims: usize,
+    /// ε of the regularised S_w^{-1/2}, as a fraction of the mean within-class eigenvalue.
+    #[arg(long, default_value_t = 0.01)]
+    pub regularization: f64,
+    /// Disable the elliptical mask.
+    #[arg(long)]
+    pub no_mask: bool,
+    /// Randomly perturbed copies of each training photo (keypoint noise).
+    #[arg(long, default_value_t = 0)]
+    pub jitter: usize,
+    /// Side of the square normalised crop in pixels (the canonical positions scale with it).
+    #[arg(long, default_value_t = 48)]
+    pub crop: usize,
+    /// Scale of the keypoint layout about the crop centre (below 1 shows more of the head).
+    #[arg(long, default_value_t = 1.0)]
+    pub zoom: f32,
+    /// Weight of the mouth centre in the alignment (the eyes weigh 1; 0 aligns the eyes only).
+    #[arg(long, default_value_t = 1.0)]
+    pub mouth_weight: f32,
+}
+
+impl ModelOptions {
+    fn config(&self) -> TrainConfig {
+        let mut config = TrainConfig {
+            normalization: self.normalization.into(),
+            features: match self.features {
+                FeaturesArg::Pixels => FeatureKind::Pixels,
+                FeaturesArg::Lbp => FeatureKind::Lbp { grid: self.lbp_grid },
+            },
+            dlda: DldaParams { max_dims: self.dims, regularization: self.regularization },
+            mirror: !self.no_mirror,
+            ..TrainConfig::default()
+        };
+        config.normalize.photometric = match self.photometric {
+            PhotometricArg::None => Photometric::None,
+            PhotometricArg::Histeq => Photometric::HistogramEqualization,
+            PhotometricArg::TanTriggs => Photometric::TanTriggs,
+        };
+        config.normalize.elliptical_mask = !self.no_mask;
+        config.jitter = self.jitter;
+        config.normalize = NormalizeParams { photometric: config.normalize.photometric, elliptical_mask: config.normalize.elliptical_mask, ..NormalizeParams::layout64().scaled(self.crop).zoomed(self.zoom) };
+        config.normalize.mouth_weight = self.mouth_weight;
+        config
+    }
 }
 
 #[derive(clap::Args, Debug)]
@@ -16,6 +126,15 @@ pub struct TrainDldaArgs {
     pub data: Vec<PathBuf>,
     #[arg(long, default_value = "models/dlda.bin")]
     pub out: PathBuf,
+    /// Where the eye and mouth centres come from.
+    #[arg(long, value_enum, default_value = "annotated")]
+    pub keypoints: KeypointSource,
+    /// Before training, report the EER of K-fold cross-validation over the training persons only
+    /// (how parameters are chosen without looking at the held-out persons).
+    #[arg(long)]
+    pub cv_folds: Option<usize>,
+    #[command(flatten)]
+    pub model: ModelOptions,
 }
 
 #[derive(clap::Args, Debug)]
@@ -31,27 +150,390 @@ pub struct EvalPairsArgs {
 pub struct EvalVerifyArgs {
     #[arg(required = true)]
     pub dirs: Vec<PathBuf>,
+    /// The model to measure (default: `dlda.bin` in the models folder).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    #[arg(long, value_enum, default_value = "annotated")]
+    pub keypoints: KeypointSource,
+    /// Measure on every person, including those the projection was trained on (optimistic).
+    #[arg(long)]
+    pub all_persons: bool,
+    /// Where the ROC and DET plots go.
+    #[arg(long, default_value = "docs/img")]
+    pub plots: PathBuf,
 }
 
 #[derive(clap::Args, Debug)]
-pub struct EvalIdentifyArgs {}
-
-pub fn run_compare(_args: CompareArgs) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("recognition has not landed yet")
+pub struct EvalIdentifyArgs {
+    /// IMM folder (its rotated views 3 and 4 are the posed probes).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    #[arg(long, value_enum, default_value = "annotated")]
+    pub keypoints: KeypointSource,
+    /// Add the view-1 photos of the training persons to the gallery as distractors (the probes
+    /// stay held-out persons only).
+    #[arg(long)]
+    pub distractors: bool,
+    #[command(flatten)]
+    pub model: ModelOptions,
 }
 
-pub fn run_train(_args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("DLDA training has not landed yet")
+pub fn run_compare(args: CompareArgs) -> anyhow::Result<ExitCode> {
+    let pipeline = Pipeline::load(&PipelineConfig::default())?;
+    let analyze = |path: &Path| -> anyhow::Result<Template> {
+        let photo = crate::imaging::open(path)?;
+        Ok(pipeline.analyze(&photo).with_context(|| path.display().to_string())?.template)
+    };
+    let (a, b) = (analyze(&args.a)?, analyze(&args.b)?);
+    let score = pipeline.recognizer.try_score(&a, std::slice::from_ref(&b))?;
+    let op = pipeline.recognizer.operating_point(args.fmr);
+    let matched = score >= op.threshold;
+    if args.json {
+        crate::cli::print_json_line(&serde_json::json!({"score": score, "threshold": op.threshold, "fmr": op.fmr, "match": matched}));
+    } else {
+        println!("score {score:.4}  threshold {:.4} (FMR {:e})  {}", op.threshold, op.fmr, if matched { "match" } else { "no match" });
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
-pub fn run_eval_pairs(_args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("pair evaluation has not landed yet")
+pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
+    let config = args.model.config();
+    let mut faces = train::list_faces(&args.data)?;
+    anyhow::ensure!(!faces.is_empty(), "no labelled images under {:?}", args.data);
+    if args.model.train_frontal_only {
+        faces.retain(|f| f.held_out || !f.is_rotated_view());
+    }
+    let sfm = (config.normalization == Normalization::Morph).then(crate::config::sfm_dir);
+    let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
+    let aligned = train::align_all(&front, &faces, config.normalization, &config.normalize, true);
+    let data: Vec<String> = args.data.iter().map(|d| d.display().to_string()).collect();
+    if let Some(folds) = args.cv_folds {
+        let eers = train::cross_validate(&aligned, &config, folds)?;
+        let mean = eers.iter().sum::<f64>() / eers.len() as f64;
+        let folds: Vec<String> = eers.iter().map(|e| format!("{:.2}%", 100.0 * e)).collect();
+        eprintln!("cross-validation over training persons: mean EER {:.2}% (folds {})", 100.0 * mean, folds.join(", "));
+        crate::cli::print_json_line(&serde_json::json!({"cv_folds": eers.len(), "cv_eer_mean": mean, "cv_eer": eers}));
+    }
+    eprintln!("training DLDA on {} photos ({} of training persons)…", aligned.len(), aligned.iter().filter(|a| !a.face.held_out).count());
+    let (model, report) = train::train_model(&aligned, &config, &data)?;
+    model.save(&args.out)?;
+    let version = model.version();
+    eprintln!(
+        "{}: {version}, {} → {} dims, trained on {} photos of {} persons (+mirrored: {}), keypoints {}",
+        args.out.display(),
+        model.dlda.input_dims,
+        model.dlda.dims,
+        model.provenance.train_images,
+        model.provenance.train_persons.len(),
+        model.provenance.mirrored,
+        model.provenance.keypoint_source
+    );
+    eprintln!(
+        "held-out ({} photos of {} persons): EER {:.2}%, FNMR@FMR1e-2 {:.2}%, FNMR@FMR1e-3 {:.2}%; combine max EER {:.2}%, mean EER {:.2}% → {:?}",
+        model.provenance.calibration_images,
+        model.provenance.calibration_persons.len(),
+        100.0 * report.pairs.eer,
+        100.0 * report.pairs.fnmr_at_fmr_1e2,
+        100.0 * report.pairs.fnmr_at_fmr_1e3,
+        100.0 * report.eer_combine_max,
+        100.0 * report.eer_combine_mean,
+        report.combine
+    );
+    for p in &model.calibration.points {
+        eprintln!(
+            "  FMR {:e}: threshold {:.4} (observed FMR {:.5}, FNMR {:.4}{})",
+            p.fmr,
+            p.threshold,
+            p.observed_fmr,
+            p.observed_fnmr,
+            if p.under_sampled { ", under-sampled: fewer than 1/FMR impostor pairs" } else { "" }
+        );
+    }
+    crate::cli::print_json_line(&serde_json::json!({
+        "model": args.out, "version": version, "normalization": model.normalization, "features": model.features,
+        "photometric": model.normalize.photometric, "dims": model.dlda.dims, "keypoints": model.provenance.keypoint_source,
+        "held_out": report, "calibration": model.calibration.points,
+    }));
+    Ok(ExitCode::SUCCESS)
 }
 
-pub fn run_eval_verify(_args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("verification evaluation has not landed yet")
+/// One pair of the pairs CSV.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PairRow {
+    pub file_x: String,
+    pub file_y: String,
 }
 
-pub fn run_eval_identify(_args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("identification evaluation has not landed yet")
+/// Read the pairs CSV: a header whose first two columns are `file_x,file_y`, then one pair per line
+/// (further columns are ignored; fields may be double-quoted).
+pub fn read_pairs(reader: impl BufRead) -> anyhow::Result<Vec<PairRow>> {
+    let mut lines = reader.lines();
+    let header = lines.next().context("the pairs file is empty")??;
+    let cols = split_csv(&header);
+    anyhow::ensure!(cols.len() >= 2 && cols[0] == "file_x" && cols[1] == "file_y", "the pairs file must start with a header `file_x,file_y,...`, found {header:?}");
+    let mut out = Vec::new();
+    for (i, line) in lines.enumerate() {
+        let line = line?;
+        if line.trim().is_empty() {
+            continue;
+        }
+        let cols = split_csv(&line);
+        anyhow::ensure!(cols.len() >= 2, "line {}: expected at least two columns: {line:?}", i + 2);
+        out.push(PairRow { file_x: cols[0].clone(), file_y: cols[1].clone() });
+    }
+    Ok(out)
+}
+
+fn split_csv(line: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut field = String::new();
+    let mut quoted = false;
+    let mut chars = line.trim_end_matches('\r').chars().peekable();
+    while let Some(c) = chars.next() {
+        match c {
+            '"' if quoted && chars.peek() == Some(&'"') => {
+                field.push('"');
+                chars.next();
+            }
+            '"' => quoted = !quoted,
+            ',' if !quoted => out.push(std::mem::take(&mut field)),
+            c => field.push(c),
+        }
+    }
+    out.push(field);
+    out.into_iter().map(|f| f.trim().to_string()).collect()
+}
+
+fn csv_field(s: &str) -> String {
+    if s.contains([',', '"', '\n']) { format!("\"{}\"", s.replace('"', "\"\"")) } else { s.to_string() }
+}
+
+/// Score every pair, processing each image once. `template_of` gives an image's template or the
+/// reason it has none; such pairs get an empty score and a warning through `warn`.
+pub fn score_pairs(
+    pairs: &[PairRow],
+    images: &Path,
+    mut template_of: impl FnMut(&Path) -> anyhow::Result<Template>,
+    score: impl Fn(&Template, &Template) -> f32,
+    mut out: impl Write,
+    mut warn: impl FnMut(String),
+) -> anyhow::Result<()> {
+    let mut cache: HashMap<&str, Option<Template>> = HashMap::new();
+    writeln!(out, "file_x,file_y,score")?;
+    for pair in pairs {
+        for name in [&pair.file_x, &pair.file_y] {
+            if !cache.contains_key(name.as_str()) {
+                let t = match template_of(&images.join(name)) {
+                    Ok(t) => Some(t),
+                    Err(e) => {
+                        warn(format!("{name}: no template ({e:#})"));
+                        None
+                    }
+                };
+                cache.insert(name, t);
+            }
+        }
+        let s = match (&cache[pair.file_x.as_str()], &cache[pair.file_y.as_str()]) {
+            (Some(a), Some(b)) => format!("{:.6}", score(a, b)),
+            _ => {
+                warn(format!("{},{}: empty score (an image has no face)", pair.file_x, pair.file_y));
+                String::new()
+            }
+        };
+        writeln!(out, "{},{},{s}", csv_field(&pair.file_x), csv_field(&pair.file_y))?;
+    }
+    Ok(())
+}
+
+pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
+    let file = std::fs::File::open(&args.pairs).with_context(|| args.pairs.display().to_string())?;
+    let pairs = read_pairs(std::io::BufReader::new(file))?;
+    let pipeline = Pipeline::load(&PipelineConfig::default())?;
+    let bar = crate::cli::progress(pairs.len() as u64, "pairs");
+    let template_of = |path: &Path| -> anyhow::Result<Template> {
+        let photo = crate::imaging::open(path)?;
+        Ok(pipeline.analyze(&photo)?.template)
+    };
+    let stdout = std::io::stdout().lock();
+    score_pairs(&pairs, &args.images, template_of, |a, b| pipeline.recognizer.score(a, std::slice::from_ref(b)), stdout, |w| bar.println(format!("warning: {w}")))?;
+    bar.finish_and_clear();
+    Ok(ExitCode::SUCCESS)
+}
+
+pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
+    let model_path = args.model.clone().unwrap_or_else(crate::recognize::default_model_path);
+    let recognizer = Recognizer::load_file(&model_path)?;
+    let model = recognizer.model();
+    let mut faces = train::list_faces(&args.dirs)?;
+    if !args.all_persons {
+        faces.retain(|f| f.held_out);
+    }
+    anyhow::ensure!(!faces.is_empty(), "no photos of held-out persons under {:?}", args.dirs);
+    let sfm = (model.normalization == Normalization::Morph).then(crate::config::sfm_dir);
+    let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
+    let aligned = train::align_all(&front, &faces, model.normalization, &model.normalize, true);
+    let templates: Vec<(String, Template, bool)> =
+        aligned.iter().map(|a| (a.face.label.clone(), train::template_of(&recognizer, &a.crop), a.face.is_rotated_view())).collect();
+    let sources = keypoint_sources(&aligned);
+    println!(
+        "model {} ({}, {:?}, {} dims, keypoints of the model: {}); measured on {} photos of {} persons, keypoints: {sources}",
+        recognizer.model_version(),
+        model.normalization,
+        model.features,
+        model.dlda.dims,
+        model.provenance.keypoint_source,
+        aligned.len(),
+        {
+            let mut l: Vec<&str> = aligned.iter().map(|a| a.face.label.as_str()).collect();
+            l.dedup();
+            l.len()
+        },
+    );
+    let all: Vec<(String, Template)> = templates.iter().map(|(l, t, _)| (l.clone(), t.clone())).collect();
+    let frontal: Vec<(String, Template)> = templates.iter().filter(|(_, _, r)| !r).map(|(l, t, _)| (l.clone(), t.clone())).collect();
+    let (ga, ia) = train::pair_scores(&all);
+    let (gf, iff) = train::pair_scores(&frontal);
+    let who = if args.all_persons { "all persons" } else { "held-out persons" };
+    for (name, g, i) in [("frontal/near-frontal", &gf, &iff), ("all views", &ga, &ia)] {
+        if g.is_empty() || i.is_empty() {
+            println!("{name}: no genuine or no impostor pairs");
+            continue;
+        }
+        let s = summarize(g, i);
+        println!(
+            "{name} ({who}): {} genuine, {} impostor pairs: EER {:.2}%, FNMR@FMR=1e-2 {:.2}%, FNMR@FMR=1e-3 {:.2}%",
+            s.genuine,
+            s.impostor,
+            100.0 * s.eer,
+            100.0 * s.fnmr_at_fmr_1e2,
+            100.0 * s.fnmr_at_fmr_1e3
+        );
+    }
+    std::fs::create_dir_all(&args.plots)?;
+    let (roc, det) = (args.plots.join("roc.svg"), args.plots.join("det.svg"));
+    verification::write_roc_det(&roc, &det, &[("frontal/near-frontal", &gf, &iff), ("all views (incl. IMM ±30°)", &ga, &ia)])?;
+    println!("wrote {} and {}", roc.display(), det.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+fn keypoint_sources(aligned: &[AlignedFace]) -> String {
+    let mut counts: std::collections::BTreeMap<&str, usize> = Default::default();
+    for a in aligned {
+        *counts.entry(a.keypoint_source).or_default() += 1;
+    }
+    counts.iter().map(|(s, n)| format!("{s} ({n})")).collect::<Vec<_>>().join(", ")
+}
+
+/// Pose bin of a probe: |yaw| from the 3DMM fit when there is one, else the IMM view group.
+fn pose_bin(a: &AlignedFace) -> String {
+    match a.pose {
+        Some(p) => {
+            let y = p.yaw.abs();
+            let lo = ((y / 10.0).floor() as i32 * 10).min(40);
+            if lo >= 40 { "|yaw| ≥ 40°".into() } else { format!("|yaw| {lo}–{}°", lo + 10) }
+        }
+        None if a.face.is_rotated_view() => "IMM views 3-4 (±30°)".into(),
+        None => "IMM views 2,5,6 (frontal)".into(),
+    }
+}
+
+pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
+    let data = args.data.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/imm"));
+    let faces = train::list_faces(std::slice::from_ref(&data))?;
+    let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), Some(&crate::config::sfm_dir()));
+    let mut normalizations = vec![Normalization::TwoD];
+    if front.face_model.is_some() {
+        normalizations.push(Normalization::Morph);
+    } else {
+        eprintln!("3DMM unavailable: measuring 2D alignment only");
+    }
+    // bin → (probes, hits per normalisation)
+    let mut table: std::collections::BTreeMap<String, (usize, Vec<usize>)> = Default::default();
+    let mut sources = String::new();
+    for (k, &normalization) in normalizations.iter().enumerate() {
+        let config = TrainConfig { normalization, ..args.model.config() };
+        let aligned = train::align_all(&front, &faces, normalization, &config.normalize, true);
+        sources = keypoint_sources(&aligned);
+        let (model, _) = train::train_model(&aligned, &config, &[data.display().to_string()])?;
+        let recognizer = Recognizer::from_model(model);
+        let held: Vec<&AlignedFace> = aligned.iter().filter(|a| a.face.held_out).collect();
+        // Gallery: the first frontal view (view 1) of each held-out person (and of the training
+        // persons with --distractors); probes: every other view of the held-out persons.
+        let gallery: Vec<(&str, Template)> = aligned
+            .iter()
+            .filter(|a| a.face.view == Some(1) && (a.face.held_out || args.distractors))
+            .map(|a| (a.face.label.as_str(), train::template_of(&recognizer, &a.crop)))
+            .collect();
+        for a in held.iter().filter(|a| a.face.view != Some(1)) {
+            let Some(truth) = gallery.iter().position(|(l, _)| *l == a.face.label) else { continue };
+            let t = train::template_of(&recognizer, &a.crop);
+            let row: Vec<f32> = gallery.iter().map(|(_, g)| t.cosine(g)).collect();
+            let hit = (rank1(&[row], &[truth]) == 1.0) as usize;
+            // Two tables: by IMM view group, and by |yaw| of the 3DMM fit when there is one.
+            let view_group = AlignedFace { pose: None, ..(*a).clone() };
+            let mut bins = vec![format!("view: {}", pose_bin(&view_group))];
+            if a.pose.is_some() {
+                bins.push(format!("pose: {}", pose_bin(a)));
+            }
+            for bin in bins {
+                let entry = table.entry(bin).or_insert_with(|| (0, vec![0; normalizations.len()]));
+                if k == 0 {
+                    entry.0 += 1;
+                }
+                entry.1[k] += hit;
+            }
+        }
+    }
+    let gallery = if args.distractors { "view 1 of all persons (training persons as distractors)" } else { "view 1 of the held-out persons" };
+    println!("rank-1 identification of held-out IMM persons (gallery: {gallery}; keypoints: {sources})");
+    let names: Vec<String> = normalizations.iter().map(|n| format!("rank1_{n}")).collect();
+    println!("pose_bin,probes,{}", names.join(","));
+    for (bin, (n, hits)) in &table {
+        let rates: Vec<String> = hits.iter().map(|&h| format!("{:.1}%", 100.0 * h as f64 / (*n).max(1) as f64)).collect();
+        println!("{bin},{n},{}", rates.join(","));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pairs_csv_is_parsed_and_missing_faces_give_empty_scores() {
+        let csv = "file_x,file_y,same\na.jpg,b.jpg,1\n\"c,1.jpg\",a.jpg,0\nnoface.jpg,b.jpg,0\n";
+        let pairs = read_pairs(csv.as_bytes()).unwrap();
+        assert_eq!(pairs.len(), 3);
+        assert_eq!(pairs[1].file_x, "c,1.jpg");
+        assert!(read_pairs("x,y\na,b\n".as_bytes()).is_err());
+        assert!(read_pairs("file_x,file_y\nonly-one\n".as_bytes()).is_err());
+
+        let mut calls = Vec::new();
+        let mut out = Vec::new();
+        let mut warnings = Vec::new();
+        score_pairs(
+            &pairs,
+            Path::new("imgs"),
+            |p| {
+                calls.push(p.to_path_buf());
+                anyhow::ensure!(!p.ends_with("noface.jpg"), "no face was found in the image");
+                let name = p.file_name().unwrap().to_string_lossy().to_string();
+                Ok(Template::new("v", vec![name.len() as f32, 1.0]))
+            },
+            |a, b| a.cosine(b),
+            &mut out,
+            |w| warnings.push(w),
+        )
+        .unwrap();
+        // Each image processed once, relative to the images folder.
+        assert_eq!(calls.len(), 4);
+        assert_eq!(calls[0], Path::new("imgs/a.jpg"));
+        let text = String::from_utf8(out).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], "file_x,file_y,score");
+        assert!(lines[1].starts_with("a.jpg,b.jpg,1.0000"), "{}", lines[1]);
+        assert!(lines[2].starts_with("\"c,1.jpg\",a.jpg,0.99"), "{}", lines[2]);
+        assert_eq!(lines[3], "noface.jpg,b.jpg,");
+        assert_eq!(warnings.len(), 2);
+    }
 }

@@ -2,3 +2,5 @@
 
 pub mod detection;
 pub mod plot;
+pub mod landmarks;
+pub mod verification;

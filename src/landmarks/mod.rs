@@ -1,4 +1,21 @@
-//! Landmarks on the 58-point IMM template. (Stub API: the landmarks issue fills it in.)
+//! Landmarks on the 58-point IMM template (thesis chapter 2): the plain Active Shape Model (grey-level
+//! profiles), SIFT-ASM (SIFT descriptors oriented by the contour normal) and the Combined ASM
+//! (C-ASM: the 45 internal points matched by SIFT, the 13 jaw points by profiles, each group with
+//! its own shape model, combined and constrained by the full 58-point model).
+//!
+//! - [`pdm`]: point distribution model (Procrustes, PCA, constrained fit).
+//! - [`profile`], [`sift`]: the two local texture models' features; [`mahalanobis`]: their
+//!   Gaussian models.
+//! - [`search`]: the face crop (rescaled like the thesis's 260×260 region), the 2-level pyramid and
+//!   the coarse-to-fine matching.
+//! - [`train`]: training all three variants from IMM `.asf` annotations.
+
+pub mod mahalanobis;
+pub mod pdm;
+pub mod profile;
+pub mod search;
+pub mod sift;
+pub mod train;
 
 use std::path::Path;
 
@@ -8,6 +25,9 @@ use crate::dataset::KeyPoints;
 use crate::geometry::{Point, Rect};
 use crate::imaging::GrayF32;
 
+use mahalanobis::{FullGaussian, PcaGaussian};
+use pdm::ShapeModel;
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum Variant {
@@ -15,6 +35,22 @@ pub enum Variant {
     Sift,
     #[default]
     Casm,
+}
+
+impl Variant {
+    pub const ALL: [Variant; 3] = [Variant::Asm, Variant::Sift, Variant::Casm];
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            Variant::Asm => "asm",
+            Variant::Sift => "sift",
+            Variant::Casm => "casm",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Variant> {
+        Variant::ALL.into_iter().find(|v| v.name() == s)
+    }
 }
 
 /// The 58 IMM points in image pixels, with the eye and mouth centres.
@@ -28,18 +64,263 @@ pub struct Landmarks {
 pub enum LandmarkError {
     #[error("cannot load the landmark model {path}: {message}")]
     Model { path: String, message: String },
+    #[error("cannot train the landmark model: {0}")]
+    Training(String),
 }
 
+/// Search parameters; the defaults are the thesis's where it gives them.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SearchParams {
+    /// Side of the square face crop the search runs in (thesis: 260×260).
+    pub crop_size: usize,
+    /// x extent of the mean shape in crop pixels.
+    pub ref_width: f32,
+    /// Gaussian pyramid levels searched coarse to fine (thesis: 2).
+    pub levels: usize,
+    /// Candidates along the normal on each side for grey-level profiles.
+    pub profile_radius: usize,
+    /// Half side of the 2D SIFT candidate window, per level (finest first).
+    pub sift_radius: Vec<usize>,
+    pub max_iterations: usize,
+    /// Stop when this share of points moved less than a pixel (thesis: ~90%).
+    pub converged_share: f32,
+    /// Training photos whose first shape coefficient is beyond ± this many standard deviations
+    /// form the turned start groups; 0 disables them (one start, the mean shape).
+    pub yaw_start: f32,
+    /// Extra starts tilted in the image plane by ± this many degrees; 0 disables them.
+    pub roll_start: f32,
+    /// Iterations each start gets on the coarsest level before the best one is kept.
+    pub probe_iterations: usize,
+}
+
+impl Default for SearchParams {
+    fn default() -> Self {
+        Self { crop_size: 260, ref_width: 170.0, levels: 2, profile_radius: 3, sift_radius: vec![1, 3], max_iterations: 4, converged_share: 0.9, yaw_start: 1.0, roll_start: 12.0, probe_iterations: 0 }
+    }
+}
+
+/// Where a starting shape goes relative to the face box: learnt from the training photos' boxes.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+pub struct Placement {
+    /// Scale of the starting shape per box width.
+    pub scale_per_width: f32,
+    /// Shape centre minus box centre, in box widths.
+    pub dx: f32,
+    pub dy: f32,
+}
+
+/// A starting shape: the mean shape of a group of training photos (by their first shape
+/// coefficient, yaw on IMM: turned one way, frontal, turned the other way) and its placement.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Start {
+    /// Full-model coefficients of the start shape.
+    pub b: Vec<f32>,
+    pub placement: Placement,
+    /// Training photos in the group.
+    pub photos: usize,
+}
+
+/// What kind of box the placement was learnt from (the search expects the same kind).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BoxSource {
+    /// The face detector's boxes (photos it missed were left out of the placement statistics).
+    Detector,
+    /// Bounding boxes of the annotated points (no detector available at training time).
+    Annotation,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TrainInfo {
+    pub images: usize,
+    pub persons: Vec<u32>,
+    pub box_source: BoxSource,
+    /// Photos where the detector found no face over the annotation (not used for placement).
+    pub detector_misses: usize,
+}
+
+/// The trained models of all three variants (`models/asm.bin`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct AsmModel {
+    pub format: u32,
+    pub params: SearchParams,
+    /// For each point, its previous and next neighbour on its contour (the normal is
+    /// perpendicular to the line between them).
+    pub neighbours: Vec<[u16; 2]>,
+    pub full: ShapeModel,
+    /// C-ASM's facial internal region model (IMM points 13..58).
+    pub internal: ShapeModel,
+    /// C-ASM's facial contour model (IMM points 0..13).
+    pub contour: ShapeModel,
+    /// `[level][point]` grey-level profile models.
+    pub profiles: Vec<Vec<FullGaussian>>,
+    /// `[level][point]` SIFT models.
+    pub sifts: Vec<Vec<PcaGaussian>>,
+    /// Starting shapes, the frontal one first.
+    pub starts: Vec<Start>,
+    pub info: TrainInfo,
+}
+
+pub const MODEL_FORMAT: u32 = 1;
+
 /// Trained shape and texture models of all variants (`models/asm.bin`), shareable across threads.
-pub struct Landmarker {}
+pub struct Landmarker {
+    pub model: AsmModel,
+}
 
 impl Landmarker {
     pub fn load(path: &Path) -> Result<Landmarker, LandmarkError> {
-        Err(LandmarkError::Model { path: path.display().to_string(), message: "landmarks have not landed yet".into() })
+        let err = |message: String| LandmarkError::Model { path: path.display().to_string(), message };
+        let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
+        let model: AsmModel = postcard::from_bytes(&bytes).map_err(|e| err(format!("not a landmark model: {e}")))?;
+        if model.format != MODEL_FORMAT {
+            return Err(err(format!("model format {} (expected {MODEL_FORMAT}); retrain with `facegate train asm`", model.format)));
+        }
+        if model.full.points() != crate::dataset::IMM_POINTS || model.neighbours.len() != crate::dataset::IMM_POINTS {
+            return Err(err("the model does not have 58 points".into()));
+        }
+        Ok(Landmarker { model })
     }
 
-    /// Search the 58 points of the face in `face` (a detector box).
-    pub fn fit(&self, _gray: &GrayF32, _face: &Rect, _variant: Variant) -> Landmarks {
-        unimplemented!("landmarks have not landed yet")
+    pub fn save(&self, path: &Path) -> Result<(), LandmarkError> {
+        let err = |message: String| LandmarkError::Model { path: path.display().to_string(), message };
+        let bytes = postcard::to_allocvec(&self.model).map_err(|e| err(e.to_string()))?;
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
+        }
+        std::fs::write(path, bytes).map_err(|e| err(e.to_string()))
+    }
+
+    /// Search the 58 points of the face in `face` (a box of the kind the model was trained with,
+    /// normally the detector's). Never panics: a degenerate box or image gives the placed mean shape.
+    pub fn fit(&self, gray: &GrayF32, face: &Rect, variant: Variant) -> Landmarks {
+        let points = search::fit(&self.model, gray, face, variant);
+        let keypoints = KeyPoints::from_imm(&points);
+        Landmarks { points, keypoints }
+    }
+
+    /// The initial shape (mean shape placed from the box), in image pixels.
+    pub fn initial_shape(&self, face: &Rect) -> Vec<Point> {
+        search::place(&self.model, face)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dataset::{ImmSample, list_imm};
+    use crate::geometry::{Similarity, distance};
+    use std::sync::OnceLock;
+
+    fn samples() -> Vec<ImmSample> {
+        list_imm(&crate::config::shared_dir().join("data/imm")).unwrap()
+    }
+
+    /// One model trained on the training persons, shared by the tests.
+    fn model() -> &'static Landmarker {
+        static MODEL: OnceLock<Landmarker> = OnceLock::new();
+        MODEL.get_or_init(|| {
+            let training: Vec<ImmSample> = samples().into_iter().filter(|s| !crate::dataset::imm_is_test_person(s.person)).collect();
+            Landmarker { model: train::train(&training, None, &train::TrainOptions::default(), &|| {}).unwrap() }
+        })
+    }
+
+    fn rms(a: &[Point], b: &[Point]) -> f32 {
+        (a.iter().zip(b).map(|(p, q)| distance(*p, *q).powi(2)).sum::<f32>() / a.len() as f32).sqrt()
+    }
+
+    #[test]
+    fn shape_models_reproduce_training_shapes_within_constraints() {
+        let m = &model().model;
+        for (pdm, range) in [(&m.full, 0..58), (&m.internal, 13..58), (&m.contour, 0..13)] {
+            let (mut checked, mut clamped) = (0, 0);
+            for s in samples().iter().filter(|s| !crate::dataset::imm_is_test_person(s.person)).step_by(3) {
+                let truth = s.landmarks().unwrap();
+                let target = &truth[range.clone()];
+                let (fit, pose, b) = pdm.fit(target);
+                let mut at_limit = false;
+                for (k, bk) in b.iter().enumerate() {
+                    let lim = pdm.constrain * pdm.eigenvalues[k].sqrt();
+                    assert!(bk.abs() <= lim + 1e-3);
+                    at_limit |= bk.abs() >= lim - 1e-3;
+                }
+                if at_limit {
+                    // An unusual shape, pulled back into the ±3σ box: not reproduced exactly.
+                    clamped += 1;
+                    continue;
+                }
+                checked += 1;
+                // 98% of the variance: a shape inside the box is reproduced to a small residual.
+                let size = pose.scale() * rms(&pdm.mean, &vec![[0.0, 0.0]; pdm.points()]);
+                let mean_placed: Vec<Point> = pdm.mean.iter().map(|&p| Similarity::fit(&pdm.mean, target, None).apply(p)).collect();
+                let (err, dev) = (rms(&fit, target), rms(&mean_placed, target));
+                assert!(err < 0.5 * dev && err < 0.05 * size, "{}: residual {err:.2} px, deviation {dev:.2} px, size {size:.1} px", s.image.display());
+            }
+            assert!(clamped * 3 < checked, "{clamped} clamped training shapes of {}", clamped + checked);
+        }
+    }
+
+    #[test]
+    fn search_returns_to_the_annotation_from_a_perturbed_start() {
+        let lm = model();
+        let s = samples().into_iter().find(|s| s.person == 7 && s.view == 1).unwrap();
+        let truth = s.landmarks().unwrap();
+        let photo = crate::imaging::open(&s.image).unwrap();
+        let truth_k = crate::dataset::KeyPoints::from_imm(&truth);
+        let eyes = distance(truth_k.left_eye, truth_k.right_eye);
+        // The box the model expects, shifted by 10% of its width and scaled by 8%.
+        let b = train::annotation_box(&truth);
+        let moved = Rect::new(b.x + 0.1 * b.width, b.y - 0.06 * b.width, 1.08 * b.width, 1.08 * b.height);
+        for variant in Variant::ALL {
+            let start = lm.initial_shape(&moved);
+            let found = lm.fit(&photo.gray, &moved, variant);
+            let (before, after) = (rms(&start, &truth), rms(&found.points, &truth));
+            let d_eye = crate::eval::landmarks::d_eye(&found.keypoints, &truth_k);
+            // Plain ASM is the weakest; SIFT-ASM and C-ASM should get much closer.
+            let gain = if variant == Variant::Asm { 0.7 } else { 0.4 };
+            assert!(after < gain * before, "{variant:?}: rms {before:.1} -> {after:.1} px");
+            if variant != Variant::Asm {
+                assert!(d_eye < 0.05, "{variant:?}: d_eye {d_eye:.3} (eye distance {eyes:.0} px)");
+            } else {
+                assert!(d_eye < 0.1, "{variant:?}: d_eye {d_eye:.3}");
+            }
+        }
+    }
+
+    #[test]
+    fn fit_survives_degenerate_images_and_boxes() {
+        let lm = model();
+        let img = GrayF32::from_fn(92, 112, |x, y| ((x * 3 + y * 5) % 17) as f32 * 10.0);
+        let boxes = [
+            Rect::new(10.0, 20.0, 60.0, 60.0),
+            Rect::new(-500.0, -500.0, 40.0, 40.0),
+            Rect::new(80.0, 100.0, 400.0, 400.0),
+            Rect::new(0.0, 0.0, 0.0, 0.0),
+            Rect::new(f32::NAN, 3.0, f32::INFINITY, -2.0),
+            Rect::new(1.0, 1.0, 1e9, 1e9),
+        ];
+        for b in &boxes {
+            for v in Variant::ALL {
+                let out = lm.fit(&img, b, v);
+                assert_eq!(out.points.len(), 58);
+            }
+        }
+        for (w, h) in [(1, 1), (2, 2), (3, 200), (0, 0)] {
+            let tiny = GrayF32::new(w, h);
+            assert_eq!(lm.fit(&tiny, &Rect::new(0.0, 0.0, 2.0, 2.0), Variant::Casm).points.len(), 58);
+        }
+    }
+
+    #[test]
+    fn model_round_trips_through_a_file_and_refuses_garbage() {
+        let lm = model();
+        let dir = std::env::temp_dir().join(format!("facegate-asm-{}", std::process::id()));
+        let path = dir.join("asm.bin");
+        lm.save(&path).unwrap();
+        let back = Landmarker::load(&path).unwrap();
+        assert_eq!(back.model.full.mean, lm.model.full.mean);
+        std::fs::write(&path, b"not a model").unwrap();
+        assert!(matches!(Landmarker::load(&path), Err(LandmarkError::Model { .. })));
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -1,0 +1,32 @@
+//! Recognition speed: projection and scoring of one face (target ≤ 1 ms), and the normalisation of a
+//! 640×480 photo before it. Uses the committed `models/dlda.bin` and an IMM photo with its annotated
+//! keypoints.
+
+use criterion::{Criterion, black_box, criterion_group, criterion_main};
+use facegate::dataset::{KeyPoints, list_imm};
+use facegate::recognize::Recognizer;
+
+fn bench(c: &mut Criterion) {
+    let recognizer = Recognizer::load(&facegate::config::models_dir()).expect("models/dlda.bin (facegate train dlda)");
+    let sample = &list_imm(&facegate::config::shared_dir().join("data/imm")).expect("IMM data")[0];
+    let photo = facegate::imaging::open(&sample.image).expect("IMM photo");
+    let keypoints = KeyPoints::from_imm(&sample.landmarks().expect("IMM landmarks"));
+    let crop = recognizer.normalized_crop(&photo.gray, &keypoints);
+    let enrolled = vec![recognizer.template_of_crop(&crop)];
+
+    c.bench_function("project_and_score", |b| {
+        b.iter(|| {
+            let t = recognizer.template_of_crop(black_box(&crop));
+            black_box(recognizer.score(&t, &enrolled))
+        })
+    });
+    c.bench_function("normalize_project_score_640x480", |b| {
+        b.iter(|| {
+            let t = recognizer.template(black_box(&photo.gray), black_box(&keypoints));
+            black_box(recognizer.score(&t, &enrolled))
+        })
+    });
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

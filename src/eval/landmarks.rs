@@ -1,0 +1,185 @@
+//! Landmark accuracy on held-out IMM persons (the analogue of the thesis's table 2.1): the three
+//! variants side by side, from the detector's box to the searched points, with the Jesorsky
+//! d_eye measure and the mouth error (thesis eq. 2.4–2.5), and their cumulative curves.
+
+use std::path::Path;
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::dataset::{self, ImmSample, KeyPoints};
+use crate::detect::Detector;
+use crate::geometry::{Rect, distance};
+use crate::landmarks::{BoxSource, Landmarker, Variant, train};
+
+use super::plot::{Chart, Scale, Series, cumulative, line_chart};
+
+/// CPU time of the calling thread in ns (Linux `schedstat`), so that timings are not inflated by
+/// other processes sharing the machine; `None` elsewhere.
+fn thread_cpu_ns() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    text.split_whitespace().next()?.parse().ok()
+}
+
+/// d_eye = max(d_left, d_right) / ||C_l − C_r|| (Jesorsky et al.).
+pub fn d_eye(found: &KeyPoints, truth: &KeyPoints) -> f64 {
+    let d = distance(found.left_eye, truth.left_eye).max(distance(found.right_eye, truth.right_eye));
+    (d / distance(truth.left_eye, truth.right_eye).max(1e-6)) as f64
+}
+
+/// Mouth error normalised by the distance from the eyes' midpoint to the mouth (thesis eq. 2.5).
+pub fn d_mouth(found: &KeyPoints, truth: &KeyPoints) -> f64 {
+    let mid = [0.5 * (truth.left_eye[0] + truth.right_eye[0]), 0.5 * (truth.left_eye[1] + truth.right_eye[1])];
+    (distance(found.mouth, truth.mouth) / distance(mid, truth.mouth).max(1e-6)) as f64
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct PhotoError {
+    pub person: u32,
+    pub view: u32,
+    /// `None` when the detector found no face (a failure at every threshold).
+    pub d_eye: Option<f64>,
+    pub d_mouth: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct VariantSummary {
+    pub variant: &'static str,
+    pub photos: usize,
+    pub detector_misses: usize,
+    pub d_eye_005: f64,
+    pub d_eye_01: f64,
+    pub mouth_01: f64,
+    pub mean_d_eye: f64,
+    pub ms_per_face: f64,
+    pub errors: Vec<PhotoError>,
+}
+
+fn share(errors: &[PhotoError], f: impl Fn(&PhotoError) -> Option<f64>, t: f64) -> f64 {
+    errors.iter().filter(|e| f(e).is_some_and(|v| v < t)).count() as f64 / errors.len().max(1) as f64
+}
+
+/// A face box for a test photo: the detector's largest face (as the pipeline uses it), or the
+/// annotation's bounding box when no detector is given.
+fn test_box(detector: Option<&Detector>, gray: &crate::imaging::GrayF32, truth: &[crate::geometry::Point]) -> Option<Rect> {
+    match detector {
+        Some(d) => d.detect(gray).first().map(|f| f.rect),
+        None => Some(train::annotation_box(truth)),
+    }
+}
+
+/// Measure one variant on `test` photos (boxes precomputed).
+pub fn measure(landmarker: &Landmarker, photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)], variant: Variant) -> VariantSummary {
+    let mut errors = Vec::new();
+    let (mut total_ms, mut fitted) = (0.0, 0usize);
+    for (sample, gray, truth, rect) in photos {
+        let truth_k = KeyPoints::from_imm(truth);
+        let (de, dm) = match rect {
+            Some(r) => {
+                let (t, c) = (Instant::now(), thread_cpu_ns());
+                let lm = landmarker.fit(gray, r, variant);
+                total_ms += match (c, thread_cpu_ns()) {
+                    (Some(a), Some(b)) => (b - a) as f64 * 1e-6,
+                    _ => t.elapsed().as_secs_f64() * 1e3,
+                };
+                fitted += 1;
+                (Some(d_eye(&lm.keypoints, &truth_k)), Some(d_mouth(&lm.keypoints, &truth_k)))
+            }
+            None => (None, None),
+        };
+        errors.push(PhotoError { person: sample.person, view: sample.view, d_eye: de, d_mouth: dm });
+    }
+    let found: Vec<f64> = errors.iter().filter_map(|e| e.d_eye).collect();
+    VariantSummary {
+        variant: variant.name(),
+        photos: errors.len(),
+        detector_misses: errors.iter().filter(|e| e.d_eye.is_none()).count(),
+        d_eye_005: share(&errors, |e| e.d_eye, 0.05),
+        d_eye_01: share(&errors, |e| e.d_eye, 0.1),
+        mouth_01: share(&errors, |e| e.d_mouth, 0.1),
+        mean_d_eye: found.iter().sum::<f64>() / found.len().max(1) as f64,
+        ms_per_face: total_ms / fitted.max(1) as f64,
+        errors,
+    }
+}
+
+/// Train on the training persons, measure the three variants on the held-out persons, print the
+/// table, write `summary.json`, `landmarks-d_eye.svg` and `landmarks-mouth.svg` into `out`.
+pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Result<Vec<VariantSummary>> {
+    let all = dataset::list_imm(imm)?;
+    let (test, training): (Vec<ImmSample>, Vec<ImmSample>) = all.into_iter().partition(|s| dataset::imm_is_test_person(s.person));
+    anyhow::ensure!(!test.is_empty() && !training.is_empty(), "need both training and held-out persons in {}", imm.display());
+    let bar = crate::cli::progress(training.len() as u64, "train asm");
+    let model = train::train(&training, detector, &train::TrainOptions::default(), &|| bar.inc(1))?;
+    bar.finish_and_clear();
+    let box_source = model.info.box_source;
+    let landmarker = Landmarker { model };
+    let mut photos = Vec::new();
+    for s in &test {
+        let photo = crate::imaging::open(&s.image)?;
+        let truth = s.landmarks()?;
+        let rect = test_box(detector, &photo.gray, &truth);
+        photos.push((s.clone(), photo.gray, truth, rect));
+    }
+    let summaries: Vec<VariantSummary> = Variant::ALL.iter().map(|&v| measure(&landmarker, &photos, v)).collect();
+
+    let boxes = match (detector, box_source) {
+        (Some(_), BoxSource::Detector) => "detector boxes",
+        (Some(_), BoxSource::Annotation) => "detector boxes (placement learnt from annotation boxes)",
+        (None, _) => "ANNOTATION boxes (no detector available)",
+    };
+    println!("IMM held-out persons {:?}: {} photos, {} training photos, {boxes}", {
+        let mut p: Vec<u32> = test.iter().map(|s| s.person).collect();
+        p.dedup();
+        p
+    }, test.len(), training.len());
+    println!("{:<8} {:>12} {:>12} {:>14} {:>12} {:>9} {:>12}", "variant", "d_eye<0.05", "d_eye<0.1", "mouth<0.1", "mean d_eye", "misses", "cpu ms/face");
+    for s in &summaries {
+        println!(
+            "{:<8} {:>11.1}% {:>11.1}% {:>13.1}% {:>12.4} {:>9} {:>12.2}",
+            s.variant,
+            100.0 * s.d_eye_005,
+            100.0 * s.d_eye_01,
+            100.0 * s.mouth_01,
+            s.mean_d_eye,
+            s.detector_misses,
+            s.ms_per_face
+        );
+    }
+
+    std::fs::create_dir_all(out)?;
+    let curves = |f: &dyn Fn(&PhotoError) -> Option<f64>| -> Vec<Series> {
+        summaries
+            .iter()
+            .map(|s| {
+                // Misses count as failures: an error beyond the plotted range.
+                let errs: Vec<f64> = s.errors.iter().map(|e| f(e).unwrap_or(f64::INFINITY)).collect();
+                Series { name: match s.variant {
+                    "asm" => "ASM (profiles)",
+                    "sift" => "SIFT-ASM",
+                    _ => "C-ASM",
+                }, points: cumulative(&errs, 0.25, 100) }
+            })
+            .collect()
+    };
+    let chart = |title, x_label| Chart { title, x_label, y_label: "share of photos", x_range: (0.0, 0.25), y_range: (0.0, 1.0), x_scale: Scale::Linear, y_scale: Scale::Linear };
+    line_chart(&out.join("landmarks-d_eye.svg"), &chart("IMM held-out persons: eye error", "d_eye (max eye error / eye distance)"), &curves(&|e| e.d_eye))?;
+    line_chart(&out.join("landmarks-mouth.svg"), &chart("IMM held-out persons: mouth error", "mouth error / eyes-to-mouth distance"), &curves(&|e| e.d_mouth))?;
+    let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries });
+    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
+    println!("wrote {}", out.display());
+    Ok(summaries)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn error_measures_follow_the_thesis_definitions() {
+        let truth = KeyPoints { left_eye: [0.0, 0.0], right_eye: [100.0, 0.0], mouth: [50.0, 80.0] };
+        let found = KeyPoints { left_eye: [3.0, 4.0], right_eye: [100.0, 2.0], mouth: [50.0, 88.0] };
+        assert!((d_eye(&found, &truth) - 0.05).abs() < 1e-6);
+        assert!((d_mouth(&found, &truth) - 0.1).abs() < 1e-6);
+    }
+}

@@ -1,0 +1,149 @@
+//! Avatar export: glTF 2.0 binary (`.glb`, texture embedded as PNG) and Wavefront OBJ + MTL + PNG.
+//! Positions are in metres in the exported files (glTF's unit), y up, the face looking along +z.
+
+use std::io::Write;
+use std::path::Path;
+
+use image::RgbaImage;
+
+use super::MorphError;
+
+/// A textured triangle mesh ready to write.
+pub struct TexturedMesh<'a> {
+    /// Model coordinates in millimetres.
+    pub vertices: &'a [[f32; 3]],
+    pub texcoords: &'a [[f32; 2]],
+    pub triangles: &'a [[u32; 3]],
+    pub texture: &'a RgbaImage,
+}
+
+fn err(path: &Path, e: impl std::fmt::Display) -> MorphError {
+    MorphError::Export { path: path.display().to_string(), message: e.to_string() }
+}
+
+fn png_bytes(texture: &RgbaImage, path: &Path) -> Result<Vec<u8>, MorphError> {
+    // The alpha channel only records texel provenance: export opaque RGB.
+    let rgb = image::DynamicImage::ImageRgba8(texture.clone()).to_rgb8();
+    let mut out = Vec::new();
+    rgb.write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Png).map_err(|e| err(path, e))?;
+    Ok(out)
+}
+
+fn pad4(buf: &mut Vec<u8>, byte: u8) {
+    while buf.len() % 4 != 0 {
+        buf.push(byte);
+    }
+}
+
+/// Write a glTF binary file: one mesh, one primitive (positions, texcoords, u32 indices), one
+/// material with the texture as base colour.
+pub fn write_glb(mesh: &TexturedMesh, path: &Path) -> Result<(), MorphError> {
+    let n = mesh.vertices.len();
+    let mut bin: Vec<u8> = Vec::new();
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for p in mesh.vertices {
+        for d in 0..3 {
+            let v = p[d] * 1e-3;
+            lo[d] = lo[d].min(v);
+            hi[d] = hi[d].max(v);
+            bin.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    let pos_len = bin.len();
+    let uv_off = bin.len();
+    for t in mesh.texcoords {
+        bin.extend_from_slice(&t[0].to_le_bytes());
+        bin.extend_from_slice(&t[1].to_le_bytes());
+    }
+    let uv_len = bin.len() - uv_off;
+    let idx_off = bin.len();
+    for t in mesh.triangles {
+        for &i in t {
+            bin.extend_from_slice(&i.to_le_bytes());
+        }
+    }
+    let idx_len = bin.len() - idx_off;
+    let png_off = bin.len();
+    let png = png_bytes(mesh.texture, path)?;
+    bin.extend_from_slice(&png);
+    let png_len = png.len();
+    pad4(&mut bin, 0);
+    let json = serde_json::json!({
+        "asset": {"version": "2.0", "generator": "facegate morph"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": "face"}],
+        "meshes": [{"name": "face", "primitives": [{
+            "attributes": {"POSITION": 0, "TEXCOORD_0": 1},
+            "indices": 2,
+            "material": 0,
+            "mode": 4
+        }]}],
+        "materials": [{
+            "name": "face",
+            "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicFactor": 0.0, "roughnessFactor": 1.0},
+            "doubleSided": true
+        }],
+        "textures": [{"sampler": 0, "source": 0}],
+        "samplers": [{"magFilter": 9729, "minFilter": 9729, "wrapS": 33071, "wrapT": 33071}],
+        "images": [{"bufferView": 3, "mimeType": "image/png"}],
+        "buffers": [{"byteLength": bin.len()}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": pos_len, "target": 34962},
+            {"buffer": 0, "byteOffset": uv_off, "byteLength": uv_len, "target": 34962},
+            {"buffer": 0, "byteOffset": idx_off, "byteLength": idx_len, "target": 34963},
+            {"buffer": 0, "byteOffset": png_off, "byteLength": png_len}
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": n, "type": "VEC3", "min": lo, "max": hi},
+            {"bufferView": 1, "componentType": 5126, "count": mesh.texcoords.len(), "type": "VEC2"},
+            {"bufferView": 2, "componentType": 5125, "count": 3 * mesh.triangles.len(), "type": "SCALAR"}
+        ]
+    });
+    let mut json_bytes = serde_json::to_vec(&json).map_err(|e| err(path, e))?;
+    pad4(&mut json_bytes, b' ');
+    let total = 12 + 8 + json_bytes.len() + 8 + bin.len();
+    let mut out = Vec::with_capacity(total);
+    out.extend_from_slice(b"glTF");
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&(total as u32).to_le_bytes());
+    out.extend_from_slice(&(json_bytes.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&json_bytes);
+    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"BIN\0");
+    out.extend_from_slice(&bin);
+    std::fs::write(path, out).map_err(|e| err(path, e))
+}
+
+/// Write `path` (.obj), `path.mtl` and `path.png` beside it. OBJ texture v runs upwards.
+pub fn write_obj(mesh: &TexturedMesh, path: &Path) -> Result<(), MorphError> {
+    let stem = path.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_else(|| "face".into());
+    let mtl_path = path.with_extension("mtl");
+    let png_path = path.with_extension("png");
+    let png_name = format!("{stem}.png");
+    let mtl_name = format!("{stem}.mtl");
+    let rgb = image::DynamicImage::ImageRgba8(mesh.texture.clone()).to_rgb8();
+    rgb.save(&png_path).map_err(|e| err(&png_path, e))?;
+    std::fs::write(&mtl_path, format!("newmtl face\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {png_name}\n"))
+        .map_err(|e| err(&mtl_path, e))?;
+    let file = std::fs::File::create(path).map_err(|e| err(path, e))?;
+    let mut w = std::io::BufWriter::new(file);
+    let mut write = || -> std::io::Result<()> {
+        writeln!(w, "# facegate morph: fitted Surrey Face Model, millimetres")?;
+        writeln!(w, "mtllib {mtl_name}")?;
+        for p in mesh.vertices {
+            writeln!(w, "v {} {} {}", p[0], p[1], p[2])?;
+        }
+        for t in mesh.texcoords {
+            writeln!(w, "vt {} {}", t[0], 1.0 - t[1])?;
+        }
+        writeln!(w, "usemtl face")?;
+        for t in mesh.triangles {
+            let (a, b, c) = (t[0] + 1, t[1] + 1, t[2] + 1);
+            writeln!(w, "f {a}/{a} {b}/{b} {c}/{c}")?;
+        }
+        w.flush()
+    };
+    write().map_err(|e| err(path, e))
+}

@@ -1,0 +1,114 @@
+//! Feature vectors of a normalised crop, the input of DLDA: the thesis's normalised pixels, or
+//! uniform LBP histograms on a grid of cells (Ahonen et al. 2006).
+
+use serde::{Deserialize, Serialize};
+
+use crate::imaging::GrayF32;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FeatureKind {
+    /// The masked pixels, standardised to zero mean and unit variance.
+    Pixels,
+    /// Uniform LBP(8,1) histograms (59 bins) on a `grid`×`grid` layout of cells, square-rooted.
+    Lbp { grid: usize },
+}
+
+impl FeatureKind {
+    pub fn dims(&self, width: usize, height: usize, mask: &[bool]) -> usize {
+        match *self {
+            FeatureKind::Pixels => mask.iter().filter(|&&m| m).count(),
+            FeatureKind::Lbp { grid } => {
+                let _ = (width, height);
+                grid * grid * LBP_BINS
+            }
+        }
+    }
+
+    /// Features of `crop` (already photometrically normalised) into `out`.
+    pub fn extract(&self, crop: &GrayF32, mask: &[bool]) -> Vec<f32> {
+        match *self {
+            FeatureKind::Pixels => pixels(crop, mask),
+            FeatureKind::Lbp { grid } => lbp_histograms(crop, grid),
+        }
+    }
+}
+
+fn pixels(crop: &GrayF32, mask: &[bool]) -> Vec<f32> {
+    let mut out: Vec<f32> = crop.data.iter().zip(mask).filter(|(_, m)| **m).map(|(v, _)| *v).collect();
+    let n = out.len().max(1) as f32;
+    let mean = out.iter().sum::<f32>() / n;
+    let var = out.iter().map(|v| (v - mean).powi(2)).sum::<f32>() / n;
+    let inv = if var > 1e-12 { 1.0 / var.sqrt() } else { 0.0 };
+    out.iter_mut().for_each(|v| *v = (*v - mean) * inv);
+    out
+}
+
+const LBP_BINS: usize = 59;
+
+/// Map from the 256 LBP codes to 59 bins: one per uniform pattern (at most two 0/1 transitions
+/// around the circle), and one shared bin for the rest.
+fn uniform_table() -> [u8; 256] {
+    let mut table = [0u8; 256];
+    let mut next = 0u8;
+    for (code, slot) in table.iter_mut().enumerate() {
+        let c = code as u8;
+        let transitions = (c ^ c.rotate_left(1)).count_ones();
+        if transitions <= 2 {
+            *slot = next;
+            next += 1;
+        } else {
+            *slot = (LBP_BINS - 1) as u8;
+        }
+    }
+    table
+}
+
+fn lbp_histograms(crop: &GrayF32, grid: usize) -> Vec<f32> {
+    let table = uniform_table();
+    let (w, h) = (crop.width, crop.height);
+    let grid = grid.max(1);
+    let mut hist = vec![0.0f32; grid * grid * LBP_BINS];
+    const OFFSETS: [(isize, isize); 8] = [(-1, -1), (0, -1), (1, -1), (1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0)];
+    for y in 1..h.saturating_sub(1) {
+        let cy = (y * grid / h).min(grid - 1);
+        for x in 1..w.saturating_sub(1) {
+            let cx = (x * grid / w).min(grid - 1);
+            let centre = crop.data[y * w + x];
+            let mut code = 0u8;
+            for (bit, (dx, dy)) in OFFSETS.iter().enumerate() {
+                let v = crop.data[(y as isize + dy) as usize * w + (x as isize + dx) as usize];
+                if v >= centre {
+                    code |= 1 << bit;
+                }
+            }
+            hist[(cy * grid + cx) * LBP_BINS + table[code as usize] as usize] += 1.0;
+        }
+    }
+    // Each cell's histogram normalised to unit sum, then square-rooted (Hellinger kernel).
+    for cell in hist.chunks_mut(LBP_BINS) {
+        let s: f32 = cell.iter().sum();
+        if s > 0.0 {
+            cell.iter_mut().for_each(|v| *v = (*v / s).sqrt());
+        }
+    }
+    hist
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn uniform_lbp_table_has_58_uniform_patterns() {
+        let t = uniform_table();
+        let uniform = (0..256).filter(|&c| (t[c] as usize) < LBP_BINS - 1).count();
+        assert_eq!(uniform, 58);
+        let crop = GrayF32::from_fn(32, 32, |x, y| ((x * 7 + y * 3) % 11) as f32);
+        let f = FeatureKind::Lbp { grid: 4 }.extract(&crop, &[true; 1024]);
+        assert_eq!(f.len(), 16 * LBP_BINS);
+        // Unit sum before the square root: the squares of each cell sum to one.
+        let s: f32 = f[..LBP_BINS].iter().map(|v| v * v).sum();
+        assert!((s - 1.0).abs() < 1e-4);
+    }
+}

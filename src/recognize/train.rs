@@ -1,0 +1,488 @@
+//! Training and measuring DLDA models on labelled folders, behind a front-end abstraction: the eye
+//! and mouth centres come either from IMM annotations (`.asf` beside the photo) or from the
+//! automatic pipeline (detector + ASM landmarks); the 3DMM path renders the face from the front
+//! first. The person-disjoint split decides who trains the projection and who calibrates it.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use rand::{Rng, SeedableRng};
+use serde::Serialize;
+
+use super::calibration::{CALIBRATED_FMRS, Calibration};
+use super::dlda::{Dlda, DldaParams};
+use super::features::FeatureKind;
+use super::normalize::{self, NormalizeParams};
+use super::template::{Combine, Template};
+use super::{Model, Normalization, Provenance, Recognizer};
+use crate::dataset::{self, IMM_POINTS, KeyPoints};
+use crate::detect::Detector;
+use crate::eval::verification::{VerificationSummary, eer, summarize};
+use crate::geometry::Point;
+use crate::imaging::{self, GrayF32};
+use crate::landmarks::{Landmarker, Variant};
+use crate::morph::{FaceModel, Pose};
+
+/// One labelled photo with what the split needs to know.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FaceImage {
+    pub label: String,
+    /// The person is in the held-out set (`dataset::imm_is_test_person` on the label's number).
+    pub held_out: bool,
+    /// IMM view number (1–6) when the file has an IMM name.
+    pub view: Option<u32>,
+    pub image: PathBuf,
+    /// The IMM annotation beside the photo, if any.
+    pub asf: Option<PathBuf>,
+}
+
+impl FaceImage {
+    /// IMM views 3 and 4 are the heads rotated by about 30°; every other photo counts as frontal or
+    /// near-frontal (ORL's pose variation is mild).
+    pub fn is_rotated_view(&self) -> bool {
+        matches!(self.view, Some(3 | 4))
+    }
+}
+
+/// The person number at the end of a label (`imm-07` → 7, `orl-s12` → 12).
+pub fn person_number(label: &str) -> Option<u32> {
+    let tail = label.rsplit('-').next()?;
+    let digits: String = tail.chars().rev().take_while(|c| c.is_ascii_digit()).collect::<Vec<_>>().into_iter().rev().collect();
+    digits.parse().ok()
+}
+
+/// All labelled photos of `dirs` (a folder per person, or IMM names).
+pub fn list_faces(dirs: &[PathBuf]) -> Result<Vec<FaceImage>, dataset::DatasetError> {
+    let mut out = Vec::new();
+    for dir in dirs {
+        for item in dataset::list_labelled(dir)? {
+            let name = item.image.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+            let view = dataset::parse_imm_name(&name).map(|(_, v)| v);
+            let asf = Some(item.image.with_extension("asf")).filter(|p| p.exists());
+            let held_out = person_number(&item.label).is_some_and(dataset::imm_is_test_person);
+            out.push(FaceImage { label: item.label, held_out, view, image: item.image, asf });
+        }
+    }
+    Ok(out)
+}
+
+/// Where the keypoints of a photo come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum KeypointSource {
+    /// IMM `.asf` annotations where present, else the automatic front end (detector + ASM, or
+    /// detector-box keypoints while the ASM is not available).
+    Annotated,
+    /// The automatic front end for every photo.
+    Pipeline,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum FrontEndError {
+    #[error(transparent)]
+    Decode(#[from] imaging::DecodeError),
+    #[error(transparent)]
+    Dataset(#[from] dataset::DatasetError),
+    #[error("no face found")]
+    NoFace,
+    #[error("no annotation and no automatic front end loaded")]
+    NoKeypoints,
+    #[error("the 3DMM path needs the Surrey Face Model and 58 landmarks, which are not available")]
+    NoFaceModel,
+}
+
+/// A photo ready for normalisation: the grey image (the frontal rendering on the 3DMM path), the
+/// eye and mouth centres in it, and the head pose when the 3DMM was fitted.
+pub struct Prepared {
+    pub gray: GrayF32,
+    pub keypoints: KeyPoints,
+    pub pose: Option<Pose>,
+    /// `imm-annotations` or `pipeline`.
+    pub keypoint_source: &'static str,
+}
+
+/// Eye and mouth centres as fixed fractions of the detector's box: the mean over annotated IMM
+/// photos of training persons. A coarse stand-in for the ASM landmarks when they are not loaded.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct BoxKeypoints {
+    pub left_eye: Point,
+    pub right_eye: Point,
+    pub mouth: Point,
+    /// Photos the means were taken over.
+    pub photos: usize,
+}
+
+impl BoxKeypoints {
+    /// Fit on the frontal views (1, 2) of the IMM training persons in `imm_dir`.
+    pub fn fit(detector: &Detector, imm_dir: &Path) -> Option<BoxKeypoints> {
+        let samples = dataset::list_imm(imm_dir).ok()?;
+        let mut sums = [[0.0f64; 2]; 3];
+        let mut n = 0usize;
+        for s in samples.iter().filter(|s| !dataset::imm_is_test_person(s.person) && s.view <= 2) {
+            let (Ok(photo), Ok(points)) = (imaging::open(&s.image), s.landmarks()) else { continue };
+            let kp = KeyPoints::from_imm(&points);
+            let Some(face) = detector.detect(&photo.gray).into_iter().find(|f| f.rect.contains(kp.left_eye) && f.rect.contains(kp.mouth)) else { continue };
+            for (sum, p) in sums.iter_mut().zip([kp.left_eye, kp.right_eye, kp.mouth]) {
+                sum[0] += ((p[0] - face.rect.x) / face.rect.width) as f64;
+                sum[1] += ((p[1] - face.rect.y) / face.rect.height) as f64;
+            }
+            n += 1;
+        }
+        (n > 0).then(|| {
+            let m = |i: usize| [(sums[i][0] / n as f64) as f32, (sums[i][1] / n as f64) as f32];
+            BoxKeypoints { left_eye: m(0), right_eye: m(1), mouth: m(2), photos: n }
+        })
+    }
+
+    pub fn keypoints(&self, rect: &crate::geometry::Rect) -> KeyPoints {
+        let at = |p: Point| [rect.x + p[0] * rect.width, rect.y + p[1] * rect.height];
+        KeyPoints { left_eye: at(self.left_eye), right_eye: at(self.right_eye), mouth: at(self.mouth) }
+    }
+}
+
+/// Keypoints (and the 3DMM) for training and evaluation.
+pub struct FrontEnd {
+    pub source: KeypointSource,
+    pub detector: Option<Detector>,
+    pub landmarker: Option<Landmarker>,
+    /// Keypoints from the detector box, used when the landmarker is not loaded.
+    pub box_keypoints: Option<BoxKeypoints>,
+    pub face_model: Option<FaceModel>,
+}
+
+impl FrontEnd {
+    /// Annotations only (no automatic front end, no 3DMM).
+    pub fn annotations_only() -> FrontEnd {
+        FrontEnd { source: KeypointSource::Annotated, detector: None, landmarker: None, box_keypoints: None, face_model: None }
+    }
+
+    /// Load what is available: the detector, the ASM landmarker (`asm.bin`) and the 3DMM are
+    /// optional; a missing part only matters for the photos that need it. Without the landmarker,
+    /// keypoints of unannotated photos come from the detector box ([`BoxKeypoints`]).
+    pub fn load(source: KeypointSource, models_dir: &Path, sfm_dir: Option<&Path>) -> FrontEnd {
+        let detector = Detector::load(models_dir).map_err(|e| tracing::info!("detector unavailable: {e}")).ok();
+        let landmarker = Landmarker::load(&models_dir.join("asm.bin")).map_err(|e| tracing::info!("landmarker unavailable: {e}")).ok();
+        let box_keypoints = match (&detector, &landmarker) {
+            (Some(d), None) => BoxKeypoints::fit(d, &crate::config::shared_dir().join("data/imm")),
+            _ => None,
+        };
+        let face_model = sfm_dir.and_then(|dir| FaceModel::load(dir).map_err(|e| tracing::info!("3DMM unavailable: {e}")).ok());
+        FrontEnd { source, detector, landmarker, box_keypoints, face_model }
+    }
+
+    /// The 58 landmarks (when there are any) and keypoints of a photo from the configured source.
+    fn landmarks(&self, face: &FaceImage, photo: &imaging::Photo) -> Result<(Option<Vec<Point>>, KeyPoints, &'static str), FrontEndError> {
+        if let (KeypointSource::Annotated, Some(asf)) = (self.source, &face.asf) {
+            let shape = dataset::read_asf(asf, photo.width() as f32, photo.height() as f32)?;
+            if shape.points.len() == IMM_POINTS {
+                let points = shape.xy();
+                let kp = KeyPoints::from_imm(&points);
+                return Ok((Some(points), kp, "imm-annotations"));
+            }
+        }
+        let detector = self.detector.as_ref().ok_or(FrontEndError::NoKeypoints)?;
+        let faces = detector.detect(&photo.gray);
+        let box_ = faces.first().ok_or(FrontEndError::NoFace)?;
+        if let Some(landmarker) = &self.landmarker {
+            let lm = landmarker.fit(&photo.gray, &box_.rect, Variant::Casm);
+            return Ok((Some(lm.points), lm.keypoints, "pipeline"));
+        }
+        let bk = self.box_keypoints.as_ref().ok_or(FrontEndError::NoKeypoints)?;
+        Ok((None, bk.keypoints(&box_.rect), "detector-box"))
+    }
+
+    pub fn prepare(&self, face: &FaceImage, normalization: Normalization) -> Result<Prepared, FrontEndError> {
+        let photo = imaging::open(&face.image)?;
+        let (points, keypoints, keypoint_source) = self.landmarks(face, &photo)?;
+        let fitted = match (&self.face_model, &points) {
+            // A failed fit (degenerate landmarks) counts as no model, as in the pipeline.
+            (Some(m), Some(points)) => m.fit(points, photo.width(), photo.height()).ok().map(|f| (m, f)),
+            _ => None,
+        };
+        let pose = fitted.as_ref().map(|(_, f)| f.pose);
+        match normalization {
+            Normalization::TwoD => Ok(Prepared { gray: photo.gray, keypoints, pose, keypoint_source }),
+            Normalization::Morph => {
+                let (model, fit) = fitted.ok_or(FrontEndError::NoFaceModel)?;
+                let frontal = model.frontalize(&photo, &fit).map_err(|_| FrontEndError::NoFaceModel)?;
+                Ok(Prepared { gray: GrayF32::from_rgb(&frontal.image), keypoints: frontal.keypoints, pose, keypoint_source })
+            }
+        }
+    }
+}
+
+/// A photo after geometric normalisation (photometric normalisation is part of the model).
+#[derive(Debug, Clone)]
+pub struct AlignedFace {
+    pub face: FaceImage,
+    pub crop: GrayF32,
+    pub pose: Option<Pose>,
+    pub keypoint_source: &'static str,
+}
+
+/// Geometric crops of all `faces` (photos whose front end fails are reported and left out).
+pub fn align_all(front_end: &FrontEnd, faces: &[FaceImage], normalization: Normalization, params: &NormalizeParams, show_progress: bool) -> Vec<AlignedFace> {
+    let bar = show_progress.then(|| crate::cli::progress(faces.len() as u64, "aligning"));
+    let mut out = Vec::with_capacity(faces.len());
+    for face in faces {
+        match front_end.prepare(face, normalization) {
+            Ok(p) => out.push(AlignedFace {
+                face: face.clone(),
+                crop: normalize::geometric(&p.gray, &p.keypoints, params),
+                pose: p.pose,
+                keypoint_source: p.keypoint_source,
+            }),
+            Err(e) => {
+                let msg = format!("{}: skipped ({e})", face.image.display());
+                match &bar {
+                    Some(b) => b.println(msg),
+                    None => tracing::warn!("{msg}"),
+                }
+            }
+        }
+        if let Some(b) = &bar {
+            b.inc(1);
+        }
+    }
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    out
+}
+
+/// What a training run is made of.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrainConfig {
+    pub normalization: Normalization,
+    pub normalize: NormalizeParams,
+    pub features: FeatureKind,
+    pub dlda: DldaParams,
+    /// Add mirrored copies of the training crops.
+    pub mirror: bool,
+    /// Randomly perturbed copies of each training crop (shift ±1 px, scale ±4 %, rotation ±3°),
+    /// standing in for keypoint noise.
+    pub jitter: usize,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig {
+            normalization: Normalization::TwoD,
+            normalize: NormalizeParams::default(),
+            features: FeatureKind::Pixels,
+            dlda: DldaParams::default(),
+            mirror: true,
+            jitter: 0,
+        }
+    }
+}
+
+/// Held-out measurements made while training.
+#[derive(Debug, Clone, Serialize)]
+pub struct HeldOutReport {
+    /// One template against one template, all pairs of held-out photos.
+    pub pairs: VerificationSummary,
+    /// Probe against the other photos of each held-out person, combined by max, and by mean.
+    pub eer_combine_max: f64,
+    pub eer_combine_mean: f64,
+    pub combine: Combine,
+}
+
+/// Template of an aligned crop under a model (photometric normalisation, features, projection).
+pub fn template_of(recognizer: &Recognizer, aligned: &GrayF32) -> Template {
+    let mut crop = aligned.clone();
+    let params = &recognizer.model().normalize;
+    normalize::photometric(&mut crop, params.photometric, &params.mask());
+    recognizer.template_of_crop(&crop)
+}
+
+/// Genuine and impostor scores of all pairs of templates (one template each).
+pub fn pair_scores(templates: &[(String, Template)]) -> (Vec<f32>, Vec<f32>) {
+    let (mut genuine, mut impostor) = (Vec::new(), Vec::new());
+    for i in 0..templates.len() {
+        for j in i + 1..templates.len() {
+            let s = templates[i].1.cosine(&templates[j].1);
+            if templates[i].0 == templates[j].0 { genuine.push(s) } else { impostor.push(s) }
+        }
+    }
+    (genuine, impostor)
+}
+
+/// Genuine and impostor scores of each template against every person's other templates, combined.
+pub fn combined_scores(templates: &[(String, Template)], combine: Combine) -> (Vec<f32>, Vec<f32>) {
+    let mut by_person: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
+    for (i, (label, _)) in templates.iter().enumerate() {
+        by_person.entry(label).or_default().push(i);
+    }
+    let (mut genuine, mut impostor) = (Vec::new(), Vec::new());
+    for (p, (label, probe)) in templates.iter().enumerate() {
+        for (person, idx) in &by_person {
+            let Some(s) = combine.apply(idx.iter().filter(|&&i| i != p).map(|&i| probe.cosine(&templates[i].1))) else { continue };
+            if *person == label.as_str() { genuine.push(s) } else { impostor.push(s) }
+        }
+    }
+    (genuine, impostor)
+}
+
+/// A copy of `crop` under a small random similarity about its centre.
+fn jittered(crop: &GrayF32, rng: &mut impl Rng) -> GrayF32 {
+    let angle = rng.random_range(-3.0f32..3.0).to_radians();
+    let scale = rng.random_range(0.96f32..1.04);
+    let (dx, dy) = (rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0));
+    let (cx, cy) = (0.5 * (crop.width - 1) as f32, 0.5 * (crop.height - 1) as f32);
+    let (a, b) = (scale * angle.cos(), scale * angle.sin());
+    GrayF32::from_fn(crop.width, crop.height, |x, y| {
+        let (u, v) = (x as f32 - cx, y as f32 - cy);
+        crop.sample(a * u - b * v + cx + dx, b * u + a * v + cy + dy)
+    })
+}
+
+/// Train the projection on the training persons of `aligned`, then calibrate thresholds and choose
+/// the combination rule on the held-out persons.
+pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String]) -> anyhow::Result<(Model, HeldOutReport)> {
+    let mask = config.normalize.mask();
+    let features_of = |crop: &GrayF32| {
+        let mut c = crop.clone();
+        normalize::photometric(&mut c, config.normalize.photometric, &mask);
+        config.features.extract(&c, &mask)
+    };
+    let train: Vec<&AlignedFace> = aligned.iter().filter(|a| !a.face.held_out).collect();
+    let held: Vec<&AlignedFace> = aligned.iter().filter(|a| a.face.held_out).collect();
+    let mut labels: Vec<String> = train.iter().map(|a| a.face.label.clone()).collect();
+    labels.sort();
+    labels.dedup();
+    let mut xs = Vec::new();
+    let mut ys = Vec::new();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2011);
+    for a in &train {
+        let y = labels.binary_search(&a.face.label).expect("label listed");
+        let mut crops = vec![a.crop.clone()];
+        if config.mirror {
+            crops.push(normalize::mirror(&a.crop));
+        }
+        for base in crops {
+            for _ in 0..config.jitter {
+                xs.push(features_of(&jittered(&base, &mut rng)));
+                ys.push(y);
+            }
+            xs.push(features_of(&base));
+            ys.push(y);
+        }
+    }
+    let dlda = Dlda::train(&xs, &ys, &config.dlda)?;
+    let mut held_persons: Vec<String> = held.iter().map(|a| a.face.label.clone()).collect();
+    held_persons.sort();
+    held_persons.dedup();
+    let mut sources: BTreeMap<&str, usize> = BTreeMap::new();
+    for a in aligned {
+        *sources.entry(a.keypoint_source).or_default() += 1;
+    }
+    let keypoint_source = sources.iter().map(|(s, n)| format!("{s} ({n} photos)")).collect::<Vec<_>>().join(", ");
+    let provenance = Provenance {
+        keypoint_source: keypoint_source.clone(),
+        data: data.to_vec(),
+        train_persons: labels.clone(),
+        train_images: train.len(),
+        calibration_persons: held_persons.clone(),
+        calibration_images: held.len(),
+        mirrored: config.mirror,
+    };
+    let mut model = Model::new(config.normalization, config.normalize.clone(), config.features, dlda, provenance);
+    let recognizer = Recognizer::from_model(model.clone());
+    let templates: Vec<(String, Template)> = held.iter().map(|a| (a.face.label.clone(), template_of(&recognizer, &a.crop))).collect();
+    let (genuine, impostor) = pair_scores(&templates);
+    anyhow::ensure!(!genuine.is_empty() && !impostor.is_empty(), "the held-out persons give no genuine or no impostor pairs to calibrate on");
+    model.calibration = Calibration::from_scores(
+        &genuine,
+        &impostor,
+        &CALIBRATED_FMRS,
+        &format!("all pairs of {} photos of {} held-out persons; keypoints: {keypoint_source}", held.len(), held_persons.len()),
+    );
+    let (gm, im) = combined_scores(&templates, Combine::Max);
+    let (ga, ia) = combined_scores(&templates, Combine::Mean);
+    let (eer_max, eer_mean) = (eer(&gm, &im), eer(&ga, &ia));
+    model.combine = if eer_mean < eer_max { Combine::Mean } else { Combine::Max };
+    let report = HeldOutReport { pairs: summarize(&genuine, &impostor), eer_combine_max: eer_max, eer_combine_mean: eer_mean, combine: model.combine };
+    Ok((model, report))
+}
+
+/// Cross-validation on the training persons only, for choosing parameters without looking at the
+/// held-out persons: the training persons are dealt into `folds` groups (by sorted label), each group
+/// in turn plays the held-out role. Returns the all-pairs EER of each fold.
+pub fn cross_validate(aligned: &[AlignedFace], config: &TrainConfig, folds: usize) -> anyhow::Result<Vec<f64>> {
+    let train: Vec<&AlignedFace> = aligned.iter().filter(|a| !a.face.held_out).collect();
+    let mut labels: Vec<&str> = train.iter().map(|a| a.face.label.as_str()).collect();
+    labels.sort();
+    labels.dedup();
+    let folds = folds.clamp(2, labels.len().max(2));
+    let mut eers = Vec::with_capacity(folds);
+    for k in 0..folds {
+        let fold: Vec<AlignedFace> = train
+            .iter()
+            .map(|a| {
+                let index = labels.binary_search(&a.face.label.as_str()).expect("label listed");
+                let mut a = (*a).clone();
+                a.face.held_out = index % folds == k;
+                a
+            })
+            .collect();
+        let (_, report) = train_model(&fold, config, &[])?;
+        eers.push(report.pairs.eer);
+    }
+    Ok(eers)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn person_numbers_and_split_follow_the_labels() {
+        assert_eq!(person_number("imm-07"), Some(7));
+        assert_eq!(person_number("orl-s12"), Some(12));
+        assert_eq!(person_number("folder"), None);
+        let faces = list_faces(&[crate::config::shared_dir().join("data/imm")]).unwrap();
+        assert_eq!(faces.len(), 180);
+        assert_eq!(faces.iter().filter(|f| f.held_out).count(), 9 * 6);
+        assert!(faces.iter().all(|f| f.asf.is_some() && f.view.is_some()));
+    }
+
+    /// Train on IMM frontal views of the training persons with annotated keypoints: the projection
+    /// of a training photo must be stable (same template twice, and close to its mirrored copy's
+    /// class), and held-out genuine pairs must score above impostor pairs on average.
+    #[test]
+    fn imm_training_gives_a_stable_projection() {
+        let faces: Vec<FaceImage> = list_faces(&[crate::config::shared_dir().join("data/imm")]).unwrap().into_iter().filter(|f| !f.is_rotated_view()).collect();
+        let front = FrontEnd::annotations_only();
+        let config = TrainConfig::default();
+        let aligned = align_all(&front, &faces, Normalization::TwoD, &config.normalize, false);
+        assert_eq!(aligned.len(), faces.len());
+        let (model, report) = train_model(&aligned, &config, &["imm".into()]).unwrap();
+        let recognizer = Recognizer::from_model(model.clone());
+        let a = aligned.iter().find(|a| !a.face.held_out).unwrap();
+        let t1 = template_of(&recognizer, &a.crop);
+        let prepared = front.prepare(&a.face, Normalization::TwoD).unwrap();
+        let t2 = recognizer.template(&prepared.gray, &prepared.keypoints);
+        assert!(t1.cosine(&t2) > 0.9999, "same photo, same template");
+        // A small shift of the keypoints (half a crop pixel) barely moves the template.
+        let k = prepared.keypoints;
+        let shift = |p: Point| [p[0] + 1.5, p[1] + 1.0];
+        let t3 = recognizer.template(&prepared.gray, &KeyPoints { left_eye: shift(k.left_eye), right_eye: shift(k.right_eye), mouth: shift(k.mouth) });
+        assert!(t1.cosine(&t3) > 0.8, "shifted keypoints: cosine {}", t1.cosine(&t3));
+        // Round trip through the model file keeps the version and the templates.
+        let dir = std::env::temp_dir().join(format!("facegate-dlda-test-{}", std::process::id()));
+        model.save(&dir.join("dlda.bin")).unwrap();
+        let loaded = Recognizer::load(&dir).unwrap();
+        assert_eq!(loaded.model_version(), recognizer.model_version());
+        assert_eq!(template_of(&loaded, &a.crop), t1);
+        std::fs::remove_dir_all(&dir).ok();
+        // Versions are enforced.
+        let mut foreign = t1.clone();
+        foreign.model_version = "dlda-000000000000".into();
+        assert!(recognizer.try_score(&t1, &[foreign.clone()]).is_err());
+        assert_eq!(recognizer.score(&t1, &[foreign]), -1.0);
+        assert!(recognizer.try_score(&t1, &[t2]).unwrap() > 0.99);
+        assert!(report.pairs.eer < 0.25, "held-out EER {}", report.pairs.eer);
+        assert_eq!(model.calibration.points.len(), 3);
+    }
+}
