@@ -3,11 +3,13 @@
 //! tools alike. Everything here is synchronous and CPU-bound: callers in async code run it on a
 //! blocking pool.
 
+use std::borrow::Cow;
 use std::path::PathBuf;
 use std::time::Instant;
 
 use serde::Serialize;
 
+use crate::dataset::KeyPoints;
 use crate::detect::{Detector, Face};
 use crate::imaging::{GrayF32, Photo};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
@@ -38,6 +40,10 @@ pub enum PipelineError {
     NoTwoDModel(String),
     #[error("no face was found in the image")]
     NoFace,
+    #[error("the face could not be pose-corrected: {0}")]
+    PoseCorrection(crate::morph::MorphError),
+    #[error("the recognition model needs the 3D morphable model, which is not loaded")]
+    NoFaceModel,
     #[error(transparent)]
     Detect(#[from] crate::detect::DetectError),
     #[error(transparent)]
@@ -125,23 +131,49 @@ impl Pipeline {
         timings.landmarks_ms = ms(t);
 
         let t = Instant::now();
-        // A failed fit (degenerate landmarks) falls back to 2D alignment, like a missing model.
-        let fitted = self.face_model.as_ref().and_then(|m| m.fit(&landmarks.points, photo.width(), photo.height()).ok().map(|f| (m, f)));
-        let pose = fitted.as_ref().map(|(_, f)| f.pose);
-        let frontal = match (&fitted, self.recognizer.normalization()) {
-            (Some((model, fit)), Normalization::Morph) => model.frontalize(photo, fit).ok(),
-            _ => None,
-        };
+        let input = recognition_input(self.face_model.as_ref(), photo, &landmarks, self.recognizer.normalization())?;
         timings.morph_ms = ms(t);
 
         let t = Instant::now();
-        let template = match &frontal {
-            Some(f) => self.recognizer.template(&GrayF32::from_rgb(&f.image), &f.keypoints),
-            None => self.recognizer.template(&photo.gray, &landmarks.keypoints),
-        };
+        let template = self.recognizer.template(&input.gray, &input.keypoints);
         timings.template_ms = ms(t);
 
-        Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, template, timings })
+        Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose: input.pose, template, timings })
+    }
+}
+
+/// What the recognizer normalises: a grey image, the eye and mouth centres in it, and the head pose
+/// when the 3DMM was fitted.
+pub struct RecognitionInput<'a> {
+    pub gray: Cow<'a, GrayF32>,
+    pub keypoints: KeyPoints,
+    pub pose: Option<Pose>,
+}
+
+/// Fit the 3DMM to the landmarks (when the model is loaded) for the head pose and, on the 3DMM path,
+/// render the frontal view: that rendering and its eye/mouth centres are what the recognizer
+/// normalises; on the 2D path it is the photo and the landmarks' centres. On the 3DMM path a failed
+/// fit is an error, never a silent 2D template scored against 3DMM thresholds.
+pub fn recognition_input<'a>(
+    face_model: Option<&FaceModel>,
+    photo: &'a Photo,
+    landmarks: &Landmarks,
+    normalization: Normalization,
+) -> Result<RecognitionInput<'a>, PipelineError> {
+    let fitted = match (face_model, normalization) {
+        (Some(model), Normalization::Morph) => Some(model.fit(&landmarks.points, photo.width(), photo.height()).map_err(PipelineError::PoseCorrection)?),
+        // On the 2D path the fit only reports the pose: a failure leaves it unknown.
+        (Some(model), Normalization::TwoD) => model.fit(&landmarks.points, photo.width(), photo.height()).ok(),
+        (None, Normalization::Morph) => return Err(PipelineError::NoFaceModel),
+        (None, Normalization::TwoD) => None,
+    };
+    let pose = fitted.as_ref().map(|f| f.pose);
+    match (normalization, face_model.zip(fitted)) {
+        (Normalization::Morph, Some((model, fit))) => {
+            let frontal = model.frontalize(photo, &fit).map_err(PipelineError::PoseCorrection)?;
+            Ok(RecognitionInput { gray: Cow::Owned(GrayF32::from_rgb(&frontal.image)), keypoints: frontal.keypoints, pose })
+        }
+        _ => Ok(RecognitionInput { gray: Cow::Borrowed(&photo.gray), keypoints: landmarks.keypoints, pose }),
     }
 }
 

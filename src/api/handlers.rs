@@ -66,6 +66,8 @@ fn analyse_photo(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -
     let decode_ms = ms(start);
     let analysis = engine.analyze(&photo).map_err(|e| match e {
         PipelineError::NoFace => Problem::new(ProblemKind::NoFace, "no face was found in the photo"),
+        // Landmarks the 3DMM cannot be fitted to: no usable face, as far as the client can act on it.
+        PipelineError::PoseCorrection(e) => Problem::new(ProblemKind::NoFace, format!("the face found could not be pose-corrected: {e}")),
         other => Problem::internal(other),
     })?;
     let t = analysis.timings;

@@ -18,9 +18,9 @@ use super::{Model, Normalization, Provenance, Recognizer};
 use crate::dataset::{self, IMM_POINTS, KeyPoints};
 use crate::detect::Detector;
 use crate::eval::verification::{VerificationSummary, eer, summarize};
-use crate::geometry::Point;
+use crate::pipeline::recognition_input;
 use crate::imaging::{self, GrayF32};
-use crate::landmarks::{Landmarker, Variant};
+use crate::landmarks::{Landmarker, Landmarks, Variant};
 use crate::morph::{FaceModel, Pose};
 
 /// One labelled photo with what the split needs to know.
@@ -101,113 +101,51 @@ pub struct Prepared {
     pub keypoint_source: &'static str,
 }
 
-/// Eye and mouth centres as fixed fractions of the detector's box: the mean over annotated IMM
-/// photos of training persons. A coarse stand-in for the ASM landmarks when they are not loaded.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct BoxKeypoints {
-    pub left_eye: Point,
-    pub right_eye: Point,
-    pub mouth: Point,
-    /// Photos the means were taken over.
-    pub photos: usize,
-}
-
-impl BoxKeypoints {
-    /// Fit on the frontal views (1, 2) of the IMM training persons in `imm_dir`.
-    pub fn fit(detector: &Detector, imm_dir: &Path) -> Option<BoxKeypoints> {
-        let samples = dataset::list_imm(imm_dir).ok()?;
-        let mut sums = [[0.0f64; 2]; 3];
-        let mut n = 0usize;
-        for s in samples.iter().filter(|s| !dataset::imm_is_test_person(s.person) && s.view <= 2) {
-            let (Ok(photo), Ok(points)) = (imaging::open(&s.image), s.landmarks()) else { continue };
-            let kp = KeyPoints::from_imm(&points);
-            let Some(face) = detector.detect(&photo.gray).into_iter().find(|f| f.rect.contains(kp.left_eye) && f.rect.contains(kp.mouth)) else { continue };
-            for (sum, p) in sums.iter_mut().zip([kp.left_eye, kp.right_eye, kp.mouth]) {
-                sum[0] += ((p[0] - face.rect.x) / face.rect.width) as f64;
-                sum[1] += ((p[1] - face.rect.y) / face.rect.height) as f64;
-            }
-            n += 1;
-        }
-        (n > 0).then(|| {
-            let m = |i: usize| [(sums[i][0] / n as f64) as f32, (sums[i][1] / n as f64) as f32];
-            BoxKeypoints { left_eye: m(0), right_eye: m(1), mouth: m(2), photos: n }
-        })
-    }
-
-    pub fn keypoints(&self, rect: &crate::geometry::Rect) -> KeyPoints {
-        let at = |p: Point| [rect.x + p[0] * rect.width, rect.y + p[1] * rect.height];
-        KeyPoints { left_eye: at(self.left_eye), right_eye: at(self.right_eye), mouth: at(self.mouth) }
-    }
-}
-
 /// Keypoints (and the 3DMM) for training and evaluation.
 pub struct FrontEnd {
     pub source: KeypointSource,
     pub detector: Option<Detector>,
     pub landmarker: Option<Landmarker>,
-    /// Keypoints from the detector box, used when the landmarker is not loaded.
-    pub box_keypoints: Option<BoxKeypoints>,
     pub face_model: Option<FaceModel>,
 }
 
 impl FrontEnd {
     /// Annotations only (no automatic front end, no 3DMM).
     pub fn annotations_only() -> FrontEnd {
-        FrontEnd { source: KeypointSource::Annotated, detector: None, landmarker: None, box_keypoints: None, face_model: None }
+        FrontEnd { source: KeypointSource::Annotated, detector: None, landmarker: None, face_model: None }
     }
 
     /// Load what is available: the detector, the ASM landmarker (`asm.bin`) and the 3DMM are
-    /// optional; a missing part only matters for the photos that need it. Without the landmarker,
-    /// keypoints of unannotated photos come from the detector box ([`BoxKeypoints`]).
+    /// optional; a missing part only matters for the photos that need it.
     pub fn load(source: KeypointSource, models_dir: &Path, sfm_dir: Option<&Path>) -> FrontEnd {
         let detector = Detector::load(models_dir).map_err(|e| tracing::info!("detector unavailable: {e}")).ok();
         let landmarker = Landmarker::load(&models_dir.join("asm.bin")).map_err(|e| tracing::info!("landmarker unavailable: {e}")).ok();
-        let box_keypoints = match (&detector, &landmarker) {
-            (Some(d), None) => BoxKeypoints::fit(d, &crate::config::shared_dir().join("data/imm")),
-            _ => None,
-        };
         let face_model = sfm_dir.and_then(|dir| FaceModel::load(dir).map_err(|e| tracing::info!("3DMM unavailable: {e}")).ok());
-        FrontEnd { source, detector, landmarker, box_keypoints, face_model }
+        FrontEnd { source, detector, landmarker, face_model }
     }
 
-    /// The 58 landmarks (when there are any) and keypoints of a photo from the configured source.
-    fn landmarks(&self, face: &FaceImage, photo: &imaging::Photo) -> Result<(Option<Vec<Point>>, KeyPoints, &'static str), FrontEndError> {
+    /// The 58 landmarks of a photo from the configured source, and which source gave them.
+    fn landmarks(&self, face: &FaceImage, photo: &imaging::Photo) -> Result<(Landmarks, &'static str), FrontEndError> {
         if let (KeypointSource::Annotated, Some(asf)) = (self.source, &face.asf) {
             let shape = dataset::read_asf(asf, photo.width() as f32, photo.height() as f32)?;
             if shape.points.len() == IMM_POINTS {
                 let points = shape.xy();
-                let kp = KeyPoints::from_imm(&points);
-                return Ok((Some(points), kp, "imm-annotations"));
+                let keypoints = KeyPoints::from_imm(&points);
+                return Ok((Landmarks { points, keypoints }, "imm-annotations"));
             }
         }
-        let detector = self.detector.as_ref().ok_or(FrontEndError::NoKeypoints)?;
+        let (Some(detector), Some(landmarker)) = (&self.detector, &self.landmarker) else { return Err(FrontEndError::NoKeypoints) };
         let faces = detector.detect(&photo.gray);
         let box_ = faces.first().ok_or(FrontEndError::NoFace)?;
-        if let Some(landmarker) = &self.landmarker {
-            let lm = landmarker.fit(&photo.gray, &box_.rect, Variant::Casm);
-            return Ok((Some(lm.points), lm.keypoints, "pipeline"));
-        }
-        let bk = self.box_keypoints.as_ref().ok_or(FrontEndError::NoKeypoints)?;
-        Ok((None, bk.keypoints(&box_.rect), "detector-box"))
+        Ok((landmarker.fit(&photo.gray, &box_.rect, Variant::Casm), "pipeline"))
     }
 
+    /// The image and keypoints the recognizer normalises, as the service's pipeline makes them.
     pub fn prepare(&self, face: &FaceImage, normalization: Normalization) -> Result<Prepared, FrontEndError> {
         let photo = imaging::open(&face.image)?;
-        let (points, keypoints, keypoint_source) = self.landmarks(face, &photo)?;
-        let fitted = match (&self.face_model, &points) {
-            // A failed fit (degenerate landmarks) counts as no model, as in the pipeline.
-            (Some(m), Some(points)) => m.fit(points, photo.width(), photo.height()).ok().map(|f| (m, f)),
-            _ => None,
-        };
-        let pose = fitted.as_ref().map(|(_, f)| f.pose);
-        match normalization {
-            Normalization::TwoD => Ok(Prepared { gray: photo.gray, keypoints, pose, keypoint_source }),
-            Normalization::Morph => {
-                let (model, fit) = fitted.ok_or(FrontEndError::NoFaceModel)?;
-                let frontal = model.frontalize(&photo, &fit).map_err(|_| FrontEndError::NoFaceModel)?;
-                Ok(Prepared { gray: GrayF32::from_rgb(&frontal.image), keypoints: frontal.keypoints, pose, keypoint_source })
-            }
-        }
+        let (landmarks, keypoint_source) = self.landmarks(face, &photo)?;
+        let input = recognition_input(self.face_model.as_ref(), &photo, &landmarks, normalization).map_err(|_| FrontEndError::NoFaceModel)?;
+        Ok(Prepared { gray: input.gray.into_owned(), keypoints: input.keypoints, pose: input.pose, keypoint_source })
     }
 }
 
@@ -517,7 +455,7 @@ mod tests {
         assert!(t1.cosine(&t2) > 0.9999, "same photo, same template");
         // A small shift of the keypoints (half a crop pixel) barely moves the template.
         let k = prepared.keypoints;
-        let shift = |p: Point| [p[0] + 1.5, p[1] + 1.0];
+        let shift = |p: crate::geometry::Point| [p[0] + 1.5, p[1] + 1.0];
         let t3 = recognizer.template(&prepared.gray, &KeyPoints { left_eye: shift(k.left_eye), right_eye: shift(k.right_eye), mouth: shift(k.mouth) });
         assert!(t1.cosine(&t3) > 0.8, "shifted keypoints: cosine {}", t1.cosine(&t3));
         // Round trip through the model file keeps the version and the templates.
