@@ -661,6 +661,9 @@ pub struct Asm3dLandmarker {
     pub model: Asm3dModel,
 }
 
+/// Distinct views whose best start is searched on the coarse level.
+const SEARCHED_VIEWS: usize = 3;
+
 /// The search state: current view, points (level-0 crop pixels) and the last 3D fit.
 struct State {
     view: usize,
@@ -786,19 +789,35 @@ impl Asm3dLandmarker {
         let mut suggested = Vec::with_capacity(IMM_POINTS);
         // Rank the starts by the texture cost where they stand under their own view's models,
         // less that view's typical cost on its training samples.
-        let mut best = 0;
-        let mut best_cost = f32::INFINITY;
-        for (k, st) in states.iter().enumerate() {
+        let cost_of = |st: &State, ws: &mut Workspace| {
             let pts: Vec<Point> = st.points.iter().map(|&p| to_level(p, top)).collect();
             let view = &m.views[st.view];
-            let cost = search::texture_cost(&view.textures, &levels[top], top, &pts, Variant::Casm, &mut ws) - view.typical_cost;
-            if cost < best_cost {
-                best_cost = cost;
-                best = k;
+            search::texture_cost(&view.textures, &levels[top], top, &pts, Variant::Casm, ws) - view.typical_cost
+        };
+        let mut ranked: Vec<(f32, State)> = states.into_iter().map(|st| (cost_of(&st, &mut ws), st)).collect();
+        ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
+        // The best starts of the `SEARCHED_VIEWS` best-ranked distinct views are searched on the
+        // coarse level; the one with the lowest cost where it converged goes on.
+        let mut chosen: Vec<State> = Vec::new();
+        for (_, st) in ranked {
+            if chosen.len() < SEARCHED_VIEWS && chosen.iter().all(|c| c.view != st.view) {
+                chosen.push(st);
             }
         }
-        let mut st = states.swap_remove(best);
-        for level in (0..=top).rev() {
+        let mut best: Option<(f32, State)> = None;
+        for mut st in chosen {
+            for _ in 0..m.params.max_iterations {
+                if self.iterate(&levels, top, &mut st, &mut ws, &mut suggested).1 {
+                    break;
+                }
+            }
+            let cost = cost_of(&st, &mut ws);
+            if best.as_ref().is_none_or(|b| cost < b.0) {
+                best = Some((cost, st));
+            }
+        }
+        let Some((_, mut st)) = best else { return finish(&self.starts(&face, &frame).swap_remove(0)) };
+        for level in (0..top).rev() {
             for _ in 0..m.params.max_iterations {
                 if self.iterate(&levels, level, &mut st, &mut ws, &mut suggested).1 {
                     break;
