@@ -70,6 +70,9 @@ pub fn decode(bytes: &[u8], limits: &DecodeLimits) -> Result<Photo, DecodeError>
     if !supported(format) {
         return Err(DecodeError::Unsupported(format!("{format:?}")));
     }
+    if format == ImageFormat::Jpeg && !jpeg_is_complete(bytes) {
+        return Err(DecodeError::Corrupt("truncated JPEG: no end-of-image marker after the last scan".into()));
+    }
     let (width, height) = reader.into_dimensions().map_err(|e| classify(e))?;
     check_dimensions(width, height, limits)?;
     let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
@@ -86,6 +89,18 @@ pub fn decode(bytes: &[u8], limits: &DecodeLimits) -> Result<Photo, DecodeError>
 pub fn open(path: &Path) -> Result<Photo, DecodeError> {
     let bytes = std::fs::read(path).map_err(|source| DecodeError::Io { path: path.display().to_string(), source })?;
     decode(&bytes, &DecodeLimits::default())
+}
+
+/// A JPEG decoder fills a truncated scan with grey and reports success, so completeness is checked
+/// on the markers: the end-of-image marker (FF D9) must follow the last start-of-scan (FF DA).
+/// Inside entropy-coded data FF is always followed by 00 or a restart marker, so an FF D9 there is a
+/// real end of image; an EXIF thumbnail's own FF D9 comes before the main scan and does not count.
+fn jpeg_is_complete(bytes: &[u8]) -> bool {
+    let last_marker = |m: u8| bytes.windows(2).rposition(|w| w[0] == 0xFF && w[1] == m);
+    match (last_marker(0xDA), last_marker(0xD9)) {
+        (Some(sos), Some(eoi)) => eoi > sos,
+        _ => false,
+    }
 }
 
 fn check_dimensions(width: u32, height: u32, limits: &DecodeLimits) -> Result<(), DecodeError> {
@@ -267,6 +282,19 @@ mod tests {
         assert!(matches!(decode(&bytes, &small), Err(DecodeError::TooLarge { .. })));
         let few = DecodeLimits { max_pixels: 100, ..DecodeLimits::default() };
         assert!(matches!(decode(&bytes, &few), Err(DecodeError::TooLarge { .. })));
+    }
+
+    #[test]
+    fn refuses_a_truncated_jpeg_that_the_decoder_would_pad() {
+        let img = image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([(x * 4) as u8, (y * 5) as u8, 90]));
+        let mut jpeg = Vec::new();
+        img.write_to(&mut Cursor::new(&mut jpeg), ImageFormat::Jpeg).unwrap();
+        assert!(decode(&jpeg, &DecodeLimits::default()).is_ok());
+        let cut = &jpeg[..jpeg.len() * 3 / 4];
+        assert!(matches!(decode(cut, &DecodeLimits::default()), Err(DecodeError::Corrupt(_))));
+        let real = std::fs::read(crate::config::shared_dir().join("data/imm/01-1m.jpg")).unwrap();
+        assert!(decode(&real, &DecodeLimits::default()).is_ok());
+        assert!(matches!(decode(&real[..real.len() - 2000], &DecodeLimits::default()), Err(DecodeError::Corrupt(_))));
     }
 
     #[test]

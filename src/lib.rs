@@ -19,4 +19,7 @@ pub mod morph;
 pub mod pipeline;
 pub mod recognize;
 
+pub mod api;
+pub mod store;
+
 pub mod cli;

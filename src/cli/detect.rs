@@ -25,6 +25,9 @@ pub struct DetectorArgs {
     /// Window step in pixels of each pyramid level (Haar).
     #[arg(long, default_value_t = DetectOptions::default().step)]
     pub step: usize,
+    /// Ratio between pyramid scales (Haar).
+    #[arg(long, default_value_t = DetectOptions::default().scale_step)]
+    pub scale_step: f32,
     /// Do not rescan with step 1 when the first scan finds nothing (Haar).
     #[arg(long)]
     pub no_fine_rescan: bool,
@@ -44,10 +47,10 @@ impl DetectorArgs {
             profile: self.profile,
             min_neighbours: self.min_neighbours,
             step: self.step,
+            scale_step: self.scale_step,
             fine_rescan: !self.no_fine_rescan,
             small_image_side: self.small_image_side,
             small_image_pad: self.small_image_pad,
-            ..DetectOptions::default()
         }
     }
 

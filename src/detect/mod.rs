@@ -97,7 +97,7 @@ pub struct DetectOptions {
 
 impl Default for DetectOptions {
     fn default() -> Self {
-        Self { min_face: 24, min_face_fraction: 0.1, profile: ProfileMode::Fallback, min_neighbours: 3, scale_step: 1.1, step: 2, fine_rescan: true, small_image_side: 200, small_image_pad: 0.1 }
+        Self { min_face: 24, min_face_fraction: 0.15, profile: ProfileMode::Fallback, min_neighbours: 3, scale_step: 1.1, step: 2, fine_rescan: true, small_image_side: 200, small_image_pad: 0.1 }
     }
 }
 

@@ -22,24 +22,24 @@ const CLIP: f32 = 0.2;
 /// Central-difference gradients of an image (computed once per pyramid level).
 #[derive(Debug, Clone)]
 pub struct Gradients {
-    pub gx: GrayF32,
-    pub gy: GrayF32,
+    pub width: usize,
+    pub height: usize,
+    /// (∂x, ∂y) per pixel, interleaved so that a bilinear sample touches half the cache lines.
+    pub gxy: Vec<[f32; 2]>,
 }
 
 impl Gradients {
     pub fn new(img: &GrayF32) -> Gradients {
         let (w, h) = (img.width, img.height);
-        let mut gx = GrayF32::new(w, h);
-        let mut gy = GrayF32::new(w, h);
+        let mut gxy = vec![[0.0f32; 2]; w * h];
         for y in 0..h {
             let (ym, yp) = (y.saturating_sub(1), (y + 1).min(h - 1));
             for x in 0..w {
                 let (xm, xp) = (x.saturating_sub(1), (x + 1).min(w - 1));
-                gx.data[y * w + x] = 0.5 * (img.data[y * w + xp] - img.data[y * w + xm]);
-                gy.data[y * w + x] = 0.5 * (img.data[yp * w + x] - img.data[ym * w + x]);
+                gxy[y * w + x] = [0.5 * (img.data[y * w + xp] - img.data[y * w + xm]), 0.5 * (img.data[yp * w + x] - img.data[ym * w + x])];
             }
         }
-        Gradients { gx, gy }
+        Gradients { width: w, height: h, gxy }
     }
 }
 
@@ -68,7 +68,7 @@ impl Gradients {
     /// Bilinear (gx, gy) at a point, clamped at the border, with the weights shared by both planes.
     #[inline]
     fn sample(&self, x: f32, y: f32) -> (f32, f32) {
-        let (w, h) = (self.gx.width, self.gx.height);
+        let (w, h) = (self.width, self.height);
         let x = x.clamp(0.0, (w - 1) as f32);
         let y = y.clamp(0.0, (h - 1) as f32);
         let (x0, y0) = (x as usize, y as usize);
@@ -76,8 +76,9 @@ impl Gradients {
         let (fx, fy) = (x - x0 as f32, y - y0 as f32);
         let (i00, i01, i10, i11) = (y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1);
         let (w00, w01, w10, w11) = ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy);
-        let (a, b) = (&self.gx.data, &self.gy.data);
-        (w00 * a[i00] + w01 * a[i01] + w10 * a[i10] + w11 * a[i11], w00 * b[i00] + w01 * b[i01] + w10 * b[i10] + w11 * b[i11])
+        let g = &self.gxy;
+        let (g00, g01, g10, g11) = (g[i00], g[i01], g[i10], g[i11]);
+        (w00 * g00[0] + w01 * g01[0] + w10 * g10[0] + w11 * g11[0], w00 * g00[1] + w01 * g01[1] + w10 * g10[1] + w11 * g11[1])
     }
 }
 
@@ -97,7 +98,8 @@ pub struct DescriptorGrid {
     samples: Vec<OrientedSample>,
     /// For each patch sample: the four cells it is shared between (trilinear binning) as the
     /// offset of their histogram and the spatial weight times the Gaussian weight.
-    weights: Vec<[(u8, f32); 4]>,
+    /// Only the non-zero ones are kept (count in the second field): border samples feed fewer cells.
+    weights: Vec<([(u8, f32); 4], u8)>,
 }
 
 impl Default for DescriptorGrid {
@@ -131,12 +133,17 @@ impl DescriptorGrid {
         for i in 0..PATCH {
             for j in 0..PATCH {
                 let mut w = [(0u8, 0.0f32); 4];
-                for (a, &(ci, wi)) in spatial[i].iter().enumerate() {
-                    for (b, &(cj, wj)) in spatial[j].iter().enumerate() {
-                        w[2 * a + b] = (((ci * CELLS + cj) * BINS) as u8, wi * wj * gauss[i][j]);
+                let mut count = 0;
+                for &(ci, wi) in &spatial[i] {
+                    for &(cj, wj) in &spatial[j] {
+                        let wk = wi * wj * gauss[i][j];
+                        if wk != 0.0 {
+                            w[count] = (((ci * CELLS + cj) * BINS) as u8, wk);
+                            count += 1;
+                        }
                     }
                 }
-                weights.push(w);
+                weights.push((w, count as u8));
             }
         }
         DescriptorGrid { radius: 0, side: 0, samples: Vec::new(), weights }
@@ -182,7 +189,7 @@ impl DescriptorGrid {
                 let bin = s.bin as usize;
                 let b1 = (bin + 1) & (BINS - 1);
                 let (m0, m1) = (s.magnitude * (1.0 - s.frac), s.magnitude * s.frac);
-                for &(base, wk) in w {
+                for &(base, wk) in &w.0[..w.1 as usize] {
                     let base = base as usize;
                     out[base + bin] += wk * m0;
                     out[base + b1] += wk * m1;

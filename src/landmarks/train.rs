@@ -174,3 +174,25 @@ pub fn train(samples: &[ImmSample], detector: Option<&Detector>, options: &Train
         info: TrainInfo { images: samples.len(), persons, box_source, detector_misses: misses },
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_imm_asf_file_reads_with_the_same_contours() {
+        let samples = dataset::list_imm(&crate::config::shared_dir().join("data/imm")).unwrap();
+        assert_eq!(samples.len(), 180);
+        let first = neighbours(&samples[0]).unwrap();
+        assert_eq!(first.len(), dataset::IMM_POINTS);
+        // The jaw is an open contour (its ends are their own neighbours), the eyes are closed.
+        assert_eq!(first[0], [0, 1]);
+        assert_eq!(first[12], [11, 12]);
+        assert_eq!(first[13], [20, 14]);
+        for s in &samples {
+            assert_eq!(neighbours(s).unwrap(), first, "{}", s.asf.display());
+            let pts = s.landmarks().unwrap();
+            assert!(pts.iter().all(|p| p[0] > 0.0 && p[0] < 640.0 && p[1] > 0.0 && p[1] < 480.0));
+        }
+    }
+}

@@ -41,20 +41,40 @@ pub fn raster_triangle(p: [[f32; 2]; 3], width: usize, height: usize, mut visit:
     }
 }
 
-/// A depth buffer over an image; larger depth = nearer the camera.
+/// A depth buffer over the part of an image the mesh covers; larger depth = nearer the camera.
 pub struct DepthBuffer {
+    /// Top-left corner of the buffer in image pixels.
+    pub x0: usize,
+    pub y0: usize,
     pub width: usize,
     pub height: usize,
     pub depth: Vec<f32>,
 }
 
 impl DepthBuffer {
-    /// Render the depth of every triangle of `projected` (x, y, depth per vertex).
-    pub fn render(projected: &[[f32; 3]], triangles: &[[u32; 3]], width: usize, height: usize) -> DepthBuffer {
+    /// Render the depth of every triangle of `projected` (x, y, depth per vertex) inside an image
+    /// of `image_width`×`image_height`; the buffer spans only the mesh's bounding box.
+    pub fn render(projected: &[[f32; 3]], triangles: &[[u32; 3]], image_width: usize, image_height: usize) -> DepthBuffer {
+        let (mut lx, mut ly, mut hx, mut hy) = (f32::INFINITY, f32::INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY);
+        for p in projected {
+            lx = lx.min(p[0]);
+            ly = ly.min(p[1]);
+            hx = hx.max(p[0]);
+            hy = hy.max(p[1]);
+        }
+        if !(lx <= hx && ly <= hy) {
+            return DepthBuffer { x0: 0, y0: 0, width: 0, height: 0, depth: Vec::new() };
+        }
+        let x0 = lx.floor().clamp(0.0, image_width as f32) as usize;
+        let y0 = ly.floor().clamp(0.0, image_height as f32) as usize;
+        let x1 = (hx.ceil() + 1.0).clamp(0.0, image_width as f32) as usize;
+        let y1 = (hy.ceil() + 1.0).clamp(0.0, image_height as f32) as usize;
+        let (width, height) = (x1.saturating_sub(x0), y1.saturating_sub(y0));
         let mut depth = vec![f32::NEG_INFINITY; width * height];
+        let (ox, oy) = (x0 as f32, y0 as f32);
         for t in triangles {
             let (a, b, c) = (projected[t[0] as usize], projected[t[1] as usize], projected[t[2] as usize]);
-            raster_triangle([[a[0], a[1]], [b[0], b[1]], [c[0], c[1]]], width, height, |x, y, w| {
+            raster_triangle([[a[0] - ox, a[1] - oy], [b[0] - ox, b[1] - oy], [c[0] - ox, c[1] - oy]], width, height, |x, y, w| {
                 let z = w[0] * a[2] + w[1] * b[2] + w[2] * c[2];
                 let slot = &mut depth[y * width + x];
                 if z > *slot {
@@ -62,13 +82,13 @@ impl DepthBuffer {
                 }
             });
         }
-        DepthBuffer { width, height, depth }
+        DepthBuffer { x0, y0, width, height, depth }
     }
 
     /// Is a surface point at image position (x, y) with depth z the nearest one there?
     #[inline]
     pub fn visible(&self, x: f32, y: f32, z: f32, tolerance: f32) -> bool {
-        let (xi, yi) = (x.round(), y.round());
+        let (xi, yi) = ((x - self.x0 as f32).round(), (y - self.y0 as f32).round());
         if !(xi >= 0.0 && yi >= 0.0 && (xi as usize) < self.width && (yi as usize) < self.height) {
             return false;
         }

@@ -235,8 +235,8 @@ pub fn align_all(front_end: &FrontEnd, faces: &[FaceImage], normalization: Norma
             Err(e) => {
                 let msg = format!("{}: skipped ({e})", face.image.display());
                 match &bar {
-                    Some(b) => b.println(msg),
-                    None => tracing::warn!("{msg}"),
+                    Some(b) if !b.is_hidden() => b.println(msg),
+                    _ => eprintln!("warning: {msg}"),
                 }
             }
         }
@@ -408,8 +408,8 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
 
 /// Cross-validation on the training persons only, for choosing parameters without looking at the
 /// held-out persons: the training persons are dealt into `folds` groups (by sorted label), each group
-/// in turn plays the held-out role. Returns the all-pairs EER of each fold.
-pub fn cross_validate(aligned: &[AlignedFace], config: &TrainConfig, folds: usize) -> anyhow::Result<Vec<f64>> {
+/// in turn plays the held-out role. Returns the all-pairs summary of each fold.
+pub fn cross_validate(aligned: &[AlignedFace], config: &TrainConfig, folds: usize) -> anyhow::Result<Vec<VerificationSummary>> {
     let train: Vec<&AlignedFace> = aligned.iter().filter(|a| !a.face.held_out).collect();
     let mut labels: Vec<&str> = train.iter().map(|a| a.face.label.as_str()).collect();
     labels.sort();
@@ -427,7 +427,7 @@ pub fn cross_validate(aligned: &[AlignedFace], config: &TrainConfig, folds: usiz
             })
             .collect();
         let (_, report) = train_model(&fold, config, &[])?;
-        eers.push(report.pairs.eer);
+        eers.push(report.pairs);
     }
     Ok(eers)
 }

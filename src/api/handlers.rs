@@ -1,0 +1,405 @@
+//! Route handlers. Each reads and checks its request first (cheap), looks up what it needs in
+//! the store, and only then sends the photo work to the bounded pool.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::rejection::PathRejection;
+use axum::extract::{Path, Request, State};
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+
+use super::input::{read_query, read_upload, validate_fmr, validate_subject};
+use super::problem::{Problem, ProblemKind};
+use super::{AppState, FaceEngine, OPENAPI_YAML};
+use crate::detect::Face;
+use crate::imaging::{self, DecodeLimits};
+use crate::landmarks::Landmarks;
+use crate::morph::Pose;
+use crate::pipeline::{FaceAnalysis, PipelineError};
+use crate::store::{SubjectDetail, SubjectSummary};
+
+/// Milliseconds spent on one photo, stage by stage.
+#[derive(Debug, Clone, Copy, Serialize)]
+struct PhotoTimings {
+    decode_ms: f64,
+    detect_ms: f64,
+    landmarks_ms: f64,
+    morph_ms: f64,
+    template_ms: f64,
+}
+
+/// What the pipeline found in one photo.
+#[derive(Debug, Serialize)]
+struct FaceReport {
+    /// Faces the detector found; the largest is the one used.
+    faces_found: usize,
+    face: Face,
+    landmarks: Landmarks,
+    /// Head pose in degrees from the 3DMM fit; null when the 3DMM is not loaded.
+    pose: Option<Pose>,
+}
+
+struct Analysed {
+    analysis: FaceAnalysis,
+    timings: PhotoTimings,
+}
+
+impl Analysed {
+    fn report(&self) -> FaceReport {
+        let a = &self.analysis;
+        FaceReport { faces_found: a.faces_found, face: a.face, landmarks: a.landmarks.clone(), pose: a.pose }
+    }
+}
+
+fn ms(since: Instant) -> f64 {
+    since.elapsed().as_secs_f64() * 1e3
+}
+
+/// Decode one photo within the limits and run the pipeline on it (on a pool thread).
+fn analyse_photo(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -> Result<Analysed, Problem> {
+    let start = Instant::now();
+    let photo = imaging::decode(bytes, limits).map_err(|e| Problem::from_decode(&e))?;
+    let decode_ms = ms(start);
+    let analysis = engine.analyze(&photo).map_err(|e| match e {
+        PipelineError::NoFace => Problem::new(ProblemKind::NoFace, "no face was found in the photo"),
+        other => Problem::internal(other),
+    })?;
+    let t = analysis.timings;
+    let timings = PhotoTimings {
+        decode_ms,
+        detect_ms: t.detect_ms,
+        landmarks_ms: t.landmarks_ms,
+        morph_ms: t.morph_ms,
+        template_ms: t.template_ms,
+    };
+    Ok(Analysed { analysis, timings })
+}
+
+/// Analyse one probe photo on the pool and record its stage timings.
+async fn analyse_probe(state: &AppState, image: Bytes) -> Result<Analysed, Problem> {
+    let engine = state.0.engine.clone();
+    let limits = state.0.config.decode_limits;
+    let analysed = state.0.pool.run(&state.0.metrics, move || analyse_photo(engine.as_ref(), &image, &limits)).await??;
+    state.0.metrics.observe_stages(analysed.timings.decode_ms, &analysed.analysis.timings);
+    Ok(analysed)
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct NoParams {}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MatchParams {
+    fmr: Option<f64>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct IdentifyParams {
+    fmr: Option<f64>,
+    k: Option<usize>,
+}
+
+#[derive(Debug, Serialize)]
+struct ImageReport {
+    index: usize,
+    #[serde(flatten)]
+    found: FaceReport,
+    timings: PhotoTimings,
+}
+
+#[derive(Debug, Serialize)]
+struct EnrollResponse {
+    subject: String,
+    /// Templates the subject has now (all model versions).
+    templates: u32,
+    /// Templates added by this request (one per photo).
+    added: usize,
+    model_version: String,
+    images: Vec<ImageReport>,
+}
+
+/// `POST /enroll`: all photos must each show exactly one face; then all templates are stored in
+/// one transaction. Any bad photo refuses the whole enrolment and names the photo (`image`).
+pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<Response, Problem> {
+    let _: NoParams = read_query(&request)?;
+    let upload = read_upload(request).await?;
+    let subject = upload.require_subject()?;
+    let max = state.0.config.max_images;
+    match upload.images.len() {
+        0 => return Err(Problem::malformed("at least one photo is required (field image)")),
+        n if n > max => return Err(Problem::malformed(format!("at most {max} photos per enrolment, got {n}"))),
+        _ => {}
+    }
+    let engine = state.0.engine.clone();
+    let limits = state.0.config.decode_limits;
+    let images = upload.images;
+    let analysed = state
+        .0
+        .pool
+        .run(&state.0.metrics, move || {
+            let mut out = Vec::with_capacity(images.len());
+            for (index, bytes) in images.iter().enumerate() {
+                let analysed = analyse_photo(engine.as_ref(), bytes, &limits).map_err(|p| p.for_image(index))?;
+                if analysed.analysis.faces_found > 1 {
+                    return Err(Problem::new(
+                        ProblemKind::SeveralFaces,
+                        format!(
+                            "{} faces were found; an enrolment photo must show exactly one face, since a template of the wrong person is costly",
+                            analysed.analysis.faces_found
+                        ),
+                    )
+                    .for_image(index));
+                }
+                out.push(analysed);
+            }
+            Ok(out)
+        })
+        .await??;
+    for a in &analysed {
+        state.0.metrics.observe_stages(a.timings.decode_ms, &a.analysis.timings);
+    }
+    let templates: Vec<_> = analysed.iter().map(|a| a.analysis.template.clone()).collect();
+    let count = state.0.store.enroll(&subject, &templates).await?;
+    let body = EnrollResponse {
+        subject: subject.clone(),
+        templates: count,
+        added: templates.len(),
+        model_version: state.0.engine.model_version().to_string(),
+        images: analysed.iter().enumerate().map(|(index, a)| ImageReport { index, found: a.report(), timings: a.timings }).collect(),
+    };
+    let mut response = (StatusCode::CREATED, Json(body)).into_response();
+    if let Ok(location) = HeaderValue::from_str(&format!("/subjects/{subject}")) {
+        response.headers_mut().insert(header::LOCATION, location);
+    }
+    Ok(response)
+}
+
+#[derive(Debug, Serialize)]
+struct RequestTimings {
+    #[serde(flatten)]
+    photo: PhotoTimings,
+    match_ms: f64,
+    total_ms: f64,
+}
+
+#[derive(Debug, Serialize)]
+struct VerifyResponse {
+    subject: String,
+    #[serde(rename = "match")]
+    is_match: bool,
+    score: f32,
+    threshold: f32,
+    fmr: f64,
+    model_version: String,
+    /// The subject's templates compared (those of the current model version).
+    templates_compared: usize,
+    #[serde(flatten)]
+    found: FaceReport,
+    timings: RequestTimings,
+}
+
+/// `POST /verify`: is the probe's largest face the enrolled subject?
+pub async fn verify(State(state): State<AppState>, request: Request) -> Result<Response, Problem> {
+    let start = Instant::now();
+    let params: MatchParams = read_query(&request)?;
+    let fmr = validate_fmr(params.fmr)?.unwrap_or(state.0.config.default_fmr);
+    let upload = read_upload(request).await?;
+    let subject = upload.require_subject()?;
+    let image = upload.single_image()?;
+    // Look the subject up before the expensive work.
+    let enrolled = state
+        .0
+        .store
+        .templates(&subject)
+        .await?
+        .ok_or_else(|| Problem::new(ProblemKind::UnknownSubject, format!("subject {subject} is not enrolled")))?;
+    let engine = &state.0.engine;
+    let version = engine.model_version();
+    let comparable: Vec<_> = enrolled.into_iter().filter(|t| t.model_version == version).collect();
+    if comparable.is_empty() {
+        return Err(Problem::new(
+            ProblemKind::ModelMismatch,
+            format!("subject {subject} has no template of the current model version {version}; enrol the subject again"),
+        ));
+    }
+    let analysed = analyse_probe(&state, image).await?;
+    let t = Instant::now();
+    let score = engine.score(&analysed.analysis.template, &comparable);
+    let point = engine.operating_point(fmr);
+    let match_ms = ms(t);
+    let body = VerifyResponse {
+        subject,
+        is_match: score >= point.threshold,
+        score,
+        threshold: point.threshold,
+        fmr: point.fmr,
+        model_version: version.to_string(),
+        templates_compared: comparable.len(),
+        found: analysed.report(),
+        timings: RequestTimings { photo: analysed.timings, match_ms, total_ms: ms(start) },
+    };
+    Ok(Json(body).into_response())
+}
+
+#[derive(Debug, Serialize)]
+struct Candidate {
+    subject: String,
+    score: f32,
+    #[serde(rename = "match")]
+    is_match: bool,
+}
+
+#[derive(Debug, Serialize)]
+struct IdentifyResponse {
+    /// The best-scoring subjects, best first, at most `k`.
+    candidates: Vec<Candidate>,
+    threshold: f32,
+    fmr: f64,
+    model_version: String,
+    /// Subjects with templates of the current model version that were searched.
+    subjects_searched: usize,
+    #[serde(flatten)]
+    found: FaceReport,
+    timings: RequestTimings,
+}
+
+/// Most candidates `/identify` returns.
+const MAX_K: usize = 100;
+
+/// `POST /identify`: the top-k enrolled subjects for the probe's largest face.
+pub async fn identify(State(state): State<AppState>, request: Request) -> Result<Response, Problem> {
+    let start = Instant::now();
+    let params: IdentifyParams = read_query(&request)?;
+    let fmr = validate_fmr(params.fmr)?.unwrap_or(state.0.config.default_fmr);
+    let k = params.k.unwrap_or(5);
+    if !(1..=MAX_K).contains(&k) {
+        return Err(Problem::malformed(format!("k must be between 1 and {MAX_K}, got {k}")));
+    }
+    let upload = read_upload(request).await?;
+    if upload.subject.is_some() {
+        return Err(Problem::malformed("identify takes no subject; use /verify to check one subject"));
+    }
+    let image = upload.single_image()?;
+    let analysed = analyse_probe(&state, image).await?;
+    let t = Instant::now();
+    let engine = state.0.engine.clone();
+    let gallery = state.0.store.gallery(engine.model_version()).await?;
+    let subjects_searched = gallery.len();
+    let probe = analysed.analysis.template.clone();
+    let scorer = engine.clone();
+    // Scoring the whole gallery is CPU work too: it runs on the pool.
+    let mut scored = state
+        .0
+        .pool
+        .run(&state.0.metrics, move || gallery.into_iter().map(|(subject, templates)| (subject, scorer.score(&probe, &templates))).collect::<Vec<_>>())
+        .await?;
+    scored.sort_by(|a, b| b.1.total_cmp(&a.1));
+    scored.truncate(k);
+    let point = engine.operating_point(fmr);
+    let candidates = scored.into_iter().map(|(subject, score)| Candidate { subject, score, is_match: score >= point.threshold }).collect();
+    let match_ms = ms(t);
+    let body = IdentifyResponse {
+        candidates,
+        threshold: point.threshold,
+        fmr: point.fmr,
+        model_version: engine.model_version().to_string(),
+        subjects_searched,
+        found: analysed.report(),
+        timings: RequestTimings { photo: analysed.timings, match_ms, total_ms: ms(start) },
+    };
+    Ok(Json(body).into_response())
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ListParams {
+    limit: Option<u32>,
+    after: Option<String>,
+}
+
+#[derive(Debug, Serialize)]
+struct SubjectList {
+    subjects: Vec<SubjectSummary>,
+    /// Pass as `after` to get the next page; null on the last page.
+    next_after: Option<String>,
+}
+
+/// `GET /subjects`: subjects ordered by id, paged by `limit` (default 100, at most 1000) and `after`.
+pub async fn list_subjects(State(state): State<AppState>, request: Request) -> Result<Response, Problem> {
+    let params: ListParams = read_query(&request)?;
+    let limit = params.limit.unwrap_or(100);
+    if !(1..=1000).contains(&limit) {
+        return Err(Problem::malformed(format!("limit must be between 1 and 1000, got {limit}")));
+    }
+    if let Some(after) = &params.after {
+        validate_subject(after)?;
+    }
+    let subjects = state.0.store.list_subjects(params.after.as_deref(), limit).await?;
+    let next_after = (subjects.len() == limit as usize).then(|| subjects.last().map(|s| s.id.clone())).flatten();
+    Ok(Json(SubjectList { subjects, next_after }).into_response())
+}
+
+fn subject_in_path(path: Result<Path<String>, PathRejection>) -> Result<String, Problem> {
+    let Path(id) = path.map_err(|e| Problem::malformed(format!("invalid subject id in the path: {}", e.body_text())))?;
+    validate_subject(&id)?;
+    Ok(id)
+}
+
+fn unknown_subject(id: &str) -> Problem {
+    Problem::new(ProblemKind::UnknownSubject, format!("subject {id} is not enrolled"))
+}
+
+/// `GET /subjects/{id}`.
+pub async fn get_subject(State(state): State<AppState>, path: Result<Path<String>, PathRejection>) -> Result<Json<SubjectDetail>, Problem> {
+    let id = subject_in_path(path)?;
+    state.0.store.subject(&id).await?.map(Json).ok_or_else(|| unknown_subject(&id))
+}
+
+/// `DELETE /subjects/{id}`: erase the subject and all its templates.
+pub async fn delete_subject(State(state): State<AppState>, path: Result<Path<String>, PathRejection>) -> Result<StatusCode, Problem> {
+    let id = subject_in_path(path)?;
+    state.0.store.delete_subject(&id).await?.map(|_| StatusCode::NO_CONTENT).ok_or_else(|| unknown_subject(&id))
+}
+
+#[derive(Debug, Serialize)]
+pub struct Health {
+    status: &'static str,
+    model_version: String,
+    subjects: u64,
+    templates: u64,
+}
+
+/// `GET /health`: the database answers and the models are loaded.
+pub async fn health(State(state): State<AppState>) -> Result<Json<Health>, Problem> {
+    let (subjects, templates) = state.0.store.counts().await?;
+    Ok(Json(Health { status: "ok", model_version: state.0.engine.model_version().to_string(), subjects, templates }))
+}
+
+/// `GET /metrics`: Prometheus (OpenMetrics text) exposition.
+pub async fn metrics(State(state): State<AppState>) -> Response {
+    if let Ok((subjects, templates)) = state.0.store.counts().await {
+        state.0.metrics.subjects.set(subjects as i64);
+        state.0.metrics.templates.set(templates as i64);
+    }
+    let metrics: &Arc<super::Metrics> = &state.0.metrics;
+    ([(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], metrics.encode()).into_response()
+}
+
+/// `GET /openapi.yaml`.
+pub async fn openapi() -> Response {
+    ([(header::CONTENT_TYPE, "application/yaml")], OPENAPI_YAML).into_response()
+}
+
+pub async fn not_found(request: Request) -> Problem {
+    Problem::new(ProblemKind::NotFound, format!("no route {}", request.uri().path()))
+}
+
+pub async fn method_not_allowed(request: Request) -> Problem {
+    Problem::new(ProblemKind::MethodNotAllowed, format!("{} is not allowed on {}", request.method(), request.uri().path()))
+}

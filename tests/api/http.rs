@@ -1,0 +1,252 @@
+//! The HTTP layer with the stand-in engine: request formats, every bad-input class, limits,
+//! API keys, timeouts, overload, storage and the subjects routes.
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use facegate::api::ApiConfig;
+use facegate::imaging::DecodeLimits;
+use serde_json::json;
+
+use crate::support::*;
+
+fn config() -> ApiConfig {
+    ApiConfig {
+        max_body_bytes: 2 << 20,
+        decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() },
+        max_images: 4,
+        ..ApiConfig::default()
+    }
+}
+
+async fn app() -> (TestApp, Arc<StandInEngine>) {
+    let engine = StandInEngine::new("stand-in-1");
+    (TestApp::start(engine.clone(), config()).await, engine)
+}
+
+#[tokio::test]
+async fn enrol_verify_identify_and_subjects_round_trip() {
+    let (app, _) = app().await;
+    let alice = pattern_jpeg(320, 240, 1);
+    let bob = pattern_jpeg(320, 240, 9);
+
+    let r = app.post_form("/enroll", Some("alice"), &[alice.clone(), pattern_jpeg(320, 240, 2)]).await;
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let body = r.json();
+    assert_eq!((body["subject"].as_str(), body["templates"].as_u64(), body["added"].as_u64()), (Some("alice"), Some(2), Some(2)));
+    assert_eq!(body["images"].as_array().unwrap().len(), 2);
+    assert_eq!(r.headers["location"], "/subjects/alice");
+    // Enrolling again adds templates; JSON works as well as multipart.
+    let r = app.post_json("/enroll", &json!({"subject": "alice", "images": [base64(&pattern_jpeg(320, 240, 3))]})).await;
+    assert_eq!((r.status, r.json()["templates"].as_u64()), (201, Some(3)));
+    let r = app.post_json("/enroll", &json!({"subject": "bob", "image": base64(&bob)})).await;
+    assert_eq!(r.status, 201);
+
+    let r = app.post_form("/verify", Some("alice"), &[alice.clone()]).await;
+    assert_eq!(r.status, 200);
+    let v = r.json();
+    assert_eq!(v["match"], true);
+    assert!(v["score"].as_f64().unwrap() > 0.999);
+    assert_eq!((v["threshold"].as_f64(), v["fmr"].as_f64(), v["templates_compared"].as_u64()), (Some(0.95), Some(1e-3), Some(3)));
+    let r = app.post_json("/verify?fmr=0.01", &json!({"subject": "alice", "image": base64(&bob)})).await;
+    assert_eq!((r.status, r.json()["match"].as_bool(), r.json()["fmr"].as_f64()), (200, Some(false), Some(1e-2)));
+
+    let r = app.post_form("/identify?k=1", None, &[bob.clone()]).await;
+    assert_eq!(r.status, 200);
+    let i = r.json();
+    assert_eq!(i["candidates"].as_array().unwrap().len(), 1);
+    assert_eq!((i["candidates"][0]["subject"].as_str(), i["candidates"][0]["match"].as_bool()), (Some("bob"), Some(true)));
+    assert_eq!(i["subjects_searched"], 2);
+
+    let r = app.get("/subjects").await;
+    let ids: Vec<_> = r.json()["subjects"].as_array().unwrap().iter().map(|s| s["id"].as_str().unwrap().to_string()).collect();
+    assert_eq!(ids, ["alice", "bob"]);
+    let r = app.get("/subjects?limit=1").await;
+    assert_eq!(r.json()["next_after"], "alice");
+    let r = app.get("/subjects?limit=1&after=alice").await;
+    assert_eq!(r.json()["subjects"][0]["id"], "bob");
+    let r = app.get("/subjects/alice").await;
+    assert_eq!((r.status, r.json()["templates"].as_u64()), (200, Some(3)));
+    assert_eq!(r.json()["model_versions"][0]["model_version"], "stand-in-1");
+
+    assert_eq!(app.delete("/subjects/alice").await.status, 204);
+    app.get("/subjects/alice").await.assert_problem(404, "unknown-subject");
+    app.delete("/subjects/alice").await.assert_problem(404, "unknown-subject");
+    app.post_form("/verify", Some("alice"), &[alice]).await.assert_problem(404, "unknown-subject");
+    // Deleting erased the templates, not only the subject row.
+    assert_eq!(app.store.counts().await.unwrap(), (1, 1));
+}
+
+#[tokio::test]
+async fn bad_images_are_refused_with_their_problem_types() {
+    let (app, engine) = app().await;
+    let post = |bytes: Vec<u8>| {
+        let app = &app;
+        async move { app.post_form("/enroll", Some("carol"), &[bytes]).await }
+    };
+    post(b"this is plain text, not a photo".to_vec()).await.assert_problem(422, "not-an-image");
+    post(Vec::new()).await.assert_problem(422, "not-an-image");
+    // TIFF and WebP are recognised but not decoded.
+    post(b"II*\x00\x08\x00\x00\x00\x00\x00\x00\x00".to_vec()).await.assert_problem(415, "unsupported-format");
+    post(b"RIFF\x24\x00\x00\x00WEBPVP8 \x18\x00\x00\x00".to_vec()).await.assert_problem(415, "unsupported-format");
+    let jpeg = pattern_jpeg(320, 240, 4);
+    // A JPEG cut inside its header (the decoder pads a cut in the scan data with grey, so cut early).
+    post(jpeg[..64].to_vec()).await.assert_problem(422, "corrupt-image");
+    // Over the pixel limit (1 Mpx in these tests) though small in bytes.
+    let big = encode(&image::DynamicImage::ImageLuma8(image::GrayImage::new(1200, 1000)), image::ImageFormat::Png);
+    assert!(big.len() < 100_000);
+    post(big).await.assert_problem(413, "too-large");
+    // A PNG header claiming a huge image (a decompression bomb) is refused from the header alone.
+    let mut bomb = encode(&pattern(16, 16, 1), image::ImageFormat::Png);
+    bomb[16..20].copy_from_slice(&60000u32.to_be_bytes());
+    bomb[20..24].copy_from_slice(&60000u32.to_be_bytes());
+    let crc = crc32(&bomb[12..29]);
+    bomb[29..33].copy_from_slice(&crc.to_be_bytes());
+    post(bomb).await.assert_problem(413, "too-large");
+    // Over the body limit (2 MiB in these tests).
+    let r = app.post_form("/verify", Some("carol"), &[vec![0u8; 3 << 20]]).await;
+    r.assert_problem(413, "too-large");
+    let r = app.post_json("/verify", &json!({"subject": "carol", "image": base64(&vec![0u8; 3 << 20])})).await;
+    r.assert_problem(413, "too-large");
+    // No photo reached the engine, and nothing was stored.
+    assert_eq!(engine.calls.load(Ordering::SeqCst), 0);
+    assert_eq!(app.store.counts().await.unwrap(), (0, 0));
+}
+
+#[tokio::test]
+async fn faces_policy_no_face_and_several_faces() {
+    let (app, _) = app().await;
+    let flat = encode(&image::DynamicImage::ImageLuma8(image::GrayImage::from_pixel(320, 240, image::Luma([128]))), image::ImageFormat::Png);
+    let wide = pattern_jpeg(640, 240, 5);
+    app.post_form("/enroll", Some("dave"), &[flat.clone()]).await.assert_problem(422, "no-face");
+    // Enrolment refuses several faces and names the photo; nothing of the request is stored.
+    let r = app.post_form("/enroll", Some("dave"), &[pattern_jpeg(320, 240, 6), wide.clone()]).await;
+    r.assert_problem(422, "several-faces");
+    assert_eq!(r.json()["image"], 1);
+    assert_eq!(app.store.counts().await.unwrap(), (0, 0));
+    // Verify and identify use the largest face and say how many there were.
+    assert_eq!(app.post_form("/enroll", Some("dave"), &[pattern_jpeg(320, 240, 6)]).await.status, 201);
+    let r = app.post_form("/verify", Some("dave"), &[wide.clone()]).await;
+    assert_eq!((r.status, r.json()["faces_found"].as_u64()), (200, Some(2)));
+    let r = app.post_form("/identify", None, &[wide]).await;
+    assert_eq!((r.status, r.json()["faces_found"].as_u64()), (200, Some(2)));
+    app.post_form("/verify", Some("dave"), &[flat.clone()]).await.assert_problem(422, "no-face");
+    app.post_form("/identify", None, &[flat]).await.assert_problem(422, "no-face");
+}
+
+#[tokio::test]
+async fn malformed_requests_are_400_and_wrong_media_types_415() {
+    let (app, engine) = app().await;
+    let photo = pattern_jpeg(320, 240, 7);
+    let b64 = base64(&photo);
+    app.post_form("/enroll", None, &[photo.clone()]).await.assert_problem(400, "malformed-request");
+    app.post_form("/enroll", Some("bad id!"), &[photo.clone()]).await.assert_problem(400, "malformed-request");
+    app.post_form("/enroll", Some(&"x".repeat(129)), &[photo.clone()]).await.assert_problem(400, "malformed-request");
+    app.post_form("/enroll", Some("erin"), &[]).await.assert_problem(400, "malformed-request");
+    app.post_form("/enroll", Some("erin"), &vec![photo.clone(); 5]).await.assert_problem(400, "malformed-request");
+    app.post_form("/verify", Some("erin"), &[photo.clone(), photo.clone()]).await.assert_problem(400, "malformed-request");
+    app.post_form("/identify", Some("erin"), &[photo.clone()]).await.assert_problem(400, "malformed-request");
+    app.post_json("/verify", &json!({"subject": "erin", "image": "***not base64***"})).await.assert_problem(400, "malformed-request");
+    app.post_json("/verify", &json!({"subject": "erin", "image": b64, "extra": 1})).await.assert_problem(400, "malformed-request");
+    app.post_json("/verify", &json!({"subject": 42, "image": b64})).await.assert_problem(400, "malformed-request");
+    app.post_json("/verify?fmr=2", &json!({"subject": "erin", "image": b64})).await.assert_problem(400, "malformed-request");
+    app.post_json("/verify?unknown=1", &json!({"subject": "erin", "image": b64})).await.assert_problem(400, "malformed-request");
+    app.post_json("/identify?k=0", &json!({"image": b64})).await.assert_problem(400, "malformed-request");
+    app.get("/subjects?limit=0").await.assert_problem(400, "malformed-request");
+    app.get("/subjects/bad%20id").await.assert_problem(400, "malformed-request");
+    let r = app.send(app.client.post(app.url("/verify")).header("content-type", "application/json").body("{not json")).await;
+    r.assert_problem(400, "malformed-request");
+    let r = app.send(app.client.post(app.url("/verify")).header("content-type", "multipart/form-data; boundary=x").body("garbage")).await;
+    r.assert_problem(400, "malformed-request");
+    let form = reqwest::multipart::Form::new().text("subject", "erin").text("photo", "x");
+    app.send(app.client.post(app.url("/enroll")).multipart(form)).await.assert_problem(400, "malformed-request");
+    let r = app.send(app.client.post(app.url("/verify")).header("content-type", "text/plain").body("hello")).await;
+    r.assert_problem(415, "unsupported-media-type");
+    let r = app.send(app.client.post(app.url("/verify")).body(photo.clone())).await;
+    r.assert_problem(415, "unsupported-media-type");
+    // Unknown routes and methods are problems too.
+    app.get("/nowhere").await.assert_problem(404, "not-found");
+    app.send(app.client.put(app.url("/verify"))).await.assert_problem(405, "method-not-allowed");
+    assert_eq!(engine.calls.load(Ordering::SeqCst), 0);
+}
+
+#[tokio::test]
+async fn templates_of_another_model_version_are_not_compared() {
+    let first = TestApp::start(StandInEngine::new("v1"), config()).await;
+    let photo = pattern_jpeg(320, 240, 8);
+    assert_eq!(first.post_form("/enroll", Some("frank"), &[photo.clone()]).await.status, 201);
+    // The same database served by a newer model.
+    let app = TestApp::start(StandInEngine::new("v2"), config()).await;
+    let old = first.store.templates("frank").await.unwrap().unwrap();
+    app.store.enroll("frank", &old).await.unwrap();
+    app.post_form("/verify", Some("frank"), &[photo.clone()]).await.assert_problem(409, "model-mismatch");
+    let r = app.post_form("/identify", None, &[photo.clone()]).await;
+    assert_eq!((r.status, r.json()["subjects_searched"].as_u64()), (200, Some(0)));
+    // Re-enrolment with the new model makes the subject comparable again; old templates are skipped.
+    assert_eq!(app.post_form("/enroll", Some("frank"), &[photo.clone()]).await.status, 201);
+    let r = app.post_form("/verify", Some("frank"), &[photo]).await;
+    assert_eq!((r.status, r.json()["templates_compared"].as_u64(), r.json()["match"].as_bool()), (200, Some(1), Some(true)));
+    assert_eq!(app.get("/subjects/frank").await.json()["model_versions"].as_array().unwrap().len(), 2);
+}
+
+#[tokio::test]
+async fn api_keys_guard_everything_but_health_metrics_and_openapi() {
+    let keyed = ApiConfig { api_keys: vec!["s3cret".into(), "other".into()], ..config() };
+    let app = TestApp::start(StandInEngine::new("v1"), keyed).await;
+    app.get("/subjects").await.assert_problem(401, "unauthorized");
+    let r = app.send(app.client.get(app.url("/subjects")).bearer_auth("wrong")).await;
+    r.assert_problem(401, "unauthorized");
+    assert!(r.headers.contains_key("www-authenticate"));
+    app.post_form("/verify", Some("x"), &[vec![1, 2, 3]]).await.assert_problem(401, "unauthorized");
+    assert_eq!(app.send(app.client.get(app.url("/subjects")).bearer_auth("s3cret")).await.status, 200);
+    assert_eq!(app.send(app.client.get(app.url("/subjects")).header("x-api-key", "other")).await.status, 200);
+    for open in ["/health", "/metrics", "/openapi.yaml"] {
+        assert_eq!(app.get(open).await.status, 200, "{open}");
+    }
+}
+
+#[tokio::test]
+async fn slow_work_times_out_with_504_and_overload_is_refused_with_503() {
+    let slow = ApiConfig { request_timeout: Duration::from_millis(300), workers: 1, queue_depth: 0, ..config() };
+    let app = TestApp::start(StandInEngine::slow(Duration::from_millis(1200)), slow).await;
+    let photo = pattern_jpeg(320, 240, 3);
+    let images = [photo];
+    let (a, b) = tokio::join!(app.post_form("/identify", None, &images), async {
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        app.post_form("/identify", None, &images).await
+    });
+    a.assert_problem(504, "timeout");
+    // The first job still holds the only worker after its request timed out: the bound holds.
+    b.assert_problem(503, "overloaded");
+    assert_eq!(b.headers["retry-after"], "1");
+    let metrics = String::from_utf8(app.get("/metrics").await.body).unwrap();
+    assert!(metrics.contains("facegate_queue_rejections_total 1"), "{metrics}");
+}
+
+#[tokio::test]
+async fn health_metrics_and_openapi_are_served() {
+    let (app, _) = app().await;
+    let r = app.get("/health").await;
+    assert_eq!((r.status, r.json()["status"].as_str(), r.json()["model_version"].as_str()), (200, Some("ok"), Some("stand-in-1")));
+    assert_eq!(app.post_form("/enroll", Some("gina"), &[pattern_jpeg(320, 240, 1)]).await.status, 201);
+    let r = app.get("/metrics").await;
+    let text = String::from_utf8(r.body).unwrap();
+    assert!(text.contains(r#"facegate_http_requests_total{method="POST",route="/enroll",status="201"} 1"#), "{text}");
+    assert!(text.contains(r#"facegate_pipeline_stage_duration_seconds_count{stage="decode"} 1"#), "{text}");
+    assert!(text.contains("facegate_subjects 1") && text.contains("facegate_templates 1"), "{text}");
+    let r = app.get("/openapi.yaml").await;
+    assert_eq!(r.body, facegate::api::OPENAPI_YAML.as_bytes());
+}
+
+/// CRC-32 (IEEE) as PNG chunks use it, to forge a consistent header.
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut crc = 0xffff_ffffu32;
+    for &b in bytes {
+        crc ^= b as u32;
+        for _ in 0..8 {
+            crc = if crc & 1 != 0 { (crc >> 1) ^ 0xedb8_8320 } else { crc >> 1 };
+        }
+    }
+    !crc
+}

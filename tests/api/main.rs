@@ -1,0 +1,12 @@
+//! The one integration-test binary: the real app on a random port with a fresh database.
+//!
+//! - `openapi`: `openapi.yaml` against the served operations; every response received by these
+//!   tests is checked against the document.
+//! - `http`: the HTTP layer (formats, every bad-input class, limits, keys, timeouts, overload,
+//!   storage) with a stand-in face engine.
+//! - `pipeline`: enrol and verify real IMM photos through the real `Pipeline` and committed models.
+
+mod http;
+mod openapi;
+mod pipeline;
+mod support;

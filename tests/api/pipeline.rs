@@ -1,0 +1,106 @@
+//! End to end through the real face pipeline and the committed models: IMM photos of held-out
+//! persons (1, 2, 3, 5: never used in training).
+
+use std::sync::{Arc, OnceLock};
+
+use facegate::api::ApiConfig;
+use facegate::pipeline::{Pipeline, PipelineConfig};
+use serde_json::json;
+
+use crate::support::*;
+
+fn pipeline() -> Arc<Pipeline> {
+    static PIPELINE: OnceLock<Arc<Pipeline>> = OnceLock::new();
+    PIPELINE
+        .get_or_init(|| Arc::new(Pipeline::load(&PipelineConfig::default()).unwrap_or_else(|e| panic!("cannot load the pipeline: {e}"))))
+        .clone()
+}
+
+async fn app() -> TestApp {
+    let pipeline = pipeline();
+    TestApp::start(pipeline, ApiConfig::default()).await
+}
+
+/// Two IMM photos side by side: two faces in one picture.
+fn two_people() -> Vec<u8> {
+    let a = image::load_from_memory(&imm("01-1m.jpg")).unwrap().to_rgb8();
+    let b = image::load_from_memory(&imm("02-1m.jpg")).unwrap().to_rgb8();
+    let mut both = image::RgbImage::new(a.width() + b.width(), a.height().max(b.height()));
+    image::imageops::replace(&mut both, &a, 0, 0);
+    image::imageops::replace(&mut both, &b, a.width() as i64, 0);
+    encode(&image::DynamicImage::ImageRgb8(both), image::ImageFormat::Jpeg)
+}
+
+fn flat_grey() -> Vec<u8> {
+    encode(&image::DynamicImage::ImageRgb8(image::RgbImage::from_pixel(640, 480, image::Rgb([128, 128, 128]))), image::ImageFormat::Jpeg)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn enrol_an_imm_photo_then_verify_the_same_and_another_person() {
+    let app = app().await;
+    // Two photos (frontal, and turned to the side) of person 01.
+    let r = app.post_form("/enroll", Some("imm-01"), &[imm("01-1m.jpg"), imm("01-3m.jpg")]).await;
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json()["templates"], 2);
+    for image in r.json()["images"].as_array().unwrap() {
+        assert_eq!(image["faces_found"], 1);
+        assert_eq!(image["landmarks"]["points"].as_array().unwrap().len(), 58);
+    }
+    let r = app.post_json("/enroll", &json!({"subject": "imm-02", "images": [base64(&imm("02-1m.jpg"))]})).await;
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+
+    // Another photo of the same person (lit from the side) matches.
+    let r = app.post_form("/verify", Some("imm-01"), &[imm("01-5m.jpg")]).await;
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let same = r.json();
+    assert_eq!(same["match"], true, "{same}");
+    assert_eq!(same["templates_compared"], 2);
+    let face = &same["face"]["box"];
+    let (x, y, w, h) = (face["x"].as_f64().unwrap(), face["y"].as_f64().unwrap(), face["width"].as_f64().unwrap(), face["height"].as_f64().unwrap());
+    assert!(x >= -1.0 && y >= -1.0 && w > 50.0 && h > 50.0 && x + w <= 641.0 && y + h <= 481.0, "{face}");
+    for stage in ["decode_ms", "detect_ms", "landmarks_ms", "template_ms", "total_ms"] {
+        assert!(same["timings"][stage].as_f64().unwrap() >= 0.0);
+    }
+
+    // A photo of another person does not.
+    let r = app.post_form("/verify", Some("imm-01"), &[imm("03-1m.jpg")]).await;
+    assert_eq!(r.status, 200);
+    let other = r.json();
+    assert_eq!(other["match"], false, "{other}");
+    assert!(other["score"].as_f64().unwrap() < same["score"].as_f64().unwrap());
+
+    // Identification ranks the right person first.
+    let r = app.post_form("/identify?k=2", None, &[imm("02-6m.jpg")]).await;
+    assert_eq!(r.status, 200);
+    assert_eq!(r.json()["candidates"][0]["subject"], "imm-02", "{}", r.json());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_bad_input_class_with_the_real_pipeline() {
+    let app = app().await;
+    let photo = imm("05-1m.jpg");
+    // Faces: none, or several (enrolment refuses; verify uses the largest and says how many).
+    app.post_form("/enroll", Some("imm-05"), &[flat_grey()]).await.assert_problem(422, "no-face");
+    let r = app.post_form("/enroll", Some("imm-05"), &[photo.clone(), two_people()]).await;
+    r.assert_problem(422, "several-faces");
+    assert_eq!(r.json()["image"], 1);
+    assert_eq!(app.store.counts().await.unwrap(), (0, 0));
+    assert_eq!(app.post_form("/enroll", Some("imm-05"), &[photo.clone()]).await.status, 201);
+    let r = app.post_form("/verify", Some("imm-05"), &[two_people()]).await;
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    assert!(r.json()["faces_found"].as_u64().unwrap() >= 2);
+    app.post_form("/verify", Some("imm-05"), &[flat_grey()]).await.assert_problem(422, "no-face");
+
+    // Bytes that are not a usable photo.
+    app.post_form("/verify", Some("imm-05"), &[b"not a photo".to_vec()]).await.assert_problem(422, "not-an-image");
+    app.post_form("/verify", Some("imm-05"), &[b"II*\x00\x08\x00\x00\x00".to_vec()]).await.assert_problem(415, "unsupported-format");
+    app.post_form("/verify", Some("imm-05"), &[photo[..64].to_vec()]).await.assert_problem(422, "corrupt-image");
+    let huge = encode(&image::DynamicImage::ImageLuma8(image::GrayImage::new(5000, 4000)), image::ImageFormat::Png);
+    app.post_form("/verify", Some("imm-05"), &[huge]).await.assert_problem(413, "too-large");
+    // Requests that are wrong.
+    app.post_form("/verify", Some("nobody"), &[photo.clone()]).await.assert_problem(404, "unknown-subject");
+    app.post_form("/verify", Some("no spaces"), &[photo.clone()]).await.assert_problem(400, "malformed-request");
+    app.post_json("/verify", &json!({"subject": "imm-05"})).await.assert_problem(400, "malformed-request");
+    let r = app.send(app.client.post(app.url("/verify")).header("content-type", "image/jpeg").body(photo)).await;
+    r.assert_problem(415, "unsupported-media-type");
+}

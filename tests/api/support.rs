@@ -1,0 +1,212 @@
+//! Starting the real app on a random port with a fresh database, a client that checks every
+//! response against `openapi.yaml`, test photos, and a stand-in face engine for the HTTP-layer
+//! tests.
+
+use std::io::Cursor;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Duration;
+
+use facegate::api::{self, ApiConfig, AppState, FaceEngine};
+use facegate::dataset::KeyPoints;
+use facegate::detect::Face;
+use facegate::geometry::Rect;
+use facegate::imaging::Photo;
+use facegate::landmarks::Landmarks;
+use facegate::pipeline::{FaceAnalysis, PipelineError, StageTimings};
+use facegate::recognize::{OperatingPoint, Template};
+use facegate::store::Store;
+use reqwest::multipart::{Form, Part};
+use serde_json::Value;
+
+use crate::openapi::spec;
+
+/// A running app: its base URL, its database, and a client.
+pub struct TestApp {
+    pub base: String,
+    pub client: reqwest::Client,
+    pub store: Store,
+    dir: PathBuf,
+    server: tokio::task::JoinHandle<()>,
+}
+
+/// A response, already checked against `openapi.yaml`.
+#[derive(Debug)]
+pub struct Reply {
+    pub status: u16,
+    pub headers: reqwest::header::HeaderMap,
+    pub body: Vec<u8>,
+}
+
+impl Reply {
+    pub fn json(&self) -> Value {
+        serde_json::from_slice(&self.body).unwrap_or_else(|e| panic!("not JSON ({e}): {}", String::from_utf8_lossy(&self.body)))
+    }
+
+    /// The problem type's last segment, after checking the media type.
+    pub fn problem(&self) -> String {
+        assert_eq!(self.headers["content-type"], "application/problem+json", "{} {}", self.status, String::from_utf8_lossy(&self.body));
+        let t = self.json()["type"].as_str().unwrap().to_string();
+        t.strip_prefix(api::problem::PROBLEM_BASE).unwrap().to_string()
+    }
+
+    /// Assert status and problem type together (the message shows the body when they differ).
+    pub fn assert_problem(&self, status: u16, slug: &str) {
+        assert_eq!((self.status, self.problem()), (status, slug.to_string()), "{}", String::from_utf8_lossy(&self.body));
+    }
+}
+
+impl TestApp {
+    pub async fn start(engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {
+        static N: AtomicUsize = AtomicUsize::new(0);
+        let dir = std::env::temp_dir().join(format!("facegate-api-{}-{}", std::process::id(), N.fetch_add(1, Ordering::Relaxed)));
+        std::fs::create_dir_all(&dir).unwrap();
+        let store = Store::connect(&format!("sqlite://{}", dir.join("facegate.db").display())).await.unwrap();
+        let app = api::router(AppState::new(engine, store.clone(), config));
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let base = format!("http://{}", listener.local_addr().unwrap());
+        let server = tokio::spawn(async move {
+            axum::serve(listener, app).await.unwrap();
+        });
+        TestApp { base, client: reqwest::Client::new(), store, dir, server }
+    }
+
+    /// Send a request and check the response against the document.
+    pub async fn send(&self, request: reqwest::RequestBuilder) -> Reply {
+        let request = request.build().unwrap();
+        let (method, path) = (request.method().to_string(), request.url().path().to_string());
+        let response = self.client.execute(request).await.unwrap();
+        let status = response.status().as_u16();
+        let headers = response.headers().clone();
+        let body = response.bytes().await.unwrap().to_vec();
+        let content_type = headers.get("content-type").map(|v| v.to_str().unwrap().to_string());
+        if spec().template_for(&path).is_some() && status != 405 {
+            spec().check_response(&method, &path, status, content_type.as_deref(), &body);
+        }
+        Reply { status, headers, body }
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    pub async fn get(&self, path: &str) -> Reply {
+        self.send(self.client.get(self.url(path))).await
+    }
+
+    pub async fn delete(&self, path: &str) -> Reply {
+        self.send(self.client.delete(self.url(path))).await
+    }
+
+    /// POST multipart: an optional subject and `image` fields.
+    pub async fn post_form(&self, path: &str, subject: Option<&str>, images: &[Vec<u8>]) -> Reply {
+        let mut form = Form::new();
+        if let Some(s) = subject {
+            form = form.text("subject", s.to_string());
+        }
+        for (i, bytes) in images.iter().enumerate() {
+            form = form.part("image", Part::bytes(bytes.clone()).file_name(format!("photo{i}.jpg")));
+        }
+        self.send(self.client.post(self.url(path)).multipart(form)).await
+    }
+
+    pub async fn post_json(&self, path: &str, body: &Value) -> Reply {
+        self.send(self.client.post(self.url(path)).json(body)).await
+    }
+}
+
+impl Drop for TestApp {
+    fn drop(&mut self) {
+        self.server.abort();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+pub fn base64(bytes: &[u8]) -> String {
+    use base64::Engine as _;
+    base64::engine::general_purpose::STANDARD.encode(bytes)
+}
+
+pub fn encode(img: &image::DynamicImage, format: image::ImageFormat) -> Vec<u8> {
+    let mut out = Vec::new();
+    img.write_to(&mut Cursor::new(&mut out), format).unwrap();
+    out
+}
+
+/// A textured grey image (no face in it) of the given size.
+pub fn pattern(width: u32, height: u32, seed: u32) -> image::DynamicImage {
+    image::DynamicImage::ImageLuma8(image::GrayImage::from_fn(width, height, |x, y| {
+        image::Luma([((x * (3 + seed) + y * (5 + 2 * seed) + (x * y) % (7 + seed)) % 251) as u8])
+    }))
+}
+
+pub fn pattern_jpeg(width: u32, height: u32, seed: u32) -> Vec<u8> {
+    encode(&pattern(width, height, seed), image::ImageFormat::Jpeg)
+}
+
+/// An IMM photo from the shared data (read from its path, never copied).
+pub fn imm(name: &str) -> Vec<u8> {
+    let path = facegate::config::shared_dir().join("data/imm").join(name);
+    std::fs::read(&path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()))
+}
+
+/// A stand-in for the face pipeline, so the HTTP layer can be tested on its own: a uniform photo
+/// has no face, a photo at least twice as wide as high has two, any other one face. Its template
+/// is the photo's 8×8 thumbnail, centred and normalised; the score is the best cosine.
+pub struct StandInEngine {
+    pub version: String,
+    /// Simulated work per photo, for timeout and overload tests.
+    pub delay: Duration,
+    pub calls: AtomicUsize,
+}
+
+impl StandInEngine {
+    pub fn new(version: &str) -> Arc<StandInEngine> {
+        Arc::new(StandInEngine { version: version.into(), delay: Duration::ZERO, calls: AtomicUsize::new(0) })
+    }
+
+    pub fn slow(delay: Duration) -> Arc<StandInEngine> {
+        Arc::new(StandInEngine { version: "stand-in".into(), delay, calls: AtomicUsize::new(0) })
+    }
+}
+
+impl FaceEngine for StandInEngine {
+    fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
+        self.calls.fetch_add(1, Ordering::SeqCst);
+        std::thread::sleep(self.delay);
+        let g = &photo.gray;
+        let thumb = g.resize(8, 8);
+        let mean = thumb.data.iter().sum::<f32>() / 64.0;
+        let mut vector: Vec<f32> = thumb.data.iter().map(|v| v - mean).collect();
+        let norm = vector.iter().map(|v| v * v).sum::<f32>().sqrt();
+        let (min, max) = g.data.iter().fold((f32::MAX, f32::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+        if max - min < 1.0 || norm < 1e-3 {
+            return Err(PipelineError::NoFace);
+        }
+        vector.iter_mut().for_each(|v| *v /= norm);
+        let (w, h) = (g.width as f32, g.height as f32);
+        let faces_found = if w >= 2.0 * h { 2 } else { 1 };
+        let keypoints = KeyPoints { left_eye: [0.35 * w, 0.4 * h], right_eye: [0.65 * w, 0.4 * h], mouth: [0.5 * w, 0.75 * h] };
+        Ok(FaceAnalysis {
+            face: Face { rect: Rect::new(0.0, 0.0, w, h), score: 1.0 },
+            faces_found,
+            landmarks: Landmarks { points: vec![[0.5 * w, 0.5 * h]; 58], keypoints },
+            pose: None,
+            template: Template { model_version: self.version.clone(), vector },
+            timings: StageTimings::default(),
+        })
+    }
+
+    fn model_version(&self) -> &str {
+        &self.version
+    }
+
+    fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
+        enrolled.iter().map(|t| t.vector.iter().zip(&probe.vector).map(|(a, b)| a * b).sum::<f32>()).fold(f32::MIN, f32::max)
+    }
+
+    fn operating_point(&self, fmr: f64) -> OperatingPoint {
+        OperatingPoint { fmr: if fmr < 5e-3 { 1e-3 } else { 1e-2 }, threshold: if fmr < 5e-3 { 0.95 } else { 0.9 } }
+    }
+}
