@@ -329,7 +329,7 @@ impl Default for Asm3dTrainOptions {
             constrain: 3.0,
             sift_modes: 12,
             profile_ridge: 0.05,
-            texture_size: 256,
+            texture_size: 512,
             lighting: 0.3,
             seed: 7,
         }
