@@ -29,8 +29,13 @@ impl Default for PipelineConfig {
     }
 }
 
+/// The 2D-alignment recognition model used when the 3DMM is unavailable.
+pub const TWO_D_MODEL_FILE: &str = "dlda-2d.bin";
+
 #[derive(Debug, thiserror::Error)]
 pub enum PipelineError {
+    #[error("the recognition model needs the 3D morphable model, which is unavailable, and {0} is not a 2D model")]
+    NoTwoDModel(String),
     #[error("no face was found in the image")]
     NoFace,
     #[error(transparent)]
@@ -73,10 +78,14 @@ pub struct Pipeline {
 }
 
 impl Pipeline {
+    /// Load every stage. The recognition model is `dlda.bin`; when it was trained on 3DMM frontal
+    /// renderings and the Surrey Face Model is unavailable, the 2D model `dlda-2d.bin` is used
+    /// instead (with a warning), so that templates are never scored against thresholds calibrated
+    /// for the other normalisation. Its templates carry its own model version, so subjects
+    /// enrolled under one model are not compared with probes of the other.
     pub fn load(config: &PipelineConfig) -> Result<Pipeline, PipelineError> {
         let detector = Detector::load(&config.models_dir)?;
         let landmarker = Landmarker::load(&config.models_dir.join("asm.bin"))?;
-        let recognizer = Recognizer::load(&config.models_dir)?;
         let face_model = match &config.sfm_dir {
             Some(dir) => match FaceModel::load(dir) {
                 Ok(model) => Some(model),
@@ -87,6 +96,19 @@ impl Pipeline {
             },
             None => None,
         };
+        let mut recognizer = Recognizer::load(&config.models_dir)?;
+        if recognizer.normalization() == Normalization::Morph && face_model.is_none() {
+            let fallback = config.models_dir.join(TWO_D_MODEL_FILE);
+            recognizer = Recognizer::load_file(&fallback)?;
+            if recognizer.normalization() != Normalization::TwoD {
+                return Err(PipelineError::NoTwoDModel(fallback.display().to_string()));
+            }
+            tracing::warn!(
+                "recognition uses the 2D model {} ({}): templates enrolled with the 3DMM model are not comparable",
+                fallback.display(),
+                recognizer.model_version()
+            );
+        }
         Ok(Pipeline { detector, landmarker, face_model, recognizer })
     }
 
@@ -125,4 +147,45 @@ impl Pipeline {
 
 fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn photo(name: &str) -> Photo {
+        crate::imaging::open(&crate::config::shared_dir().join("data/imm").join(name)).unwrap()
+    }
+
+    #[test]
+    fn full_pipeline_reports_every_stage() {
+        let pipeline = Pipeline::load(&PipelineConfig::default()).unwrap();
+        assert!(pipeline.face_model.is_some());
+        let a = pipeline.analyze(&photo("05-1m.jpg")).unwrap();
+        assert_eq!(a.faces_found, 1);
+        assert_eq!(a.landmarks.points.len(), 58);
+        assert!(a.face.rect.contains(a.landmarks.keypoints.left_eye) && a.face.rect.contains(a.landmarks.keypoints.mouth));
+        assert!(a.pose.is_some());
+        assert_eq!(a.template.model_version, pipeline.recognizer.model_version());
+        let norm: f32 = a.template.vector.iter().map(|v| v * v).sum::<f32>().sqrt();
+        assert!((norm - 1.0).abs() < 1e-3, "templates are unit vectors, got norm {norm}");
+        assert!(a.timings.detect_ms > 0.0 && a.timings.landmarks_ms > 0.0);
+    }
+
+    #[test]
+    fn without_the_3dmm_the_pipeline_uses_a_2d_model() {
+        let pipeline = Pipeline::load(&PipelineConfig { sfm_dir: None, ..PipelineConfig::default() }).unwrap();
+        assert!(pipeline.face_model.is_none());
+        assert_eq!(pipeline.recognizer.normalization(), Normalization::TwoD);
+        let a = pipeline.analyze(&photo("05-1m.jpg")).unwrap();
+        assert!(a.pose.is_none());
+        assert_eq!(a.template.model_version, pipeline.recognizer.model_version());
+    }
+
+    #[test]
+    fn a_photo_without_a_face_is_no_face() {
+        let pipeline = Pipeline::load(&PipelineConfig::default()).unwrap();
+        let blank = Photo::from_dynamic(image::DynamicImage::ImageLuma8(image::GrayImage::from_pixel(320, 240, image::Luma([128]))));
+        assert!(matches!(pipeline.analyze(&blank), Err(PipelineError::NoFace)));
+    }
 }
