@@ -687,7 +687,7 @@ pub fn train(samples: &[ImmSample], fm: &FaceModel, detector: Option<&Detector>,
         format: ASM3D_FORMAT,
         params: p.clone(),
         crop_px_per_mm,
-        sigma_px: 2.0,
+        sigma_px: 4.0,
         views: out_views,
         info: Asm3dInfo { photos: samples.len(), persons, box_source, detector_misses: misses, fit_failures: failures, pdm_shapes: options.pdm_shapes, seed: options.seed },
     })
