@@ -2,51 +2,15 @@
 //! Target: fit + texture + frontal rendering ≤ 10 ms per face.
 //! Run: `cargo bench --bench morph` (needs the Surrey Face Model at FACEGATE_SFM or ../shared/models/sfm).
 //!
-//! Times are the benchmark thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`), not wall time: on a
+//! Times are the benchmark thread's CPU time (`benches/common`), not wall time: on a
 //! shared, loaded machine wall time measures the neighbours too. The work is single-threaded.
 
-use std::time::Duration;
-
-use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 use criterion::{Criterion, criterion_group, criterion_main};
 use facegate::dataset::list_imm;
 use facegate::morph::{FaceModel, TEXTURE_SIZE};
 
-/// Criterion measurement: CPU time of the calling thread.
-struct ThreadCpuTime {
-    wall: WallTime,
-}
-
-fn thread_cpu_now() -> Duration {
-    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
-    // SAFETY: `ts` is a valid, writable timespec; the clock id is a Linux/POSIX constant.
-    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
-    assert_eq!(rc, 0, "clock_gettime(CLOCK_THREAD_CPUTIME_ID) failed");
-    Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
-}
-
-impl Measurement for ThreadCpuTime {
-    type Intermediate = Duration;
-    type Value = Duration;
-    fn start(&self) -> Duration {
-        thread_cpu_now()
-    }
-    fn end(&self, start: Duration) -> Duration {
-        thread_cpu_now().saturating_sub(start)
-    }
-    fn add(&self, a: &Duration, b: &Duration) -> Duration {
-        *a + *b
-    }
-    fn zero(&self) -> Duration {
-        Duration::ZERO
-    }
-    fn to_f64(&self, v: &Duration) -> f64 {
-        v.as_nanos() as f64
-    }
-    fn formatter(&self) -> &dyn ValueFormatter {
-        self.wall.formatter()
-    }
-}
+mod common;
+use common::ThreadCpuTime;
 
 fn bench(c: &mut Criterion<ThreadCpuTime>) {
     let model = FaceModel::load(&facegate::config::sfm_dir()).expect("Surrey Face Model");
@@ -72,7 +36,7 @@ fn bench(c: &mut Criterion<ThreadCpuTime>) {
 }
 
 fn config() -> Criterion<ThreadCpuTime> {
-    Criterion::default().with_measurement(ThreadCpuTime { wall: WallTime })
+    Criterion::default().with_measurement(ThreadCpuTime)
 }
 
 criterion_group! { name = benches; config = config(); targets = bench }

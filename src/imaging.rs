@@ -44,7 +44,8 @@ pub struct Photo {
 
 impl Photo {
     pub fn from_dynamic(img: DynamicImage) -> Photo {
-        let rgb = img.to_rgb8();
+        // `into_rgb8` keeps the decoder's buffer when it is RGB already (JPEG): no copy per request.
+        let rgb = img.into_rgb8();
         let gray = GrayF32::from_rgb(&rgb);
         Photo { rgb, gray }
     }
@@ -151,7 +152,8 @@ impl GrayF32 {
 
     /// ITU-R BT.601 luma.
     pub fn from_rgb(rgb: &RgbImage) -> Self {
-        let data = rgb.pixels().map(|p| 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32).collect();
+        // Over the raw bytes in chunks of three (same arithmetic as per pixel, vectorisable).
+        let data = rgb.as_raw()[..rgb.width() as usize * rgb.height() as usize * 3].chunks_exact(3).map(|p| 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32).collect();
         Self { width: rgb.width() as usize, height: rgb.height() as usize, data }
     }
 

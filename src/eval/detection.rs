@@ -14,6 +14,8 @@ use crate::detect::{Detector, Face};
 use crate::geometry::Rect;
 use crate::imaging::{GrayF32, open};
 
+use super::thread_cpu_ns;
+
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct Rate {
     pub found: usize,
@@ -118,12 +120,6 @@ fn timing(ms: &mut [f64]) -> Timing {
     Timing { images: ms.len(), mean_ms: ms.iter().sum::<f64>() / ms.len() as f64, median_ms: ms[ms.len() / 2], max_ms: ms[ms.len() - 1] }
 }
 
-/// Nanoseconds this thread has run on a CPU (Linux `schedstat`), so that timings taken on a
-/// busy machine count only our own work; `None` elsewhere.
-fn thread_cpu_ns() -> Option<u64> {
-    let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
-    text.split_whitespace().next()?.parse().ok()
-}
 
 fn timed(detector: &Detector, gray: &GrayF32, wall_ms: &mut Vec<f64>, cpu_ms: &mut Vec<f64>) -> Vec<Face> {
     let cpu = thread_cpu_ns();

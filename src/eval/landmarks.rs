@@ -12,14 +12,9 @@ use crate::detect::Detector;
 use crate::geometry::{Rect, distance};
 use crate::landmarks::{BoxSource, Landmarker, Variant, train};
 
+use super::thread_cpu_ns;
 use super::plot::{Chart, Scale, Series, cumulative, line_chart};
 
-/// CPU time of the calling thread in ns (Linux `schedstat`), so that timings are not inflated by
-/// other processes sharing the machine; `None` elsewhere.
-fn thread_cpu_ns() -> Option<u64> {
-    let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
-    text.split_whitespace().next()?.parse().ok()
-}
 
 /// d_eye = max(d_left, d_right) / ||C_l − C_r|| (Jesorsky et al.).
 pub fn d_eye(found: &KeyPoints, truth: &KeyPoints) -> f64 {

@@ -4,3 +4,10 @@ pub mod detection;
 pub mod plot;
 pub mod landmarks;
 pub mod verification;
+
+/// Nanoseconds the calling thread has run on a CPU (Linux `schedstat`), so that timings taken on a
+/// machine shared with other work count only our own; `None` where the file does not exist.
+pub fn thread_cpu_ns() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    text.split_whitespace().next()?.parse().ok()
+}

@@ -211,9 +211,11 @@ pub fn suggest(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], va
         if uses_sift(variant, i) {
             let r = p.sift_radius.get(level).or(p.sift_radius.last()).copied().unwrap_or(2);
             let m = &model.sifts[level][i];
-            ws.grid.fill(&lvl.gradients, pt, n, r);
             // Coarse-to-fine over the window: every other candidate first, then the 8 neighbours
             // of the best one (the SIFT cost surface is smooth around its minimum, thesis fig. 2.3).
+            // The coarse grid reaches r − (r mod 2); the outer ring is sampled only if a neighbour
+            // needs it.
+            ws.grid.fill_within(&lvl.gradients, pt, n, r, r - r % 2);
             let r = r as isize;
             let eval = |da: isize, db: isize, ws: &mut Workspace| {
                 ws.grid.descriptor(da, db, &mut ws.descriptor);
@@ -239,6 +241,7 @@ pub fn suggest(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], va
                 if da.abs() > r || db.abs() > r {
                     continue;
                 }
+                ws.grid.widen(&lvl.gradients, da, db);
                 let d = eval(da, db, ws);
                 if d < best_d {
                     best_d = d;

@@ -47,21 +47,16 @@ impl Gradients {
 /// the library call dominated the cost of sampling a window.
 #[inline]
 fn fast_atan2(y: f32, x: f32) -> f32 {
+    // Written with selects rather than branches (same values) so that a row of samples vectorises.
     let (ax, ay) = (x.abs(), y.abs());
     let (mn, mx) = if ax < ay { (ax, ay) } else { (ay, ax) };
-    if mx == 0.0 {
-        return 0.0;
-    }
-    let a = mn / mx;
+    let a = mn / mx; // NaN for 0/0: replaced by 0 below
     let s = a * a;
-    let mut r = ((-0.046_496_475 * s + 0.159_314_22) * s - 0.327_622_76) * s * a + a;
-    if ay > ax {
-        r = std::f32::consts::FRAC_PI_2 - r;
-    }
-    if x < 0.0 {
-        r = std::f32::consts::PI - r;
-    }
-    if y < 0.0 { -r } else { r }
+    let r = ((-0.046_496_475 * s + 0.159_314_22) * s - 0.327_622_76) * s * a + a;
+    let r = if ay > ax { std::f32::consts::FRAC_PI_2 - r } else { r };
+    let r = if x < 0.0 { std::f32::consts::PI - r } else { r };
+    let r = if y < 0.0 { -r } else { r };
+    if mx == 0.0 { 0.0 } else { r }
 }
 
 impl Gradients {
@@ -82,12 +77,12 @@ impl Gradients {
     }
 }
 
-#[derive(Debug, Clone, Copy, Default)]
-struct OrientedSample {
-    magnitude: f32,
-    bin: u8,
-    frac: f32,
-}
+/// One oriented gradient sample, already split between its two orientation bins (linear
+/// interpolation in orientation) as a full 8-bin histogram: binning a candidate's descriptor then
+/// adds whole 8-lane vectors, which the compiler vectorises, instead of two scattered scalars.
+/// The other six lanes are zero, and adding `w·0` leaves a sum unchanged, so the descriptor is
+/// bit-identical to the scalar binning.
+type OrientedSample = [f32; BINS];
 
 /// Oriented gradient samples over the union of the patches of a `(2r+1)²` candidate window, plus
 /// the fixed spatial and Gaussian weights of one patch. Reused across landmarks: no allocation
@@ -100,6 +95,14 @@ pub struct DescriptorGrid {
     /// offset of their histogram and the spatial weight times the Gaussian weight.
     /// Only the non-zero ones are kept (count in the second field): border samples feed fewer cells.
     weights: Vec<([(u8, f32); 4], u8)>,
+    /// One window row's gradients along the normal and the tangent (then magnitude and
+    /// orientation), reused.
+    row_gn: Vec<f32>,
+    row_gt: Vec<f32>,
+    center: Point,
+    normal: Point,
+    /// The sampled rectangle of the window: rows `[0]..[1]`, columns `[2]..[3]`.
+    filled: [usize; 4],
 }
 
 impl Default for DescriptorGrid {
@@ -146,32 +149,89 @@ impl DescriptorGrid {
                 weights.push((w, count as u8));
             }
         }
-        DescriptorGrid { radius: 0, side: 0, samples: Vec::new(), weights }
+        DescriptorGrid { radius: 0, side: 0, samples: Vec::new(), weights, row_gn: Vec::new(), row_gt: Vec::new(), center: [0.0; 2], normal: [1.0, 0.0], filled: [0; 4] }
     }
 
     /// Sample the oriented gradients around `center` for candidates up to `radius` pixels away along
     /// the normal and the tangent. `normal` must be a unit vector; orientations are measured from it.
     pub fn fill(&mut self, grad: &Gradients, center: Point, normal: Point, radius: usize) {
+        self.fill_within(grad, center, normal, radius, radius);
+    }
+
+    /// Like [`fill`](Self::fill) for a window of `radius`, but sample only what the candidates up
+    /// to `reach` (≤ `radius`) away need; [`widen`](Self::widen) samples more on demand. A
+    /// coarse-to-fine search rarely visits the window's outer ring, and skipping it is exact.
+    pub fn fill_within(&mut self, grad: &Gradients, center: Point, normal: Point, radius: usize, reach: usize) {
+        let reach = reach.min(radius);
         self.radius = radius;
         self.side = PATCH + 2 * radius;
-        self.samples.resize(self.side * self.side, OrientedSample::default());
+        self.center = center;
+        self.normal = normal;
+        self.samples.resize(self.side * self.side, [0.0; BINS]);
+        let lo = radius - reach;
+        let hi = self.side - lo;
+        self.filled = [lo, hi, lo, hi];
+        self.sample_rect(grad, lo..hi, lo..hi);
+    }
+
+    /// Make sure the samples of the candidate at (`da`, `db`) are there, extending the sampled
+    /// rectangle of the window by the missing rows and columns.
+    pub fn widen(&mut self, grad: &Gradients, da: isize, db: isize) {
+        let r = self.radius as isize;
+        debug_assert!(da.abs() <= r && db.abs() <= r, "candidate outside the window");
+        let (a0, b0) = ((da + r) as usize, (db + r) as usize);
+        let [fa0, fa1, fb0, fb1] = self.filled;
+        let (na0, na1) = (fa0.min(a0), fa1.max(a0 + PATCH));
+        let (nb0, nb1) = (fb0.min(b0), fb1.max(b0 + PATCH));
+        if (na0, na1, nb0, nb1) == (fa0, fa1, fb0, fb1) {
+            return;
+        }
+        // New rows over the new full width, then the new columns beside the old rows.
+        self.sample_rect(grad, na0..fa0, nb0..nb1);
+        self.sample_rect(grad, fa1..na1, nb0..nb1);
+        self.sample_rect(grad, fa0..fa1, nb0..fb0);
+        self.sample_rect(grad, fa0..fa1, fb1..nb1);
+        self.filled = [na0, na1, nb0, nb1];
+    }
+
+    fn sample_rect(&mut self, grad: &Gradients, rows: std::ops::Range<usize>, cols: std::ops::Range<usize>) {
+        if rows.is_empty() || cols.is_empty() {
+            return;
+        }
+        let (center, normal, side) = (self.center, self.normal, self.side);
         let (nx, ny) = (normal[0], normal[1]);
         let (tx, ty) = (-ny, nx);
-        let off = radius as f32 + 0.5 * PATCH as f32 - 0.5;
+        let off = self.radius as f32 + 0.5 * PATCH as f32 - 0.5;
         let scale = BINS as f32 / std::f32::consts::TAU;
-        for a in 0..self.side {
+        let width = cols.len();
+        self.row_gn.resize(width, 0.0);
+        self.row_gt.resize(width, 0.0);
+        for a in rows {
             let da = a as f32 - off;
-            for b in 0..self.side {
+            // Three passes per row: the bilinear gathers (scalar), the orientation arithmetic
+            // (branch-free, so the compiler vectorises it), the split into bins.
+            for (k, b) in cols.clone().enumerate() {
                 let db = b as f32 - off;
                 let x = center[0] + da * nx + db * tx;
                 let y = center[1] + da * ny + db * ty;
                 let (gx, gy) = grad.sample(x, y);
-                let gn = gx * nx + gy * ny;
-                let gt = gx * tx + gy * ty;
-                let magnitude = (gn * gn + gt * gt).sqrt();
-                let o = (fast_atan2(gt, gn) + std::f32::consts::PI) * scale;
+                self.row_gn[k] = gx * nx + gy * ny;
+                self.row_gt[k] = gx * tx + gy * ty;
+            }
+            for (gn, gt) in self.row_gn.iter_mut().zip(self.row_gt.iter_mut()) {
+                let (n, t) = (*gn, *gt);
+                // Reuse the two buffers: magnitude and orientation in bins, in [0, BINS].
+                *gn = (n * n + t * t).sqrt();
+                *gt = (fast_atan2(t, n) + std::f32::consts::PI) * scale;
+            }
+            let samples = &mut self.samples[a * side + cols.start..a * side + cols.end];
+            for ((hist, &magnitude), &o) in samples.iter_mut().zip(&self.row_gn).zip(&self.row_gt) {
                 let o0 = (o as i32) as f32; // o ≥ 0: truncation is floor, without a libm call
-                self.samples[a * self.side + b] = OrientedSample { magnitude, bin: (o0 as i32).rem_euclid(BINS as i32) as u8, frac: o - o0 };
+                let bin = (o0 as i32).rem_euclid(BINS as i32) as usize;
+                let frac = o - o0;
+                *hist = [0.0f32; BINS];
+                hist[bin] = magnitude * (1.0 - frac);
+                hist[(bin + 1) & (BINS - 1)] = magnitude * frac;
             }
         }
     }
@@ -179,20 +239,19 @@ impl DescriptorGrid {
     /// The descriptor of the candidate shifted by (`da`, `db`) ∈ [−r, r]² pixels along the normal
     /// and the tangent.
     pub fn descriptor(&self, da: isize, db: isize, out: &mut [f32; DESCRIPTOR_LEN]) {
-        out.fill(0.0);
         let a0 = (da + self.radius as isize) as usize;
         let b0 = (db + self.radius as isize) as usize;
+        debug_assert!(a0 >= self.filled[0] && a0 + PATCH <= self.filled[1] && b0 >= self.filled[2] && b0 + PATCH <= self.filled[3], "candidate not sampled: widen first");
+        out.fill(0.0);
         for i in 0..PATCH {
             let row = &self.samples[(a0 + i) * self.side + b0..(a0 + i) * self.side + b0 + PATCH];
             let wrow = &self.weights[i * PATCH..(i + 1) * PATCH];
-            for (s, w) in row.iter().zip(wrow) {
-                let bin = s.bin as usize;
-                let b1 = (bin + 1) & (BINS - 1);
-                let (m0, m1) = (s.magnitude * (1.0 - s.frac), s.magnitude * s.frac);
+            for (hist, w) in row.iter().zip(wrow) {
                 for &(base, wk) in &w.0[..w.1 as usize] {
-                    let base = base as usize;
-                    out[base + bin] += wk * m0;
-                    out[base + b1] += wk * m1;
+                    let cell: &mut [f32; BINS] = (&mut out[base as usize..base as usize + BINS]).try_into().expect("8 bins");
+                    for (o, h) in cell.iter_mut().zip(hist) {
+                        *o += wk * h;
+                    }
                 }
             }
         }
@@ -267,6 +326,23 @@ mod tests {
         // …but not a different place.
         let d2 = descriptor(&Gradients::new(&img), [24.0, 33.0], [0.6, 0.8]);
         assert!(dist(&d0, &d2) > 0.2);
+    }
+
+    #[test]
+    fn widened_windows_equal_full_windows() {
+        let g = Gradients::new(&pattern(70, 70, 0.4, 35.0, 35.0));
+        let n = [0.6f32, 0.8];
+        let mut full = DescriptorGrid::new();
+        full.fill(&g, [34.3, 36.1], n, 3);
+        let mut lazy = DescriptorGrid::new();
+        lazy.fill_within(&g, [34.3, 36.1], n, 3, 2);
+        let (mut a, mut b) = ([0.0; DESCRIPTOR_LEN], [0.0; DESCRIPTOR_LEN]);
+        for (da, db) in [(0, 0), (2, -2), (3, -2), (3, -3), (-3, 1), (-1, 3), (0, 0)] {
+            lazy.widen(&g, da, db);
+            full.descriptor(da, db, &mut a);
+            lazy.descriptor(da, db, &mut b);
+            assert_eq!(a, b, "candidate ({da}, {db})");
+        }
     }
 
     #[test]
