@@ -15,7 +15,7 @@ pub struct LandmarksArgs {
     #[arg(long)]
     pub json: bool,
     /// Landmark model variant.
-    #[arg(long, default_value = "casm", value_parser = ["asm", "sift", "casm"])]
+    #[arg(long, default_value = "casm", value_parser = ["asm", "sift", "casm", "asm3d"])]
     pub variant: String,
 }
 
@@ -54,6 +54,9 @@ fn load_detector() -> Option<Detector> {
 
 pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
     let variant = Variant::parse(&args.variant).context("unknown variant")?;
+    if variant == Variant::Asm3d {
+        return run_asm3d(args);
+    }
     let path = crate::config::models_dir().join("asm.bin");
     let landmarker = Landmarker::load(&path)?;
     let detector = Detector::load(&crate::config::models_dir())?;
@@ -127,4 +130,96 @@ pub fn run_eval(args: EvalLandmarksArgs) -> anyhow::Result<ExitCode> {
     let detector = load_detector();
     crate::eval::landmarks::run(&args.imm, detector.as_ref(), &args.out)?;
     Ok(ExitCode::SUCCESS)
+}
+
+#[derive(clap::Args, Debug)]
+pub struct TrainAsm3dArgs {
+    /// IMM folder with `NN-V*.jpg` photos and `.asf` annotations.
+    #[arg(long)]
+    pub imm: PathBuf,
+    #[arg(long, default_value = "models/asm3d.bin")]
+    pub out: PathBuf,
+    /// Surrey Face Model folder (default: `FACEGATE_SFM` or `../shared/models/sfm`).
+    #[arg(long)]
+    pub sfm: Option<PathBuf>,
+    /// Train only on the persons of the person-disjoint training split (leave out
+    /// `dataset::imm_is_test_person`), for measurements.
+    #[arg(long)]
+    pub train_split: bool,
+}
+
+pub fn run_train_asm3d(args: TrainAsm3dArgs) -> anyhow::Result<ExitCode> {
+    use crate::landmarks::asm3d;
+    let mut samples = dataset::list_imm(&args.imm)?;
+    if args.train_split {
+        samples.retain(|s| !dataset::imm_is_test_person(s.person));
+    }
+    anyhow::ensure!(!samples.is_empty(), "no annotated IMM photos in {}", args.imm.display());
+    let face_model = crate::morph::FaceModel::load(&args.sfm.clone().unwrap_or_else(crate::config::sfm_dir))?;
+    let detector = load_detector();
+    let bar = crate::cli::progress(samples.len() as u64, "train asm3d");
+    let options = asm3d::Asm3dTrainOptions::default();
+    let model = asm3d::train(&samples, &face_model, detector.as_ref(), &options, &|| bar.inc(1))?;
+    bar.finish();
+    let landmarker = asm3d::Asm3dLandmarker { model };
+    landmarker.save(&args.out)?;
+    let m = &landmarker.model;
+    let size = std::fs::metadata(&args.out).map(|m| m.len()).unwrap_or(0);
+    eprintln!(
+        "trained on {} photos of {} persons ({} 3DMM fit failures); placement from {:?} boxes ({} detector misses); views {:?}; real photos per view {:?}; 3D PDM modes {:?}; wrote {} ({} kB)",
+        m.info.photos,
+        m.info.persons.len(),
+        m.info.fit_failures,
+        m.info.box_source,
+        m.info.detector_misses,
+        m.views.iter().map(|v| v.yaw).collect::<Vec<_>>(),
+        m.views.iter().map(|v| v.real_photos).collect::<Vec<_>>(),
+        m.views.iter().map(|v| v.pdm.modes()).collect::<Vec<_>>(),
+        args.out.display(),
+        size / 1024
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `facegate landmarks --variant asm3d`: the C-ASM JSON plus the fitted pose.
+fn run_asm3d(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
+    let landmarker = crate::landmarks::asm3d::Asm3dLandmarker::load(&crate::config::models_dir().join("asm3d.bin"))?;
+    let detector = Detector::load(&crate::config::models_dir())?;
+    let mut failed = false;
+    for image in &args.images {
+        let photo = match crate::imaging::open(image) {
+            Ok(p) => p,
+            Err(e) => {
+                eprintln!("facegate: {}: {e}", image.display());
+                failed = true;
+                continue;
+            }
+        };
+        let faces: Vec<serde_json::Value> = detector
+            .detect(&photo.gray)
+            .iter()
+            .map(|f| {
+                let lm = landmarker.fit(&photo.gray, &f.rect);
+                json!({
+                    "box": f.rect,
+                    "points": lm.points,
+                    "left_eye": lm.keypoints.left_eye,
+                    "right_eye": lm.keypoints.right_eye,
+                    "mouth": lm.keypoints.mouth,
+                    "pose": lm.pose,
+                    "view_yaw": lm.view_yaw,
+                })
+            })
+            .collect();
+        let value = json!({ "image": image.display().to_string(), "variant": "asm3d", "faces": faces });
+        if args.json {
+            crate::cli::print_json_line(&value);
+        } else {
+            println!("{}: {} face(s)", image.display(), faces.len());
+            for f in &faces {
+                println!("  box {}  left eye {}  right eye {}  mouth {}  pose {}", f["box"], f["left_eye"], f["right_eye"], f["mouth"], f["pose"]);
+            }
+        }
+    }
+    Ok(if failed { ExitCode::FAILURE } else { ExitCode::SUCCESS })
 }

@@ -48,6 +48,8 @@ pub enum TrainCommand {
     Dlda(recognize::TrainDldaArgs),
     /// Derive the IMM point → Surrey Face Model vertex table from IMM training annotations.
     ImmSfm(morph::TrainImmSfmArgs),
+    /// Train the 3D-ASM (3D PDM from the 3DMM, view-based textures from synthesised views).
+    Asm3d(landmarks::TrainAsm3dArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -77,6 +79,7 @@ pub fn main() -> ExitCode {
         Command::Train(TrainCommand::Dlda(args)) => recognize::run_train(args),
         Command::Eval(EvalCommand::Detect(args)) => detect::run_eval(args),
         Command::Train(TrainCommand::ImmSfm(args)) => morph::run_train_imm_sfm(args),
+        Command::Train(TrainCommand::Asm3d(args)) => landmarks::run_train_asm3d(args),
         Command::Eval(EvalCommand::Landmarks(args)) => landmarks::run_eval(args),
         Command::Eval(EvalCommand::Pairs(args)) => recognize::run_eval_pairs(args),
         Command::Eval(EvalCommand::Verify(args)) => recognize::run_eval_verify(args),

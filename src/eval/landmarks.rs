@@ -65,37 +65,7 @@ fn test_box(detector: Option<&Detector>, gray: &crate::imaging::GrayF32, truth: 
 
 /// Measure one variant on `test` photos (boxes precomputed).
 pub fn measure(landmarker: &Landmarker, photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)], variant: Variant) -> VariantSummary {
-    let mut errors = Vec::new();
-    let (mut total_ms, mut fitted) = (0.0, 0usize);
-    for (sample, gray, truth, rect) in photos {
-        let truth_k = KeyPoints::from_imm(truth);
-        let (de, dm) = match rect {
-            Some(r) => {
-                let (t, c) = (Instant::now(), thread_cpu_ns());
-                let lm = landmarker.fit(gray, r, variant);
-                total_ms += match (c, thread_cpu_ns()) {
-                    (Some(a), Some(b)) => (b - a) as f64 * 1e-6,
-                    _ => t.elapsed().as_secs_f64() * 1e3,
-                };
-                fitted += 1;
-                (Some(d_eye(&lm.keypoints, &truth_k)), Some(d_mouth(&lm.keypoints, &truth_k)))
-            }
-            None => (None, None),
-        };
-        errors.push(PhotoError { person: sample.person, view: sample.view, d_eye: de, d_mouth: dm });
-    }
-    let found: Vec<f64> = errors.iter().filter_map(|e| e.d_eye).collect();
-    VariantSummary {
-        variant: variant.name(),
-        photos: errors.len(),
-        detector_misses: errors.iter().filter(|e| e.d_eye.is_none()).count(),
-        d_eye_005: share(&errors, |e| e.d_eye, 0.05),
-        d_eye_01: share(&errors, |e| e.d_eye, 0.1),
-        mouth_01: share(&errors, |e| e.d_mouth, 0.1),
-        mean_d_eye: found.iter().sum::<f64>() / found.len().max(1) as f64,
-        ms_per_face: total_ms / fitted.max(1) as f64,
-        errors,
-    }
+    measure_fn(photos, variant.name(), &|gray, rect| landmarker.fit(gray, rect, variant).keypoints)
 }
 
 /// Train on the training persons, measure the three variants on the held-out persons, print the
@@ -116,7 +86,15 @@ pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Resul
         let rect = test_box(detector, &photo.gray, &truth);
         photos.push((s.clone(), photo.gray, truth, rect));
     }
-    let summaries: Vec<VariantSummary> = Variant::ALL.iter().map(|&v| measure(&landmarker, &photos, v)).collect();
+    let mut summaries: Vec<VariantSummary> = Variant::ALL.iter().map(|&v| measure(&landmarker, &photos, v)).collect();
+    // The 3D-ASM beside them, and the head yaw of each photo for the per-view table.
+    let yaws = match measure_asm3d(&training, detector, &photos) {
+        Some((summary, yaws)) => {
+            summaries.push(summary);
+            yaws
+        }
+        None => vec![f32::NAN; photos.len()],
+    };
 
     let boxes = match (detector, box_source) {
         (Some(_), BoxSource::Detector) => "detector boxes",
@@ -142,6 +120,8 @@ pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Resul
         );
     }
 
+    let per_view = per_view_tables(&summaries, &yaws);
+
     std::fs::create_dir_all(out)?;
     let curves = |f: &dyn Fn(&PhotoError) -> Option<f64>| -> Vec<Series> {
         summaries
@@ -152,6 +132,7 @@ pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Resul
                 Series { name: match s.variant {
                     "asm" => "ASM (profiles)",
                     "sift" => "SIFT-ASM",
+                    "asm3d" => "3D-ASM",
                     _ => "C-ASM",
                 }, points: cumulative(&errs, 0.25, 100) }
             })
@@ -160,10 +141,105 @@ pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Resul
     let chart = |title, x_label| Chart { title, x_label, y_label: "share of photos", x_range: (0.0, 0.25), y_range: (0.0, 1.0), x_scale: Scale::Linear, y_scale: Scale::Linear };
     line_chart(&out.join("landmarks-d_eye.svg"), &chart("IMM held-out persons: eye error", "d_eye (max eye error / eye distance)"), &curves(&|e| e.d_eye))?;
     line_chart(&out.join("landmarks-mouth.svg"), &chart("IMM held-out persons: mouth error", "mouth error / eyes-to-mouth distance"), &curves(&|e| e.d_mouth))?;
-    let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries });
+    let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries, "per_view": per_view, "yaw_of_annotation": yaws });
     std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
     println!("wrote {}", out.display());
     Ok(summaries)
+}
+
+/// Measure any landmark search (as [`measure`]) under the name `variant`.
+pub fn measure_fn(photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)], variant: &'static str, fit: &dyn Fn(&crate::imaging::GrayF32, &Rect) -> KeyPoints) -> VariantSummary {
+    let mut errors = Vec::new();
+    let (mut total_ms, mut fitted) = (0.0, 0usize);
+    for (sample, gray, truth, rect) in photos {
+        let truth_k = KeyPoints::from_imm(truth);
+        let (de, dm) = match rect {
+            Some(r) => {
+                let (t, c) = (Instant::now(), thread_cpu_ns());
+                let found = fit(gray, r);
+                total_ms += match (c, thread_cpu_ns()) {
+                    (Some(a), Some(b)) => (b - a) as f64 * 1e-6,
+                    _ => t.elapsed().as_secs_f64() * 1e3,
+                };
+                fitted += 1;
+                (Some(d_eye(&found, &truth_k)), Some(d_mouth(&found, &truth_k)))
+            }
+            None => (None, None),
+        };
+        errors.push(PhotoError { person: sample.person, view: sample.view, d_eye: de, d_mouth: dm });
+    }
+    let found: Vec<f64> = errors.iter().filter_map(|e| e.d_eye).collect();
+    VariantSummary {
+        variant,
+        photos: errors.len(),
+        detector_misses: errors.iter().filter(|e| e.d_eye.is_none()).count(),
+        d_eye_005: share(&errors, |e| e.d_eye, 0.05),
+        d_eye_01: share(&errors, |e| e.d_eye, 0.1),
+        mouth_01: share(&errors, |e| e.d_mouth, 0.1),
+        mean_d_eye: found.iter().sum::<f64>() / found.len().max(1) as f64,
+        ms_per_face: total_ms / fitted.max(1) as f64,
+        errors,
+    }
+}
+
+/// The 3D-ASM beside the 2D variants: trained on the same training persons (needs the Surrey Face
+/// Model; skipped with a message without it), measured on the same photos and boxes.
+fn measure_asm3d(training: &[ImmSample], detector: Option<&Detector>, photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)]) -> Option<(VariantSummary, Vec<f32>)> {
+    use crate::landmarks::asm3d;
+    let fm = match crate::morph::FaceModel::load(&crate::config::sfm_dir()) {
+        Ok(m) => m,
+        Err(e) => {
+            eprintln!("facegate: 3D-ASM not measured: {e}");
+            return None;
+        }
+    };
+    let bar = crate::cli::progress(training.len() as u64, "train asm3d");
+    let model = match asm3d::train(training, &fm, detector, &asm3d::Asm3dTrainOptions::default(), &|| bar.inc(1)) {
+        Ok(m) => m,
+        Err(e) => {
+            eprintln!("facegate: 3D-ASM not measured: {e}");
+            return None;
+        }
+    };
+    bar.finish_and_clear();
+    let lm = asm3d::Asm3dLandmarker { model };
+    let summary = measure_fn(photos, "asm3d", &|g, r| lm.fit(g, r).keypoints);
+    // The head yaw of every test photo, from the 3DMM fitted to its manual landmarks.
+    let yaws = photos.iter().map(|(_, g, truth, _)| fm.fit(truth, g.width as u32, g.height as u32).map_or(f32::NAN, |f| f.pose.yaw)).collect();
+    Some((summary, yaws))
+}
+
+/// Per IMM view group (frontal 1–2, turned 3–4, spot light and free 5–6) and per |yaw| band of the
+/// 3DMM fitted to the manual landmarks: share with d_eye < 0.1 and mean d_eye of every variant.
+fn per_view_tables(summaries: &[VariantSummary], yaws: &[f32]) -> serde_json::Value {
+    let groups: [(&str, &dyn Fn(&PhotoError, f32) -> bool); 7] = [
+        ("views 1-2 (frontal)", &|e, _| matches!(e.view, 1 | 2)),
+        ("views 3-4 (turned)", &|e, _| matches!(e.view, 3 | 4)),
+        ("views 5-6 (light, free)", &|e, _| matches!(e.view, 5 | 6)),
+        ("|yaw| < 10", &|_, y| y.abs() < 10.0),
+        ("|yaw| 10-20", &|_, y| (10.0..20.0).contains(&y.abs())),
+        ("|yaw| 20-30", &|_, y| (20.0..30.0).contains(&y.abs())),
+        ("|yaw| >= 30", &|_, y| y.abs() >= 30.0),
+    ];
+    println!("{:<26} {}", "group (photos)", summaries.iter().map(|s| format!("{:>22}", format!("{} <0.1 / mean", s.variant))).collect::<String>());
+    let mut rows = Vec::new();
+    for (name, member) in groups {
+        let mut line = String::new();
+        let mut count = 0;
+        let mut cells = Vec::new();
+        for s in summaries {
+            let d: Vec<f64> = s.errors.iter().zip(yaws).filter(|(e, y)| member(e, **y)).map(|(e, _)| e.d_eye.unwrap_or(f64::INFINITY)).collect();
+            count = d.len();
+            let ok = d.iter().filter(|&&v| v < 0.1).count() as f64 / d.len().max(1) as f64;
+            let finite: Vec<f64> = d.iter().copied().filter(|v| v.is_finite()).collect();
+            let mean = finite.iter().sum::<f64>() / finite.len().max(1) as f64;
+            line += &format!("{:>22}", format!("{:.1}% / {:.3}", 100.0 * ok, mean));
+            cells.push(serde_json::json!({ "variant": s.variant, "d_eye_01": ok, "mean_d_eye": mean }));
+        }
+        println!("{:<26}{line}", format!("{name} ({count})"));
+        rows.push(serde_json::json!({ "group": name, "photos": count, "variants": cells }));
+    }
+    serde_json::Value::Array(rows)
 }
 
 #[cfg(test)]

@@ -10,6 +10,7 @@
 //!   the coarse-to-fine matching.
 //! - [`train`]: training all three variants from IMM `.asf` annotations.
 
+pub mod asm3d;
 pub mod mahalanobis;
 pub mod pdm;
 pub mod profile;
@@ -35,6 +36,8 @@ pub enum Variant {
     Sift,
     #[default]
     Casm,
+    /// 3D-ASM (`asm3d::Asm3dLandmarker`, `models/asm3d.bin`); the 2D [`Landmarker`] searches it as C-ASM.
+    Asm3d,
 }
 
 impl Variant {
@@ -45,11 +48,12 @@ impl Variant {
             Variant::Asm => "asm",
             Variant::Sift => "sift",
             Variant::Casm => "casm",
+            Variant::Asm3d => "asm3d",
         }
     }
 
     pub fn parse(s: &str) -> Option<Variant> {
-        Variant::ALL.into_iter().find(|v| v.name() == s)
+        Variant::ALL.into_iter().chain([Variant::Asm3d]).find(|v| v.name() == s)
     }
 }
 

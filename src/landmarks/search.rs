@@ -195,13 +195,13 @@ fn uses_sift(variant: Variant, point: usize) -> bool {
     match variant {
         Variant::Asm => false,
         Variant::Sift => true,
-        Variant::Casm => INTERNAL.contains(&point),
+        Variant::Casm | Variant::Asm3d => INTERNAL.contains(&point),
     }
 }
 
 /// Move each point to its best candidate by its texture model (thesis eq. 2.3). Returns the sum
 /// of the best distances (the fit's texture cost).
-fn suggest(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], variant: Variant, ws: &mut Workspace, out: &mut Vec<Point>) -> f32 {
+pub fn suggest(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], variant: Variant, ws: &mut Workspace, out: &mut Vec<Point>) -> f32 {
     normals(points, &model.neighbours, &mut ws.normals);
     out.clear();
     let mut cost = 0.0;
@@ -277,7 +277,7 @@ fn suggest(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], varian
 fn constrain(model: &AsmModel, suggested: &[Point], variant: Variant) -> Vec<Point> {
     match variant {
         Variant::Asm | Variant::Sift => model.full.fit(suggested).0,
-        Variant::Casm => {
+        Variant::Casm | Variant::Asm3d => {
             let (contour, _, _) = model.contour.fit(&suggested[JAW]);
             let (internal, _, _) = model.internal.fit(&suggested[INTERNAL]);
             let mut combined = contour;
@@ -288,7 +288,7 @@ fn constrain(model: &AsmModel, suggested: &[Point], variant: Variant) -> Vec<Poi
 }
 
 /// The texture cost of the points where they are (no candidates): ranks the starting shapes.
-fn texture_cost(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], variant: Variant, ws: &mut Workspace) -> f32 {
+pub fn texture_cost(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], variant: Variant, ws: &mut Workspace) -> f32 {
     normals(points, &model.neighbours, &mut ws.normals);
     let mut cost = 0.0;
     for (i, &pt) in points.iter().enumerate() {

@@ -1,0 +1,26 @@
+//! 3D-ASM search time per face, one thread, with the committed `models/asm3d.bin`: a frontal and a
+//! turned IMM photo (640×480) from the detector's box.
+
+use std::hint::black_box;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use facegate::config::{models_dir, shared_dir};
+use facegate::detect::Detector;
+use facegate::imaging::open;
+use facegate::landmarks::asm3d::Asm3dLandmarker;
+
+fn bench_asm3d(c: &mut Criterion) {
+    let landmarker = Asm3dLandmarker::load(&models_dir().join("asm3d.bin")).expect("models/asm3d.bin");
+    let detector = Detector::load(&models_dir()).expect("detector");
+    let mut group = c.benchmark_group("asm3d");
+    group.sample_size(20);
+    for (name, file) in [("frontal_01-1", "01-1m.jpg"), ("turned_02-3", "02-3m.jpg")] {
+        let gray = open(&shared_dir().join("data/imm").join(file)).expect("IMM photo").gray;
+        let face = detector.detect(&gray).first().map(|f| f.rect).expect("a face");
+        group.bench_function(name, |b| b.iter(|| black_box(landmarker.fit(black_box(&gray), &face))));
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench_asm3d);
+criterion_main!(benches);
