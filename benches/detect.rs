@@ -31,7 +31,9 @@ fn bench_detect(c: &mut Criterion<ThreadCpuTime>) {
     // clone of the parsed model. This is that per-call overhead.
     let bytes = std::fs::read(models_dir().join("cascades").join(facegate::detect::SEETA_MODEL)).expect("SeetaFace model");
     let model = rustface::read_model(&bytes[..]).expect("model parses");
-    group.bench_function("seeta/per_call_detector_from_model_clone", |b| b.iter(|| black_box(rustface::create_detector_with_model(black_box(&model).clone()))));
+    group.bench_function("seeta/per_call_detector_from_model_clone", |b| {
+        b.iter(|| black_box(rustface::create_detector_with_model(black_box(&model).clone())))
+    });
     group.finish();
 }
 

@@ -83,7 +83,8 @@ pub enum DatasetError {
 pub fn parse_asf(text: &str, width: f32, height: f32, path_for_errors: &str) -> Result<AsfShape, DatasetError> {
     let fmt = |message: String| DatasetError::Format { path: path_for_errors.to_string(), message };
     let lines: Vec<&str> = text.lines().map(str::trim).filter(|l| !l.is_empty() && !l.starts_with('#')).collect();
-    let count: usize = lines.first().ok_or_else(|| fmt("empty file".into()))?.parse().map_err(|_| fmt("first value is not the point count".into()))?;
+    let count: usize =
+        lines.first().ok_or_else(|| fmt("empty file".into()))?.parse().map_err(|_| fmt("first value is not the point count".into()))?;
     let mut points = Vec::with_capacity(count);
     for line in &lines[1..] {
         if points.len() == count {
@@ -95,7 +96,14 @@ pub fn parse_asf(text: &str, width: f32, height: f32, path_for_errors: &str) -> 
         }
         let int = |i: usize| cols[i].parse::<u32>().map_err(|_| fmt(format!("column {} is not an integer in {line:?}", i + 1)));
         let num = |i: usize| cols[i].parse::<f32>().map_err(|_| fmt(format!("column {} is not a number in {line:?}", i + 1)));
-        points.push(AsfPoint { path: int(0)?, kind: int(1)?, xy: [num(2)? * width, num(3)? * height], index: int(4)?, from: int(5)?, to: int(6)? });
+        points.push(AsfPoint {
+            path: int(0)?,
+            kind: int(1)?,
+            xy: [num(2)? * width, num(3)? * height],
+            index: int(4)?,
+            from: int(5)?,
+            to: int(6)?,
+        });
     }
     if points.len() != count {
         return Err(fmt(format!("expected {count} points, found {}", points.len())));
@@ -127,7 +135,10 @@ impl ImmSample {
             .map_err(|e| DatasetError::Format { path: self.image.display().to_string(), message: e.to_string() })?;
         let shape = read_asf(&self.asf, w as f32, h as f32)?;
         if shape.points.len() != IMM_POINTS {
-            return Err(DatasetError::Format { path: self.asf.display().to_string(), message: format!("{} points, expected 58", shape.points.len()) });
+            return Err(DatasetError::Format {
+                path: self.asf.display().to_string(),
+                message: format!("{} points, expected 58", shape.points.len()),
+            });
         }
         Ok(shape.xy())
     }

@@ -153,7 +153,10 @@ impl GrayF32 {
     /// ITU-R BT.601 luma.
     pub fn from_rgb(rgb: &RgbImage) -> Self {
         // Over the raw bytes in chunks of three (same arithmetic as per pixel, vectorisable).
-        let data = rgb.as_raw()[..rgb.width() as usize * rgb.height() as usize * 3].chunks_exact(3).map(|p| 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32).collect();
+        let data = rgb.as_raw()[..rgb.width() as usize * rgb.height() as usize * 3]
+            .chunks_exact(3)
+            .map(|p| 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32)
+            .collect();
         Self { width: rgb.width() as usize, height: rgb.height() as usize, data }
     }
 

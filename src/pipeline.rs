@@ -161,7 +161,9 @@ pub fn recognition_input<'a>(
     normalization: Normalization,
 ) -> Result<RecognitionInput<'a>, PipelineError> {
     let fitted = match (face_model, normalization) {
-        (Some(model), Normalization::Morph) => Some(model.fit(&landmarks.points, photo.width(), photo.height()).map_err(PipelineError::PoseCorrection)?),
+        (Some(model), Normalization::Morph) => {
+            Some(model.fit(&landmarks.points, photo.width(), photo.height()).map_err(PipelineError::PoseCorrection)?)
+        }
         // On the 2D path the fit only reports the pose: a failure leaves it unknown.
         (Some(model), Normalization::TwoD) => model.fit(&landmarks.points, photo.width(), photo.height()).ok(),
         (None, Normalization::Morph) => return Err(PipelineError::NoFaceModel),

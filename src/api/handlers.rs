@@ -71,13 +71,8 @@ fn analyse_photo(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -
         other => Problem::internal(other),
     })?;
     let t = analysis.timings;
-    let timings = PhotoTimings {
-        decode_ms,
-        detect_ms: t.detect_ms,
-        landmarks_ms: t.landmarks_ms,
-        morph_ms: t.morph_ms,
-        template_ms: t.template_ms,
-    };
+    let timings =
+        PhotoTimings { decode_ms, detect_ms: t.detect_ms, landmarks_ms: t.landmarks_ms, morph_ms: t.morph_ms, template_ms: t.template_ms };
     Ok(Analysed { analysis, timings })
 }
 
@@ -299,7 +294,9 @@ pub async fn identify(State(state): State<AppState>, request: Request) -> Result
     let mut scored = state
         .0
         .pool
-        .run(&state.0.metrics, move || gallery.into_iter().map(|(subject, templates)| (subject, scorer.score(&probe, &templates))).collect::<Vec<_>>())
+        .run(&state.0.metrics, move || {
+            gallery.into_iter().map(|(subject, templates)| (subject, scorer.score(&probe, &templates))).collect::<Vec<_>>()
+        })
         .await?;
     scored.sort_by(|a, b| b.1.total_cmp(&a.1));
     scored.truncate(k);

@@ -88,10 +88,7 @@ async fn read_multipart(request: Request) -> Result<Upload, Problem> {
                 upload.images.push(bytes);
             }
             other => {
-                return Err(Problem::malformed(format!(
-                    "unknown form field {:?}: the fields are subject and image",
-                    truncate(other, 40)
-                )));
+                return Err(Problem::malformed(format!("unknown form field {:?}: the fields are subject and image", truncate(other, 40))));
             }
         }
     }

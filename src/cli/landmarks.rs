@@ -217,7 +217,10 @@ fn run_asm3d(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
         } else {
             println!("{}: {} face(s)", image.display(), faces.len());
             for f in &faces {
-                println!("  box {}  left eye {}  right eye {}  mouth {}  pose {}", f["box"], f["left_eye"], f["right_eye"], f["mouth"], f["pose"]);
+                println!(
+                    "  box {}  left eye {}  right eye {}  mouth {}  pose {}",
+                    f["box"], f["left_eye"], f["right_eye"], f["mouth"], f["pose"]
+                );
             }
         }
     }

@@ -55,7 +55,8 @@ pub struct FrontalizeArgs {
 
 fn load_model(input: &MorphInput) -> anyhow::Result<FaceModel> {
     let dir = input.sfm.clone().unwrap_or_else(crate::config::sfm_dir);
-    FaceModel::load(&dir).context("the 3D morphable model is needed for this command (the Surrey Face Model is not redistributed with facegate)")
+    FaceModel::load(&dir)
+        .context("the 3D morphable model is needed for this command (the Surrey Face Model is not redistributed with facegate)")
 }
 
 fn landmarks(input: &MorphInput, photo: &Photo) -> anyhow::Result<Vec<Point>> {

@@ -11,7 +11,7 @@ use crate::eval::verification::{self, rank1, summarize};
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::calibration::DEFAULT_FMR;
 use crate::recognize::train::{self, AlignedFace, FrontEnd, KeypointSource, TrainConfig};
-use crate::recognize::{DldaParams, FeatureKind, NormalizeParams, Normalization, Photometric, Recognizer, Template};
+use crate::recognize::{DldaParams, FeatureKind, Normalization, NormalizeParams, Photometric, Recognizer, Template};
 
 #[derive(clap::Args, Debug)]
 pub struct CompareArgs {
@@ -127,7 +127,11 @@ impl ModelOptions {
         };
         config.normalize.elliptical_mask = !self.no_mask;
         config.jitter = self.jitter;
-        config.normalize = NormalizeParams { photometric: config.normalize.photometric, elliptical_mask: config.normalize.elliptical_mask, ..NormalizeParams::layout64().scaled(self.crop).zoomed(self.zoom) };
+        config.normalize = NormalizeParams {
+            photometric: config.normalize.photometric,
+            elliptical_mask: config.normalize.elliptical_mask,
+            ..NormalizeParams::layout64().scaled(self.crop).zoomed(self.zoom)
+        };
         config.normalize.mouth_weight = self.mouth_weight;
         config
     }
@@ -243,7 +247,9 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
             100.0 * f2,
             100.0 * f3
         );
-        crate::cli::print_json_line(&serde_json::json!({"cv_folds": folds, "cv_eer_mean": eer, "cv_fnmr_at_fmr_1e2_mean": f2, "cv_fnmr_at_fmr_1e3_mean": f3}));
+        crate::cli::print_json_line(
+            &serde_json::json!({"cv_folds": folds, "cv_eer_mean": eer, "cv_fnmr_at_fmr_1e2_mean": f2, "cv_fnmr_at_fmr_1e3_mean": f3}),
+        );
         if args.cv_only {
             return Ok(ExitCode::SUCCESS);
         }
@@ -304,7 +310,10 @@ pub fn read_pairs(reader: impl BufRead) -> anyhow::Result<Vec<PairRow>> {
     let mut lines = reader.lines();
     let header = lines.next().context("the pairs file is empty")??;
     let cols = split_csv(&header);
-    anyhow::ensure!(cols.len() >= 2 && cols[0] == "file_x" && cols[1] == "file_y", "the pairs file must start with a header `file_x,file_y,...`, found {header:?}");
+    anyhow::ensure!(
+        cols.len() >= 2 && cols[0] == "file_x" && cols[1] == "file_y",
+        "the pairs file must start with a header `file_x,file_y,...`, found {header:?}"
+    );
     let mut out = Vec::new();
     for (i, line) in lines.enumerate() {
         let line = line?;
@@ -389,10 +398,17 @@ pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
         Ok(pipeline.analyze(&photo)?.template)
     };
     let stdout = std::io::stdout().lock();
-    score_pairs(&pairs, &args.images, template_of, |a, b| pipeline.recognizer.score(a, std::slice::from_ref(b)), stdout, |w| {
-        // A hidden bar (stderr not a terminal) drops `println`: warn directly then.
-        if bar.is_hidden() { eprintln!("warning: {w}") } else { bar.println(format!("warning: {w}")) }
-    })?;
+    score_pairs(
+        &pairs,
+        &args.images,
+        template_of,
+        |a, b| pipeline.recognizer.score(a, std::slice::from_ref(b)),
+        stdout,
+        |w| {
+            // A hidden bar (stderr not a terminal) drops `println`: warn directly then.
+            if bar.is_hidden() { eprintln!("warning: {w}") } else { bar.println(format!("warning: {w}")) }
+        },
+    )?;
     bar.finish_and_clear();
     Ok(ExitCode::SUCCESS)
 }
@@ -521,7 +537,8 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
             }
         }
     }
-    let gallery = if args.distractors { "view 1 of all persons (training persons as distractors)" } else { "view 1 of the held-out persons" };
+    let gallery =
+        if args.distractors { "view 1 of all persons (training persons as distractors)" } else { "view 1 of the held-out persons" };
     println!("rank-1 identification of held-out IMM persons (gallery: {gallery}; keypoints: {sources})");
     let names: Vec<String> = normalizations.iter().map(|n| format!("rank1_{n}")).collect();
     println!("pose_bin,probes,{}", names.join(","));

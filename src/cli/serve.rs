@@ -65,7 +65,11 @@ impl ServeArgs {
         anyhow::ensure!(self.max_images >= 1, "--max-images must be at least 1");
         Ok(ApiConfig {
             max_body_bytes: self.max_body_mb << 20,
-            decode_limits: DecodeLimits { max_pixels: self.max_pixels, max_alloc_bytes: self.max_decode_mb << 20, ..defaults.decode_limits },
+            decode_limits: DecodeLimits {
+                max_pixels: self.max_pixels,
+                max_alloc_bytes: self.max_decode_mb << 20,
+                ..defaults.decode_limits
+            },
             max_images: self.max_images,
             request_timeout: Duration::from_secs_f64(self.timeout_secs),
             workers: self.workers.unwrap_or(defaults.workers).max(1),
@@ -97,9 +101,8 @@ pub fn run(args: ServeArgs) -> anyhow::Result<ExitCode> {
 async fn serve(args: ServeArgs, config: ApiConfig) -> anyhow::Result<()> {
     let pipeline_config = args.pipeline_config();
     tracing::info!(models = %pipeline_config.models_dir.display(), "loading the face pipeline");
-    let pipeline = tokio::task::spawn_blocking(move || Pipeline::load(&pipeline_config))
-        .await?
-        .context("cannot load the face pipeline models")?;
+    let pipeline =
+        tokio::task::spawn_blocking(move || Pipeline::load(&pipeline_config)).await?.context("cannot load the face pipeline models")?;
     tracing::info!(model_version = pipeline.recognizer.model_version(), with_3dmm = pipeline.face_model.is_some(), "pipeline loaded");
     let store = Store::connect(&args.database).await.with_context(|| format!("cannot open the database {}", args.database))?;
     if config.api_keys.is_empty() {

@@ -159,7 +159,11 @@ impl Cascade {
                 }
                 // A tree whose nodes could loop would never end: OpenCV trees only point forward.
                 let base = nodes.len() - node_count;
-                if nodes[base..].iter().enumerate().any(|(i, n)| (n.left > 0 && n.left as usize <= i) || (n.right > 0 && n.right as usize <= i)) {
+                if nodes[base..]
+                    .iter()
+                    .enumerate()
+                    .any(|(i, n)| (n.left > 0 && n.left as usize <= i) || (n.right > 0 && n.right as usize <= i))
+                {
                     return Err(err("tree nodes must point forward".into()));
                 }
                 weaks.push(Weak { first_node: base as u32, first_leaf: leaves.len() as u32 });
@@ -331,11 +335,19 @@ impl Cascade {
         }
         let base = base_cow.as_ref().unwrap_or(gray);
         // Levels upscale at most to the first one, so the integral buffers sized for it fit all.
-        let level0 = ((base.width as f32 * base_factor / first_scale).round() as usize, (base.height as f32 * base_factor / first_scale).round() as usize);
+        let level0 = (
+            (base.width as f32 * base_factor / first_scale).round() as usize,
+            (base.height as f32 * base_factor / first_scale).round() as usize,
+        );
         let mut scratch = Scratch::new(level0.0.max(1), level0.1.max(1));
         let nodes = self.optimise(scratch.stride);
         let norm_area = ((self.window_width - 2) * (self.window_height - 2)) as f64;
-        let norm_ofs = [scratch.stride + 1, scratch.stride + self.window_width - 1, (self.window_height - 1) * scratch.stride + 1, (self.window_height - 1) * scratch.stride + self.window_width - 1];
+        let norm_ofs = [
+            scratch.stride + 1,
+            scratch.stride + self.window_width - 1,
+            (self.window_height - 1) * scratch.stride + 1,
+            (self.window_height - 1) * scratch.stride + self.window_width - 1,
+        ];
 
         let mut scale = first_scale;
         loop {

@@ -97,7 +97,17 @@ pub struct DetectOptions {
 
 impl Default for DetectOptions {
     fn default() -> Self {
-        Self { min_face: 24, min_face_fraction: 0.15, profile: ProfileMode::Fallback, min_neighbours: 3, scale_step: 1.1, step: 2, fine_rescan: true, small_image_side: 200, small_image_pad: 0.1 }
+        Self {
+            min_face: 24,
+            min_face_fraction: 0.15,
+            profile: ProfileMode::Fallback,
+            min_neighbours: 3,
+            scale_step: 1.1,
+            step: 2,
+            fine_rescan: true,
+            small_image_side: 200,
+            small_image_pad: 0.1,
+        }
     }
 }
 
@@ -181,7 +191,10 @@ impl Detector {
                 let small = gray.width.min(gray.height) < opts.small_image_side as usize;
                 let padded;
                 let (gray, offset) = if small && opts.small_image_pad > 0.0 {
-                    let (px, py) = ((gray.width as f32 * opts.small_image_pad).round() as usize, (gray.height as f32 * opts.small_image_pad).round() as usize);
+                    let (px, py) = (
+                        (gray.width as f32 * opts.small_image_pad).round() as usize,
+                        (gray.height as f32 * opts.small_image_pad).round() as usize,
+                    );
                     padded = GrayF32::from_fn(gray.width + 2 * px, gray.height + 2 * py, |x, y| {
                         gray.get_clamped(x as isize - px as isize, y as isize - py as isize)
                     });
@@ -197,7 +210,9 @@ impl Detector {
                     min_neighbours: opts.min_neighbours,
                     group_eps: 0.2,
                 };
-                let to_faces = |hits: Vec<cascade::Hit>| hits.into_iter().map(|h| Face { rect: h.rect, score: h.neighbours as f32 }).collect::<Vec<_>>();
+                let to_faces = |hits: Vec<cascade::Hit>| {
+                    hits.into_iter().map(|h| Face { rect: h.rect, score: h.neighbours as f32 }).collect::<Vec<_>>()
+                };
                 let mut faces = to_faces(frontal.detect(gray, &scan));
                 if faces.is_empty() && opts.fine_rescan && scan.step > 1 {
                     faces = to_faces(frontal.detect(gray, &ScanOptions { step: 1, ..scan }));

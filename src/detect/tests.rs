@@ -92,7 +92,11 @@ fn mirrored_cascade_finds_the_mirrored_face() {
 
 #[test]
 fn malformed_cascades_are_typed_errors() {
-    for text in ["", "<opencv_storage/>", "<opencv_storage><cascade><stageType>BOOST</stageType><featureType>LBP</featureType></cascade></opencv_storage>"] {
+    for text in [
+        "",
+        "<opencv_storage/>",
+        "<opencv_storage><cascade><stageType>BOOST</stageType><featureType>LBP</featureType></cascade></opencv_storage>",
+    ] {
         assert!(matches!(Cascade::parse(text, "t"), Err(DetectError::Model { .. })));
     }
     // A tree child pointing past its leaves must be refused, not evaluated.
@@ -128,7 +132,13 @@ fn colour_and_grey_formats_give_the_same_face() {
     let reference = detector.detect(&crate::imaging::Photo::from_dynamic(rgb.clone()).gray);
     assert_eq!(reference.len(), 1);
     let grey = image::DynamicImage::ImageLuma8(rgb.to_luma8());
-    for (img, format) in [(&rgb, ImageFormat::Png), (&rgb, ImageFormat::Gif), (&grey, ImageFormat::Png), (&grey, ImageFormat::Pnm), (&rgb, ImageFormat::Jpeg)] {
+    for (img, format) in [
+        (&rgb, ImageFormat::Png),
+        (&rgb, ImageFormat::Gif),
+        (&grey, ImageFormat::Png),
+        (&grey, ImageFormat::Pnm),
+        (&rgb, ImageFormat::Jpeg),
+    ] {
         let mut bytes = Vec::new();
         let img = if format == ImageFormat::Gif { image::DynamicImage::ImageRgba8(img.to_rgba8()) } else { img.clone() };
         img.write_to(&mut std::io::Cursor::new(&mut bytes), format).unwrap();

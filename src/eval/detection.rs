@@ -120,7 +120,6 @@ fn timing(ms: &mut [f64]) -> Timing {
     Timing { images: ms.len(), mean_ms: ms.iter().sum::<f64>() / ms.len() as f64, median_ms: ms[ms.len() / 2], max_ms: ms[ms.len() - 1] }
 }
 
-
 fn timed(detector: &Detector, gray: &GrayF32, wall_ms: &mut Vec<f64>, cpu_ms: &mut Vec<f64>) -> Vec<Face> {
     let cpu = thread_cpu_ns();
     let t = Instant::now();
@@ -149,14 +148,23 @@ fn summarise(outcomes: &[ImmOutcome], persons: &str, keep: impl Fn(u32) -> bool)
         if (1..=6).contains(&o.view) {
             r.per_view[o.view as usize - 1].add(o.ok);
         }
-        if matches!(o.view, 3 | 4) { r.rotated.add(o.ok) } else { r.frontal.add(o.ok) }
+        if matches!(o.view, 3 | 4) {
+            r.rotated.add(o.ok)
+        } else {
+            r.frontal.add(o.ok)
+        }
         if let Some(p) = o.placement {
             for i in 0..4 {
                 place[i].push(p[i]);
             }
         }
     }
-    r.placement = BoxPlacement { eyes_x: Spread::of(&place[0]), eyes_y: Spread::of(&place[1]), mouth_y: Spread::of(&place[2]), eye_distance: Spread::of(&place[3]) };
+    r.placement = BoxPlacement {
+        eyes_x: Spread::of(&place[0]),
+        eyes_y: Spread::of(&place[1]),
+        mouth_y: Spread::of(&place[2]),
+        eye_distance: Spread::of(&place[3]),
+    };
     r
 }
 
@@ -280,7 +288,14 @@ impl DetectionReport {
             let p = &r.placement;
             s += &format!(
                 "  box placement (box units, mean±sd): eyes x {:.3}±{:.3} y {:.3}±{:.3}, mouth y {:.3}±{:.3}, eye distance/width {:.3}±{:.3}\n",
-                p.eyes_x.mean, p.eyes_x.sd, p.eyes_y.mean, p.eyes_y.sd, p.mouth_y.mean, p.mouth_y.sd, p.eye_distance.mean, p.eye_distance.sd
+                p.eyes_x.mean,
+                p.eyes_x.sd,
+                p.eyes_y.mean,
+                p.eyes_y.sd,
+                p.mouth_y.mean,
+                p.mouth_y.sd,
+                p.eye_distance.mean,
+                p.eye_distance.sd
             );
         }
         s += &format!("face-free images: {} false boxes on {} images\n", self.negative_false_boxes, self.negatives);
@@ -300,7 +315,10 @@ impl DetectionReport {
             ("ORL 92x112 wall", &self.orl_timing),
             ("ORL 92x112 thread CPU", &self.orl_cpu_timing),
         ] {
-            s += &format!("time {name}: mean {:.2} ms, median {:.2} ms, max {:.2} ms over {} images\n", t.mean_ms, t.median_ms, t.max_ms, t.images);
+            s += &format!(
+                "time {name}: mean {:.2} ms, median {:.2} ms, max {:.2} ms over {} images\n",
+                t.mean_ms, t.median_ms, t.max_ms, t.images
+            );
         }
         s
     }

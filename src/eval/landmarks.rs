@@ -12,9 +12,8 @@ use crate::detect::Detector;
 use crate::geometry::{Rect, distance};
 use crate::landmarks::{BoxSource, Landmarker, Variant, train};
 
-use super::thread_cpu_ns;
 use super::plot::{Chart, Scale, Series, cumulative, line_chart};
-
+use super::thread_cpu_ns;
 
 /// d_eye = max(d_left, d_right) / ||C_l − C_r|| (Jesorsky et al.).
 pub fn d_eye(found: &KeyPoints, truth: &KeyPoints) -> f64 {
@@ -64,7 +63,11 @@ fn test_box(detector: Option<&Detector>, gray: &crate::imaging::GrayF32, truth: 
 }
 
 /// Measure one variant on `test` photos (boxes precomputed).
-pub fn measure(landmarker: &Landmarker, photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)], variant: Variant) -> VariantSummary {
+pub fn measure(
+    landmarker: &Landmarker,
+    photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)],
+    variant: Variant,
+) -> VariantSummary {
     measure_fn(photos, variant.name(), &|gray, rect| landmarker.fit(gray, rect, variant).keypoints)
 }
 
@@ -101,12 +104,20 @@ pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Resul
         (Some(_), BoxSource::Annotation) => "detector boxes (placement learnt from annotation boxes)",
         (None, _) => "ANNOTATION boxes (no detector available)",
     };
-    println!("IMM held-out persons {:?}: {} photos, {} training photos, {boxes}", {
-        let mut p: Vec<u32> = test.iter().map(|s| s.person).collect();
-        p.dedup();
-        p
-    }, test.len(), training.len());
-    println!("{:<8} {:>12} {:>12} {:>14} {:>12} {:>9} {:>12}", "variant", "d_eye<0.05", "d_eye<0.1", "mouth<0.1", "mean d_eye", "misses", "cpu ms/face");
+    println!(
+        "IMM held-out persons {:?}: {} photos, {} training photos, {boxes}",
+        {
+            let mut p: Vec<u32> = test.iter().map(|s| s.person).collect();
+            p.dedup();
+            p
+        },
+        test.len(),
+        training.len()
+    );
+    println!(
+        "{:<8} {:>12} {:>12} {:>14} {:>12} {:>9} {:>12}",
+        "variant", "d_eye<0.05", "d_eye<0.1", "mouth<0.1", "mean d_eye", "misses", "cpu ms/face"
+    );
     for s in &summaries {
         println!(
             "{:<8} {:>11.1}% {:>11.1}% {:>13.1}% {:>12.4} {:>9} {:>12.2}",
@@ -129,18 +140,37 @@ pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Resul
             .map(|s| {
                 // Misses count as failures: an error beyond the plotted range.
                 let errs: Vec<f64> = s.errors.iter().map(|e| f(e).unwrap_or(f64::INFINITY)).collect();
-                Series { name: match s.variant {
-                    "asm" => "ASM (profiles)",
-                    "sift" => "SIFT-ASM",
-                    "asm3d" => "3D-ASM",
-                    _ => "C-ASM",
-                }, points: cumulative(&errs, 0.25, 100) }
+                Series {
+                    name: match s.variant {
+                        "asm" => "ASM (profiles)",
+                        "sift" => "SIFT-ASM",
+                        "asm3d" => "3D-ASM",
+                        _ => "C-ASM",
+                    },
+                    points: cumulative(&errs, 0.25, 100),
+                }
             })
             .collect()
     };
-    let chart = |title, x_label| Chart { title, x_label, y_label: "share of photos", x_range: (0.0, 0.25), y_range: (0.0, 1.0), x_scale: Scale::Linear, y_scale: Scale::Linear };
-    line_chart(&out.join("landmarks-d_eye.svg"), &chart("IMM held-out persons: eye error", "d_eye (max eye error / eye distance)"), &curves(&|e| e.d_eye))?;
-    line_chart(&out.join("landmarks-mouth.svg"), &chart("IMM held-out persons: mouth error", "mouth error / eyes-to-mouth distance"), &curves(&|e| e.d_mouth))?;
+    let chart = |title, x_label| Chart {
+        title,
+        x_label,
+        y_label: "share of photos",
+        x_range: (0.0, 0.25),
+        y_range: (0.0, 1.0),
+        x_scale: Scale::Linear,
+        y_scale: Scale::Linear,
+    };
+    line_chart(
+        &out.join("landmarks-d_eye.svg"),
+        &chart("IMM held-out persons: eye error", "d_eye (max eye error / eye distance)"),
+        &curves(&|e| e.d_eye),
+    )?;
+    line_chart(
+        &out.join("landmarks-mouth.svg"),
+        &chart("IMM held-out persons: mouth error", "mouth error / eyes-to-mouth distance"),
+        &curves(&|e| e.d_mouth),
+    )?;
     let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries, "per_view": per_view, "yaw_of_annotation": yaws });
     std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
     println!("wrote {}", out.display());
@@ -148,7 +178,11 @@ pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Resul
 }
 
 /// Measure any landmark search (as [`measure`]) under the name `variant`.
-pub fn measure_fn(photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)], variant: &'static str, fit: &dyn Fn(&crate::imaging::GrayF32, &Rect) -> KeyPoints) -> VariantSummary {
+pub fn measure_fn(
+    photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)],
+    variant: &'static str,
+    fit: &dyn Fn(&crate::imaging::GrayF32, &Rect) -> KeyPoints,
+) -> VariantSummary {
     let mut errors = Vec::new();
     let (mut total_ms, mut fitted) = (0.0, 0usize);
     for (sample, gray, truth, rect) in photos {
@@ -184,7 +218,11 @@ pub fn measure_fn(photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geom
 
 /// The 3D-ASM beside the 2D variants: trained on the same training persons (needs the Surrey Face
 /// Model; skipped with a message without it), measured on the same photos and boxes.
-fn measure_asm3d(training: &[ImmSample], detector: Option<&Detector>, photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)]) -> Option<(VariantSummary, Vec<f32>)> {
+fn measure_asm3d(
+    training: &[ImmSample],
+    detector: Option<&Detector>,
+    photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)],
+) -> Option<(VariantSummary, Vec<f32>)> {
     use crate::landmarks::asm3d;
     let fm = match crate::morph::FaceModel::load(&crate::config::sfm_dir()) {
         Ok(m) => m,
@@ -205,7 +243,8 @@ fn measure_asm3d(training: &[ImmSample], detector: Option<&Detector>, photos: &[
     let lm = asm3d::Asm3dLandmarker { model };
     let summary = measure_fn(photos, "asm3d", &|g, r| lm.fit(g, r).keypoints);
     // The head yaw of every test photo, from the 3DMM fitted to its manual landmarks.
-    let yaws = photos.iter().map(|(_, g, truth, _)| fm.fit(truth, g.width as u32, g.height as u32).map_or(f32::NAN, |f| f.pose.yaw)).collect();
+    let yaws =
+        photos.iter().map(|(_, g, truth, _)| fm.fit(truth, g.width as u32, g.height as u32).map_or(f32::NAN, |f| f.pose.yaw)).collect();
     Some((summary, yaws))
 }
 
@@ -221,14 +260,19 @@ fn per_view_tables(summaries: &[VariantSummary], yaws: &[f32]) -> serde_json::Va
         ("|yaw| 20-30", &|_, y| (20.0..30.0).contains(&y.abs())),
         ("|yaw| >= 30", &|_, y| y.abs() >= 30.0),
     ];
-    println!("{:<26} {}", "group (photos)", summaries.iter().map(|s| format!("{:>22}", format!("{} <0.1 / mean", s.variant))).collect::<String>());
+    println!(
+        "{:<26} {}",
+        "group (photos)",
+        summaries.iter().map(|s| format!("{:>22}", format!("{} <0.1 / mean", s.variant))).collect::<String>()
+    );
     let mut rows = Vec::new();
     for (name, member) in groups {
         let mut line = String::new();
         let mut count = 0;
         let mut cells = Vec::new();
         for s in summaries {
-            let d: Vec<f64> = s.errors.iter().zip(yaws).filter(|(e, y)| member(e, **y)).map(|(e, _)| e.d_eye.unwrap_or(f64::INFINITY)).collect();
+            let d: Vec<f64> =
+                s.errors.iter().zip(yaws).filter(|(e, y)| member(e, **y)).map(|(e, _)| e.d_eye.unwrap_or(f64::INFINITY)).collect();
             count = d.len();
             let ok = d.iter().filter(|&&v| v < 0.1).count() as f64 / d.len().max(1) as f64;
             let finite: Vec<f64> = d.iter().copied().filter(|v| v.is_finite()).collect();

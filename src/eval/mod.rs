@@ -1,8 +1,8 @@
 //! Evaluation: accuracy measures of each stage on held-out people, and their plots.
 
 pub mod detection;
-pub mod plot;
 pub mod landmarks;
+pub mod plot;
 pub mod verification;
 
 /// Nanoseconds the calling thread has run on a CPU (Linux `schedstat`), so that timings taken on a

@@ -28,7 +28,14 @@ pub struct Chart<'a> {
     pub y_scale: Scale,
 }
 
-const PALETTE: [RGBColor; 6] = [RGBColor(31, 119, 180), RGBColor(214, 39, 40), RGBColor(44, 160, 44), RGBColor(148, 103, 189), RGBColor(255, 127, 14), RGBColor(23, 190, 207)];
+const PALETTE: [RGBColor; 6] = [
+    RGBColor(31, 119, 180),
+    RGBColor(214, 39, 40),
+    RGBColor(44, 160, 44),
+    RGBColor(148, 103, 189),
+    RGBColor(255, 127, 14),
+    RGBColor(23, 190, 207),
+];
 
 /// Draw `series` as lines on one chart and write it to `path` as SVG (800×600).
 pub fn line_chart(path: &Path, chart: &Chart, series: &[Series]) -> anyhow::Result<()> {
@@ -100,8 +107,19 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("facegate-plot-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("c.svg");
-        let chart = Chart { title: "t", x_label: "FMR", y_label: "FNMR", x_range: (1e-4, 1.0), y_range: (0.0, 1.0), x_scale: Scale::Log, y_scale: Scale::Linear };
-        let series = [Series { name: "alpha", points: vec![(1e-4, 0.5), (1e-2, 0.2), (1.0, 0.0)] }, Series { name: "beta", points: vec![(0.0, 1.0), (1e-3, 0.3)] }];
+        let chart = Chart {
+            title: "t",
+            x_label: "FMR",
+            y_label: "FNMR",
+            x_range: (1e-4, 1.0),
+            y_range: (0.0, 1.0),
+            x_scale: Scale::Log,
+            y_scale: Scale::Linear,
+        };
+        let series = [
+            Series { name: "alpha", points: vec![(1e-4, 0.5), (1e-2, 0.2), (1.0, 0.0)] },
+            Series { name: "beta", points: vec![(0.0, 1.0), (1e-3, 0.3)] },
+        ];
         line_chart(&path, &chart, &series).unwrap();
         let svg = std::fs::read_to_string(&path).unwrap();
         assert!(svg.contains("<svg") && svg.contains("alpha") && svg.contains("beta"));

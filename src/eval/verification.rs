@@ -17,7 +17,8 @@ pub struct ErrorPoint {
 /// FMR and FNMR at every distinct score used as a threshold, from the lowest threshold (everything
 /// matches: FMR 1) to above the highest (nothing matches: FMR 0).
 pub fn error_curve(genuine: &[f32], impostor: &[f32]) -> Vec<ErrorPoint> {
-    let mut all: Vec<(f32, bool)> = genuine.iter().map(|&s| (s, true)).chain(impostor.iter().map(|&s| (s, false))).filter(|(s, _)| s.is_finite()).collect();
+    let mut all: Vec<(f32, bool)> =
+        genuine.iter().map(|&s| (s, true)).chain(impostor.iter().map(|&s| (s, false))).filter(|(s, _)| s.is_finite()).collect();
     all.sort_by(|a, b| a.0.total_cmp(&b.0));
     let (ng, ni) = (genuine.len().max(1) as f64, impostor.len().max(1) as f64);
     let mut out = Vec::with_capacity(all.len() + 1);
@@ -28,7 +29,11 @@ pub fn error_curve(genuine: &[f32], impostor: &[f32]) -> Vec<ErrorPoint> {
         let t = all[i].0;
         out.push(ErrorPoint { threshold: t, fmr: (impostor.len() - imp_below) as f64 / ni, fnmr: gen_below as f64 / ng });
         while i < all.len() && all[i].0 == t {
-            if all[i].1 { gen_below += 1 } else { imp_below += 1 }
+            if all[i].1 {
+                gen_below += 1
+            } else {
+                imp_below += 1
+            }
             i += 1;
         }
     }
@@ -108,7 +113,15 @@ pub fn write_roc_det(roc_path: &Path, det_path: &Path, sets: &[(&str, &[f32], &[
         .collect();
     line_chart(
         roc_path,
-        &Chart { title: "ROC (held-out persons)", x_label: "false match rate", y_label: "true match rate", x_range: (min_fmr, 1.0), y_range: (0.0, 1.0), x_scale: Scale::Log, y_scale: Scale::Linear },
+        &Chart {
+            title: "ROC (held-out persons)",
+            x_label: "false match rate",
+            y_label: "true match rate",
+            x_range: (min_fmr, 1.0),
+            y_range: (0.0, 1.0),
+            x_scale: Scale::Log,
+            y_scale: Scale::Linear,
+        },
         &roc,
     )?;
     let min_fnmr = curves.iter().flat_map(|(_, c, _)| c.iter().map(|p| p.fnmr)).filter(|&v| v > 0.0).fold(1e-2, f64::min).max(1e-5);
@@ -118,7 +131,15 @@ pub fn write_roc_det(roc_path: &Path, det_path: &Path, sets: &[(&str, &[f32], &[
         .collect();
     line_chart(
         det_path,
-        &Chart { title: "DET (held-out persons)", x_label: "false match rate", y_label: "false non-match rate", x_range: (min_fmr, 1.0), y_range: (min_fnmr, 1.0), x_scale: Scale::Log, y_scale: Scale::Log },
+        &Chart {
+            title: "DET (held-out persons)",
+            x_label: "false match rate",
+            y_label: "false non-match rate",
+            x_range: (min_fmr, 1.0),
+            y_range: (min_fnmr, 1.0),
+            x_scale: Scale::Log,
+            y_scale: Scale::Log,
+        },
         &det,
     )
 }

@@ -225,8 +225,11 @@ pub fn view_correspondence(fm: &FaceModel, vertex: &dyn Fn(u32) -> [f64; 3], cam
         let q = camera.project(vertex(v));
         [q[0], q[1]]
     };
-    for (left, contour, cheek) in [(true, &fm.contour_image_left, &fm.cheek_image_left), (false, &fm.contour_image_right, &fm.cheek_image_right)] {
-        let outline: Vec<(u32, [f64; 2])> = cheek.iter().copied().filter(|&c| facing(c).abs() < OUTLINE_COSINE).map(|c| (c, proj(c))).collect();
+    for (left, contour, cheek) in
+        [(true, &fm.contour_image_left, &fm.cheek_image_left), (false, &fm.contour_image_right, &fm.cheek_image_right)]
+    {
+        let outline: Vec<(u32, [f64; 2])> =
+            cheek.iter().copied().filter(|&c| facing(c).abs() < OUTLINE_COSINE).map(|c| (c, proj(c))).collect();
         for j in JAW {
             if j == 6 || (j < 6) != left {
                 continue;
@@ -363,7 +366,14 @@ pub fn train_pdms(fm: &FaceModel, yaws: &[f32], count: usize, variance: f64, con
         let psi: [f64; 0] = [];
         // The vertices the correspondence can use, computed once per shape.
         let mut cache: std::collections::HashMap<u32, [f64; 3]> = std::collections::HashMap::new();
-        for &v in fm.imm_vertices.iter().chain(&fm.contour_image_left).chain(&fm.contour_image_right).chain(&fm.cheek_image_left).chain(&fm.cheek_image_right) {
+        for &v in fm
+            .imm_vertices
+            .iter()
+            .chain(&fm.contour_image_left)
+            .chain(&fm.contour_image_right)
+            .chain(&fm.cheek_image_left)
+            .chain(&fm.cheek_image_right)
+        {
             cache.entry(v).or_insert_with(|| fm.vertex(v as usize, &alpha, &psi));
         }
         let vertex = |v: u32| cache.get(&v).copied().unwrap_or_else(|| fm.vertex(v as usize, &alpha, &psi));
@@ -388,7 +398,15 @@ pub struct SyntheticView {
 /// from the face centre to one face-width to the right (a side light).
 /// `offsets` (model mm, per IMM point) move the internal points and the chin from their vertices to
 /// where the photo's annotator put them (see [`annotation_offsets`]).
-pub fn synthesise_view(fm: &FaceModel, fit: &crate::morph::FittedFace, texture: &image::RgbaImage, pose: Pose, background: [u8; 3], gain: f32, offsets: &[[f64; 3]]) -> SyntheticView {
+pub fn synthesise_view(
+    fm: &FaceModel,
+    fit: &crate::morph::FittedFace,
+    texture: &image::RgbaImage,
+    pose: Pose,
+    background: [u8; 3],
+    gain: f32,
+    offsets: &[[f64; 3]],
+) -> SyntheticView {
     let (w, h) = (fit.image_width as usize, fit.image_height as usize);
     let at = |v: u32| {
         let p = fit.vertices[v as usize];
@@ -492,7 +510,15 @@ impl ViewSamples {
     }
 
     /// Texture samples at `points` of `gray`, in the crop at the model's fixed scale.
-    fn add(&mut self, gray: &GrayF32, points: &[Point], px_per_mm: f64, crop_px_per_mm: f32, params: &SearchParams, neighbours: &[[u16; 2]]) {
+    fn add(
+        &mut self,
+        gray: &GrayF32,
+        points: &[Point],
+        px_per_mm: f64,
+        crop_px_per_mm: f32,
+        params: &SearchParams,
+        neighbours: &[[u16; 2]],
+    ) {
         let frame = crop_frame(crop_px_per_mm / px_per_mm as f32, centroid(points), params.crop_size);
         let levels = pyramid(frame.crop(gray, params.crop_size), params.levels);
         let in_crop: Vec<Point> = points.iter().map(|&q| frame.to_crop(q)).collect();
@@ -534,7 +560,9 @@ fn view_textures(v: &ViewSamples, p: &SearchParams, neighbours: &[[u16; 2]], opt
     let sifts = v
         .sifts
         .iter()
-        .map(|lv| lv.iter().enumerate().map(|(i, s)| PcaGaussian::train(s, if JAW.contains(&i) { 1 } else { options.sift_modes })).collect())
+        .map(|lv| {
+            lv.iter().enumerate().map(|(i, s)| PcaGaussian::train(s, if JAW.contains(&i) { 1 } else { options.sift_modes })).collect()
+        })
         .collect();
     AsmModel {
         format: super::MODEL_FORMAT,
@@ -570,7 +598,13 @@ fn typical_cost(textures: &AsmModel, v: &ViewSamples) -> f32 {
 }
 
 /// Train the 3D-ASM on annotated IMM photos. `tick` is called once per photo.
-pub fn train(samples: &[ImmSample], fm: &FaceModel, detector: Option<&Detector>, options: &Asm3dTrainOptions, tick: &dyn Fn()) -> Result<Asm3dModel, LandmarkError> {
+pub fn train(
+    samples: &[ImmSample],
+    fm: &FaceModel,
+    detector: Option<&Detector>,
+    options: &Asm3dTrainOptions,
+    tick: &dyn Fn(),
+) -> Result<Asm3dModel, LandmarkError> {
     if samples.len() < 3 {
         return Err(LandmarkError::Training(format!("{} annotated photos; at least 3 are needed", samples.len())));
     }
@@ -681,7 +715,15 @@ pub fn train(samples: &[ImmSample], fm: &FaceModel, detector: Option<&Detector>,
             .expect("one view has a placement");
         let textures = view_textures(&v, p, &neighbours, options, &info);
         let typical_cost = typical_cost(&textures, &v);
-        out_views.push(View3d { yaw: options.yaws[vi], pdm, textures, placement, samples: v.shapes.len(), real_photos: v.real, typical_cost });
+        out_views.push(View3d {
+            yaw: options.yaws[vi],
+            pdm,
+            textures,
+            placement,
+            samples: v.shapes.len(),
+            real_photos: v.real,
+            typical_cost,
+        });
     }
     Ok(Asm3dModel {
         format: ASM3D_FORMAT,
@@ -689,7 +731,15 @@ pub fn train(samples: &[ImmSample], fm: &FaceModel, detector: Option<&Detector>,
         crop_px_per_mm,
         sigma_px: 4.0,
         views: out_views,
-        info: Asm3dInfo { photos: samples.len(), persons, box_source, detector_misses: misses, fit_failures: failures, pdm_shapes: options.pdm_shapes, seed: options.seed },
+        info: Asm3dInfo {
+            photos: samples.len(),
+            persons,
+            box_source,
+            detector_misses: misses,
+            fit_failures: failures,
+            pdm_shapes: options.pdm_shapes,
+            seed: options.seed,
+        },
     })
 }
 
@@ -902,7 +952,12 @@ mod tests {
         let pdm = &pdms[1];
         assert!(pdm.modes() >= 5 && pdm.modes() < 100, "{} modes", pdm.modes());
         // A shape inside the model at a known pose is fitted back: pose within 2°, points within 1.5 px (the prior shrinks the coefficients a little).
-        let b: Vec<f32> = pdm.eigenvalues.iter().enumerate().map(|(k, l)| if k < 4 { 0.8 * l.sqrt() * if k % 2 == 0 { 1.0 } else { -1.0 } } else { 0.0 }).collect();
+        let b: Vec<f32> = pdm
+            .eigenvalues
+            .iter()
+            .enumerate()
+            .map(|(k, l)| if k < 4 { 0.8 * l.sqrt() * if k % 2 == 0 { 1.0 } else { -1.0 } } else { 0.0 })
+            .collect();
         let cam = Camera::from_pose(Pose { yaw: 28.0, pitch: 4.0, roll: -6.0 }, 2.0, 200.0, 180.0);
         let target = pdm.project(&b, &cam);
         let fit = pdm.fit(&target, 0.5, 10).unwrap();
@@ -939,7 +994,8 @@ mod tests {
         // The rendered eye region is darker than the cheeks in a grey render; simpler and stronger:
         // the landmark positions move the right way with yaw, and the face is drawn where they are.
         let fm = face_model();
-        let s = list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 7 && s.view == 1).unwrap();
+        let s =
+            list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 7 && s.view == 1).unwrap();
         let photo = imaging::open(&s.image).unwrap();
         let shape = s.landmarks().unwrap();
         let fit = fm.fit(&shape, photo.width(), photo.height()).unwrap();
@@ -972,7 +1028,11 @@ mod tests {
     #[test]
     fn small_model_round_trips_and_survives_degenerate_input() {
         let fm = face_model();
-        let samples: Vec<ImmSample> = list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().filter(|s| s.person == 4 || s.person == 6).collect();
+        let samples: Vec<ImmSample> = list_imm(&crate::config::shared_dir().join("data/imm"))
+            .unwrap()
+            .into_iter()
+            .filter(|s| s.person == 4 || s.person == 6)
+            .collect();
         let options = Asm3dTrainOptions { pdm_shapes: 40, texture_size: 128, ..Default::default() };
         let model = train(&samples, fm, None, &options, &|| {}).unwrap();
         assert_eq!(model.views.len(), 7);
@@ -994,7 +1054,13 @@ mod tests {
         let de = crate::eval::landmarks::d_eye(&found.keypoints, &KeyPoints::from_imm(&truth));
         assert!(de < 0.1, "d_eye {de}");
         let img = GrayF32::from_fn(92, 112, |x, y| ((x * 3 + y * 5) % 17) as f32 * 10.0);
-        for b in [Rect::new(10.0, 20.0, 60.0, 60.0), Rect::new(-500.0, -500.0, 40.0, 40.0), Rect::new(0.0, 0.0, 0.0, 0.0), Rect::new(f32::NAN, 3.0, f32::INFINITY, -2.0), Rect::new(1.0, 1.0, 1e9, 1e9)] {
+        for b in [
+            Rect::new(10.0, 20.0, 60.0, 60.0),
+            Rect::new(-500.0, -500.0, 40.0, 40.0),
+            Rect::new(0.0, 0.0, 0.0, 0.0),
+            Rect::new(f32::NAN, 3.0, f32::INFINITY, -2.0),
+            Rect::new(1.0, 1.0, 1e9, 1e9),
+        ] {
             let out = lm.fit(&img, &b);
             assert_eq!(out.points.len(), 58);
         }
@@ -1023,7 +1089,12 @@ mod tests {
                 m
             }
         };
-        eprintln!("trained in {:.1}s; modes {:?}; real {:?}", t.elapsed().as_secs_f32(), model.views.iter().map(|v| v.pdm.modes()).collect::<Vec<_>>(), model.views.iter().map(|v| v.real_photos).collect::<Vec<_>>());
+        eprintln!(
+            "trained in {:.1}s; modes {:?}; real {:?}",
+            t.elapsed().as_secs_f32(),
+            model.views.iter().map(|v| v.pdm.modes()).collect::<Vec<_>>(),
+            model.views.iter().map(|v| v.real_photos).collect::<Vec<_>>()
+        );
         let lm = Asm3dLandmarker { model };
         let only = std::env::var("ASM3D_ONLY").ok();
         for s in test.iter().filter(|s| only.as_ref().is_none_or(|o| o.split(',').any(|x| x == format!("{:02}-{}", s.person, s.view)))) {

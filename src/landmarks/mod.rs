@@ -99,7 +99,18 @@ pub struct SearchParams {
 
 impl Default for SearchParams {
     fn default() -> Self {
-        Self { crop_size: 260, ref_width: 170.0, levels: 2, profile_radius: 3, sift_radius: vec![1, 3], max_iterations: 4, converged_share: 0.9, yaw_start: 1.0, roll_start: 12.0, probe_iterations: 0 }
+        Self {
+            crop_size: 260,
+            ref_width: 170.0,
+            levels: 2,
+            profile_radius: 3,
+            sift_radius: vec![1, 3],
+            max_iterations: 4,
+            converged_share: 0.9,
+            yaw_start: 1.0,
+            roll_start: 12.0,
+            probe_iterations: 0,
+        }
     }
 }
 
@@ -258,7 +269,11 @@ mod tests {
                 let size = pose.scale() * rms(&pdm.mean, &vec![[0.0, 0.0]; pdm.points()]);
                 let mean_placed: Vec<Point> = pdm.mean.iter().map(|&p| Similarity::fit(&pdm.mean, target, None).apply(p)).collect();
                 let (err, dev) = (rms(&fit, target), rms(&mean_placed, target));
-                assert!(err < 0.5 * dev && err < 0.05 * size, "{}: residual {err:.2} px, deviation {dev:.2} px, size {size:.1} px", s.image.display());
+                assert!(
+                    err < 0.5 * dev && err < 0.05 * size,
+                    "{}: residual {err:.2} px, deviation {dev:.2} px, size {size:.1} px",
+                    s.image.display()
+                );
             }
             assert!(clamped * 3 < checked, "{clamped} clamped training shapes of {}", clamped + checked);
         }

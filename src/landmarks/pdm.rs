@@ -51,7 +51,8 @@ pub fn procrustes(shapes: &[Vec<Point>], ref_width: f32) -> (Vec<Point>, Vec<Vec
     let (x0, x1) = mean.iter().fold((f32::MAX, f32::MIN), |(a, b), p| (a.min(p[0]), b.max(p[0])));
     let k = ref_width / (x1 - x0).max(1e-6);
     let mean: Vec<Point> = mean.iter().map(|p| [p[0] * k, p[1] * k]).collect();
-    let aligned = shapes.iter().map(|s| Similarity::fit(s, &mean, None)).zip(shapes).map(|(t, s)| s.iter().map(|p| t.apply(*p)).collect()).collect();
+    let aligned =
+        shapes.iter().map(|s| Similarity::fit(s, &mean, None)).zip(shapes).map(|(t, s)| s.iter().map(|p| t.apply(*p)).collect()).collect();
     (mean, aligned)
 }
 
@@ -126,7 +127,8 @@ impl ShapeModel {
         (0..self.modes())
             .map(|k| {
                 let row = &self.basis[k * 2 * n..(k + 1) * 2 * n];
-                let v: f32 = (0..n).map(|i| row[2 * i] * (shape[i][0] - self.mean[i][0]) + row[2 * i + 1] * (shape[i][1] - self.mean[i][1])).sum();
+                let v: f32 =
+                    (0..n).map(|i| row[2 * i] * (shape[i][0] - self.mean[i][0]) + row[2 * i + 1] * (shape[i][1] - self.mean[i][1])).sum();
                 let lim = self.constrain * self.eigenvalues[k].sqrt();
                 v.clamp(-lim, lim)
             })

@@ -46,7 +46,10 @@ impl Frame {
             for x in 0..size {
                 let p = self.to_image([x as f32, y as f32]);
                 let v = if supersample {
-                    0.25 * (img.sample(p[0] - q, p[1] - q) + img.sample(p[0] + q, p[1] - q) + img.sample(p[0] - q, p[1] + q) + img.sample(p[0] + q, p[1] + q))
+                    0.25 * (img.sample(p[0] - q, p[1] - q)
+                        + img.sample(p[0] + q, p[1] - q)
+                        + img.sample(p[0] - q, p[1] + q)
+                        + img.sample(p[0] + q, p[1] + q))
                 } else {
                     img.sample(p[0], p[1])
                 };
@@ -201,7 +204,15 @@ fn uses_sift(variant: Variant, point: usize) -> bool {
 
 /// Move each point to its best candidate by its texture model (thesis eq. 2.3). Returns the sum
 /// of the best distances (the fit's texture cost).
-pub fn suggest(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], variant: Variant, ws: &mut Workspace, out: &mut Vec<Point>) -> f32 {
+pub fn suggest(
+    model: &AsmModel,
+    lvl: &Level,
+    level: usize,
+    points: &[Point],
+    variant: Variant,
+    ws: &mut Workspace,
+    out: &mut Vec<Point>,
+) -> f32 {
     normals(points, &model.neighbours, &mut ws.normals);
     out.clear();
     let mut cost = 0.0;
@@ -308,7 +319,15 @@ pub fn texture_cost(model: &AsmModel, lvl: &Level, level: usize, points: &[Point
 
 /// One search iteration on a level: suggest, constrain. Returns the texture cost and whether the
 /// shape converged (the configured share of points moved less than a pixel).
-fn iterate(model: &AsmModel, lvl: &Level, level: usize, pts: &mut Vec<Point>, variant: Variant, ws: &mut Workspace, suggested: &mut Vec<Point>) -> (f32, bool) {
+fn iterate(
+    model: &AsmModel,
+    lvl: &Level,
+    level: usize,
+    pts: &mut Vec<Point>,
+    variant: Variant,
+    ws: &mut Workspace,
+    suggested: &mut Vec<Point>,
+) -> (f32, bool) {
     let cost = suggest(model, lvl, level, pts, variant, ws, suggested);
     let next = constrain(model, suggested, variant);
     if next.iter().any(|p| !p[0].is_finite() || !p[1].is_finite()) {

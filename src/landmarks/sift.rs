@@ -149,7 +149,17 @@ impl DescriptorGrid {
                 weights.push((w, count as u8));
             }
         }
-        DescriptorGrid { radius: 0, side: 0, samples: Vec::new(), weights, row_gn: Vec::new(), row_gt: Vec::new(), center: [0.0; 2], normal: [1.0, 0.0], filled: [0; 4] }
+        DescriptorGrid {
+            radius: 0,
+            side: 0,
+            samples: Vec::new(),
+            weights,
+            row_gn: Vec::new(),
+            row_gt: Vec::new(),
+            center: [0.0; 2],
+            normal: [1.0, 0.0],
+            filled: [0; 4],
+        }
     }
 
     /// Sample the oriented gradients around `center` for candidates up to `radius` pixels away along
@@ -241,7 +251,10 @@ impl DescriptorGrid {
     pub fn descriptor(&self, da: isize, db: isize, out: &mut [f32; DESCRIPTOR_LEN]) {
         let a0 = (da + self.radius as isize) as usize;
         let b0 = (db + self.radius as isize) as usize;
-        debug_assert!(a0 >= self.filled[0] && a0 + PATCH <= self.filled[1] && b0 >= self.filled[2] && b0 + PATCH <= self.filled[3], "candidate not sampled: widen first");
+        debug_assert!(
+            a0 >= self.filled[0] && a0 + PATCH <= self.filled[1] && b0 >= self.filled[2] && b0 + PATCH <= self.filled[3],
+            "candidate not sampled: widen first"
+        );
         out.fill(0.0);
         for i in 0..PATCH {
             let row = &self.samples[(a0 + i) * self.side + b0..(a0 + i) * self.side + b0 + PATCH];

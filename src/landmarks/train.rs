@@ -3,7 +3,7 @@
 //! placement of the mean shape relative to the face boxes. Deterministic: the same photos give the
 //! same model, byte for byte.
 
-use crate::dataset::{self, ImmSample, INTERNAL, JAW};
+use crate::dataset::{self, INTERNAL, ImmSample, JAW};
 use crate::detect::Detector;
 use crate::geometry::{Point, Rect, Similarity};
 use crate::imaging::{self, GrayF32};
@@ -58,7 +58,13 @@ fn learn_starts(full: &ShapeModel, shapes: &[Vec<Point>], boxes: &[Option<Rect>]
     let sigma0 = full.eigenvalues.first().map_or(1.0, |l| l.sqrt().max(1e-6));
     let group_of = |b: &[f32]| -> usize {
         let z = b.first().copied().unwrap_or(0.0) / sigma0;
-        if threshold <= 0.0 || z.abs() <= threshold { 0 } else if z > 0.0 { 1 } else { 2 }
+        if threshold <= 0.0 || z.abs() <= threshold {
+            0
+        } else if z > 0.0 {
+            1
+        } else {
+            2
+        }
     };
     let mut out = Vec::new();
     for g in 0..3 {
@@ -98,12 +104,18 @@ fn neighbours(sample: &ImmSample) -> Result<Vec<[u16; 2]>, LandmarkError> {
 /// Train on `samples`. `detector` (optional) provides the boxes the placement is learnt from;
 /// without it, or when it misses every photo, the annotation boxes are used. `tick` is called
 /// once per photo processed.
-pub fn train(samples: &[ImmSample], detector: Option<&Detector>, options: &TrainOptions, tick: &dyn Fn()) -> Result<AsmModel, LandmarkError> {
+pub fn train(
+    samples: &[ImmSample],
+    detector: Option<&Detector>,
+    options: &TrainOptions,
+    tick: &dyn Fn(),
+) -> Result<AsmModel, LandmarkError> {
     if samples.len() < 3 {
         return Err(LandmarkError::Training(format!("{} annotated photos; at least 3 are needed", samples.len())));
     }
     let p = &options.params;
-    let shapes: Vec<Vec<Point>> = samples.iter().map(|s| s.landmarks()).collect::<Result<_, _>>().map_err(|e| LandmarkError::Training(e.to_string()))?;
+    let shapes: Vec<Vec<Point>> =
+        samples.iter().map(|s| s.landmarks()).collect::<Result<_, _>>().map_err(|e| LandmarkError::Training(e.to_string()))?;
     let full = ShapeModel::train(&shapes, p.ref_width, options.shape_variance, options.constrain);
     // The group models are aligned in their own right, at the scale the full model gives them.
     let group = |range: std::ops::Range<usize>| {
@@ -127,7 +139,11 @@ pub fn train(samples: &[ImmSample], detector: Option<&Detector>, options: &Train
         boxes.push(match detector {
             Some(det) => {
                 let b = detector_box(det, &photo.gray, shape);
-                if b.is_some() { detected += 1 } else { misses += 1 }
+                if b.is_some() {
+                    detected += 1
+                } else {
+                    misses += 1
+                }
                 b
             }
             None => None,

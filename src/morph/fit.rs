@@ -261,10 +261,9 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
 /// line would project inside it.
 fn update_contour(model: &FaceModel, cam: &Camera, alpha: &[f64], psi: &[f64], points: &[Point], corr: &mut [u32; IMM_POINTS]) {
     let r2 = cam.rotation[2];
-    for (side_left, contour, cheek) in [
-        (true, &model.contour_image_left, &model.cheek_image_left),
-        (false, &model.contour_image_right, &model.cheek_image_right),
-    ] {
+    for (side_left, contour, cheek) in
+        [(true, &model.contour_image_left, &model.cheek_image_left), (false, &model.contour_image_right, &model.cheek_image_right)]
+    {
         let on_boundary = cheek.iter().copied().filter(|&v| {
             let n = model.mean_normals[v as usize];
             (r2[0] * n[0] as f64 + r2[1] * n[1] as f64 + r2[2] * n[2] as f64).abs() < SILHOUETTE_COSINE

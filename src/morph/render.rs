@@ -306,7 +306,9 @@ pub fn render_textured(
                 }
                 return;
             }
-            let at = |xx: i64, yy: i64, k: usize| traw[4 * (yy.clamp(0, th_i - 1) as usize * tw_i as usize + xx.clamp(0, tw_i - 1) as usize) + k] as f32;
+            let at = |xx: i64, yy: i64, k: usize| {
+                traw[4 * (yy.clamp(0, th_i - 1) as usize * tw_i as usize + xx.clamp(0, tw_i - 1) as usize) + k] as f32
+            };
             for k in 0..3 {
                 let top = at(x0, y0, k) + fx * (at(x0 + 1, y0, k) - at(x0, y0, k));
                 let bottom = at(x0, y0 + 1, k) + fx * (at(x0 + 1, y0 + 1, k) - at(x0, y0 + 1, k));

@@ -111,7 +111,8 @@ fn known_shape_and_pose_are_fitted_back_within_one_degree() {
 #[test]
 fn renders_of_a_fitted_face_at_known_yaws_are_fitted_back() {
     let m = model();
-    let sample = list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 1 && s.view == 1).unwrap();
+    let sample =
+        list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 1 && s.view == 1).unwrap();
     let photo = crate::imaging::open(&sample.image).unwrap();
     let fit = m.fit(&sample.landmarks().unwrap(), photo.width(), photo.height()).unwrap();
     let texture = m.extract_texture(&photo.rgb, &fit, 256);
@@ -134,7 +135,8 @@ fn renders_of_a_fitted_face_at_known_yaws_are_fitted_back() {
 #[test]
 fn frontal_rendering_puts_the_eyes_level_and_in_order() {
     let m = model();
-    let sample = list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 2 && s.view == 3).unwrap();
+    let sample =
+        list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 2 && s.view == 3).unwrap();
     let photo = crate::imaging::open(&sample.image).unwrap();
     let fit = m.fit(&sample.landmarks().unwrap(), photo.width(), photo.height()).unwrap();
     let frontal = m.frontalize(&photo, &fit).unwrap();
@@ -163,11 +165,13 @@ fn degenerate_landmarks_give_errors_not_panics() {
 #[test]
 fn exported_avatars_read_back() {
     let m = model();
-    let sample = list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 1 && s.view == 1).unwrap();
+    let sample =
+        list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 1 && s.view == 1).unwrap();
     let photo = crate::imaging::open(&sample.image).unwrap();
     let fit = m.fit(&sample.landmarks().unwrap(), photo.width(), photo.height()).unwrap();
     let texture = m.extract_texture(&photo.rgb, &fit, 64);
-    let mesh = export::TexturedMesh { vertices: &fit.vertices, texcoords: &m.shape.texcoords, triangles: &m.shape.triangles, texture: &texture };
+    let mesh =
+        export::TexturedMesh { vertices: &fit.vertices, texcoords: &m.shape.texcoords, triangles: &m.shape.triangles, texture: &texture };
     let dir = std::env::temp_dir().join(format!("facegate-morph-test-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
 
@@ -188,7 +192,8 @@ fn exported_avatars_read_back() {
 
     let obj = dir.join("face.obj");
     export::write_obj(&mesh, &obj).unwrap();
-    let (models, materials) = tobj::load_obj(&obj, &tobj::LoadOptions { single_index: true, triangulate: true, ..Default::default() }).unwrap();
+    let (models, materials) =
+        tobj::load_obj(&obj, &tobj::LoadOptions { single_index: true, triangulate: true, ..Default::default() }).unwrap();
     let mesh = &models[0].mesh;
     assert_eq!(mesh.positions.len(), 3 * 3448);
     assert_eq!(mesh.indices.len(), 3 * 6736);

@@ -180,7 +180,13 @@ impl Dlda {
                 projection.push(total[(i, r)] as f32);
             }
         }
-        Ok(Dlda { input_dims: d, dims: inner.dims, mean: mean.iter().map(|&m| m as f32).collect(), projection, within_eigenvalues: inner.within_eigenvalues })
+        Ok(Dlda {
+            input_dims: d,
+            dims: inner.dims,
+            mean: mean.iter().map(|&m| m as f32).collect(),
+            projection,
+            within_eigenvalues: inner.within_eigenvalues,
+        })
     }
 
     /// Project one feature vector into `out` (length `dims`). No allocation.
@@ -284,7 +290,9 @@ mod tests {
         let cov = &xc * xc.transpose();
         let eig = cov.self_adjoint_eigen(Side::Lower).unwrap();
         let u = eig.U().to_owned();
-        let pca = |x: &[f32]| -> Vec<f32> { (0..2).map(|j| (0..d).map(|i| u[(i, d - 1 - j)] * (x[i] as f64 - mean[i])).sum::<f64>() as f32).collect() };
+        let pca = |x: &[f32]| -> Vec<f32> {
+            (0..2).map(|j| (0..d).map(|i| u[(i, d - 1 - j)] * (x[i] as f64 - mean[i])).sum::<f64>() as f32).collect()
+        };
         let pca_acc = accuracy(&pca, &train, &test);
 
         assert!(dlda_acc > 0.95, "DLDA accuracy {dlda_acc}");

@@ -27,8 +27,12 @@ impl FeatureKind {
                 let _ = (width, height);
                 grid * grid * LBP_BINS
             }
-            FeatureKind::PixelsLbp { grid } => FeatureKind::Pixels.dims(width, height, mask) + FeatureKind::Lbp { grid }.dims(width, height, mask),
-            FeatureKind::PixelsLbpMulti { grid } => FeatureKind::Pixels.dims(width, height, mask) + 2 * FeatureKind::Lbp { grid }.dims(width, height, mask),
+            FeatureKind::PixelsLbp { grid } => {
+                FeatureKind::Pixels.dims(width, height, mask) + FeatureKind::Lbp { grid }.dims(width, height, mask)
+            }
+            FeatureKind::PixelsLbpMulti { grid } => {
+                FeatureKind::Pixels.dims(width, height, mask) + 2 * FeatureKind::Lbp { grid }.dims(width, height, mask)
+            }
         }
     }
 

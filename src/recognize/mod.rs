@@ -101,7 +101,13 @@ const MODEL_FORMAT: u32 = 1;
 pub const MODEL_FILE: &str = "dlda.bin";
 
 impl Model {
-    pub fn new(normalization: Normalization, normalize: NormalizeParams, features: FeatureKind, dlda: Dlda, provenance: Provenance) -> Model {
+    pub fn new(
+        normalization: Normalization,
+        normalize: NormalizeParams,
+        features: FeatureKind,
+        dlda: Dlda,
+        provenance: Provenance,
+    ) -> Model {
         Model {
             format: MODEL_FORMAT,
             normalization,

@@ -118,10 +118,16 @@ pub fn geometric(gray: &GrayF32, keypoints: &KeyPoints, params: &NormalizeParams
     let mut step = to_image.scale();
     if step.is_finite() && step > 2.0 {
         // Only the crop's footprint (plus a margin for the filters) needs downsampling.
-        let corners = [[-1.0, -1.0], [params.width as f32, -1.0], [-1.0, params.height as f32], [params.width as f32, params.height as f32]].map(|c| to_image.apply(c));
+        let corners =
+            [[-1.0, -1.0], [params.width as f32, -1.0], [-1.0, params.height as f32], [params.width as f32, params.height as f32]]
+                .map(|c| to_image.apply(c));
         let margin = 2.0 * step + 2.0;
-        let lo = |i: usize, limit: usize| (corners.iter().map(|c| c[i]).fold(f32::MAX, f32::min) - margin).floor().clamp(0.0, limit as f32) as usize;
-        let hi = |i: usize, limit: usize| (corners.iter().map(|c| c[i]).fold(f32::MIN, f32::max) + margin).ceil().clamp(0.0, limit as f32) as usize;
+        let lo = |i: usize, limit: usize| {
+            (corners.iter().map(|c| c[i]).fold(f32::MAX, f32::min) - margin).floor().clamp(0.0, limit as f32) as usize
+        };
+        let hi = |i: usize, limit: usize| {
+            (corners.iter().map(|c| c[i]).fold(f32::MIN, f32::max) + margin).ceil().clamp(0.0, limit as f32) as usize
+        };
         let (x0, x1, y0, y1) = (lo(0, gray.width), hi(0, gray.width), lo(1, gray.height), hi(1, gray.height));
         if x1 > x0 + 1 && y1 > y0 + 1 && (x1 - x0) * (y1 - y0) < gray.width * gray.height {
             let region = GrayF32::from_fn(x1 - x0, y1 - y0, |x, y| gray.get(x0 + x, y0 + y));

@@ -18,10 +18,10 @@ use super::{Model, Normalization, Provenance, Recognizer};
 use crate::dataset::{self, IMM_POINTS, KeyPoints};
 use crate::detect::Detector;
 use crate::eval::verification::{VerificationSummary, eer, summarize};
-use crate::pipeline::recognition_input;
 use crate::imaging::{self, GrayF32};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
 use crate::morph::{FaceModel, Pose};
+use crate::pipeline::recognition_input;
 
 /// One labelled photo with what the split needs to know.
 #[derive(Debug, Clone, PartialEq)]
@@ -144,7 +144,8 @@ impl FrontEnd {
     pub fn prepare(&self, face: &FaceImage, normalization: Normalization) -> Result<Prepared, FrontEndError> {
         let photo = imaging::open(&face.image)?;
         let (landmarks, keypoint_source) = self.landmarks(face, &photo)?;
-        let input = recognition_input(self.face_model.as_ref(), &photo, &landmarks, normalization).map_err(|_| FrontEndError::NoFaceModel)?;
+        let input =
+            recognition_input(self.face_model.as_ref(), &photo, &landmarks, normalization).map_err(|_| FrontEndError::NoFaceModel)?;
         Ok(Prepared { gray: input.gray.into_owned(), keypoints: input.keypoints, pose: input.pose, keypoint_source })
     }
 }
@@ -159,7 +160,13 @@ pub struct AlignedFace {
 }
 
 /// Geometric crops of all `faces` (photos whose front end fails are reported and left out).
-pub fn align_all(front_end: &FrontEnd, faces: &[FaceImage], normalization: Normalization, params: &NormalizeParams, show_progress: bool) -> Vec<AlignedFace> {
+pub fn align_all(
+    front_end: &FrontEnd,
+    faces: &[FaceImage],
+    normalization: Normalization,
+    params: &NormalizeParams,
+    show_progress: bool,
+) -> Vec<AlignedFace> {
     let bar = show_progress.then(|| crate::cli::progress(faces.len() as u64, "aligning"));
     let mut out = Vec::with_capacity(faces.len());
     for face in faces {
@@ -228,12 +235,19 @@ pub fn align_all_cached(
             .iter()
             .filter_map(|f| by_path.get(&f.image.display().to_string()))
             .zip(faces.iter().filter(|f| by_path.contains_key(&f.image.display().to_string())))
-            .map(|(e, f)| AlignedFace { face: f.clone(), crop: GrayF32 { width: e.1, height: e.2, data: e.3.clone() }, pose: None, keypoint_source: source_name(&e.4) })
+            .map(|(e, f)| AlignedFace {
+                face: f.clone(),
+                crop: GrayF32 { width: e.1, height: e.2, data: e.3.clone() },
+                pose: None,
+                keypoint_source: source_name(&e.4),
+            })
             .collect());
     }
     let aligned = align_all(front_end, faces, normalization, params, true);
-    let entries: Vec<Entry> =
-        aligned.iter().map(|a| (a.face.image.display().to_string(), a.crop.width, a.crop.height, a.crop.data.clone(), a.keypoint_source.to_string())).collect();
+    let entries: Vec<Entry> = aligned
+        .iter()
+        .map(|a| (a.face.image.display().to_string(), a.crop.width, a.crop.height, a.crop.data.clone(), a.keypoint_source.to_string()))
+        .collect();
     std::fs::create_dir_all(dir)?;
     std::fs::write(&path, postcard::to_stdvec(&entries)?)?;
     Ok(aligned)
@@ -380,7 +394,10 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
     let recognizer = Recognizer::from_model(model.clone());
     let templates: Vec<(String, Template)> = held.iter().map(|a| (a.face.label.clone(), template_of(&recognizer, &a.crop))).collect();
     let (genuine, impostor) = pair_scores(&templates);
-    anyhow::ensure!(!genuine.is_empty() && !impostor.is_empty(), "the held-out persons give no genuine or no impostor pairs to calibrate on");
+    anyhow::ensure!(
+        !genuine.is_empty() && !impostor.is_empty(),
+        "the held-out persons give no genuine or no impostor pairs to calibrate on"
+    );
     model.calibration = Calibration::from_scores(
         &genuine,
         &impostor,
@@ -391,7 +408,12 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
     let (ga, ia) = combined_scores(&templates, Combine::Mean);
     let (eer_max, eer_mean) = (eer(&gm, &im), eer(&ga, &ia));
     model.combine = if eer_mean < eer_max { Combine::Mean } else { Combine::Max };
-    let report = HeldOutReport { pairs: summarize(&genuine, &impostor), eer_combine_max: eer_max, eer_combine_mean: eer_mean, combine: model.combine };
+    let report = HeldOutReport {
+        pairs: summarize(&genuine, &impostor),
+        eer_combine_max: eer_max,
+        eer_combine_mean: eer_mean,
+        combine: model.combine,
+    };
     Ok((model, report))
 }
 
@@ -441,7 +463,8 @@ mod tests {
     /// class), and held-out genuine pairs must score above impostor pairs on average.
     #[test]
     fn imm_training_gives_a_stable_projection() {
-        let faces: Vec<FaceImage> = list_faces(&[crate::config::shared_dir().join("data/imm")]).unwrap().into_iter().filter(|f| !f.is_rotated_view()).collect();
+        let faces: Vec<FaceImage> =
+            list_faces(&[crate::config::shared_dir().join("data/imm")]).unwrap().into_iter().filter(|f| !f.is_rotated_view()).collect();
         let front = FrontEnd::annotations_only();
         let config = TrainConfig::default();
         let aligned = align_all(&front, &faces, Normalization::TwoD, &config.normalize, false);
@@ -456,7 +479,8 @@ mod tests {
         // A small shift of the keypoints (half a crop pixel) barely moves the template.
         let k = prepared.keypoints;
         let shift = |p: crate::geometry::Point| [p[0] + 1.5, p[1] + 1.0];
-        let t3 = recognizer.template(&prepared.gray, &KeyPoints { left_eye: shift(k.left_eye), right_eye: shift(k.right_eye), mouth: shift(k.mouth) });
+        let t3 = recognizer
+            .template(&prepared.gray, &KeyPoints { left_eye: shift(k.left_eye), right_eye: shift(k.right_eye), mouth: shift(k.mouth) });
         assert!(t1.cosine(&t3) > 0.8, "shifted keypoints: cosine {}", t1.cosine(&t3));
         // Round trip through the model file keeps the version and the templates.
         let dir = std::env::temp_dir().join(format!("facegate-dlda-test-{}", std::process::id()));

@@ -104,7 +104,8 @@ impl Store {
                 .execute(&mut *tx)
                 .await?;
         }
-        let count: i64 = sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = ?1").bind(subject).fetch_one(&mut *tx).await?;
+        let count: i64 =
+            sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = ?1").bind(subject).fetch_one(&mut *tx).await?;
         tx.commit().await?;
         Ok(count as u32)
     }
@@ -172,7 +173,8 @@ impl Store {
     /// One subject with its template counts per model version, or `None` when unknown.
     pub async fn subject(&self, id: &str) -> Result<Option<SubjectDetail>, StoreError> {
         let mut tx = self.pool.begin().await?;
-        let Some(row) = sqlx::query("SELECT id, created_at, updated_at FROM subjects WHERE id = ?1").bind(id).fetch_optional(&mut *tx).await?
+        let Some(row) =
+            sqlx::query("SELECT id, created_at, updated_at FROM subjects WHERE id = ?1").bind(id).fetch_optional(&mut *tx).await?
         else {
             return Ok(None);
         };
@@ -200,7 +202,8 @@ impl Store {
     /// when the subject is unknown.
     pub async fn delete_subject(&self, id: &str) -> Result<Option<u32>, StoreError> {
         let mut tx = self.pool.begin().await?;
-        let templates: i64 = sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = ?1").bind(id).fetch_one(&mut *tx).await?;
+        let templates: i64 =
+            sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = ?1").bind(id).fetch_one(&mut *tx).await?;
         let deleted = sqlx::query("DELETE FROM subjects WHERE id = ?1").bind(id).execute(&mut *tx).await?.rows_affected();
         tx.commit().await?;
         Ok((deleted > 0).then_some(templates as u32))
@@ -208,7 +211,8 @@ impl Store {
 
     /// Number of subjects and of templates (for metrics and health).
     pub async fn counts(&self) -> Result<(u64, u64), StoreError> {
-        let row = sqlx::query("SELECT (SELECT count(*) FROM subjects) AS s, (SELECT count(*) FROM templates) AS t").fetch_one(&self.pool).await?;
+        let row =
+            sqlx::query("SELECT (SELECT count(*) FROM subjects) AS s, (SELECT count(*) FROM templates) AS t").fetch_one(&self.pool).await?;
         Ok((row.try_get::<i64, _>("s")? as u64, row.try_get::<i64, _>("t")? as u64))
     }
 
@@ -290,7 +294,10 @@ mod tests {
 
         let detail = store.subject("alice").await.unwrap().unwrap();
         assert_eq!(detail.templates, 3);
-        assert_eq!(detail.model_versions, [VersionCount { model_version: "m1".into(), templates: 2 }, VersionCount { model_version: "m2".into(), templates: 1 }]);
+        assert_eq!(
+            detail.model_versions,
+            [VersionCount { model_version: "m1".into(), templates: 2 }, VersionCount { model_version: "m2".into(), templates: 1 }]
+        );
 
         assert_eq!(store.delete_subject("alice").await.unwrap(), Some(3));
         assert_eq!(store.delete_subject("alice").await.unwrap(), None);

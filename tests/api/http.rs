@@ -117,7 +117,8 @@ async fn bad_images_are_refused_with_their_problem_types() {
 #[tokio::test]
 async fn faces_policy_no_face_and_several_faces() {
     let (app, _) = app().await;
-    let flat = encode(&image::DynamicImage::ImageLuma8(image::GrayImage::from_pixel(320, 240, image::Luma([128]))), image::ImageFormat::Png);
+    let flat =
+        encode(&image::DynamicImage::ImageLuma8(image::GrayImage::from_pixel(320, 240, image::Luma([128]))), image::ImageFormat::Png);
     let wide = pattern_jpeg(640, 240, 5);
     app.post_form("/enroll", Some("dave"), &[flat.clone()]).await.assert_problem(422, "no-face");
     // Enrolment refuses several faces and names the photo; nothing of the request is stored.

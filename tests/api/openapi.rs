@@ -23,19 +23,22 @@ impl Spec {
         let paths = self.doc["paths"].as_object().expect("paths");
         paths
             .iter()
-            .flat_map(|(path, item)| {
-                METHODS.iter().filter(move |m| item.get(**m).is_some()).map(move |m| (m.to_uppercase(), path.clone()))
-            })
+            .flat_map(|(path, item)| METHODS.iter().filter(move |m| item.get(**m).is_some()).map(move |m| (m.to_uppercase(), path.clone())))
             .collect()
     }
 
     /// The path template of the document matching a concrete path (`/subjects/x` → `/subjects/{id}`).
     pub fn template_for(&self, path: &str) -> Option<String> {
         let segments: Vec<&str> = path.split('/').collect();
-        self.doc["paths"].as_object()?.keys().find(|template| {
-            let t: Vec<&str> = template.split('/').collect();
-            t.len() == segments.len() && t.iter().zip(&segments).all(|(a, b)| (a.starts_with('{') && a.ends_with('}') && !b.is_empty()) || a == b)
-        }).cloned()
+        self.doc["paths"]
+            .as_object()?
+            .keys()
+            .find(|template| {
+                let t: Vec<&str> = template.split('/').collect();
+                t.len() == segments.len()
+                    && t.iter().zip(&segments).all(|(a, b)| (a.starts_with('{') && a.ends_with('}') && !b.is_empty()) || a == b)
+            })
+            .cloned()
     }
 
     fn resolve<'a>(&'a self, mut v: &'a Value) -> &'a Value {
@@ -115,7 +118,9 @@ impl Spec {
         }
         if let Some(s) = value.as_str() {
             let len = s.chars().count() as u64;
-            if schema.get("minLength").and_then(Value::as_u64).is_some_and(|m| len < m) || schema.get("maxLength").and_then(Value::as_u64).is_some_and(|m| len > m) {
+            if schema.get("minLength").and_then(Value::as_u64).is_some_and(|m| len < m)
+                || schema.get("maxLength").and_then(Value::as_u64).is_some_and(|m| len > m)
+            {
                 return Err(format!("{at}: length {len} out of range"));
             }
         }
@@ -139,7 +144,9 @@ impl Spec {
         }
         if let Some(items) = value.as_array() {
             let n = items.len() as u64;
-            if schema.get("minItems").and_then(Value::as_u64).is_some_and(|m| n < m) || schema.get("maxItems").and_then(Value::as_u64).is_some_and(|m| n > m) {
+            if schema.get("minItems").and_then(Value::as_u64).is_some_and(|m| n < m)
+                || schema.get("maxItems").and_then(Value::as_u64).is_some_and(|m| n > m)
+            {
                 return Err(format!("{at}: {n} items out of range"));
             }
             if let Some(item_schema) = schema.get("items") {
@@ -154,7 +161,8 @@ impl Spec {
 
 #[test]
 fn the_document_lists_exactly_the_served_operations() {
-    let served: BTreeSet<(String, String)> = facegate::api::operations().iter().map(|o| (o.method.to_string(), o.path.to_string())).collect();
+    let served: BTreeSet<(String, String)> =
+        facegate::api::operations().iter().map(|o| (o.method.to_string(), o.path.to_string())).collect();
     assert_eq!(spec().operations(), served);
 }
 

@@ -56,7 +56,8 @@ async fn enrol_an_imm_photo_then_verify_the_same_and_another_person() {
     assert_eq!(same["match"], true, "{same}");
     assert_eq!(same["templates_compared"], 2);
     let face = &same["face"]["box"];
-    let (x, y, w, h) = (face["x"].as_f64().unwrap(), face["y"].as_f64().unwrap(), face["width"].as_f64().unwrap(), face["height"].as_f64().unwrap());
+    let (x, y, w, h) =
+        (face["x"].as_f64().unwrap(), face["y"].as_f64().unwrap(), face["width"].as_f64().unwrap(), face["height"].as_f64().unwrap());
     assert!(x >= -1.0 && y >= -1.0 && w > 50.0 && h > 50.0 && x + w <= 641.0 && y + h <= 481.0, "{face}");
     for stage in ["decode_ms", "detect_ms", "landmarks_ms", "template_ms", "total_ms"] {
         assert!(same["timings"][stage].as_f64().unwrap() >= 0.0);
