@@ -30,3 +30,12 @@ pub fn models_dir() -> PathBuf {
     let local = PathBuf::from("models");
     if local.is_dir() { local } else { PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models") }
 }
+
+/// Write a model file: `value` serialised with postcard, its folder created when missing.
+pub fn write_model<T: serde::Serialize>(path: &std::path::Path, value: &T) -> Result<(), String> {
+    let bytes = postcard::to_stdvec(value).map_err(|e| e.to_string())?;
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).map_err(|e| e.to_string())?;
+    }
+    std::fs::write(path, bytes).map_err(|e| e.to_string())
+}

@@ -5,7 +5,11 @@ use anyhow::Context;
 use serde_json::json;
 
 use crate::dataset;
+use crate::dataset::KeyPoints;
 use crate::detect::Detector;
+use crate::geometry::{Point, Rect};
+use crate::imaging::GrayF32;
+use crate::landmarks::asm3d::Asm3dLandmarker;
 use crate::landmarks::{Landmarker, Variant, train};
 
 #[derive(clap::Args, Debug)]
@@ -54,12 +58,25 @@ fn load_detector() -> Option<Detector> {
 
 pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
     let variant = Variant::parse(&args.variant).context("unknown variant")?;
-    if variant == Variant::Asm3d {
-        return run_asm3d(args);
-    }
-    let path = crate::config::models_dir().join("asm.bin");
-    let landmarker = Landmarker::load(&path)?;
-    let detector = Detector::load(&crate::config::models_dir())?;
+    let models = crate::config::models_dir();
+    let detector = Detector::load(&models)?;
+    // One face's JSON object; the 3D-ASM adds its fitted pose to the C-ASM fields.
+    let fit_face: Box<dyn Fn(&GrayF32, &Rect) -> serde_json::Value> = if variant == Variant::Asm3d {
+        let landmarker = Asm3dLandmarker::load(&models.join("asm3d.bin"))?;
+        Box::new(move |gray, rect| {
+            let lm = landmarker.fit(gray, rect);
+            let mut face = face_json(rect, &lm.points, &lm.keypoints);
+            face["pose"] = json!(lm.pose);
+            face["view_yaw"] = json!(lm.view_yaw);
+            face
+        })
+    } else {
+        let landmarker = Landmarker::load(&models.join("asm.bin"))?;
+        Box::new(move |gray, rect| {
+            let lm = landmarker.fit(gray, rect, variant);
+            face_json(rect, &lm.points, &lm.keypoints)
+        })
+    };
     let mut failed = false;
     for image in &args.images {
         let photo = match crate::imaging::open(image) {
@@ -70,31 +87,30 @@ pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
                 continue;
             }
         };
-        let faces: Vec<serde_json::Value> = detector
-            .detect(&photo.gray)
-            .iter()
-            .map(|f| {
-                let lm = landmarker.fit(&photo.gray, &f.rect, variant);
-                json!({
-                    "box": f.rect,
-                    "points": lm.points,
-                    "left_eye": lm.keypoints.left_eye,
-                    "right_eye": lm.keypoints.right_eye,
-                    "mouth": lm.keypoints.mouth,
-                })
-            })
-            .collect();
+        let faces: Vec<serde_json::Value> = detector.detect(&photo.gray).iter().map(|f| fit_face(&photo.gray, &f.rect)).collect();
         let value = json!({ "image": image.display().to_string(), "variant": variant.name(), "faces": faces });
         if args.json {
             crate::cli::print_json_line(&value);
         } else {
             println!("{}: {} face(s)", image.display(), faces.len());
             for f in &faces {
-                println!("  box {}  left eye {}  right eye {}  mouth {}", f["box"], f["left_eye"], f["right_eye"], f["mouth"]);
+                let pose = f.get("pose").map(|p| format!("  pose {p}")).unwrap_or_default();
+                println!("  box {}  left eye {}  right eye {}  mouth {}{pose}", f["box"], f["left_eye"], f["right_eye"], f["mouth"]);
             }
         }
     }
     Ok(if failed { ExitCode::FAILURE } else { ExitCode::SUCCESS })
+}
+
+/// The landmarks JSON contract of one face: box, 58 points in IMM order, eye and mouth centres.
+fn face_json(rect: &Rect, points: &[Point], keypoints: &KeyPoints) -> serde_json::Value {
+    json!({
+        "box": rect,
+        "points": points,
+        "left_eye": keypoints.left_eye,
+        "right_eye": keypoints.right_eye,
+        "mouth": keypoints.mouth,
+    })
 }
 
 pub fn run_train(args: TrainAsmArgs) -> anyhow::Result<ExitCode> {
@@ -179,50 +195,4 @@ pub fn run_train_asm3d(args: TrainAsm3dArgs) -> anyhow::Result<ExitCode> {
         size / 1024
     );
     Ok(ExitCode::SUCCESS)
-}
-
-/// `facegate landmarks --variant asm3d`: the C-ASM JSON plus the fitted pose.
-fn run_asm3d(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
-    let landmarker = crate::landmarks::asm3d::Asm3dLandmarker::load(&crate::config::models_dir().join("asm3d.bin"))?;
-    let detector = Detector::load(&crate::config::models_dir())?;
-    let mut failed = false;
-    for image in &args.images {
-        let photo = match crate::imaging::open(image) {
-            Ok(p) => p,
-            Err(e) => {
-                eprintln!("facegate: {}: {e}", image.display());
-                failed = true;
-                continue;
-            }
-        };
-        let faces: Vec<serde_json::Value> = detector
-            .detect(&photo.gray)
-            .iter()
-            .map(|f| {
-                let lm = landmarker.fit(&photo.gray, &f.rect);
-                json!({
-                    "box": f.rect,
-                    "points": lm.points,
-                    "left_eye": lm.keypoints.left_eye,
-                    "right_eye": lm.keypoints.right_eye,
-                    "mouth": lm.keypoints.mouth,
-                    "pose": lm.pose,
-                    "view_yaw": lm.view_yaw,
-                })
-            })
-            .collect();
-        let value = json!({ "image": image.display().to_string(), "variant": "asm3d", "faces": faces });
-        if args.json {
-            crate::cli::print_json_line(&value);
-        } else {
-            println!("{}: {} face(s)", image.display(), faces.len());
-            for f in &faces {
-                println!(
-                    "  box {}  left eye {}  right eye {}  mouth {}  pose {}",
-                    f["box"], f["left_eye"], f["right_eye"], f["mouth"], f["pose"]
-                );
-            }
-        }
-    }
-    Ok(if failed { ExitCode::FAILURE } else { ExitCode::SUCCESS })
 }

@@ -796,12 +796,7 @@ impl Asm3dLandmarker {
     }
 
     pub fn save(&self, path: &Path) -> Result<(), LandmarkError> {
-        let err = |message: String| LandmarkError::Model { path: path.display().to_string(), message };
-        let bytes = postcard::to_allocvec(&self.model).map_err(|e| err(e.to_string()))?;
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
-        }
-        std::fs::write(path, bytes).map_err(|e| err(e.to_string()))
+        crate::config::write_model(path, &self.model).map_err(|message| LandmarkError::Model { path: path.display().to_string(), message })
     }
 
     fn yaws(&self) -> Vec<f32> {

@@ -130,11 +130,7 @@ impl Model {
     }
 
     pub fn save(&self, path: &Path) -> anyhow::Result<()> {
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir)?;
-        }
-        std::fs::write(path, postcard::to_stdvec(self)?)?;
-        Ok(())
+        crate::config::write_model(path, self).map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))
     }
 
     pub fn load(path: &Path) -> Result<Model, RecognizeError> {
