@@ -24,7 +24,7 @@
 
 use std::path::Path;
 
-use nalgebra::{DMatrix, DVector, SymmetricEigen};
+use nalgebra::{DMatrix, DVector};
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
@@ -36,7 +36,7 @@ use crate::imaging::{self, GrayF32};
 use crate::morph::{Camera, FaceModel, Pose, fit::estimate_camera, render};
 
 use super::mahalanobis::{FullGaussian, PcaGaussian};
-use super::pdm::ShapeModel;
+use super::pdm::{ShapeModel, principal_modes};
 use super::search::{self, Frame, Level, Workspace, from_level, normals, pyramid, to_level};
 use super::{AsmModel, BoxSource, LandmarkError, Placement, SearchParams, TrainInfo, Variant, profile, sift};
 
@@ -77,41 +77,13 @@ impl Pdm3d {
                 }
             }
         }
-        let mut cov = DMatrix::<f64>::zeros(dim, dim);
-        let mut x = vec![0.0f64; dim];
-        for s in shapes {
+        let (basis, eigenvalues) = principal_modes(dim, shapes, variance, |s: &Vec<[f32; 3]>, x| {
             for (i, p) in s.iter().enumerate() {
                 for d in 0..3 {
                     x[3 * i + d] = p[d] as f64 - mean[3 * i + d];
                 }
             }
-            for i in 0..dim {
-                for j in i..dim {
-                    cov[(i, j)] += x[i] * x[j];
-                }
-            }
-        }
-        let denom = (count - 1.0).max(1.0);
-        for i in 0..dim {
-            for j in i..dim {
-                cov[(i, j)] /= denom;
-                cov[(j, i)] = cov[(i, j)];
-            }
-        }
-        let eig = SymmetricEigen::new(cov);
-        let mut order: Vec<usize> = (0..dim).collect();
-        order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
-        let total: f64 = eig.eigenvalues.iter().map(|v| v.max(0.0)).sum();
-        let (mut basis, mut eigenvalues, mut acc) = (Vec::new(), Vec::new(), 0.0);
-        for &k in &order {
-            if acc >= variance * total {
-                break;
-            }
-            let lambda = eig.eigenvalues[k].max(0.0);
-            acc += lambda;
-            eigenvalues.push(lambda as f32);
-            basis.extend(eig.eigenvectors.column(k).iter().map(|&v| v as f32));
-        }
+        });
         let mean = mean.chunks_exact(3).map(|c| [c[0] as f32, c[1] as f32, c[2] as f32]).collect();
         Pdm3d { mean, basis, eigenvalues, constrain }
     }

@@ -56,47 +56,61 @@ pub fn procrustes(shapes: &[Vec<Point>], ref_width: f32) -> (Vec<Point>, Vec<Vec
     (mean, aligned)
 }
 
+/// PCA of `samples` (each written as its deviation from the mean into a `dim` vector by
+/// `deviation`): the unit eigenvectors (row-major, f32) and eigenvalues of the sample covariance,
+/// largest first, as many as explain `variance` of the total. f64 inside: the covariance of
+/// pixel coordinates is badly conditioned.
+pub(crate) fn principal_modes<S>(
+    dim: usize,
+    samples: &[S],
+    variance: f64,
+    mut deviation: impl FnMut(&S, &mut [f64]),
+) -> (Vec<f32>, Vec<f32>) {
+    let mut cov = DMatrix::<f64>::zeros(dim, dim);
+    let mut d = vec![0.0f64; dim];
+    for s in samples {
+        deviation(s, &mut d);
+        for i in 0..dim {
+            for j in i..dim {
+                cov[(i, j)] += d[i] * d[j];
+            }
+        }
+    }
+    let nf = (samples.len().max(2) - 1) as f64;
+    for i in 0..dim {
+        for j in i..dim {
+            cov[(i, j)] /= nf;
+            cov[(j, i)] = cov[(i, j)];
+        }
+    }
+    let eig = SymmetricEigen::new(cov);
+    let mut order: Vec<usize> = (0..dim).collect();
+    order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
+    let total: f64 = eig.eigenvalues.iter().map(|v| v.max(0.0)).sum();
+    let (mut basis, mut eigenvalues, mut acc) = (Vec::new(), Vec::new(), 0.0);
+    for &k in &order {
+        if acc >= variance * total {
+            break;
+        }
+        let lambda = eig.eigenvalues[k].max(0.0);
+        acc += lambda;
+        eigenvalues.push(lambda as f32);
+        basis.extend(eig.eigenvectors.column(k).iter().map(|&v| v as f32));
+    }
+    (basis, eigenvalues)
+}
+
 impl ShapeModel {
     /// Align `shapes`, keep the principal modes explaining `variance` of the total (thesis: 0.98).
     pub fn train(shapes: &[Vec<Point>], ref_width: f32, variance: f64, constrain: f32) -> ShapeModel {
         let (mean, aligned) = procrustes(shapes, ref_width);
         let dim = 2 * mean.len();
-        let mut cov = DMatrix::<f64>::zeros(dim, dim);
-        let mut d = vec![0.0f64; dim];
-        for s in &aligned {
+        let (basis, eigenvalues) = principal_modes(dim, &aligned, variance, |s: &Vec<Point>, d| {
             for (i, (p, m)) in s.iter().zip(&mean).enumerate() {
                 d[2 * i] = (p[0] - m[0]) as f64;
                 d[2 * i + 1] = (p[1] - m[1]) as f64;
             }
-            for i in 0..dim {
-                for j in i..dim {
-                    cov[(i, j)] += d[i] * d[j];
-                }
-            }
-        }
-        let nf = (aligned.len().max(2) - 1) as f64;
-        for i in 0..dim {
-            for j in i..dim {
-                cov[(i, j)] /= nf;
-                cov[(j, i)] = cov[(i, j)];
-            }
-        }
-        let eig = SymmetricEigen::new(cov);
-        let mut order: Vec<usize> = (0..dim).collect();
-        order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
-        let total: f64 = eig.eigenvalues.iter().map(|v| v.max(0.0)).sum();
-        let mut basis = Vec::new();
-        let mut eigenvalues = Vec::new();
-        let mut acc = 0.0;
-        for &k in &order {
-            if acc >= variance * total {
-                break;
-            }
-            let lambda = eig.eigenvalues[k].max(0.0);
-            acc += lambda;
-            eigenvalues.push(lambda as f32);
-            basis.extend(eig.eigenvectors.column(k).iter().map(|&v| v as f32));
-        }
+        });
         ShapeModel { mean, basis, eigenvalues, constrain }
     }
 

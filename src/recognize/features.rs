@@ -94,57 +94,50 @@ fn uniform_table() -> [u8; 256] {
     table
 }
 
+/// Uniform LBP(8,1): the eight pixel neighbours.
 fn lbp_histograms(crop: &GrayF32, grid: usize) -> Vec<f32> {
-    let table = uniform_table();
-    let (w, h) = (crop.width, crop.height);
-    let grid = grid.max(1);
-    let mut hist = vec![0.0f32; grid * grid * LBP_BINS];
     const OFFSETS: [(isize, isize); 8] = [(-1, -1), (0, -1), (1, -1), (1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0)];
-    for y in 1..h.saturating_sub(1) {
-        let cy = (y * grid / h).min(grid - 1);
-        for x in 1..w.saturating_sub(1) {
-            let cx = (x * grid / w).min(grid - 1);
-            let centre = crop.data[y * w + x];
-            let mut code = 0u8;
-            for (bit, (dx, dy)) in OFFSETS.iter().enumerate() {
-                let v = crop.data[(y as isize + dy) as usize * w + (x as isize + dx) as usize];
-                if v >= centre {
-                    code |= 1 << bit;
-                }
+    let w = crop.width;
+    lbp_cell_histograms(crop, grid, 1, |x, y, centre| {
+        let mut code = 0u8;
+        for (bit, (dx, dy)) in OFFSETS.iter().enumerate() {
+            if crop.data[(y as isize + dy) as usize * w + (x as isize + dx) as usize] >= centre {
+                code |= 1 << bit;
             }
-            hist[(cy * grid + cx) * LBP_BINS + table[code as usize] as usize] += 1.0;
         }
-    }
-    // Each cell's histogram normalised to unit sum, then square-rooted (Hellinger kernel).
-    for cell in hist.chunks_mut(LBP_BINS) {
-        let s: f32 = cell.iter().sum();
-        if s > 0.0 {
-            cell.iter_mut().for_each(|v| *v = (*v / s).sqrt());
-        }
-    }
-    hist
+        code
+    })
 }
 
 /// Uniform LBP(8,2): eight neighbours on a circle of radius 2, sampled bilinearly.
 fn lbp2_histograms(crop: &GrayF32, grid: usize) -> Vec<f32> {
+    let d = std::f32::consts::FRAC_1_SQRT_2 * 2.0;
+    let offsets: [(f32, f32); 8] = [(-d, -d), (0.0, -2.0), (d, -d), (2.0, 0.0), (d, d), (0.0, 2.0), (-d, d), (-2.0, 0.0)];
+    lbp_cell_histograms(crop, grid, 2, |x, y, centre| {
+        let mut code = 0u8;
+        for (bit, (dx, dy)) in offsets.iter().enumerate() {
+            if crop.sample(x as f32 + dx, y as f32 + dy) >= centre {
+                code |= 1 << bit;
+            }
+        }
+        code
+    })
+}
+
+/// Histograms of uniform LBP codes on a `grid × grid` partition of `crop`, over the pixels at
+/// least `radius` from the border; `code` gives the 8-bit pattern at (x, y) with its centre value.
+/// Each cell's histogram is normalised to unit sum, then square-rooted (Hellinger kernel).
+fn lbp_cell_histograms(crop: &GrayF32, grid: usize, radius: usize, code: impl Fn(usize, usize, f32) -> u8) -> Vec<f32> {
     let table = uniform_table();
     let (w, h) = (crop.width, crop.height);
     let grid = grid.max(1);
     let mut hist = vec![0.0f32; grid * grid * LBP_BINS];
-    let d = std::f32::consts::FRAC_1_SQRT_2 * 2.0;
-    let offsets: [(f32, f32); 8] = [(-d, -d), (0.0, -2.0), (d, -d), (2.0, 0.0), (d, d), (0.0, 2.0), (-d, d), (-2.0, 0.0)];
-    for y in 2..h.saturating_sub(2) {
+    for y in radius..h.saturating_sub(radius) {
         let cy = (y * grid / h).min(grid - 1);
-        for x in 2..w.saturating_sub(2) {
+        for x in radius..w.saturating_sub(radius) {
             let cx = (x * grid / w).min(grid - 1);
-            let centre = crop.data[y * w + x];
-            let mut code = 0u8;
-            for (bit, (dx, dy)) in offsets.iter().enumerate() {
-                if crop.sample(x as f32 + dx, y as f32 + dy) >= centre {
-                    code |= 1 << bit;
-                }
-            }
-            hist[(cy * grid + cx) * LBP_BINS + table[code as usize] as usize] += 1.0;
+            let c = code(x, y, crop.data[y * w + x]);
+            hist[(cy * grid + cx) * LBP_BINS + table[c as usize] as usize] += 1.0;
         }
     }
     for cell in hist.chunks_mut(LBP_BINS) {
