@@ -1,6 +1,7 @@
 //! Recognition speed: projection and scoring of one face (target ≤ 1 ms), and the normalisation of a
 //! 640×480 photo before it. Uses the committed `models/dlda.bin` and an IMM photo with its annotated
-//! keypoints.
+//! keypoints. A fused model (3DMM + 2D) gets one crop per path (here the same crop, which costs the
+//! same as two different ones).
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
 use facegate::dataset::{KeyPoints, list_imm};
@@ -12,17 +13,19 @@ fn bench(c: &mut Criterion) {
     let photo = facegate::imaging::open(&sample.image).expect("IMM photo");
     let keypoints = KeyPoints::from_imm(&sample.landmarks().expect("IMM landmarks"));
     let crop = recognizer.normalized_crop(&photo.gray, &keypoints);
-    let enrolled = vec![recognizer.template_of_crop(&crop)];
+    let crops = vec![&crop; recognizer.paths().len()];
+    let views = vec![(&photo.gray, &keypoints); recognizer.paths().len()];
+    let enrolled = vec![recognizer.template_of_crops(&crops).expect("one crop per path")];
 
     c.bench_function("project_and_score", |b| {
         b.iter(|| {
-            let t = recognizer.template_of_crop(black_box(&crop));
+            let t = recognizer.template_of_crops(black_box(&crops)).expect("one crop per path");
             black_box(recognizer.score(&t, &enrolled))
         })
     });
     c.bench_function("normalize_project_score_640x480", |b| {
         b.iter(|| {
-            let t = recognizer.template(black_box(&photo.gray), black_box(&keypoints));
+            let t = recognizer.template_of_views(black_box(&views)).expect("one view per path");
             black_box(recognizer.score(&t, &enrolled))
         })
     });

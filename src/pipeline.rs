@@ -135,7 +135,15 @@ impl Pipeline {
         timings.morph_ms = ms(t);
 
         let t = Instant::now();
-        let template = self.recognizer.template(&input.gray, &input.keypoints);
+        let template = match self.recognizer.paths().get(1) {
+            // A fused model also sees the face on its second path (2D: the photo itself, no fit).
+            Some(&second) => {
+                let other =
+                    recognition_input(self.face_model.as_ref().filter(|_| second == Normalization::Morph), photo, &landmarks, second)?;
+                self.recognizer.template_of_views(&[(&input.gray, &input.keypoints), (&other.gray, &other.keypoints)])?
+            }
+            None => self.recognizer.template(&input.gray, &input.keypoints),
+        };
         timings.template_ms = ms(t);
 
         Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose: input.pose, template, timings })

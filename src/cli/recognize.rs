@@ -30,13 +30,18 @@ pub enum NormalizationArg {
     TwoD,
     #[value(name = "3dmm")]
     Morph,
+    /// Both paths, one projection each, scores fused (the mean of the two cosines).
+    #[value(name = "3dmm+2d")]
+    Fused,
 }
 
-impl From<NormalizationArg> for Normalization {
-    fn from(n: NormalizationArg) -> Self {
-        match n {
-            NormalizationArg::TwoD => Normalization::TwoD,
-            NormalizationArg::Morph => Normalization::Morph,
+impl NormalizationArg {
+    /// The primary path and the fused second path, if any.
+    fn paths(self) -> (Normalization, Option<Normalization>) {
+        match self {
+            NormalizationArg::TwoD => (Normalization::TwoD, None),
+            NormalizationArg::Morph => (Normalization::Morph, None),
+            NormalizationArg::Fused => (Normalization::Morph, Some(Normalization::TwoD)),
         }
     }
 }
@@ -61,9 +66,9 @@ pub enum FeaturesArg {
 /// The choices that make a model, with the measured defaults.
 #[derive(clap::Args, Debug, Clone)]
 pub struct ModelOptions {
-    /// 3DMM by default: lower FNMR at the service's operating point (FMR 1e-3) in cross-validation
-    /// and on the held-out persons (docs/recognition.md); 2D has the lower EER.
-    #[arg(long, value_enum, default_value = "3dmm")]
+    /// Both paths fused by default: lower EER and lower FNMR at FMR 1e-3 in cross-validation over
+    /// the training persons than either path alone (docs/recognition.md).
+    #[arg(long, value_enum, default_value = "3dmm+2d")]
     pub normalization: NormalizationArg,
     #[arg(long, value_enum, default_value = "histeq")]
     pub photometric: PhotometricArg,
@@ -104,12 +109,30 @@ pub struct ModelOptions {
     /// Weight of the mouth centre in the alignment (the eyes weigh 1; 0 aligns the eyes only).
     #[arg(long, default_value_t = 1.0)]
     pub mouth_weight: f32,
+    /// Cohort score normalisation against the training photos' templates (shipped in the model):
+    /// `none` (raw cosines), `s-norm` (whole cohort) or `as-norm` (each face's --cohort-top-k closest).
+    #[arg(long, value_enum, default_value = "none")]
+    pub score_norm: ScoreNormArg,
+    #[arg(long, default_value_t = 50)]
+    pub cohort_top_k: usize,
+    /// With `--normalization 3dmm+2d`: weight of the 2D path's cosine in the fused score.
+    #[arg(long, default_value_t = 0.5)]
+    pub fuse_weight: f32,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ScoreNormArg {
+    None,
+    SNorm,
+    AsNorm,
 }
 
 impl ModelOptions {
     fn config(&self) -> TrainConfig {
         let mut config = TrainConfig {
-            normalization: self.normalization.into(),
+            normalization: self.normalization.paths().0,
+            secondary: self.normalization.paths().1,
+            secondary_weight: self.fuse_weight,
             features: match self.features {
                 FeaturesArg::Pixels => FeatureKind::Pixels,
                 FeaturesArg::Lbp => FeatureKind::Lbp { grid: self.lbp_grid },
@@ -118,6 +141,11 @@ impl ModelOptions {
             },
             dlda: DldaParams { max_dims: self.dims, regularization: self.regularization, pca_dims: self.pca_dims },
             mirror: !self.no_mirror,
+            cohort_top_k: match self.score_norm {
+                ScoreNormArg::None => None,
+                ScoreNormArg::SNorm => Some(0),
+                ScoreNormArg::AsNorm => Some(self.cohort_top_k.max(1)),
+            },
             ..TrainConfig::default()
         };
         config.normalize.photometric = match self.photometric {
@@ -158,6 +186,7 @@ pub struct TrainDldaArgs {
     /// Only cross-validate (with --cv-folds); do not train or write the model.
     #[arg(long)]
     pub cv_only: bool,
+
     #[command(flatten)]
     pub model: ModelOptions,
 }
@@ -228,12 +257,10 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
     if args.model.train_frontal_only {
         faces.retain(|f| f.held_out || !f.is_rotated_view());
     }
-    let sfm = (config.normalization == Normalization::Morph).then(crate::config::sfm_dir);
+    let paths: Vec<Normalization> = std::iter::once(config.normalization).chain(config.secondary).collect();
+    let sfm = paths.contains(&Normalization::Morph).then(crate::config::sfm_dir);
     let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
-    let aligned = match &args.crop_cache {
-        Some(dir) => train::align_all_cached(dir, args.keypoints, &front, &faces, config.normalization, &config.normalize)?,
-        None => train::align_all(&front, &faces, config.normalization, &config.normalize, true),
-    };
+    let aligned = train::align_paths(args.crop_cache.as_deref(), args.keypoints, &front, &faces, &paths, &config.normalize)?;
     let data: Vec<String> = args.data.iter().map(|d| d.display().to_string()).collect();
     if let Some(folds) = args.cv_folds {
         let folds = train::cross_validate(&aligned, &config, folds)?;
@@ -262,7 +289,7 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
         "{}: {version}, {} → {} dims, trained on {} photos of {} persons (+mirrored: {}), keypoints {}",
         args.out.display(),
         model.dlda.input_dims,
-        model.dlda.dims,
+        model.template_dims(),
         model.provenance.train_images,
         model.provenance.train_persons.len(),
         model.provenance.mirrored,
@@ -291,7 +318,7 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
     }
     crate::cli::print_json_line(&serde_json::json!({
         "model": args.out, "version": version, "normalization": model.normalization, "features": model.features,
-        "photometric": model.normalize.photometric, "dims": model.dlda.dims, "keypoints": model.provenance.keypoint_source,
+        "photometric": model.normalize.photometric, "dims": model.template_dims(), "paths": model.paths(), "keypoints": model.provenance.keypoint_source,
         "held_out": report, "calibration": model.calibration.points,
     }));
     Ok(ExitCode::SUCCESS)
@@ -422,18 +449,19 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
         faces.retain(|f| f.held_out);
     }
     anyhow::ensure!(!faces.is_empty(), "no photos of held-out persons under {:?}", args.dirs);
-    let sfm = (model.normalization == Normalization::Morph).then(crate::config::sfm_dir);
+    let paths = model.paths();
+    let sfm = paths.contains(&Normalization::Morph).then(crate::config::sfm_dir);
     let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
-    let aligned = train::align_all(&front, &faces, model.normalization, &model.normalize, true);
+    let aligned = train::align_paths(None, args.keypoints, &front, &faces, &paths, &model.normalize)?;
     let templates: Vec<(String, Template, bool)> =
-        aligned.iter().map(|a| (a.face.label.clone(), train::template_of(&recognizer, &a.crop), a.face.is_rotated_view())).collect();
+        aligned.iter().map(|a| (a.face.label.clone(), train::template_of(&recognizer, a), a.face.is_rotated_view())).collect();
     let sources = keypoint_sources(&aligned);
     println!(
         "model {} ({}, {:?}, {} dims, keypoints of the model: {}); measured on {} photos of {} persons, keypoints: {sources}",
         recognizer.model_version(),
         model.normalization,
         model.features,
-        model.dlda.dims,
+        model.template_dims(),
         model.provenance.keypoint_source,
         aligned.len(),
         {
@@ -444,8 +472,8 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
     );
     let all: Vec<(String, Template)> = templates.iter().map(|(l, t, _)| (l.clone(), t.clone())).collect();
     let frontal: Vec<(String, Template)> = templates.iter().filter(|(_, _, r)| !r).map(|(l, t, _)| (l.clone(), t.clone())).collect();
-    let (ga, ia) = train::pair_scores(&all);
-    let (gf, iff) = train::pair_scores(&frontal);
+    let (ga, ia) = train::pair_scores(&recognizer, &all);
+    let (gf, iff) = train::pair_scores(&recognizer, &frontal);
     let who = if args.all_persons { "all persons" } else { "held-out persons" };
     for (name, g, i) in [("frontal/near-frontal", &gf, &iff), ("all views", &ga, &ia)] {
         if g.is_empty() || i.is_empty() {
@@ -504,7 +532,7 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
     let mut table: std::collections::BTreeMap<String, (usize, Vec<usize>)> = Default::default();
     let mut sources = String::new();
     for (k, &normalization) in normalizations.iter().enumerate() {
-        let config = TrainConfig { normalization, ..args.model.config() };
+        let config = TrainConfig { normalization, secondary: None, ..args.model.config() };
         let aligned = train::align_all(&front, &faces, normalization, &config.normalize, true);
         sources = keypoint_sources(&aligned);
         let (model, _) = train::train_model(&aligned, &config, &[data.display().to_string()])?;
@@ -515,12 +543,12 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
         let gallery: Vec<(&str, Template)> = aligned
             .iter()
             .filter(|a| a.face.view == Some(1) && (a.face.held_out || args.distractors))
-            .map(|a| (a.face.label.as_str(), train::template_of(&recognizer, &a.crop)))
+            .map(|a| (a.face.label.as_str(), train::template_of(&recognizer, a)))
             .collect();
         for a in held.iter().filter(|a| a.face.view != Some(1)) {
             let Some(truth) = gallery.iter().position(|(l, _)| *l == a.face.label) else { continue };
-            let t = train::template_of(&recognizer, &a.crop);
-            let row: Vec<f32> = gallery.iter().map(|(_, g)| t.cosine(g)).collect();
+            let t = train::template_of(&recognizer, a);
+            let row: Vec<f32> = gallery.iter().map(|(_, g)| recognizer.score(&t, std::slice::from_ref(g))).collect();
             let hit = (rank1(&[row], &[truth]) == 1.0) as usize;
             // Two tables: by IMM view group, and by |yaw| of the 3DMM fit when there is one.
             let view_group = AlignedFace { pose: None, ..(*a).clone() };

@@ -11,6 +11,7 @@ pub mod calibration;
 pub mod dlda;
 pub mod features;
 pub mod normalize;
+pub mod score_norm;
 pub mod template;
 pub mod train;
 
@@ -26,6 +27,7 @@ pub use calibration::{Calibration, DEFAULT_FMR};
 pub use dlda::{Dlda, DldaParams};
 pub use features::FeatureKind;
 pub use normalize::{NormalizeParams, Photometric};
+pub use score_norm::{Cohort, CohortStats};
 pub use template::{Combine, Template};
 
 /// Which normalisation a recognition model was trained for.
@@ -64,6 +66,8 @@ pub enum RecognizeError {
     ModelVersionMismatch { expected: String, found: String },
     #[error("template has {found} dimensions, the model makes {expected}")]
     TemplateDimension { expected: usize, found: usize },
+    #[error("the model makes templates from {expected} normalised views (one per path), got {found}")]
+    Views { expected: usize, found: usize },
     #[error("no templates to compare against")]
     NoTemplates,
     #[error("malformed template bytes: {0}")]
@@ -84,6 +88,17 @@ pub struct Provenance {
     pub mirrored: bool,
 }
 
+/// The second path of a fused model: its normalisation (the features and crop layout are the
+/// primary's) and its projection.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SecondaryPath {
+    pub normalization: Normalization,
+    pub dlda: Dlda,
+    /// Weight w of this path's cosine in the fused score (1 − w for the primary): the halves of
+    /// the template are scaled by √(1 − w) and √w.
+    pub weight: f32,
+}
+
 /// Everything a template depends on, saved as `models/dlda.bin`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Model {
@@ -92,12 +107,21 @@ pub struct Model {
     pub normalize: NormalizeParams,
     pub features: FeatureKind,
     pub dlda: Dlda,
+    /// A second projection trained on the other normalisation path's crops (score-level fusion of
+    /// the 2D and 3DMM paths): the template is both unit projections concatenated, scaled by
+    /// √(1 − w) and √w, so that the cosine of two templates is the weighted mean of the two
+    /// paths' cosines.
+    pub secondary: Option<SecondaryPath>,
     pub combine: Combine,
+    /// Cohort score normalisation (S-norm / AS-norm): scores are then normalised cosines, and the
+    /// calibration is made on them. `None`: scores are raw cosines.
+    pub cohort: Option<Cohort>,
     pub calibration: Calibration,
     pub provenance: Provenance,
 }
 
-const MODEL_FORMAT: u32 = 1;
+/// 2: the fused second path and the cohort for score normalisation.
+const MODEL_FORMAT: u32 = 2;
 pub const MODEL_FILE: &str = "dlda.bin";
 
 impl Model {
@@ -114,7 +138,9 @@ impl Model {
             normalize,
             features,
             dlda,
+            secondary: None,
             combine: Combine::Max,
+            cohort: None,
             calibration: Calibration { points: Vec::new(), genuine_count: 0, impostor_count: 0, source: String::new() },
             provenance,
         }
@@ -123,10 +149,21 @@ impl Model {
     /// `dlda-` and 12 hex digits of the SHA-256 of everything that shapes a template (normalisation,
     /// features, projection); calibration and provenance do not change templates, so not the version.
     pub fn version(&self) -> String {
-        let bytes = postcard::to_stdvec(&(&self.normalization, &self.normalize, &self.features, &self.dlda)).expect("model serialises");
+        let bytes = postcard::to_stdvec(&(&self.normalization, &self.normalize, &self.features, &self.dlda, &self.secondary))
+            .expect("model serialises");
         let digest = Sha256::digest(&bytes);
         let hex: String = digest.iter().take(6).map(|b| format!("{b:02x}")).collect();
         format!("dlda-{hex}")
+    }
+
+    /// The normalisation paths a template is made of, primary first.
+    pub fn paths(&self) -> Vec<Normalization> {
+        std::iter::once(self.normalization).chain(self.secondary.as_ref().map(|s| s.normalization)).collect()
+    }
+
+    /// Dimension of the templates (both projections for a fused model).
+    pub fn template_dims(&self) -> usize {
+        self.dlda.dims + self.secondary.as_ref().map_or(0, |s| s.dlda.dims)
     }
 
     pub fn save(&self, path: &Path) -> anyhow::Result<()> {
@@ -142,6 +179,19 @@ impl Model {
         }
         let mask = model.normalize.mask();
         let dims = model.features.dims(model.normalize.width, model.normalize.height, &mask);
+        if let Some(second) = &model.secondary {
+            let d = &second.dlda;
+            if d.input_dims != dims
+                || d.projection.len() != d.dims * dims
+                || d.mean.len() != dims
+                || second.normalization == model.normalization
+            {
+                return Err(err("the second path's projection does not match the feature layout".into()));
+            }
+        }
+        if model.cohort.as_ref().is_some_and(|c| c.dims != model.template_dims()) {
+            return Err(err("the score-normalisation cohort does not match the template dimension".into()));
+        }
         if dims != model.dlda.input_dims || model.dlda.projection.len() != model.dlda.dims * dims || model.dlda.mean.len() != dims {
             return Err(err("projection does not match the feature layout".into()));
         }
@@ -184,33 +234,93 @@ impl Recognizer {
         self.model.normalization
     }
 
+    /// The normalisation paths a template is made of, primary first (two for a fused model).
+    pub fn paths(&self) -> Vec<Normalization> {
+        self.model.paths()
+    }
+
     /// The normalised crop of a face (geometric and photometric), as the model sees it.
     pub fn normalized_crop(&self, gray: &GrayF32, keypoints: &KeyPoints) -> GrayF32 {
         normalize::normalize(gray, keypoints, &self.model.normalize)
     }
 
-    /// Template of a normalised crop (see [`Recognizer::normalized_crop`]).
-    pub fn template_of_crop(&self, crop: &GrayF32) -> Template {
-        let features = self.model.features.extract(crop, &self.mask);
-        Template::new(&self.version, self.model.dlda.project(&features))
+    /// Template of normalised crops (see [`Recognizer::normalized_crop`]), one per path of
+    /// [`Recognizer::paths`].
+    pub fn template_of_crops(&self, crops: &[&GrayF32]) -> Result<Template, RecognizeError> {
+        let expected = 1 + self.model.secondary.is_some() as usize;
+        if crops.len() != expected {
+            return Err(RecognizeError::Views { expected, found: crops.len() });
+        }
+        let primary = self.model.features.extract(crops[0], &self.mask);
+        let mut vector = unit(self.model.dlda.project(&primary));
+        if let Some(second) = &self.model.secondary {
+            let w = second.weight.clamp(0.0, 1.0);
+            vector.iter_mut().for_each(|v| *v *= (1.0 - w).sqrt());
+            let features = self.model.features.extract(crops[1], &self.mask);
+            vector.extend(unit(second.dlda.project(&features)).into_iter().map(|v| v * w.sqrt()));
+        }
+        Ok(Template::new(&self.version, vector))
     }
 
-    /// Template of a face in `gray` whose eye and mouth centres are `keypoints`.
+    /// Template of a face seen through each path of [`Recognizer::paths`]: per path, the grey
+    /// image (the photo, or the 3DMM's frontal rendering) and its eye and mouth centres.
+    pub fn template_of_views(&self, views: &[(&GrayF32, &KeyPoints)]) -> Result<Template, RecognizeError> {
+        let crops: Vec<GrayF32> = views.iter().map(|(g, k)| self.normalized_crop(g, k)).collect();
+        self.template_of_crops(&crops.iter().collect::<Vec<_>>())
+    }
+
+    /// Template of one normalised crop. For a fused model the crop stands in for every path
+    /// (use [`Recognizer::template_of_crops`] with each path's own crop).
+    pub fn template_of_crop(&self, crop: &GrayF32) -> Template {
+        let crops = vec![crop; 1 + self.model.secondary.is_some() as usize];
+        self.template_of_crops(&crops).expect("one crop per path")
+    }
+
+    /// Template of a face in `gray` whose eye and mouth centres are `keypoints`. For a fused model
+    /// this one view stands in for every path (use [`Recognizer::template_of_views`]).
     pub fn template(&self, gray: &GrayF32, keypoints: &KeyPoints) -> Template {
         self.template_of_crop(&self.normalized_crop(gray, keypoints))
     }
 
     /// Score of a probe against one subject's templates (higher is more alike), combining
-    /// several templates by the model's measured rule (max or mean of the cosines).
+    /// several templates by the model's measured rule (max or mean). With a cohort in the model
+    /// each cosine is S-normalised first ([`score_norm`]); the thresholds are calibrated on the
+    /// same scores.
     ///
     /// Templates made by another model version (or of another length) cannot be compared: they
-    /// are left out, and when nothing comparable is left the score is −1, the lowest cosine, which
-    /// never reaches a threshold. Use [`Recognizer::try_score`] to get that as an error.
+    /// are left out, and when nothing comparable is left the score is [`Recognizer::no_match`],
+    /// far below every threshold. Use [`Recognizer::try_score`] to get that as an error.
     pub fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
         if !self.comparable(probe) {
-            return -1.0;
+            return self.no_match();
         }
-        self.model.combine.apply(enrolled.iter().filter(|t| self.comparable(t)).map(|t| probe.cosine(t))).unwrap_or(-1.0)
+        let probe_stats = self.cohort_stats(probe);
+        self.model
+            .combine
+            .apply(enrolled.iter().filter(|t| self.comparable(t)).map(|t| self.pair_score(probe, probe_stats, t, self.cohort_stats(t))))
+            .unwrap_or(self.no_match())
+    }
+
+    /// The score given when nothing is comparable: −1 without a cohort (the lowest cosine), and
+    /// far below any normalised score with one (finite, so that it serialises as JSON).
+    pub fn no_match(&self) -> f32 {
+        if self.model.cohort.is_some() { -1000.0 } else { -1.0 }
+    }
+
+    /// A template's cosine statistics against the model's cohort (neutral without a cohort), to
+    /// be passed to [`Recognizer::pair_score`] when one template is scored many times.
+    pub fn cohort_stats(&self, t: &Template) -> CohortStats {
+        match &self.model.cohort {
+            Some(c) => c.stats(&t.vector),
+            None => CohortStats { mean: 0.0, inv_std: 1.0 },
+        }
+    }
+
+    /// The score of one pair of templates with their [`Recognizer::cohort_stats`]: the cosine,
+    /// S-normalised when the model has a cohort.
+    pub fn pair_score(&self, a: &Template, a_stats: CohortStats, b: &Template, b_stats: CohortStats) -> f32 {
+        let cosine = a.cosine(b);
+        if self.model.cohort.is_some() { score_norm::s_norm(cosine, a_stats, b_stats) } else { cosine }
     }
 
     /// [`Recognizer::score`] with a typed error for templates of another model version.
@@ -229,8 +339,8 @@ impl Recognizer {
         if template.model_version != self.version {
             return Err(RecognizeError::ModelVersionMismatch { expected: self.version.clone(), found: template.model_version.clone() });
         }
-        if template.vector.len() != self.model.dlda.dims {
-            return Err(RecognizeError::TemplateDimension { expected: self.model.dlda.dims, found: template.vector.len() });
+        if template.vector.len() != self.model.template_dims() {
+            return Err(RecognizeError::TemplateDimension { expected: self.model.template_dims(), found: template.vector.len() });
         }
         Ok(())
     }
@@ -245,7 +355,82 @@ impl Recognizer {
     }
 }
 
+/// `v` scaled to unit length (a zero vector stays zero).
+fn unit(mut v: Vec<f32>) -> Vec<f32> {
+    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    if norm.is_finite() && norm > 0.0 {
+        v.iter_mut().for_each(|x| *x /= norm);
+    }
+    v
+}
+
 /// The default location of the committed model.
 pub fn default_model_path() -> PathBuf {
     crate::config::models_dir().join(MODEL_FILE)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn projection(input_dims: usize, dims: usize, seed: u32) -> Dlda {
+        // A fixed pseudo-random projection (what is tested is the fusion, not the training).
+        let value =
+            |i: usize| (((i as u32).wrapping_mul(2654435761).wrapping_add(seed.wrapping_mul(40503)) >> 8) % 1000) as f32 / 500.0 - 1.0;
+        Dlda {
+            input_dims,
+            dims,
+            mean: vec![0.0; input_dims],
+            projection: (0..input_dims * dims).map(value).collect(),
+            within_eigenvalues: vec![1.0; dims],
+        }
+    }
+
+    /// A fused model's template is both paths' unit projections, weighted so that the cosine of two
+    /// templates is the weighted mean of the two paths' cosines; it needs one crop per path.
+    #[test]
+    fn fused_templates_score_the_weighted_mean_of_the_paths() {
+        let params = NormalizeParams::default();
+        let mask = params.mask();
+        let dims = FeatureKind::Pixels.dims(params.width, params.height, &mask);
+        let provenance = Provenance {
+            keypoint_source: String::new(),
+            data: Vec::new(),
+            train_persons: Vec::new(),
+            train_images: 0,
+            calibration_persons: Vec::new(),
+            calibration_images: 0,
+            mirrored: false,
+        };
+        let single = Model::new(Normalization::Morph, params.clone(), FeatureKind::Pixels, projection(dims, 5, 1), provenance.clone());
+        let mut fused = single.clone();
+        fused.secondary = Some(SecondaryPath { normalization: Normalization::TwoD, dlda: projection(dims, 4, 2), weight: 0.3 });
+        assert_ne!(single.version(), fused.version());
+        assert_eq!((fused.template_dims(), fused.paths()), (9, vec![Normalization::Morph, Normalization::TwoD]));
+        let crop = |k: usize| GrayF32::from_fn(params.width, params.height, |x, y| ((x * (3 + k) + y * (7 + 2 * k)) % 13) as f32);
+        let (a, b, c, d) = (crop(0), crop(1), crop(2), crop(3));
+        let fused = Recognizer::from_model(fused);
+        assert!(matches!(fused.template_of_crops(&[&a]), Err(RecognizeError::Views { expected: 2, found: 1 })));
+        let (t1, t2) = (fused.template_of_crops(&[&a, &b]).unwrap(), fused.template_of_crops(&[&c, &d]).unwrap());
+        assert_eq!(t1.vector.len(), 9);
+        // The paths' own cosines, from their unit projections.
+        let cos = |dlda: &Dlda, x: &GrayF32, y: &GrayF32| {
+            let (p, q) = (dlda.project(&FeatureKind::Pixels.extract(x, &mask)), dlda.project(&FeatureKind::Pixels.extract(y, &mask)));
+            Template::new("v", p).cosine(&Template::new("v", q))
+        };
+        let m = fused.model();
+        let expected = 0.7 * cos(&m.dlda, &a, &c) + 0.3 * cos(&m.secondary.as_ref().unwrap().dlda, &b, &d);
+        assert!((fused.score(&t1, std::slice::from_ref(&t2)) - expected).abs() < 1e-5);
+        // Templates of the single-path model are not comparable with the fused ones.
+        let single = Recognizer::from_model(single);
+        let t3 = single.template_of_crop(&a);
+        assert!(fused.try_score(&t1, &[t3.clone()]).is_err());
+        assert_eq!(fused.score(&t1, &[t3]), -1.0);
+        // The model file round-trips, fusion included.
+        let dir = std::env::temp_dir().join(format!("facegate-fused-test-{}", std::process::id()));
+        fused.model().save(&dir.join(MODEL_FILE)).unwrap();
+        let loaded = Recognizer::load(&dir).unwrap();
+        assert_eq!((loaded.model_version(), loaded.template_of_crops(&[&a, &b]).unwrap()), (fused.model_version(), t1));
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

@@ -14,7 +14,7 @@ use super::dlda::{Dlda, DldaParams};
 use super::features::FeatureKind;
 use super::normalize::{self, NormalizeParams};
 use super::template::{Combine, Template};
-use super::{Model, Normalization, Provenance, Recognizer};
+use super::{Cohort, Model, Normalization, Provenance, Recognizer, SecondaryPath};
 use crate::dataset::{self, IMM_POINTS, KeyPoints};
 use crate::detect::Detector;
 use crate::eval::verification::{VerificationSummary, eer, summarize};
@@ -155,6 +155,8 @@ impl FrontEnd {
 pub struct AlignedFace {
     pub face: FaceImage,
     pub crop: GrayF32,
+    /// The crop on the second path of a fused model (see [`align_paths`]).
+    pub secondary_crop: Option<GrayF32>,
     pub pose: Option<Pose>,
     pub keypoint_source: &'static str,
 }
@@ -174,6 +176,7 @@ pub fn align_all(
             Ok(p) => out.push(AlignedFace {
                 face: face.clone(),
                 crop: normalize::geometric(&p.gray, &p.keypoints, params),
+                secondary_crop: None,
                 pose: p.pose,
                 keypoint_source: p.keypoint_source,
             }),
@@ -238,6 +241,7 @@ pub fn align_all_cached(
             .map(|(e, f)| AlignedFace {
                 face: f.clone(),
                 crop: GrayF32 { width: e.1, height: e.2, data: e.3.clone() },
+                secondary_crop: None,
                 pose: None,
                 keypoint_source: source_name(&e.4),
             })
@@ -253,6 +257,36 @@ pub fn align_all_cached(
     Ok(aligned)
 }
 
+/// Crops of `faces` on each normalisation path of `paths` (primary first): the primary crop in
+/// `crop`, the second path's in `secondary_crop`; photos that fail on any path are left out. With
+/// `cache`, each path's crops go through [`align_all_cached`].
+pub fn align_paths(
+    cache: Option<&Path>,
+    source: KeypointSource,
+    front_end: &FrontEnd,
+    faces: &[FaceImage],
+    paths: &[Normalization],
+    params: &NormalizeParams,
+) -> anyhow::Result<Vec<AlignedFace>> {
+    let align = |normalization| match cache {
+        Some(dir) => align_all_cached(dir, source, front_end, faces, normalization, params),
+        None => Ok(align_all(front_end, faces, normalization, params, true)),
+    };
+    let (&primary, rest) = paths.split_first().ok_or_else(|| anyhow::anyhow!("no normalisation path"))?;
+    let mut aligned = align(primary)?;
+    if let Some(&second) = rest.first() {
+        let mut by_path: BTreeMap<PathBuf, GrayF32> = align(second)?.into_iter().map(|a| (a.face.image, a.crop)).collect();
+        aligned.retain_mut(|a| match by_path.remove(&a.face.image) {
+            Some(crop) => {
+                a.secondary_crop = Some(crop);
+                true
+            }
+            None => false,
+        });
+    }
+    Ok(aligned)
+}
+
 /// What a training run is made of.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TrainConfig {
@@ -265,6 +299,13 @@ pub struct TrainConfig {
     /// Randomly perturbed copies of each training crop (shift ±1 px, scale ±4 %, rotation ±3°),
     /// standing in for keypoint noise.
     pub jitter: usize,
+    /// Cohort score normalisation with the training photos' templates as the cohort: `Some(0)`
+    /// S-norm over the whole cohort, `Some(k)` AS-norm over each face's k closest; `None`: raw cosines.
+    pub cohort_top_k: Option<usize>,
+    /// Fuse a second projection trained on this path's crops (`AlignedFace::secondary_crop`).
+    pub secondary: Option<Normalization>,
+    /// The second path's weight in the fused score.
+    pub secondary_weight: f32,
 }
 
 impl Default for TrainConfig {
@@ -276,6 +317,9 @@ impl Default for TrainConfig {
             dlda: DldaParams::default(),
             mirror: true,
             jitter: 0,
+            cohort_top_k: None,
+            secondary: None,
+            secondary_weight: 0.5,
         }
     }
 }
@@ -291,20 +335,30 @@ pub struct HeldOutReport {
     pub combine: Combine,
 }
 
-/// Template of an aligned crop under a model (photometric normalisation, features, projection).
-pub fn template_of(recognizer: &Recognizer, aligned: &GrayF32) -> Template {
-    let mut crop = aligned.clone();
+/// Template of an aligned face under a model (photometric normalisation, features, projection; the
+/// second path's crop too for a fused model).
+pub fn template_of(recognizer: &Recognizer, aligned: &AlignedFace) -> Template {
     let params = &recognizer.model().normalize;
-    normalize::photometric(&mut crop, params.photometric, &params.mask());
-    recognizer.template_of_crop(&crop)
+    let relit = |c: &GrayF32| {
+        let mut crop = c.clone();
+        normalize::photometric(&mut crop, params.photometric, &params.mask());
+        crop
+    };
+    let mut crops = vec![relit(&aligned.crop)];
+    if recognizer.model().secondary.is_some() {
+        crops.extend(aligned.secondary_crop.as_ref().map(relit));
+    }
+    recognizer.template_of_crops(&crops.iter().collect::<Vec<_>>()).unwrap_or_else(|_| recognizer.template_of_crop(&crops[0]))
 }
 
-/// Genuine and impostor scores of all pairs of templates (one template each).
-pub fn pair_scores(templates: &[(String, Template)]) -> (Vec<f32>, Vec<f32>) {
+/// Genuine and impostor scores of all pairs of templates (one template each), scored as the
+/// recognizer scores (cosines, S-normalised when the model has a cohort).
+pub fn pair_scores(recognizer: &Recognizer, templates: &[(String, Template)]) -> (Vec<f32>, Vec<f32>) {
+    let stats: Vec<_> = templates.iter().map(|(_, t)| recognizer.cohort_stats(t)).collect();
     let (mut genuine, mut impostor) = (Vec::new(), Vec::new());
     for i in 0..templates.len() {
         for j in i + 1..templates.len() {
-            let s = templates[i].1.cosine(&templates[j].1);
+            let s = recognizer.pair_score(&templates[i].1, stats[i], &templates[j].1, stats[j]);
             if templates[i].0 == templates[j].0 { genuine.push(s) } else { impostor.push(s) }
         }
     }
@@ -312,7 +366,8 @@ pub fn pair_scores(templates: &[(String, Template)]) -> (Vec<f32>, Vec<f32>) {
 }
 
 /// Genuine and impostor scores of each template against every person's other templates, combined.
-pub fn combined_scores(templates: &[(String, Template)], combine: Combine) -> (Vec<f32>, Vec<f32>) {
+pub fn combined_scores(recognizer: &Recognizer, templates: &[(String, Template)], combine: Combine) -> (Vec<f32>, Vec<f32>) {
+    let stats: Vec<_> = templates.iter().map(|(_, t)| recognizer.cohort_stats(t)).collect();
     let mut by_person: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
     for (i, (label, _)) in templates.iter().enumerate() {
         by_person.entry(label).or_default().push(i);
@@ -320,7 +375,11 @@ pub fn combined_scores(templates: &[(String, Template)], combine: Combine) -> (V
     let (mut genuine, mut impostor) = (Vec::new(), Vec::new());
     for (p, (label, probe)) in templates.iter().enumerate() {
         for (person, idx) in &by_person {
-            let Some(s) = combine.apply(idx.iter().filter(|&&i| i != p).map(|&i| probe.cosine(&templates[i].1))) else { continue };
+            let Some(s) =
+                combine.apply(idx.iter().filter(|&&i| i != p).map(|&i| recognizer.pair_score(probe, stats[p], &templates[i].1, stats[i])))
+            else {
+                continue;
+            };
             if *person == label.as_str() { genuine.push(s) } else { impostor.push(s) }
         }
     }
@@ -354,25 +413,37 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
     let mut labels: Vec<String> = train.iter().map(|a| a.face.label.clone()).collect();
     labels.sort();
     labels.dedup();
-    let mut xs = Vec::new();
-    let mut ys = Vec::new();
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2011);
-    for a in &train {
-        let y = labels.binary_search(&a.face.label).expect("label listed");
-        let mut crops = vec![a.crop.clone()];
-        if config.mirror {
-            crops.push(normalize::mirror(&a.crop));
-        }
-        for base in crops {
-            for _ in 0..config.jitter {
-                xs.push(features_of(&jittered(&base, &mut rng)));
+    let project = |crop_of: &dyn Fn(&AlignedFace) -> Option<&GrayF32>| -> anyhow::Result<Dlda> {
+        let mut xs = Vec::new();
+        let mut ys = Vec::new();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2011);
+        for a in &train {
+            let y = labels.binary_search(&a.face.label).expect("label listed");
+            let crop = crop_of(a).ok_or_else(|| anyhow::anyhow!("{}: no crop on the second path", a.face.image.display()))?;
+            let mut crops = vec![crop.clone()];
+            if config.mirror {
+                crops.push(normalize::mirror(crop));
+            }
+            for base in crops {
+                for _ in 0..config.jitter {
+                    xs.push(features_of(&jittered(&base, &mut rng)));
+                    ys.push(y);
+                }
+                xs.push(features_of(&base));
                 ys.push(y);
             }
-            xs.push(features_of(&base));
-            ys.push(y);
         }
-    }
-    let dlda = Dlda::train(&xs, &ys, &config.dlda)?;
+        Ok(Dlda::train(&xs, &ys, &config.dlda)?)
+    };
+    let dlda = project(&|a| Some(&a.crop))?;
+    let secondary = match config.secondary {
+        Some(normalization) => {
+            anyhow::ensure!(normalization != config.normalization, "the second path must differ from the first");
+            anyhow::ensure!(held.iter().all(|a| a.secondary_crop.is_some()), "held-out photos without a crop on the second path");
+            Some(SecondaryPath { normalization, dlda: project(&|a| a.secondary_crop.as_ref())?, weight: config.secondary_weight })
+        }
+        None => None,
+    };
     let mut held_persons: Vec<String> = held.iter().map(|a| a.face.label.clone()).collect();
     held_persons.sort();
     held_persons.dedup();
@@ -391,9 +462,16 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
         mirrored: config.mirror,
     };
     let mut model = Model::new(config.normalization, config.normalize.clone(), config.features, dlda, provenance);
+    model.secondary = secondary;
+    if let Some(top_k) = config.cohort_top_k {
+        // The cohort: one template per training photo (not the mirrored copies), never a held-out person.
+        let raw = Recognizer::from_model(model.clone());
+        let vectors: Vec<Vec<f32>> = train.iter().map(|a| template_of(&raw, a).vector).collect();
+        model.cohort = Some(Cohort::new(model.template_dims(), &vectors, top_k));
+    }
     let recognizer = Recognizer::from_model(model.clone());
-    let templates: Vec<(String, Template)> = held.iter().map(|a| (a.face.label.clone(), template_of(&recognizer, &a.crop))).collect();
-    let (genuine, impostor) = pair_scores(&templates);
+    let templates: Vec<(String, Template)> = held.iter().map(|a| (a.face.label.clone(), template_of(&recognizer, a))).collect();
+    let (genuine, impostor) = pair_scores(&recognizer, &templates);
     anyhow::ensure!(
         !genuine.is_empty() && !impostor.is_empty(),
         "the held-out persons give no genuine or no impostor pairs to calibrate on"
@@ -404,8 +482,8 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
         &CALIBRATED_FMRS,
         &format!("all pairs of {} photos of {} held-out persons; keypoints: {keypoint_source}", held.len(), held_persons.len()),
     );
-    let (gm, im) = combined_scores(&templates, Combine::Max);
-    let (ga, ia) = combined_scores(&templates, Combine::Mean);
+    let (gm, im) = combined_scores(&recognizer, &templates, Combine::Max);
+    let (ga, ia) = combined_scores(&recognizer, &templates, Combine::Mean);
     let (eer_max, eer_mean) = (eer(&gm, &im), eer(&ga, &ia));
     model.combine = if eer_mean < eer_max { Combine::Mean } else { Combine::Max };
     let report = HeldOutReport {
@@ -472,7 +550,7 @@ mod tests {
         let (model, report) = train_model(&aligned, &config, &["imm".into()]).unwrap();
         let recognizer = Recognizer::from_model(model.clone());
         let a = aligned.iter().find(|a| !a.face.held_out).unwrap();
-        let t1 = template_of(&recognizer, &a.crop);
+        let t1 = template_of(&recognizer, a);
         let prepared = front.prepare(&a.face, Normalization::TwoD).unwrap();
         let t2 = recognizer.template(&prepared.gray, &prepared.keypoints);
         assert!(t1.cosine(&t2) > 0.9999, "same photo, same template");
@@ -487,7 +565,7 @@ mod tests {
         model.save(&dir.join("dlda.bin")).unwrap();
         let loaded = Recognizer::load(&dir).unwrap();
         assert_eq!(loaded.model_version(), recognizer.model_version());
-        assert_eq!(template_of(&loaded, &a.crop), t1);
+        assert_eq!(template_of(&loaded, a), t1);
         std::fs::remove_dir_all(&dir).ok();
         // Versions are enforced.
         let mut foreign = t1.clone();
