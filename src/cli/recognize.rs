@@ -115,8 +115,9 @@ pub struct ModelOptions {
     pub score_norm: ScoreNormArg,
     #[arg(long, default_value_t = 50)]
     pub cohort_top_k: usize,
-    /// With `--normalization 3dmm+2d`: weight of the 2D path's cosine in the fused score.
-    #[arg(long, default_value_t = 0.5)]
+    /// With `--normalization 3dmm+2d`: weight of the 2D path's cosine in the fused score (0.3: the
+    /// lowest cross-validated FNMR at FMR 1e-3, the service's operating point; docs/recognition.md).
+    #[arg(long, default_value_t = 0.3)]
     pub fuse_weight: f32,
 }
 

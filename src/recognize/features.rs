@@ -113,10 +113,29 @@ fn lbp_histograms(crop: &GrayF32, grid: usize) -> Vec<f32> {
 fn lbp2_histograms(crop: &GrayF32, grid: usize) -> Vec<f32> {
     let d = std::f32::consts::FRAC_1_SQRT_2 * 2.0;
     let offsets: [(f32, f32); 8] = [(-d, -d), (0.0, -2.0), (d, -d), (2.0, 0.0), (d, d), (0.0, 2.0), (-d, d), (-2.0, 0.0)];
+    // The bilinear weights are the same at every pixel: per neighbour, the integer corner of its
+    // 2×2 cell and the fractions (the axis neighbours fall on pixels and are read directly).
+    let w = crop.width as isize;
+    let taps: [(isize, f32, f32); 8] = offsets.map(|(dx, dy)| {
+        let (fx, fy) = (dx - dx.floor(), dy - dy.floor());
+        (dy.floor() as isize * w + dx.floor() as isize, fx, fy)
+    });
+    let data = &crop.data;
     lbp_cell_histograms(crop, grid, 2, |x, y, centre| {
+        let at = (y * crop.width + x) as isize;
         let mut code = 0u8;
-        for (bit, (dx, dy)) in offsets.iter().enumerate() {
-            if crop.sample(x as f32 + dx, y as f32 + dy) >= centre {
+        for (bit, &(offset, fx, fy)) in taps.iter().enumerate() {
+            let i = (at + offset) as usize;
+            let value = if fx == 0.0 && fy == 0.0 {
+                data[i]
+            } else {
+                // Inside the image: pixels at least 2 from the border, corners at most 1 + 1 away.
+                let j = i + crop.width;
+                let top = data[i] + fx * (data[i + 1] - data[i]);
+                let bottom = data[j] + fx * (data[j + 1] - data[j]);
+                top + fy * (bottom - top)
+            };
+            if value >= centre {
                 code |= 1 << bit;
             }
         }
@@ -152,6 +171,25 @@ fn lbp_cell_histograms(crop: &GrayF32, grid: usize, radius: usize, code: impl Fn
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The fixed-weight LBP(8,2) agrees with sampling every neighbour through `GrayF32::sample`.
+    #[test]
+    fn lbp2_matches_bilinear_sampling() {
+        let crop = GrayF32::from_fn(24, 20, |x, y| ((x * 13 + y * 7 + x * y) % 17) as f32 + 0.25 * x as f32);
+        let d = std::f32::consts::FRAC_1_SQRT_2 * 2.0;
+        let offsets: [(f32, f32); 8] = [(-d, -d), (0.0, -2.0), (d, -d), (2.0, 0.0), (d, d), (0.0, 2.0), (-d, d), (-2.0, 0.0)];
+        let reference = lbp_cell_histograms(&crop, 2, 2, |x, y, centre| {
+            let mut code = 0u8;
+            for (bit, (dx, dy)) in offsets.iter().enumerate() {
+                if crop.sample(x as f32 + dx, y as f32 + dy) >= centre - 1e-4 {
+                    code |= 1 << bit;
+                }
+            }
+            code
+        });
+        let fast = lbp2_histograms(&crop, 2);
+        assert!(reference.iter().zip(&fast).all(|(a, b)| (a - b).abs() < 1e-6), "{reference:?}\n{fast:?}");
+    }
 
     #[test]
     fn uniform_lbp_table_has_58_uniform_patterns() {

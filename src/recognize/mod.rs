@@ -204,6 +204,8 @@ pub struct Recognizer {
     model: Model,
     version: String,
     mask: Vec<bool>,
+    /// `P · mean` of the primary and the second projection (see [`Dlda::offsets`]).
+    offsets: Vec<Vec<f32>>,
 }
 
 impl Recognizer {
@@ -219,7 +221,8 @@ impl Recognizer {
     pub fn from_model(model: Model) -> Recognizer {
         let version = model.version();
         let mask = model.normalize.mask();
-        Recognizer { model, version, mask }
+        let offsets = std::iter::once(&model.dlda).chain(model.secondary.as_ref().map(|s| &s.dlda)).map(Dlda::offsets).collect();
+        Recognizer { model, version, mask, offsets }
     }
 
     pub fn model(&self) -> &Model {
@@ -252,12 +255,12 @@ impl Recognizer {
             return Err(RecognizeError::Views { expected, found: crops.len() });
         }
         let primary = self.model.features.extract(crops[0], &self.mask);
-        let mut vector = unit(self.model.dlda.project(&primary));
+        let mut vector = unit(self.model.dlda.project_with_offsets(&primary, &self.offsets[0]));
         if let Some(second) = &self.model.secondary {
             let w = second.weight.clamp(0.0, 1.0);
             vector.iter_mut().for_each(|v| *v *= (1.0 - w).sqrt());
             let features = self.model.features.extract(crops[1], &self.mask);
-            vector.extend(unit(second.dlda.project(&features)).into_iter().map(|v| v * w.sqrt()));
+            vector.extend(unit(second.dlda.project_with_offsets(&features, &self.offsets[1])).into_iter().map(|v| v * w.sqrt()));
         }
         Ok(Template::new(&self.version, vector))
     }

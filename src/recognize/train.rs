@@ -319,7 +319,7 @@ impl Default for TrainConfig {
             jitter: 0,
             cohort_top_k: None,
             secondary: None,
-            secondary_weight: 0.5,
+            secondary_weight: 0.3,
         }
     }
 }
