@@ -236,12 +236,57 @@ struct OptNode {
     three_rects: bool,
 }
 
+/// How a weak classifier's tree is evaluated. OpenCV's frontal cascades are made of trees of two
+/// nodes (a root and one child): those are evaluated without branches (both features computed,
+/// the leaf chosen by selects), because the data-dependent branch of a tree walk is mispredicted
+/// about as often as not and a misprediction costs more than the second feature.
+#[derive(Debug, Clone, Copy)]
+enum TreeShape {
+    /// One node, two leaves.
+    Stump,
+    /// A root whose one child is node 1.
+    Pair,
+    /// Anything else: walked node by node.
+    General,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct TreePlan {
+    first_node: u32,
+    first_leaf: u32,
+    shape: TreeShape,
+}
+
+/// The cascade laid out for one integral-image stride.
+struct Plan {
+    nodes: Vec<OptNode>,
+    trees: Vec<TreePlan>,
+}
+
 /// Sum of the integral-image rectangle whose corners are `c`, for the window at `window[0]`.
 #[inline(always)]
 fn rect_sum(window: &[i32], c: &[u32; 4]) -> i32 {
     // Wrapping: the result is exact (it is a sum of at most 255·20·20), and skipping the overflow
     // checks of debug builds keeps the test profile's scan as fast as the release one.
     window[c[0] as usize].wrapping_sub(window[c[1] as usize]).wrapping_sub(window[c[2] as usize]).wrapping_add(window[c[3] as usize])
+}
+
+/// Whether the node's feature on this window falls on its left side (`value / norm < threshold`,
+/// without the division).
+#[inline(always)]
+fn goes_left(window: &[i32], node: &OptNode, norm: f32) -> bool {
+    let mut value = node.weights[0] * rect_sum(window, &node.corners[0]) as f32 + node.weights[1] * rect_sum(window, &node.corners[1]) as f32;
+    if node.three_rects {
+        value += node.weights[2] * rect_sum(window, &node.corners[2]) as f32;
+    }
+    value < node.threshold * norm
+}
+
+/// `if c { a } else { b }` as arithmetic, so the compiler emits no branch.
+#[inline(always)]
+fn select(c: bool, a: i32, b: i32) -> i32 {
+    let mask = -(c as i32);
+    (a & mask) | (b & !mask)
 }
 
 /// Scratch buffers reused across the scales of one image.
@@ -260,8 +305,9 @@ impl Scratch {
 }
 
 impl Cascade {
-    fn optimise(&self, stride: usize) -> Vec<OptNode> {
-        self.nodes
+    fn plan(&self, stride: usize) -> Plan {
+        let nodes: Vec<OptNode> = self
+            .nodes
             .iter()
             .map(|n| {
                 let f = &self.features[n.feature as usize];
@@ -277,33 +323,60 @@ impl Cascade {
                 }
                 OptNode { corners, weights: f.weights, threshold: n.threshold, left: n.left, right: n.right, three_rects: f.count == 3 }
             })
-            .collect()
+            .collect();
+        let trees = self
+            .weaks
+            .iter()
+            .enumerate()
+            .map(|(i, weak)| {
+                let end = self.weaks.get(i + 1).map_or(self.nodes.len(), |next| next.first_node as usize);
+                let tree = &self.nodes[weak.first_node as usize..end];
+                let shape = match tree {
+                    [root] if root.left <= 0 && root.right <= 0 => TreeShape::Stump,
+                    [root, child] if child.left <= 0 && child.right <= 0 && (root.left == 1) != (root.right == 1) && root.left <= 1 && root.right <= 1 => {
+                        TreeShape::Pair
+                    }
+                    _ => TreeShape::General,
+                };
+                TreePlan { first_node: weak.first_node, first_leaf: weak.first_leaf, shape }
+            })
+            .collect();
+        Plan { nodes, trees }
     }
 
     /// Run the cascade on the window whose top-left integral index is `p`. Returns the index of
     /// the rejecting stage, or `None` when every stage accepts.
     #[inline]
-    fn run_at(&self, nodes: &[OptNode], sum: &[i32], p: usize, norm: f32) -> Option<usize> {
+    fn run_at(&self, plan: &Plan, sum: &[i32], p: usize, norm: f32) -> Option<usize> {
         let window = &sum[p..];
         for (si, stage) in self.stages.iter().enumerate() {
             let mut stage_sum = 0.0f32;
-            for weak in &self.weaks[stage.first_weak as usize..(stage.first_weak + stage.weak_count) as usize] {
-                let tree = &nodes[weak.first_node as usize..];
-                let mut idx = 0i32;
-                loop {
-                    let node = &tree[idx as usize];
-                    let mut value = node.weights[0] * rect_sum(window, &node.corners[0]) as f32
-                        + node.weights[1] * rect_sum(window, &node.corners[1]) as f32;
-                    if node.three_rects {
-                        value += node.weights[2] * rect_sum(window, &node.corners[2]) as f32;
+            for tree in &plan.trees[stage.first_weak as usize..(stage.first_weak + stage.weak_count) as usize] {
+                let nodes = &plan.nodes[tree.first_node as usize..];
+                // The leaf is `-idx` once `idx` ≤ 0.
+                let idx = match tree.shape {
+                    TreeShape::Stump => {
+                        let root = &nodes[0];
+                        select(goes_left(window, root, norm), root.left, root.right)
                     }
-                    // value / norm < threshold, without the division.
-                    idx = if value < node.threshold * norm { node.left } else { node.right };
-                    if idx <= 0 {
-                        break;
+                    TreeShape::Pair => {
+                        let (root, child) = (&nodes[0], &nodes[1]);
+                        let at_root = select(goes_left(window, root, norm), root.left, root.right);
+                        let at_child = select(goes_left(window, child, norm), child.left, child.right);
+                        select(at_root > 0, at_child, at_root)
                     }
-                }
-                stage_sum += self.leaves[(weak.first_leaf as i32 - idx) as usize];
+                    TreeShape::General => {
+                        let mut idx = 0i32;
+                        loop {
+                            let node = &nodes[idx as usize];
+                            idx = if goes_left(window, node, norm) { node.left } else { node.right };
+                            if idx <= 0 {
+                                break idx;
+                            }
+                        }
+                    }
+                };
+                stage_sum += self.leaves[(tree.first_leaf as i32 - idx) as usize];
             }
             if stage_sum < stage.threshold {
                 return Some(si);
@@ -340,7 +413,7 @@ impl Cascade {
             (base.height as f32 * base_factor / first_scale).round() as usize,
         );
         let mut scratch = Scratch::new(level0.0.max(1), level0.1.max(1));
-        let nodes = self.optimise(scratch.stride);
+        let plan = self.plan(scratch.stride);
         let norm_area = ((self.window_width - 2) * (self.window_height - 2)) as f64;
         let norm_ofs = [
             scratch.stride + 1,
@@ -368,7 +441,7 @@ impl Cascade {
                     let sq = sqsum[p + norm_ofs[0]] - sqsum[p + norm_ofs[1]] - sqsum[p + norm_ofs[2]] + sqsum[p + norm_ofs[3]];
                     let nf = norm_area * sq - s * s;
                     let norm = if nf > 0.0 { nf.sqrt() as f32 } else { 1.0 };
-                    match self.run_at(&nodes, sum, p, norm) {
+                    match self.run_at(&plan, sum, p, norm) {
                         None => hits.push(Rect::new(x as f32 * scale, y as f32 * scale, ww * scale, wh * scale)),
                         // Rejected by the very first stage: the neighbour is very likely no face either.
                         Some(0) => x += step,
@@ -388,6 +461,16 @@ impl Cascade {
         self.scan(gray, opts, &mut raw);
         group_rectangles(&raw, opts.min_neighbours, opts.group_eps)
     }
+}
+
+/// `v.round()` for a pixel clamped to 0..=255, without the libm call `round` becomes on baseline
+/// x86-64 (no SSE4.1): truncation and the exact fractional part give the same half-away-from-zero
+/// rounding.
+#[inline(always)]
+fn round_pixel(v: f32) -> i32 {
+    let v = v.clamp(0.0, 255.0);
+    let t = v as i32;
+    t + ((v - t as f32) >= 0.5) as i32
 }
 
 /// Resize `base` bilinearly to `lw × lh` and build the integral and squared integral images of the
@@ -431,7 +514,7 @@ fn fill_integral(base: &GrayF32, lw: usize, lh: usize, scratch: &mut Scratch) {
         qcur[0] = 0.0;
         let (mut acc, mut qacc) = (0i32, 0.0f64);
         for x in 0..lw {
-            let v = row[x].round().clamp(0.0, 255.0) as i32;
+            let v = round_pixel(row[x]);
             acc += v;
             qacc += (v * v) as f64;
             cur[x + 1] = prev[x + 1] + acc;
