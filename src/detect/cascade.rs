@@ -261,21 +261,30 @@ struct TreePlan {
 struct Plan {
     nodes: Vec<OptNode>,
     trees: Vec<TreePlan>,
+    /// One past the largest offset a node reads from a window's top-left integral index: the
+    /// integral rectangle of the window itself.
+    extent: usize,
 }
 
 /// Sum of the integral-image rectangle whose corners are `c`, for the window at `window[0]`.
 #[inline(always)]
 fn rect_sum(window: &[i32], c: &[u32; 4]) -> i32 {
+    debug_assert!(c.iter().all(|&o| (o as usize) < window.len()));
+    // SAFETY: callers pass `window` of length `Plan::extent`, and `Cascade::plan` asserts that
+    // every corner offset is below it, so these reads stay inside the slice. This is the
+    // innermost loop of the detector, where the bounds checks were a large share of the work.
+    let at = |o: u32| unsafe { *window.get_unchecked(o as usize) };
     // Wrapping: the result is exact (it is a sum of at most 255·20·20), and skipping the overflow
     // checks of debug builds keeps the test profile's scan as fast as the release one.
-    window[c[0] as usize].wrapping_sub(window[c[1] as usize]).wrapping_sub(window[c[2] as usize]).wrapping_add(window[c[3] as usize])
+    at(c[0]).wrapping_sub(at(c[1])).wrapping_sub(at(c[2])).wrapping_add(at(c[3]))
 }
 
 /// Whether the node's feature on this window falls on its left side (`value / norm < threshold`,
 /// without the division).
 #[inline(always)]
 fn goes_left(window: &[i32], node: &OptNode, norm: f32) -> bool {
-    let mut value = node.weights[0] * rect_sum(window, &node.corners[0]) as f32 + node.weights[1] * rect_sum(window, &node.corners[1]) as f32;
+    let mut value =
+        node.weights[0] * rect_sum(window, &node.corners[0]) as f32 + node.weights[1] * rect_sum(window, &node.corners[1]) as f32;
     if node.three_rects {
         value += node.weights[2] * rect_sum(window, &node.corners[2]) as f32;
     }
@@ -287,6 +296,50 @@ fn goes_left(window: &[i32], node: &OptNode, norm: f32) -> bool {
 fn select(c: bool, a: i32, b: i32) -> i32 {
     let mask = -(c as i32);
     (a & mask) | (b & !mask)
+}
+
+/// The windows of one row still in the cascade: integral index, grid position along the row,
+/// normalisation and the current stage's sum (parallel vectors, reused across rows).
+#[derive(Default)]
+struct Batch {
+    p: Vec<usize>,
+    index: Vec<u32>,
+    norm: Vec<f32>,
+    acc: Vec<f32>,
+}
+
+impl Batch {
+    fn clear(&mut self) {
+        self.p.clear();
+        self.index.clear();
+        self.norm.clear();
+        self.acc.clear();
+    }
+
+    fn push(&mut self, p: usize, index: u32, norm: f32) {
+        self.p.push(p);
+        self.index.push(index);
+        self.norm.push(norm);
+        self.acc.push(0.0);
+    }
+
+    fn len(&self) -> usize {
+        self.p.len()
+    }
+
+    /// Move window `from` to slot `to` (≤ `from`): compaction in place, order kept.
+    fn keep(&mut self, from: usize, to: usize) {
+        self.p[to] = self.p[from];
+        self.index[to] = self.index[from];
+        self.norm[to] = self.norm[from];
+    }
+
+    fn truncate(&mut self, n: usize) {
+        self.p.truncate(n);
+        self.index.truncate(n);
+        self.norm.truncate(n);
+        self.acc.truncate(n);
+    }
 }
 
 /// Scratch buffers reused across the scales of one image.
@@ -333,7 +386,13 @@ impl Cascade {
                 let tree = &self.nodes[weak.first_node as usize..end];
                 let shape = match tree {
                     [root] if root.left <= 0 && root.right <= 0 => TreeShape::Stump,
-                    [root, child] if child.left <= 0 && child.right <= 0 && (root.left == 1) != (root.right == 1) && root.left <= 1 && root.right <= 1 => {
+                    [root, child]
+                        if child.left <= 0
+                            && child.right <= 0
+                            && (root.left == 1) != (root.right == 1)
+                            && root.left <= 1
+                            && root.right <= 1 =>
+                    {
                         TreeShape::Pair
                     }
                     _ => TreeShape::General,
@@ -341,48 +400,56 @@ impl Cascade {
                 TreePlan { first_node: weak.first_node, first_leaf: weak.first_leaf, shape }
             })
             .collect();
-        Plan { nodes, trees }
+        let extent = self.window_height * stride + self.window_width + 1;
+        // `rect_sum` reads without bounds checks on the strength of this.
+        assert!(nodes.iter().all(|n: &OptNode| n.corners.iter().flatten().all(|&o| (o as usize) < extent)), "feature outside the window");
+        Plan { nodes, trees, extent }
     }
 
-    /// Run the cascade on the window whose top-left integral index is `p`. Returns the index of
-    /// the rejecting stage, or `None` when every stage accepts.
-    #[inline]
-    fn run_at(&self, plan: &Plan, sum: &[i32], p: usize, norm: f32) -> Option<usize> {
-        let window = &sum[p..];
-        for (si, stage) in self.stages.iter().enumerate() {
-            let mut stage_sum = 0.0f32;
-            for tree in &plan.trees[stage.first_weak as usize..(stage.first_weak + stage.weak_count) as usize] {
-                let nodes = &plan.nodes[tree.first_node as usize..];
-                // The leaf is `-idx` once `idx` ≤ 0.
-                let idx = match tree.shape {
-                    TreeShape::Stump => {
-                        let root = &nodes[0];
-                        select(goes_left(window, root, norm), root.left, root.right)
+    /// Stage `si` on every window of `batch`: its sum goes to `batch.acc` (trees are added in
+    /// the cascade's order, so each window's sum is the one a window-by-window walk gives).
+    fn stage_batch(&self, plan: &Plan, si: usize, sum: &[i32], batch: &mut Batch) {
+        let stage = &self.stages[si];
+        let n = batch.len();
+        let (ps, norms, acc) = (&batch.p[..n], &batch.norm[..n], &mut batch.acc[..n]);
+        acc.fill(0.0);
+        for tree in &plan.trees[stage.first_weak as usize..(stage.first_weak + stage.weak_count) as usize] {
+            let nodes = &plan.nodes[tree.first_node as usize..];
+            let leaves = &self.leaves[tree.first_leaf as usize..];
+            // The leaf is `-idx` once `idx` ≤ 0.
+            match tree.shape {
+                TreeShape::Stump => {
+                    let root = &nodes[0];
+                    for k in 0..n {
+                        let idx = select(goes_left(&sum[ps[k]..ps[k] + plan.extent], root, norms[k]), root.left, root.right);
+                        acc[k] += leaves[(-idx) as usize];
                     }
-                    TreeShape::Pair => {
-                        let (root, child) = (&nodes[0], &nodes[1]);
-                        let at_root = select(goes_left(window, root, norm), root.left, root.right);
-                        let at_child = select(goes_left(window, child, norm), child.left, child.right);
-                        select(at_root > 0, at_child, at_root)
+                }
+                TreeShape::Pair => {
+                    let (root, child) = (&nodes[0], &nodes[1]);
+                    for k in 0..n {
+                        let window = &sum[ps[k]..ps[k] + plan.extent];
+                        let at_root = select(goes_left(window, root, norms[k]), root.left, root.right);
+                        let at_child = select(goes_left(window, child, norms[k]), child.left, child.right);
+                        acc[k] += leaves[(-select(at_root > 0, at_child, at_root)) as usize];
                     }
-                    TreeShape::General => {
+                }
+                TreeShape::General => {
+                    for k in 0..n {
+                        let window = &sum[ps[k]..ps[k] + plan.extent];
                         let mut idx = 0i32;
-                        loop {
+                        let leaf = loop {
                             let node = &nodes[idx as usize];
-                            idx = if goes_left(window, node, norm) { node.left } else { node.right };
+                            idx = if goes_left(window, node, norms[k]) { node.left } else { node.right };
                             if idx <= 0 {
-                                break idx;
+                                break -idx;
                             }
-                        }
+                        };
+                        acc[k] += leaves[leaf as usize];
                     }
-                };
-                stage_sum += self.leaves[(tree.first_leaf as i32 - idx) as usize];
-            }
-            if stage_sum < stage.threshold {
-                return Some(si);
+                }
             }
         }
-        None
     }
 
     /// Multi-scale scan of `gray`: raw window hits (input pixels), not yet grouped.
@@ -422,6 +489,7 @@ impl Cascade {
             (self.window_height - 1) * scratch.stride + self.window_width - 1,
         ];
 
+        let mut batch = Batch::default();
         let mut scale = first_scale;
         loop {
             let (lw, lh) = (((w as f32) / scale).round() as usize, ((h as f32) / scale).round() as usize);
@@ -432,22 +500,53 @@ impl Cascade {
             fill_integral(base, lw, lh, &mut scratch);
             let step = opts.step.max(1);
             let (sum, sqsum, stride) = (&scratch.sum, &scratch.sqsum, scratch.stride);
+            let nx = (lw - self.window_width) / step + 1;
             let mut y = 0;
             while y + self.window_height <= lh {
-                let mut x = 0;
-                while x + self.window_width <= lw {
-                    let p = y * stride + x;
+                // The row's windows, cascade stage by cascade stage over all surviving windows
+                // at once (trees outer, windows inner): independent windows keep the core busy
+                // where one window's tree after tree waits on each comparison.
+                batch.clear();
+                for i in 0..nx {
+                    let p = y * stride + i * step;
                     let s = (sum[p + norm_ofs[0]] - sum[p + norm_ofs[1]] - sum[p + norm_ofs[2]] + sum[p + norm_ofs[3]]) as f64;
                     let sq = sqsum[p + norm_ofs[0]] - sqsum[p + norm_ofs[1]] - sqsum[p + norm_ofs[2]] + sqsum[p + norm_ofs[3]];
                     let nf = norm_area * sq - s * s;
-                    let norm = if nf > 0.0 { nf.sqrt() as f32 } else { 1.0 };
-                    match self.run_at(&plan, sum, p, norm) {
-                        None => hits.push(Rect::new(x as f32 * scale, y as f32 * scale, ww * scale, wh * scale)),
-                        // Rejected by the very first stage: the neighbour is very likely no face either.
-                        Some(0) => x += step,
-                        Some(_) => {}
+                    batch.push(p, i as u32, if nf > 0.0 { nf.sqrt() as f32 } else { 1.0 });
+                }
+                self.stage_batch(&plan, 0, sum, &mut batch);
+                // OpenCV's walk along a row: a window rejected by the very first stage also skips
+                // the next position (its neighbour is very likely no face either). The survivors
+                // of the first stage among the windows the walk visits go on.
+                let mut kept = 0;
+                let mut i = 0;
+                while i < nx {
+                    if batch.acc[i] < self.stages[0].threshold {
+                        i += 2;
+                    } else {
+                        batch.keep(i, kept);
+                        kept += 1;
+                        i += 1;
                     }
-                    x += step;
+                }
+                batch.truncate(kept);
+                for si in 1..self.stages.len() {
+                    if batch.len() == 0 {
+                        break;
+                    }
+                    self.stage_batch(&plan, si, sum, &mut batch);
+                    let threshold = self.stages[si].threshold;
+                    let mut kept = 0;
+                    for k in 0..batch.len() {
+                        if batch.acc[k] >= threshold {
+                            batch.keep(k, kept);
+                            kept += 1;
+                        }
+                    }
+                    batch.truncate(kept);
+                }
+                for &i in &batch.index {
+                    hits.push(Rect::new((i as usize * step) as f32 * scale, y as f32 * scale, ww * scale, wh * scale));
                 }
                 y += step;
             }
@@ -594,4 +693,79 @@ pub fn group_rectangles(raw: &[Rect], min_neighbours: usize, eps: f32) -> Vec<Hi
         .map(|(_, g)| *g)
         .collect();
     kept
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The plain OpenCV walk, window by window and tree by tree: what the batched scan must equal.
+    fn scan_window_by_window(cascade: &Cascade, gray: &GrayF32, min_size: f32) -> Vec<Rect> {
+        let first_scale = min_size / cascade.window_width as f32;
+        let (lw0, lh0) = ((gray.width as f32 / first_scale).round() as usize, (gray.height as f32 / first_scale).round() as usize);
+        let mut scratch = Scratch::new(lw0, lh0);
+        let plan = cascade.plan(scratch.stride);
+        let (ww, wh, stride) = (cascade.window_width, cascade.window_height, scratch.stride);
+        let mut hits = Vec::new();
+        let mut scale = first_scale;
+        loop {
+            let (lw, lh) = (((gray.width as f32) / scale).round() as usize, ((gray.height as f32) / scale).round() as usize);
+            if lw < ww || lh < wh {
+                return hits;
+            }
+            let (lw, lh) = (lw.min(lw0), lh.min(lh0));
+            fill_integral(gray, lw, lh, &mut scratch);
+            let (sum, sq) = (&scratch.sum, &scratch.sqsum);
+            let corner = |p: usize| [p + stride + 1, p + stride + ww - 1, p + (wh - 1) * stride + 1, p + (wh - 1) * stride + ww - 1];
+            for y in (0..=lh - wh).step_by(2) {
+                let mut x = 0;
+                while x + ww <= lw {
+                    let p = y * stride + x;
+                    let c = corner(p);
+                    let s = (sum[c[0]] - sum[c[1]] - sum[c[2]] + sum[c[3]]) as f64;
+                    let q = sq[c[0]] - sq[c[1]] - sq[c[2]] + sq[c[3]];
+                    let nf = ((ww - 2) * (wh - 2)) as f64 * q - s * s;
+                    let norm = if nf > 0.0 { nf.sqrt() as f32 } else { 1.0 };
+                    let window = &sum[p..p + plan.extent];
+                    let rejected_at = cascade.stages.iter().position(|stage| {
+                        let mut stage_sum = 0.0f32;
+                        for tree in &plan.trees[stage.first_weak as usize..(stage.first_weak + stage.weak_count) as usize] {
+                            let nodes = &plan.nodes[tree.first_node as usize..];
+                            let mut idx = 0i32;
+                            loop {
+                                let node = &nodes[idx as usize];
+                                idx = if goes_left(window, node, norm) { node.left } else { node.right };
+                                if idx <= 0 {
+                                    break;
+                                }
+                            }
+                            stage_sum += cascade.leaves[(tree.first_leaf as i32 - idx) as usize];
+                        }
+                        stage_sum < stage.threshold
+                    });
+                    match rejected_at {
+                        None => hits.push(Rect::new(x as f32 * scale, y as f32 * scale, ww as f32 * scale, wh as f32 * scale)),
+                        Some(0) => x += 2,
+                        Some(_) => {}
+                    }
+                    x += 2;
+                }
+            }
+            scale *= 1.1;
+        }
+    }
+
+    #[test]
+    fn batched_scan_gives_the_window_by_window_hits() {
+        let cascade = Cascade::parse(include_str!("../../models/cascades/haarcascade_frontalface_alt2.xml"), "alt2").unwrap();
+        let photo = crate::imaging::open(&crate::config::shared_dir().join("data/imm/01-1m.jpg")).unwrap();
+        // A quarter-size photo scanned from scale 1.2 (no halving), so both scans see the same levels.
+        let gray = photo.gray.resize(160, 120);
+        let opts = ScanOptions { min_size: 24.0, ..ScanOptions::default() };
+        let mut batched = Vec::new();
+        cascade.scan(&gray, &opts, &mut batched);
+        let reference = scan_window_by_window(&cascade, &gray, 24.0);
+        assert!(reference.len() > 3, "the face gives several raw windows: {reference:?}");
+        assert_eq!(batched, reference);
+    }
 }
