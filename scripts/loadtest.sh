@@ -3,7 +3,9 @@
 #
 # Starts `facegate serve` on a fresh temporary database, enrols one IMM photo, then runs wrk with
 # a multipart POST of a 640x480 IMM JPEG of the same person to /verify for a bounded time and
-# prints p50/p99 latency and requests per second.
+# prints p50/p99 latency, requests per second, the server's CPU time per verification (user +
+# system time of the server process over the wrk run, from /proc/<pid>/stat: the number that does
+# not depend on what else the machine is doing) and the load average.
 #
 #   scripts/loadtest.sh            # 30 s, 4 connections, 2 wrk threads
 #   DURATION=60 CONNECTIONS=8 scripts/loadtest.sh
@@ -77,4 +79,14 @@ LUA
 
 echo "wrk: ${DURATION}s, $CONNECTIONS connections, $THREADS threads, POST /verify with $(basename "$PROBE") ($(python3 -c "import sys,struct;d=open(sys.argv[1],'rb').read();print(len(d))" "$PROBE") bytes)"
 echo "cores: $(nproc)"
-PROBE="$PROBE" wrk -t "$THREADS" -c "$CONNECTIONS" -d "${DURATION}s" --timeout 10s -s "$tmp/verify.lua" "$base/verify"
+echo "load average before: $(cut -d' ' -f1-3 /proc/loadavg)"
+# Fields 14 and 15 of /proc/<pid>/stat: user and system time in clock ticks (the command name in
+# field 2 has no spaces here).
+cpu_ticks() { awk '{print $14 + $15}' "/proc/$server_pid/stat"; }
+ticks_before="$(cpu_ticks)"
+PROBE="$PROBE" wrk -t "$THREADS" -c "$CONNECTIONS" -d "${DURATION}s" --timeout 10s -s "$tmp/verify.lua" "$base/verify" | tee "$tmp/wrk.txt"
+ticks_after="$(cpu_ticks)"
+requests="$(awk '/^requests:/ {print $2}' "$tmp/wrk.txt")"
+python3 -c "import sys; t, hz, n = float(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3]); print(f'server CPU: {t / hz:.2f} s for {n} verifications = {1e3 * t / hz / max(n, 1):.1f} ms per verification')" \
+    "$((ticks_after - ticks_before))" "$(getconf CLK_TCK)" "${requests:-0}"
+echo "load average after: $(cut -d' ' -f1-3 /proc/loadavg)"
