@@ -344,3 +344,42 @@ fn write_doc_pictures() {
         gray.save(out_dir.join(format!("imm-{person:02}-views-3-4.png"))).unwrap();
     }
 }
+
+/// The libm-free floor/ceil/round of the rasteriser give `f32`'s values for every input class.
+#[test]
+fn fast_rounding_matches_std() {
+    use render::{ceil_f32, floor_f32, round_f32};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+    let mut values = vec![
+        0.0f32,
+        -0.0,
+        0.5,
+        -0.5,
+        1.5,
+        -1.5,
+        2.5,
+        -2.5,
+        0.49999997,
+        -0.49999997,
+        0.99999994,
+        -0.99999994,
+        8_388_607.5,
+        -8_388_607.5,
+        8_388_608.0,
+        1e10,
+        -1e10,
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+        f32::MIN_POSITIVE,
+        254.5,
+        255.49998,
+    ];
+    values.extend((0..200_000).map(|i| rng.random_range(-2000.0f32..2000.0) / if i % 2 == 0 { 1.0 } else { 1000.0 }));
+    values.extend((-4000..4000).map(|i| i as f32 * 0.25));
+    for x in values {
+        assert_eq!(floor_f32(x), x.floor(), "floor {x}");
+        assert_eq!(ceil_f32(x), x.ceil(), "ceil {x}");
+        assert_eq!(round_f32(x), x.round(), "round {x}");
+    }
+    assert!(floor_f32(f32::NAN).is_nan() && ceil_f32(f32::NAN).is_nan() && round_f32(f32::NAN).is_nan());
+}
