@@ -4,48 +4,6 @@
 
 use image::{Rgb, RgbImage, RgbaImage};
 
-// `f32::floor`, `ceil` and `round` compile to libm calls on the baseline x86-64 target (no SSE4.1
-// `roundss`): a tenth of the texture extraction time went there. These give the same values (up
-// to the sign of a zero) for every input, by truncating through i32 where the value has a
-// fractional part (|x| < 2²³) and returning x unchanged otherwise (integral, infinite or NaN).
-const INTEGRAL_FROM: f32 = 8_388_608.0;
-
-#[inline(always)]
-pub(crate) fn floor_f32(x: f32) -> f32 {
-    if !(x.abs() < INTEGRAL_FROM) {
-        return x;
-    }
-    let t = x as i32 as f32;
-    if t > x { t - 1.0 } else { t }
-}
-
-#[inline(always)]
-pub(crate) fn ceil_f32(x: f32) -> f32 {
-    if !(x.abs() < INTEGRAL_FROM) {
-        return x;
-    }
-    let t = x as i32 as f32;
-    if t < x { t + 1.0 } else { t }
-}
-
-/// Round half away from zero, like `f32::round`.
-#[inline(always)]
-pub(crate) fn round_f32(x: f32) -> f32 {
-    if !(x.abs() < INTEGRAL_FROM) {
-        return x;
-    }
-    let t = x as i32 as f32;
-    // Exact: x − trunc(x) is x's fractional part.
-    let d = x - t;
-    if d >= 0.5 {
-        t + 1.0
-    } else if d <= -0.5 {
-        t - 1.0
-    } else {
-        t
-    }
-}
-
 /// Visit every pixel centre (integer coordinates) inside the triangle `p` (x, y), clipped to
 /// `[0, width) × [0, height)`, with its barycentric weights. Degenerate triangles are skipped.
 #[inline]
@@ -55,10 +13,10 @@ pub fn raster_triangle(p: [[f32; 2]; 3], width: usize, height: usize, mut visit:
         return;
     }
     let inv = 1.0 / area;
-    let x0 = ceil_f32(p[0][0].min(p[1][0]).min(p[2][0])).max(0.0);
-    let x1 = floor_f32(p[0][0].max(p[1][0]).max(p[2][0])).min(width as f32 - 1.0);
-    let y0 = ceil_f32(p[0][1].min(p[1][1]).min(p[2][1])).max(0.0);
-    let y1 = floor_f32(p[0][1].max(p[1][1]).max(p[2][1])).min(height as f32 - 1.0);
+    let x0 = p[0][0].min(p[1][0]).min(p[2][0]).ceil().max(0.0);
+    let x1 = p[0][0].max(p[1][0]).max(p[2][0]).floor().min(width as f32 - 1.0);
+    let y0 = p[0][1].min(p[1][1]).min(p[2][1]).ceil().max(0.0);
+    let y1 = p[0][1].max(p[1][1]).max(p[2][1]).floor().min(height as f32 - 1.0);
     if !(x0 <= x1 && y0 <= y1) {
         return;
     }
@@ -130,7 +88,7 @@ impl DepthBuffer {
     /// Is a surface point at image position (x, y) with depth z the nearest one there?
     #[inline]
     pub fn visible(&self, x: f32, y: f32, z: f32, tolerance: f32) -> bool {
-        let (xi, yi) = (round_f32(x - self.x0 as f32), round_f32(y - self.y0 as f32));
+        let (xi, yi) = ((x - self.x0 as f32).round(), (y - self.y0 as f32).round());
         if !(xi >= 0.0 && yi >= 0.0 && (xi as usize) < self.width && (yi as usize) < self.height) {
             return false;
         }
@@ -142,8 +100,8 @@ impl DepthBuffer {
 #[inline]
 pub fn sample_rgb(img: &RgbImage, x: f32, y: f32) -> [f32; 3] {
     let (w, h) = (img.width() as i64, img.height() as i64);
-    let xf = floor_f32(x);
-    let yf = floor_f32(y);
+    let xf = x.floor();
+    let yf = y.floor();
     let (fx, fy) = (x - xf, y - yf);
     let (x0, y0) = (xf as i64, yf as i64);
     let raw = img.as_raw();
@@ -266,7 +224,7 @@ pub fn extract_texture(
             }
             let (o, mr) = (own.unwrap_or([0.0; 3]), mirrored.unwrap_or([0.0; 3]));
             for k in 0..3 {
-                texels[i + k] = round_f32((wo * o[k] + wm * mr[k]) / total).clamp(0.0, 255.0) as u8;
+                texels[i + k] = ((wo * o[k] + wm * mr[k]) / total).round().clamp(0.0, 255.0) as u8;
             }
             if wo >= wm {
                 texels[i + 3] = TEXEL_SEEN;
@@ -334,7 +292,7 @@ pub fn render_textured(
             let u = (w[0] * ta[0] + w[1] * tb[0] + w[2] * tc[0]) * tw - 0.5;
             let v = (w[0] * ta[1] + w[1] * tb[1] + w[2] * tc[1]) * th - 0.5;
             // Bilinear texture sample, inlined over the raw RGBA buffer.
-            let (uf, vf) = (floor_f32(u), floor_f32(v));
+            let (uf, vf) = (u.floor(), v.floor());
             let (fx, fy) = (u - uf, v - vf);
             let (x0, y0) = (uf as i64, vf as i64);
             let i = 3 * (y * width + x);
@@ -344,7 +302,7 @@ pub fn render_textured(
                 for k in 0..3 {
                     let top = traw[a + k] as f32 + fx * (traw[a + 4 + k] as f32 - traw[a + k] as f32);
                     let bottom = traw[c + k] as f32 + fx * (traw[c + 4 + k] as f32 - traw[c + k] as f32);
-                    buf[i + k] = round_f32(top + fy * (bottom - top)).clamp(0.0, 255.0) as u8;
+                    buf[i + k] = (top + fy * (bottom - top)).round().clamp(0.0, 255.0) as u8;
                 }
                 return;
             }
@@ -354,7 +312,7 @@ pub fn render_textured(
             for k in 0..3 {
                 let top = at(x0, y0, k) + fx * (at(x0 + 1, y0, k) - at(x0, y0, k));
                 let bottom = at(x0, y0 + 1, k) + fx * (at(x0 + 1, y0 + 1, k) - at(x0, y0 + 1, k));
-                buf[i + k] = round_f32(top + fy * (bottom - top)).clamp(0.0, 255.0) as u8;
+                buf[i + k] = (top + fy * (bottom - top)).round().clamp(0.0, 255.0) as u8;
             }
         });
     }
