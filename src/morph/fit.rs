@@ -29,11 +29,16 @@ pub struct FitOptions {
     pub expressions: bool,
     /// Regularisation of the expression coefficients.
     pub expression_lambda: f64,
+    /// Weight of the sliding jaw landmarks relative to the others (`1/k²` for a standard deviation
+    /// `k` times larger): their model correspondence is a nearest outline vertex, found with the
+    /// mean shape's normals, and full-weight jaw points pull the pose towards the shape prior
+    /// (see docs/morph.md).
+    pub jaw_weight: f64,
 }
 
 impl Default for FitOptions {
     fn default() -> Self {
-        Self { iterations: 5, lambda: 30.0, landmark_sigma_px: 3f64.sqrt(), expressions: false, expression_lambda: 10.0 }
+        Self { iterations: 5, lambda: 30.0, landmark_sigma_px: 3f64.sqrt(), expressions: false, expression_lambda: 10.0, jaw_weight: 0.25 }
     }
 }
 
@@ -174,7 +179,7 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
         if iteration == 0 || options.iterations > 1 {
             update_contour(model, &cam, &alpha, &psi, points, &mut corr);
             for j in JAW {
-                weights[j] = 1.0;
+                weights[j] = if j == 6 { 1.0 } else { options.jaw_weight };
             }
         }
         // Shape (and expression) coefficients given the camera: rows for x and y of each point.
