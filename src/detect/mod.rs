@@ -99,7 +99,7 @@ impl Default for DetectOptions {
     fn default() -> Self {
         Self {
             min_face: 24,
-            min_face_fraction: 0.15,
+            min_face_fraction: 0.2,
             profile: ProfileMode::Fallback,
             min_neighbours: 3,
             scale_step: 1.1,
