@@ -1144,9 +1144,13 @@ mod tests {
         // (view, d_eye 3D, mouth 3D, d_eye C-ASM, mouth C-ASM, ms 3D)
         let mut rows: Vec<(u32, f64, f64, f64, f64, f64)> = Vec::new();
         let mut casm_ms: Vec<f64> = Vec::new();
+        let mut yaws: Vec<f32> = Vec::new();
         for s in test.iter().filter(|s| only.as_ref().is_none_or(|o| o.split(',').any(|x| x == format!("{:02}-{}", s.person, s.view)))) {
             let photo = imaging::open(&s.image).unwrap();
-            let truth = KeyPoints::from_imm(&s.landmarks().unwrap());
+            let truth_points = s.landmarks().unwrap();
+            let truth = KeyPoints::from_imm(&truth_points);
+            // The photo's head yaw: the 3DMM fitted to its manual landmarks.
+            let yaw = fm.fit(&truth_points, photo.width(), photo.height()).map_or(f32::NAN, |f| f.pose.yaw);
             let Some(b) = det.as_ref().and_then(|d| d.detect(&photo.gray).first().map(|f| f.rect)) else { continue };
             let cpu = crate::eval::thread_cpu_ns;
             let t0 = cpu().unwrap_or(0);
@@ -1162,13 +1166,24 @@ mod tests {
                 s.person, s.view, r.pose.yaw, r.view_yaw, r.pose.pitch
             );
             rows.push((s.view, de, dm, ce, cm, ms));
+            yaws.push(yaw.abs());
             casm_ms.push(cms);
         }
         let pct = |v: &[f64], t: f64| 100.0 * v.iter().filter(|&&x| x < t).count() as f64 / v.len().max(1) as f64;
         let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
         eprintln!("group            | 3D-ASM <0.05 <0.1 mean mouth<0.1 | C-ASM <0.05 <0.1 mean mouth<0.1");
-        for (name, views) in [("frontal 1-2", [1u32, 2]), ("turned 3-4", [3, 4]), ("light/free 5-6", [5, 6]), ("all", [0, 0])] {
-            let sel: Vec<_> = rows.iter().filter(|r| views[0] == 0 || views.contains(&r.0)).collect();
+        let groups: [(&str, &dyn Fn(u32, f32) -> bool); 8] = [
+            ("frontal 1-2", &|v, _| matches!(v, 1 | 2)),
+            ("turned 3-4", &|v, _| matches!(v, 3 | 4)),
+            ("light/free 5-6", &|v, _| matches!(v, 5 | 6)),
+            ("|yaw| < 10", &|_, y| y < 10.0),
+            ("|yaw| 10-20", &|_, y| (10.0..20.0).contains(&y)),
+            ("|yaw| 20-30", &|_, y| (20.0..30.0).contains(&y)),
+            ("|yaw| >= 30", &|_, y| y >= 30.0),
+            ("all", &|_, _| true),
+        ];
+        for (name, keep) in groups {
+            let sel: Vec<_> = rows.iter().zip(&yaws).filter(|(r, y)| keep(r.0, **y)).map(|(r, _)| r).collect();
             let col = |f: &dyn Fn(&(u32, f64, f64, f64, f64, f64)) -> f64| sel.iter().map(|r| f(r)).collect::<Vec<f64>>();
             let (a, am, c, cm) = (col(&|r| r.1), col(&|r| r.2), col(&|r| r.3), col(&|r| r.4));
             eprintln!(
