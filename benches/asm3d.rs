@@ -1,5 +1,7 @@
 //! 3D-ASM search time per face, one thread, with the committed `models/asm3d.bin`: a frontal and a
-//! turned IMM photo (640×480) from the detector's box.
+//! turned IMM photo (640×480) from the detector's box; C-ASM (`models/asm.bin`) on the same boxes
+//! for comparison. Times are the benchmark thread's CPU time (`benches/common`), not wall time: on a
+//! shared machine wall time measures the neighbours too.
 
 use std::hint::black_box;
 
@@ -8,9 +10,14 @@ use facegate::config::{models_dir, shared_dir};
 use facegate::detect::Detector;
 use facegate::imaging::open;
 use facegate::landmarks::asm3d::Asm3dLandmarker;
+use facegate::landmarks::{Landmarker, Variant};
 
-fn bench_asm3d(c: &mut Criterion) {
+mod common;
+use common::ThreadCpuTime;
+
+fn bench_asm3d(c: &mut Criterion<ThreadCpuTime>) {
     let landmarker = Asm3dLandmarker::load(&models_dir().join("asm3d.bin")).expect("models/asm3d.bin");
+    let casm = Landmarker::load(&models_dir().join("asm.bin")).expect("models/asm.bin");
     let detector = Detector::load(&models_dir()).expect("detector");
     let mut group = c.benchmark_group("asm3d");
     group.sample_size(20);
@@ -18,9 +25,14 @@ fn bench_asm3d(c: &mut Criterion) {
         let gray = open(&shared_dir().join("data/imm").join(file)).expect("IMM photo").gray;
         let face = detector.detect(&gray).first().map(|f| f.rect).expect("a face");
         group.bench_function(name, |b| b.iter(|| black_box(landmarker.fit(black_box(&gray), &face))));
+        group.bench_function(format!("casm_{name}"), |b| b.iter(|| black_box(casm.fit(black_box(&gray), &face, Variant::Casm))));
     }
     group.finish();
 }
 
-criterion_group!(benches, bench_asm3d);
+criterion_group! {
+    name = benches;
+    config = Criterion::default().with_measurement(ThreadCpuTime);
+    targets = bench_asm3d
+}
 criterion_main!(benches);
