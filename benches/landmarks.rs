@@ -1,5 +1,7 @@
 //! Landmark search time per face, one thread: each variant on an IMM photo (640×480, from the
 //! detector's box) and on a small ORL face (92×112), with the committed `models/asm.bin`.
+//! Run: `cargo bench --bench landmarks`. Times are the benchmark thread's CPU time
+//! (`benches/common`): on the shared build machine wall time measures the neighbours too.
 
 use std::hint::black_box;
 
@@ -10,7 +12,10 @@ use facegate::geometry::Rect;
 use facegate::imaging::open;
 use facegate::landmarks::{Landmarker, Variant};
 
-fn bench_landmarks(c: &mut Criterion) {
+mod common;
+use common::ThreadCpuTime;
+
+fn bench_landmarks(c: &mut Criterion<ThreadCpuTime>) {
     let landmarker = Landmarker::load(&models_dir().join("asm.bin")).expect("models/asm.bin");
     let detector = Detector::load(&models_dir()).expect("detector");
     let imm = open(&shared_dir().join("data/imm/01-1m.jpg")).expect("IMM photo").gray;
@@ -27,5 +32,9 @@ fn bench_landmarks(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench_landmarks);
+fn config() -> Criterion<ThreadCpuTime> {
+    Criterion::default().with_measurement(ThreadCpuTime)
+}
+
+criterion_group! { name = benches; config = config(); targets = bench_landmarks }
 criterion_main!(benches);

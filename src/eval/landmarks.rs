@@ -74,6 +74,105 @@ pub fn measure(
 /// Train on the training persons, measure the three variants on the held-out persons, print the
 /// table, write `summary.json`, `landmarks-d_eye.svg` and `landmarks-mouth.svg` into `out`.
 pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Result<Vec<VariantSummary>> {
+    run_scaled(imm, detector, out, 0)
+}
+
+type TestPhoto = (ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>);
+
+/// Load test photos, halved `halvings` times (2×2 means, the pyramid's convention: a point `p` goes
+/// to `(p − ½)/2`), with the annotation moved alike and the box of the smaller photo.
+fn load_test_photos(test: &[ImmSample], detector: Option<&Detector>, halvings: usize) -> anyhow::Result<Vec<TestPhoto>> {
+    let mut photos = Vec::new();
+    for s in test {
+        let mut gray = crate::imaging::open(&s.image)?.gray;
+        let mut truth = s.landmarks()?;
+        for _ in 0..halvings {
+            gray = gray.downsample_half();
+            truth.iter_mut().for_each(|p| *p = [(p[0] - 0.5) * 0.5, (p[1] - 0.5) * 0.5]);
+        }
+        let rect = test_box(detector, &gray, &truth);
+        photos.push((s.clone(), gray, truth, rect));
+    }
+    Ok(photos)
+}
+
+/// Person-disjoint k-fold cross-validation: the IMM persons (in order) are dealt into `folds`
+/// folds; each fold is measured by a model trained on the others, so every photo is measured by a
+/// model that never saw its person. Prints the table over all photos and writes
+/// `summary-folds{folds}[-halvings{h}].json` into `out`.
+pub fn run_folds(
+    imm: &Path,
+    detector: Option<&Detector>,
+    out: &Path,
+    folds: usize,
+    halvings: usize,
+) -> anyhow::Result<Vec<VariantSummary>> {
+    let all = dataset::list_imm(imm)?;
+    let mut persons: Vec<u32> = all.iter().map(|s| s.person).collect();
+    persons.sort_unstable();
+    persons.dedup();
+    anyhow::ensure!(persons.len() >= folds, "{} persons cannot fill {folds} folds", persons.len());
+    let fold_of = |person: u32| persons.iter().position(|&p| p == person).unwrap_or(0) % folds;
+    let mut errors: Vec<Vec<PhotoError>> = vec![Vec::new(); Variant::ALL.len()];
+    let mut cpu_ms = vec![0.0f64; Variant::ALL.len()];
+    for fold in 0..folds {
+        let (test, training): (Vec<ImmSample>, Vec<ImmSample>) = all.iter().cloned().partition(|s| fold_of(s.person) == fold);
+        let bar = crate::cli::progress(training.len() as u64, "train asm");
+        let model = train::train(&training, detector, &train::TrainOptions::default(), &|| bar.inc(1))?;
+        bar.finish_and_clear();
+        let landmarker = Landmarker { model };
+        let photos = load_test_photos(&test, detector, halvings)?;
+        for (k, &v) in Variant::ALL.iter().enumerate() {
+            let s = measure(&landmarker, &photos, v);
+            cpu_ms[k] += s.ms_per_face * (s.photos - s.detector_misses) as f64;
+            errors[k].extend(s.errors);
+        }
+    }
+    let summaries: Vec<VariantSummary> = Variant::ALL
+        .iter()
+        .zip(errors)
+        .zip(cpu_ms)
+        .map(|((v, errors), ms)| {
+            let fitted = errors.iter().filter(|e| e.d_eye.is_some()).count();
+            summarise(v.name(), errors, ms / fitted.max(1) as f64)
+        })
+        .collect();
+    println!(
+        "IMM person-disjoint {folds}-fold cross-validation over {} persons: {} photos, each measured by a model not trained on its person{}",
+        persons.len(),
+        all.len(),
+        if halvings > 0 { format!(", test photos halved {halvings}×") } else { String::new() }
+    );
+    print_table(&summaries);
+    std::fs::create_dir_all(out)?;
+    let name = if halvings > 0 { format!("summary-folds{folds}-halvings{halvings}.json") } else { format!("summary-folds{folds}.json") };
+    let summary = serde_json::json!({ "folds": folds, "halvings": halvings, "photos": all.len(), "variants": summaries });
+    std::fs::write(out.join(&name), serde_json::to_string_pretty(&summary)?)?;
+    println!("wrote {}", out.join(name).display());
+    Ok(summaries)
+}
+
+fn print_table(summaries: &[VariantSummary]) {
+    println!(
+        "{:<8} {:>12} {:>12} {:>14} {:>12} {:>9} {:>12}",
+        "variant", "d_eye<0.05", "d_eye<0.1", "mouth<0.1", "mean d_eye", "misses", "cpu ms/face"
+    );
+    for s in summaries {
+        println!(
+            "{:<8} {:>11.1}% {:>11.1}% {:>13.1}% {:>12.4} {:>9} {:>12.2}",
+            s.variant,
+            100.0 * s.d_eye_005,
+            100.0 * s.d_eye_01,
+            100.0 * s.mouth_01,
+            s.mean_d_eye,
+            s.detector_misses,
+            s.ms_per_face
+        );
+    }
+}
+
+/// [`run`] with the test photos halved `halvings` times (0: exactly [`run`]).
+pub fn run_scaled(imm: &Path, detector: Option<&Detector>, out: &Path, halvings: usize) -> anyhow::Result<Vec<VariantSummary>> {
     let all = dataset::list_imm(imm)?;
     let (test, training): (Vec<ImmSample>, Vec<ImmSample>) = all.into_iter().partition(|s| dataset::imm_is_test_person(s.person));
     anyhow::ensure!(!test.is_empty() && !training.is_empty(), "need both training and held-out persons in {}", imm.display());
@@ -82,12 +181,9 @@ pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Resul
     bar.finish_and_clear();
     let box_source = model.info.box_source;
     let landmarker = Landmarker { model };
-    let mut photos = Vec::new();
-    for s in &test {
-        let photo = crate::imaging::open(&s.image)?;
-        let truth = s.landmarks()?;
-        let rect = test_box(detector, &photo.gray, &truth);
-        photos.push((s.clone(), photo.gray, truth, rect));
+    let photos = load_test_photos(&test, detector, halvings)?;
+    if halvings > 0 {
+        println!("test photos halved {halvings}× before detection and search");
     }
     let mut summaries: Vec<VariantSummary> = Variant::ALL.iter().map(|&v| measure(&landmarker, &photos, v)).collect();
     // The 3D-ASM beside them, and the head yaw of each photo for the per-view table.
@@ -114,22 +210,7 @@ pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Resul
         test.len(),
         training.len()
     );
-    println!(
-        "{:<8} {:>12} {:>12} {:>14} {:>12} {:>9} {:>12}",
-        "variant", "d_eye<0.05", "d_eye<0.1", "mouth<0.1", "mean d_eye", "misses", "cpu ms/face"
-    );
-    for s in &summaries {
-        println!(
-            "{:<8} {:>11.1}% {:>11.1}% {:>13.1}% {:>12.4} {:>9} {:>12.2}",
-            s.variant,
-            100.0 * s.d_eye_005,
-            100.0 * s.d_eye_01,
-            100.0 * s.mouth_01,
-            s.mean_d_eye,
-            s.detector_misses,
-            s.ms_per_face
-        );
-    }
+    print_table(&summaries);
 
     let per_view = per_view_tables(&summaries, &yaws);
 
@@ -202,6 +283,10 @@ pub fn measure_fn(
         };
         errors.push(PhotoError { person: sample.person, view: sample.view, d_eye: de, d_mouth: dm });
     }
+    summarise(variant, errors, total_ms / fitted.max(1) as f64)
+}
+
+fn summarise(variant: &'static str, errors: Vec<PhotoError>, ms_per_face: f64) -> VariantSummary {
     let found: Vec<f64> = errors.iter().filter_map(|e| e.d_eye).collect();
     VariantSummary {
         variant,
@@ -211,7 +296,7 @@ pub fn measure_fn(
         d_eye_01: share(&errors, |e| e.d_eye, 0.1),
         mouth_01: share(&errors, |e| e.d_mouth, 0.1),
         mean_d_eye: found.iter().sum::<f64>() / found.len().max(1) as f64,
-        ms_per_face: total_ms / fitted.max(1) as f64,
+        ms_per_face,
         errors,
     }
 }

@@ -106,6 +106,22 @@ impl PcaGaussian {
 
     /// Distance of `x`; `scratch` must hold `dim` values (no allocation per candidate).
     pub fn distance(&self, x: &[f32], scratch: &mut [f32]) -> f32 {
+        #[cfg(target_arch = "x86_64")]
+        if super::simd::avx2() {
+            // SAFETY: the CPU has AVX2 (checked at run time).
+            return unsafe { self.distance_avx2(x, scratch) };
+        }
+        self.distance_body(x, scratch)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn distance_avx2(&self, x: &[f32], scratch: &mut [f32]) -> f32 {
+        self.distance_body(x, scratch)
+    }
+
+    #[inline(always)]
+    fn distance_body(&self, x: &[f32], scratch: &mut [f32]) -> f32 {
         let dim = self.mean.len();
         let d = &mut scratch[..dim];
         for ((di, &xi), &mi) in d.iter_mut().zip(&x[..dim]).zip(&self.mean) {
@@ -125,7 +141,7 @@ impl PcaGaussian {
 
 /// Dot product in 8 independent lanes, so that the compiler can vectorise it (a plain f32 sum
 /// must keep its sequential order).
-#[inline]
+#[inline(always)]
 fn dot(a: &[f32], b: &[f32]) -> f32 {
     let mut acc = [0.0f32; 8];
     let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));

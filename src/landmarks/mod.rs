@@ -16,6 +16,7 @@ pub mod pdm;
 pub mod profile;
 pub mod search;
 pub mod sift;
+mod simd;
 pub mod train;
 
 use std::path::Path;

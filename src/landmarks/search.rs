@@ -46,17 +46,35 @@ impl Frame {
             for x in 0..size {
                 let p = self.to_image([x as f32, y as f32]);
                 let v = if supersample {
-                    0.25 * (img.sample(p[0] - q, p[1] - q)
-                        + img.sample(p[0] + q, p[1] - q)
-                        + img.sample(p[0] - q, p[1] + q)
-                        + img.sample(p[0] + q, p[1] + q))
+                    0.25 * (sample(img, p[0] - q, p[1] - q)
+                        + sample(img, p[0] + q, p[1] - q)
+                        + sample(img, p[0] - q, p[1] + q)
+                        + sample(img, p[0] + q, p[1] + q))
                 } else {
-                    img.sample(p[0], p[1])
+                    sample(img, p[0], p[1])
                 };
                 out.data[y * size + x] = v;
             }
         }
         out
+    }
+}
+
+/// `GrayF32::sample` (same arithmetic, same values) without the clamping and the floor call
+/// inside the image, where the crop takes nearly all its samples: the crop was a tenth of the
+/// search time.
+#[inline(always)]
+fn sample(img: &GrayF32, x: f32, y: f32) -> f32 {
+    let w = img.width;
+    if x >= 0.0 && y >= 0.0 && x < (w - 1) as f32 && y < (img.height - 1) as f32 {
+        let (x0, y0) = (x as usize, y as usize); // non-negative: truncation is floor
+        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+        let d = &img.data[y0 * w + x0..y0 * w + x0 + w + 2];
+        let top = d[0] + fx * (d[1] - d[0]);
+        let bottom = d[w] + fx * (d[w + 1] - d[w]);
+        top + fy * (bottom - top)
+    } else {
+        img.sample(x, y)
     }
 }
 
