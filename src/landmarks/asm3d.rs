@@ -797,8 +797,10 @@ fn sparse_texture_cost(
 /// against 19 ms; 1 view lost frontal and spot-light photos).
 const SEARCHED_VIEWS: usize = 2;
 
-/// Coarse-level iterations each searched view gets before the best one goes on.
-const PROBE_ITERATIONS: usize = 1;
+/// Coarse-level iterations each searched view gets before the best one goes on (measured with the
+/// start scale: 2 against 1 lifted held-out d_eye < 0.05 from 90.7% to 94.4%, turned views from
+/// 83.3% to 94.4%, for ≈ 0.8 ms).
+const PROBE_ITERATIONS: usize = 2;
 
 /// The starts are ranked on every other point (measured: same held-out accuracy as all points at
 /// half the ranking time, 2.5 ms against 4.9).
