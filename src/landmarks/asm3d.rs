@@ -746,52 +746,6 @@ pub struct Asm3dLandmarker {
     pub model: Asm3dModel,
 }
 
-/// Buffers of [`sparse_texture_cost`], reused across the starts.
-struct RankBuffers {
-    normals: Vec<Point>,
-    grid: sift::DescriptorGrid,
-    descriptor: [f32; sift::DESCRIPTOR_LEN],
-    scratch: Vec<f32>,
-}
-
-impl Default for RankBuffers {
-    fn default() -> Self {
-        RankBuffers {
-            normals: Vec::with_capacity(IMM_POINTS),
-            grid: sift::DescriptorGrid::new(),
-            descriptor: [0.0; sift::DESCRIPTOR_LEN],
-            scratch: vec![0.0; sift::DESCRIPTOR_LEN],
-        }
-    }
-}
-
-/// The C-ASM texture cost (SIFT for internal points, profiles for the jaw) of every `step`-th of
-/// `points` where they stand on `level`, and how many points it covered: ranks the starts at a
-/// fraction of [`search::texture_cost`]'s price.
-fn sparse_texture_cost(
-    textures: &AsmModel,
-    lvl: &Level,
-    level: usize,
-    points: &[Point],
-    step: usize,
-    buffers: &mut RankBuffers,
-) -> (f32, usize) {
-    let RankBuffers { normals: nrm, grid, descriptor, scratch } = buffers;
-    normals(points, &textures.neighbours, nrm);
-    let (mut cost, mut used) = (0.0f32, 0usize);
-    for i in (0..points.len()).step_by(step.max(1)) {
-        cost += if JAW.contains(&i) {
-            textures.profiles[level][i].distance(&profile::profile(&lvl.image, points[i], nrm[i]))
-        } else {
-            grid.fill(&lvl.gradients, points[i], nrm[i], 0);
-            grid.descriptor(0, 0, descriptor);
-            textures.sifts[level][i].distance(descriptor, scratch)
-        };
-        used += 1;
-    }
-    (cost, used)
-}
-
 /// Distinct views whose best start is searched on the coarse level (measured with the start
 /// scale and 2 probe iterations, 0.2 minimum-face boxes: 3 views against 2 lifted held-out
 /// d_eye < 0.05 from 94.4% to 96.3% and mouth < 0.1 from 96.3% to 98.1% for ≈ 1.8 ms in the dev
@@ -954,14 +908,14 @@ impl Asm3dLandmarker {
         let mut suggested = Vec::with_capacity(IMM_POINTS);
         // Rank the starts by the texture cost where they stand under their own view's models,
         // less that view's typical cost on its training samples.
-        let mut buffers = RankBuffers::default();
-        let mut cost_of = |st: &State| {
+        let cost_of = |st: &State, ws: &mut Workspace| {
             let pts: Vec<Point> = st.points.iter().map(|&p| to_level(p, top)).collect();
             let view = &m.views[st.view];
-            let (cost, used) = sparse_texture_cost(&view.textures, &levels[top], top, &pts, RANK_POINT_STEP, &mut buffers);
-            cost - view.typical_cost * used as f32 / IMM_POINTS as f32
+            let cost = search::texture_cost(&view.textures, &levels[top], top, &pts, RANK_POINT_STEP, Variant::Casm, ws);
+            // The typical cost is over all points: scale it to the points ranked on.
+            cost - view.typical_cost * pts.len().div_ceil(RANK_POINT_STEP) as f32 / IMM_POINTS as f32
         };
-        let mut ranked: Vec<(f32, State)> = states.into_iter().map(|st| (cost_of(&st), st)).collect();
+        let mut ranked: Vec<(f32, State)> = states.into_iter().map(|st| (cost_of(&st, &mut ws), st)).collect();
         ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
         // The best starts of the `SEARCHED_VIEWS` best-ranked distinct views are searched on the
         // coarse level; the one with the lowest cost where it converged goes on.
@@ -978,7 +932,7 @@ impl Asm3dLandmarker {
                     break;
                 }
             }
-            let cost = cost_of(&st);
+            let cost = cost_of(&st, &mut ws);
             if best.as_ref().is_none_or(|b| cost < b.0) {
                 best = Some((cost, st));
             }

@@ -46,35 +46,17 @@ impl Frame {
             for x in 0..size {
                 let p = self.to_image([x as f32, y as f32]);
                 let v = if supersample {
-                    0.25 * (sample(img, p[0] - q, p[1] - q)
-                        + sample(img, p[0] + q, p[1] - q)
-                        + sample(img, p[0] - q, p[1] + q)
-                        + sample(img, p[0] + q, p[1] + q))
+                    0.25 * (img.sample(p[0] - q, p[1] - q)
+                        + img.sample(p[0] + q, p[1] - q)
+                        + img.sample(p[0] - q, p[1] + q)
+                        + img.sample(p[0] + q, p[1] + q))
                 } else {
-                    sample(img, p[0], p[1])
+                    img.sample(p[0], p[1])
                 };
                 out.data[y * size + x] = v;
             }
         }
         out
-    }
-}
-
-/// `GrayF32::sample` (same arithmetic, same values) without the clamping and the floor call
-/// inside the image, where the crop takes nearly all its samples: the crop was a tenth of the
-/// search time.
-#[inline(always)]
-fn sample(img: &GrayF32, x: f32, y: f32) -> f32 {
-    let w = img.width;
-    if x >= 0.0 && y >= 0.0 && x < (w - 1) as f32 && y < (img.height - 1) as f32 {
-        let (x0, y0) = (x as usize, y as usize); // non-negative: truncation is floor
-        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-        let d = &img.data[y0 * w + x0..y0 * w + x0 + w + 2];
-        let top = d[0] + fx * (d[1] - d[0]);
-        let bottom = d[w] + fx * (d[w + 1] - d[w]);
-        top + fy * (bottom - top)
-    } else {
-        img.sample(x, y)
     }
 }
 
@@ -316,11 +298,20 @@ fn constrain(model: &AsmModel, suggested: &[Point], variant: Variant) -> Vec<Poi
     }
 }
 
-/// The texture cost of the points where they are (no candidates): ranks the starting shapes.
-pub fn texture_cost(model: &AsmModel, lvl: &Level, level: usize, points: &[Point], variant: Variant, ws: &mut Workspace) -> f32 {
+/// The texture cost of every `step`-th point where it is (no candidates): ranks the starting
+/// shapes (`step` 1: all points; the 3D-ASM ranks its many starts on a sample of them).
+pub fn texture_cost(
+    model: &AsmModel,
+    lvl: &Level,
+    level: usize,
+    points: &[Point],
+    step: usize,
+    variant: Variant,
+    ws: &mut Workspace,
+) -> f32 {
     normals(points, &model.neighbours, &mut ws.normals);
     let mut cost = 0.0;
-    for (i, &pt) in points.iter().enumerate() {
+    for (i, &pt) in points.iter().enumerate().step_by(step.max(1)) {
         let n = ws.normals[i];
         if uses_sift(variant, i) {
             ws.grid.fill(&lvl.gradients, pt, n, 0);
@@ -368,7 +359,7 @@ pub fn search_levels(model: &AsmModel, levels: &[Level], starts: &[Vec<Point>], 
         let (mut cost, mut done, mut used) = (f32::INFINITY, false, 0);
         let probe = if starts.len() > 1 { model.params.probe_iterations } else { model.params.max_iterations };
         if probe == 0 {
-            cost = texture_cost(model, &levels[top], top, &pts, variant, ws);
+            cost = texture_cost(model, &levels[top], top, &pts, 1, variant, ws);
         }
         while used < probe.min(model.params.max_iterations) && !done {
             (cost, done) = iterate(model, &levels[top], top, &mut pts, variant, ws, &mut suggested);

@@ -214,6 +214,12 @@ impl Dlda {
         }
     }
 
+    /// Whether the projection takes `input_dims`-long feature vectors and is complete (a model
+    /// file's consistency check).
+    pub fn accepts(&self, input_dims: usize) -> bool {
+        self.input_dims == input_dims && self.projection.len() == self.dims * input_dims && self.mean.len() == input_dims
+    }
+
     /// `P · mean`, so that a projection is `P x − offsets` (one multiply-add per weight instead of a
     /// subtraction too): see [`Dlda::project_with_offsets`].
     pub fn offsets(&self) -> Vec<f32> {

@@ -180,19 +180,14 @@ impl Model {
         let mask = model.normalize.mask();
         let dims = model.features.dims(model.normalize.width, model.normalize.height, &mask);
         if let Some(second) = &model.secondary {
-            let d = &second.dlda;
-            if d.input_dims != dims
-                || d.projection.len() != d.dims * dims
-                || d.mean.len() != dims
-                || second.normalization == model.normalization
-            {
+            if !second.dlda.accepts(dims) || second.normalization == model.normalization {
                 return Err(err("the second path's projection does not match the feature layout".into()));
             }
         }
         if model.cohort.as_ref().is_some_and(|c| c.dims != model.template_dims()) {
             return Err(err("the score-normalisation cohort does not match the template dimension".into()));
         }
-        if dims != model.dlda.input_dims || model.dlda.projection.len() != model.dlda.dims * dims || model.dlda.mean.len() != dims {
+        if !model.dlda.accepts(dims) {
             return Err(err("projection does not match the feature layout".into()));
         }
         Ok(model)
