@@ -12,6 +12,7 @@ use serde::Serialize;
 use crate::dataset::KeyPoints;
 use crate::detect::{Detector, Face};
 use crate::imaging::{GrayF32, Photo};
+use crate::landmarks::asm3d::{Asm3dLandmarker, SERVICE_MIN_YAW};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
 use crate::morph::{FaceModel, Pose};
 use crate::recognize::{Normalization, Recognizer, Template};
@@ -78,6 +79,9 @@ pub struct FaceAnalysis {
 pub struct Pipeline {
     pub detector: Detector,
     pub landmarker: Landmarker,
+    /// The 3D-ASM (`asm3d.bin`), used instead of the C-ASM on turned faces; `None` when the file
+    /// is missing: C-ASM only.
+    pub asm3d: Option<Asm3dLandmarker>,
     /// `None` when the Surrey Face Model is not available: 2D alignment only.
     pub face_model: Option<FaceModel>,
     pub recognizer: Recognizer,
@@ -92,6 +96,8 @@ impl Pipeline {
     pub fn load(config: &PipelineConfig) -> Result<Pipeline, PipelineError> {
         let detector = Detector::load(&config.models_dir)?;
         let landmarker = Landmarker::load(&config.models_dir.join("asm.bin"))?;
+        let asm3d_path = config.models_dir.join("asm3d.bin");
+        let asm3d = if asm3d_path.exists() { Some(Asm3dLandmarker::load(&asm3d_path)?) } else { None };
         let face_model = match &config.sfm_dir {
             Some(dir) => match FaceModel::load(dir) {
                 Ok(model) => Some(model),
@@ -115,7 +121,7 @@ impl Pipeline {
                 recognizer.model_version()
             );
         }
-        Ok(Pipeline { detector, landmarker, face_model, recognizer })
+        Ok(Pipeline { detector, landmarker, asm3d, face_model, recognizer })
     }
 
     /// Detect, landmark, pose-correct and template the largest face of `photo`.
@@ -127,7 +133,12 @@ impl Pipeline {
         let face = *faces.first().ok_or(PipelineError::NoFace)?;
 
         let t = Instant::now();
-        let landmarks = self.landmarker.fit(&photo.gray, &face.rect, Variant::Casm);
+        let mut landmarks = self.landmarker.fit(&photo.gray, &face.rect, Variant::Casm);
+        // Turned faces: the 3D-ASM (refined by the C-ASM) when the C-ASM's points are turned
+        // beyond the measured switch point (docs/asm3d.md, "Crossover").
+        if let Some(asm3d) = &self.asm3d {
+            landmarks = asm3d.switch(&photo.gray, &face.rect, &self.landmarker, landmarks, SERVICE_MIN_YAW).0;
+        }
         timings.landmarks_ms = ms(t);
 
         let t = Instant::now();
@@ -222,6 +233,25 @@ mod tests {
         let a = pipeline.analyze(&photo("05-1m.jpg")).unwrap();
         assert!(a.pose.is_none());
         assert_eq!(a.template.model_version, pipeline.recognizer.model_version());
+    }
+
+    #[test]
+    fn turned_faces_take_the_3d_asm_points_frontal_ones_the_c_asm() {
+        let pipeline = Pipeline::load(&PipelineConfig::default()).unwrap();
+        let asm3d = pipeline.asm3d.as_ref().expect("models/asm3d.bin");
+        for (name, turned) in [("01-1m.jpg", false), ("02-3m.jpg", true)] {
+            let p = photo(name);
+            let a = pipeline.analyze(&p).unwrap();
+            let casm = pipeline.landmarker.fit(&p.gray, &a.face.rect, Variant::Casm);
+            let yaw = asm3d.yaw_of(&casm.points).unwrap();
+            assert_eq!(yaw.abs() >= SERVICE_MIN_YAW, turned, "{name}: C-ASM yaw {yaw}");
+            if turned {
+                let three = asm3d.fit_with(&p.gray, &a.face.rect, crate::landmarks::asm3d::Refinement::Casm(&pipeline.landmarker.model));
+                assert_eq!(a.landmarks.points, three.points, "{name}");
+            } else {
+                assert_eq!(a.landmarks, casm, "{name}");
+            }
+        }
     }
 
     #[test]

@@ -9,7 +9,7 @@ use crate::dataset::KeyPoints;
 use crate::detect::Detector;
 use crate::geometry::{Point, Rect};
 use crate::imaging::GrayF32;
-use crate::landmarks::asm3d::Asm3dLandmarker;
+use crate::landmarks::asm3d::{Asm3dLandmarker, Refinement};
 use crate::landmarks::{Landmarker, Variant, train};
 
 #[derive(clap::Args, Debug)]
@@ -71,8 +71,10 @@ pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
     // One face's JSON object; the 3D-ASM adds its fitted pose to the C-ASM fields.
     let fit_face: Box<dyn Fn(&GrayF32, &Rect) -> serde_json::Value> = if variant == Variant::Asm3d {
         let landmarker = Asm3dLandmarker::load(&models.join("asm3d.bin"))?;
+        // The 3D search's result is refined by the C-ASM, as in the service.
+        let casm = Landmarker::load(&models.join("asm.bin"))?;
         Box::new(move |gray, rect| {
-            let lm = landmarker.fit(gray, rect);
+            let lm = landmarker.fit_with(gray, rect, Refinement::Casm(&casm.model));
             let mut face = face_json(rect, &lm.points, &lm.keypoints);
             face["pose"] = json!(lm.pose);
             face["view_yaw"] = json!(lm.view_yaw);

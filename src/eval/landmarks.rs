@@ -187,12 +187,13 @@ pub fn run_scaled(imm: &Path, detector: Option<&Detector>, out: &Path, halvings:
     }
     let mut summaries: Vec<VariantSummary> = Variant::ALL.iter().map(|&v| measure(&landmarker, &photos, v)).collect();
     // The 3D-ASM beside them, and the head yaw of each photo for the per-view table.
-    let yaws = match measure_asm3d(&training, detector, &photos) {
-        Some((summary, yaws)) => {
-            summaries.push(summary);
-            yaws
+    let (yaws, crossover_rows) = match measure_asm3d(&training, if halvings == 0 { &test } else { &[] }, detector, &photos, &landmarker) {
+        Some((asm3d, switch, yaws, rows)) => {
+            summaries.push(asm3d);
+            summaries.push(switch);
+            (yaws, rows)
         }
-        None => vec![f32::NAN; photos.len()],
+        None => (vec![f32::NAN; photos.len()], Vec::new()),
     };
 
     let boxes = match (detector, box_source) {
@@ -213,6 +214,10 @@ pub fn run_scaled(imm: &Path, detector: Option<&Detector>, out: &Path, halvings:
     print_table(&summaries);
 
     let per_view = per_view_tables(&summaries, &yaws);
+    for (name, rows) in &crossover_rows {
+        println!("{name}:");
+        print_crossover(rows);
+    }
 
     std::fs::create_dir_all(out)?;
     let curves = |f: &dyn Fn(&PhotoError) -> Option<f64>| -> Vec<Series> {
@@ -226,6 +231,7 @@ pub fn run_scaled(imm: &Path, detector: Option<&Detector>, out: &Path, halvings:
                         "asm" => "ASM (profiles)",
                         "sift" => "SIFT-ASM",
                         "asm3d" => "3D-ASM",
+                        "switch" => "service: C-ASM or 3D-ASM by yaw",
                         _ => "C-ASM",
                     },
                     points: cumulative(&errs, 0.25, 100),
@@ -252,7 +258,7 @@ pub fn run_scaled(imm: &Path, detector: Option<&Detector>, out: &Path, halvings:
         &chart("IMM held-out persons: mouth error", "mouth error / eyes-to-mouth distance"),
         &curves(&|e| e.d_mouth),
     )?;
-    let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries, "per_view": per_view, "yaw_of_annotation": yaws });
+    let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries, "per_view": per_view, "yaw_of_annotation": yaws, "crossover": crossover_rows.iter().map(|(name, rows)| serde_json::json!({ "search": name, "rows": rows, "crossover_yaw": crossover_yaw(rows) })).collect::<Vec<_>>() });
     std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
     println!("wrote {}", out.display());
     Ok(summaries)
@@ -302,12 +308,17 @@ fn summarise(variant: &'static str, errors: Vec<PhotoError>, ms_per_face: f64) -
 }
 
 /// The 3D-ASM beside the 2D variants: trained on the same training persons (needs the Surrey Face
-/// Model; skipped with a message without it), measured on the same photos and boxes.
+/// Model; skipped with a message without it), refined by `casm`, measured on the same photos and
+/// boxes, alone and as the service switches to it (`asm3d::Asm3dLandmarker::switch` at
+/// `asm3d::SERVICE_MIN_YAW`); with a detector, both also against C-ASM on turned renders of the
+/// `test` persons ([`crossover`]).
 fn measure_asm3d(
     training: &[ImmSample],
+    test: &[ImmSample],
     detector: Option<&Detector>,
     photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)],
-) -> Option<(VariantSummary, Vec<f32>)> {
+    casm: &Landmarker,
+) -> Option<(VariantSummary, VariantSummary, Vec<f32>, Vec<(&'static str, Vec<CrossoverRow>)>)> {
     use crate::landmarks::asm3d;
     let fm = match crate::morph::FaceModel::load(&crate::config::sfm_dir()) {
         Ok(m) => m,
@@ -326,11 +337,26 @@ fn measure_asm3d(
     };
     bar.finish_and_clear();
     let lm = asm3d::Asm3dLandmarker { model };
-    let summary = measure_fn(photos, "asm3d", &|g, r| lm.fit(g, r).keypoints);
+    let fit = |g: &crate::imaging::GrayF32, r: &Rect| lm.fit_with(g, r, asm3d::Refinement::Casm(&casm.model)).keypoints;
+    let summary = measure_fn(photos, "asm3d", &fit);
+    let switch =
+        |g: &crate::imaging::GrayF32, r: &Rect| lm.switch(g, r, casm, casm.fit(g, r, Variant::Casm), asm3d::SERVICE_MIN_YAW).0.keypoints;
+    let switch_summary = measure_fn(photos, "switch", &switch);
     // The head yaw of every test photo, from the 3DMM fitted to its manual landmarks.
     let yaws =
         photos.iter().map(|(_, g, truth, _)| fm.fit(truth, g.width as u32, g.height as u32).map_or(f32::NAN, |f| f.pose.yaw)).collect();
-    Some((summary, yaws))
+    let mut rows = Vec::new();
+    if let Some(det) = detector.filter(|_| !test.is_empty()) {
+        let searches: [(&'static str, &dyn Fn(&crate::imaging::GrayF32, &Rect) -> KeyPoints); 2] =
+            [("3D-ASM (refined by C-ASM)", &fit), ("service switch", &switch)];
+        for (name, search) in searches {
+            match crossover(&fm, test, det, casm, search) {
+                Ok(r) => rows.push((name, r)),
+                Err(e) => eprintln!("facegate: crossover not measured: {e}"),
+            }
+        }
+    }
+    Some((summary, switch_summary, yaws, rows))
 }
 
 /// Per IMM view group (frontal 1–2, turned 3–4, spot light and free 5–6) and per |yaw| band of the
@@ -371,6 +397,136 @@ fn per_view_tables(summaries: &[VariantSummary], yaws: &[f32]) -> serde_json::Va
     serde_json::Value::Array(rows)
 }
 
+/// Yaws (degrees) of the crossover renders.
+pub const CROSSOVER_YAWS: [f32; 9] = [-60.0, -45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0, 60.0];
+
+/// One |yaw| of the crossover measurement: C-ASM and the 3D-ASM on the same renders and boxes.
+#[derive(Debug, Clone, Serialize)]
+pub struct CrossoverRow {
+    pub yaw: f32,
+    pub renders: usize,
+    /// Renders where the detector found no face (failures for both searches).
+    pub detector_misses: usize,
+    pub casm_d_eye_005: f64,
+    pub casm_d_eye_01: f64,
+    pub casm_mean_d_eye: f64,
+    pub asm3d_d_eye_005: f64,
+    pub asm3d_d_eye_01: f64,
+    pub asm3d_mean_d_eye: f64,
+}
+
+/// C-ASM against the 3D-ASM on turned renders of held-out faces: every near-frontal photo
+/// (|yaw| < 10° by the 3DMM fitted to its manual landmarks) of `test` is fitted by the 3DMM,
+/// textured and rendered at each of [`CROSSOVER_YAWS`] (its pitch, no roll, no lighting change) by
+/// the 3D-ASM training's renderer (`asm3d::synthesise_view`, landmarks = projected model points
+/// moved by the photo's annotation residual); both searches start from the detector's box on the
+/// render. Rows by |yaw|. (The renders favour the 3D-ASM, whose view models were trained on
+/// renders of other persons.)
+pub fn crossover(
+    fm: &crate::morph::FaceModel,
+    test: &[ImmSample],
+    detector: &Detector,
+    casm: &Landmarker,
+    asm3d: &dyn Fn(&crate::imaging::GrayF32, &Rect) -> KeyPoints,
+) -> anyhow::Result<Vec<CrossoverRow>> {
+    use crate::landmarks::asm3d::{annotation_offsets, background_colour, contour_jaw_vertices, photo_jaw_vertices, synthesise_view};
+    let mut bands: Vec<f32> = CROSSOVER_YAWS.iter().map(|y| y.abs()).collect();
+    bands.sort_by(f32::total_cmp);
+    bands.dedup();
+    // Per band: (C-ASM d_eye, 3D-ASM d_eye) per render, infinite for a detector miss.
+    let mut errors: Vec<Vec<(f64, f64)>> = vec![Vec::new(); bands.len()];
+    let mut misses = vec![0usize; bands.len()];
+    for sample in test {
+        let photo = crate::imaging::open(&sample.image)?;
+        let truth = sample.landmarks()?;
+        let Ok(fit) = fm.fit(&truth, photo.width(), photo.height()) else { continue };
+        if fit.pose.yaw.abs() >= 10.0 {
+            continue;
+        }
+        let texture = fm.extract_texture(&photo.rgb, &fit, 512);
+        let offsets = annotation_offsets(fm, &fit, &truth);
+        // A near-frontal photo keeps its own fitted jaw vertices.
+        let jaw = photo_jaw_vertices(fm, &fit, &contour_jaw_vertices(fm));
+        let background = background_colour(&photo.rgb);
+        for &yaw in &CROSSOVER_YAWS {
+            let pose = crate::morph::Pose { yaw, pitch: fit.pose.pitch, roll: 0.0 };
+            let view = synthesise_view(fm, &fit, &texture, pose, background, 0.0, &jaw, &offsets);
+            let band = bands.iter().position(|&b| b == yaw.abs()).expect("a band per yaw");
+            let truth_k = KeyPoints::from_imm(&view.points);
+            let Some(rect) = detector.detect(&view.gray).first().map(|f| f.rect) else {
+                misses[band] += 1;
+                errors[band].push((f64::INFINITY, f64::INFINITY));
+                continue;
+            };
+            let c = casm.fit(&view.gray, &rect, Variant::Casm).keypoints;
+            let a = asm3d(&view.gray, &rect);
+            errors[band].push((d_eye(&c, &truth_k), d_eye(&a, &truth_k)));
+        }
+    }
+    let rows = bands
+        .iter()
+        .zip(errors)
+        .zip(misses)
+        .map(|((&yaw, e), detector_misses)| {
+            let pct = |f: &dyn Fn(&(f64, f64)) -> f64, t: f64| e.iter().filter(|x| f(x) < t).count() as f64 / e.len().max(1) as f64;
+            let mean = |f: &dyn Fn(&(f64, f64)) -> f64| {
+                let v: Vec<f64> = e.iter().map(f).filter(|x| x.is_finite()).collect();
+                v.iter().sum::<f64>() / v.len().max(1) as f64
+            };
+            CrossoverRow {
+                yaw,
+                renders: e.len(),
+                detector_misses,
+                casm_d_eye_005: pct(&|x| x.0, 0.05),
+                casm_d_eye_01: pct(&|x| x.0, 0.1),
+                casm_mean_d_eye: mean(&|x| x.0),
+                asm3d_d_eye_005: pct(&|x| x.1, 0.05),
+                asm3d_d_eye_01: pct(&|x| x.1, 0.1),
+                asm3d_mean_d_eye: mean(&|x| x.1),
+            }
+        })
+        .collect();
+    Ok(rows)
+}
+
+/// The smallest |yaw| of `rows` from which on the 3D-ASM is better than C-ASM at every larger
+/// |yaw| too (share with d_eye < 0.1 not lower, mean d_eye lower by at least 5%: a smaller
+/// difference is within the photo-to-photo noise); `None` when it is not better at the largest.
+pub fn crossover_yaw(rows: &[CrossoverRow]) -> Option<f32> {
+    let wins = |r: &CrossoverRow| r.asm3d_d_eye_01 >= r.casm_d_eye_01 && r.asm3d_mean_d_eye < 0.95 * r.casm_mean_d_eye;
+    let mut sorted: Vec<&CrossoverRow> = rows.iter().collect();
+    sorted.sort_by(|a, b| a.yaw.total_cmp(&b.yaw));
+    let mut from = None;
+    for r in sorted.iter().rev() {
+        if !wins(r) {
+            break;
+        }
+        from = Some(r.yaw);
+    }
+    from
+}
+
+/// Print the crossover table.
+pub fn print_crossover(rows: &[CrossoverRow]) {
+    println!("crossover on renders of held-out faces (d_eye < 0.05 / < 0.1 / mean; detector misses count as failures)");
+    println!("{:>6} {:>8} {:>7} {:>26} {:>26}", "|yaw|", "renders", "misses", "C-ASM", "3D-ASM");
+    for r in rows {
+        let cell = |a: f64, b: f64, m: f64| format!("{:.1}% / {:.1}% / {:.4}", 100.0 * a, 100.0 * b, m);
+        println!(
+            "{:>6.0} {:>8} {:>7} {:>26} {:>26}",
+            r.yaw,
+            r.renders,
+            r.detector_misses,
+            cell(r.casm_d_eye_005, r.casm_d_eye_01, r.casm_mean_d_eye),
+            cell(r.asm3d_d_eye_005, r.asm3d_d_eye_01, r.asm3d_mean_d_eye)
+        );
+    }
+    match crossover_yaw(rows) {
+        Some(y) => println!("3D-ASM better than C-ASM from |yaw| {y:.0}° on"),
+        None => println!("no crossover: C-ASM as good or better at the largest |yaw|"),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -381,5 +537,31 @@ mod tests {
         let found = KeyPoints { left_eye: [3.0, 4.0], right_eye: [100.0, 2.0], mouth: [50.0, 88.0] };
         assert!((d_eye(&found, &truth) - 0.05).abs() < 1e-6);
         assert!((d_mouth(&found, &truth) - 0.1).abs() < 1e-6);
+    }
+
+    #[test]
+    fn crossover_is_where_the_3d_asm_wins_from_on() {
+        let row = |yaw: f32, c: f64, a: f64| CrossoverRow {
+            yaw,
+            renders: 10,
+            detector_misses: 0,
+            casm_d_eye_005: 1.0,
+            casm_d_eye_01: 1.0,
+            casm_mean_d_eye: c,
+            asm3d_d_eye_005: 1.0,
+            asm3d_d_eye_01: 1.0,
+            asm3d_mean_d_eye: a,
+        };
+        // A 1% lower mean at 0° is no win.
+        let rows = [row(0.0, 0.0202, 0.0200), row(30.0, 0.03, 0.02), row(15.0, 0.02, 0.03), row(45.0, 0.05, 0.03), row(60.0, 0.08, 0.04)];
+        assert_eq!(crossover_yaw(&rows[..2]), Some(30.0));
+        assert_eq!(crossover_yaw(&[rows[0].clone(), rows[2].clone(), rows[1].clone(), rows[3].clone(), rows[4].clone()]), Some(30.0));
+        let mut lose = rows.clone();
+        lose[1].asm3d_mean_d_eye = 0.04;
+        // Wins at 45 and 60 but not at 30: the crossover is 45.
+        assert_eq!(crossover_yaw(&lose), Some(45.0));
+        // Losing at the largest |yaw|: none.
+        lose[4].asm3d_d_eye_01 = 0.9;
+        assert_eq!(crossover_yaw(&lose), None);
     }
 }

@@ -5,8 +5,9 @@
 //!   shapes drawn at random from the model (standard normal coefficients, fixed seed), PCA of the
 //!   3D point sets. The jaw points are the *visible* outline, which moves over the mesh as the head
 //!   turns, so each view (yaw bin) has its own 3D PDM whose jaw vertices were chosen for that yaw
-//!   (the rule of the morph tests: the model contour vertex while it faces the camera, else the
-//!   nearest vertex on the occluding outline). Fitted to 2D candidates by alternating a scaled
+//!   (each jaw point's vertex of the annotators' convention, learnt from the 3DMM fits of the
+//!   near-frontal training photos, while it faces the camera, else the nearest vertex on the
+//!   occluding outline). Fitted to 2D candidates by alternating a scaled
 //!   orthographic camera (`morph::fit::estimate_camera`) and regularised, clamped 3D coefficients.
 //! - **View-based texture models**: 7 yaw bins (−45°…+45° in 15° steps), each a complete 2D C-ASM
 //!   texture set (SIFT for the 45 internal points, grey-level profiles for the 13 jaw points, two
@@ -22,8 +23,10 @@
 //!   tilted ±12°, placed from the detector box, is ranked by its texture cost on the coarse level;
 //!   the best starts of the 3 best-ranked views get 2 coarse iterations {candidates by the current
 //!   view's textures → 3D fit → view from its yaw}, the best goes on to convergence on the coarse
-//!   level; then the chosen view's 2D C-ASM (its textures under its 2D shape models) refines the
-//!   points coarse to fine, and the 3D PDM fitted to them gives the pose.
+//!   level; then a 2D C-ASM refines the points coarse to fine ([`Refinement`]: the service's C-ASM,
+//!   trained on real photos, or the chosen view's own), and the 3D PDM fitted to them gives the
+//!   pose. The service switches to the 3D-ASM when the C-ASM's points are turned beyond
+//!   [`SERVICE_MIN_YAW`] ([`Asm3dLandmarker::switch`]).
 
 use std::path::Path;
 
@@ -43,7 +46,7 @@ use super::pdm::{ShapeModel, principal_modes};
 use super::search::{self, Frame, Level, Workspace, from_level, normals, pyramid, to_level};
 use super::{AsmModel, BoxSource, LandmarkError, Placement, SearchParams, TrainInfo, Variant, profile, sift};
 
-pub const ASM3D_FORMAT: u32 = 2;
+pub const ASM3D_FORMAT: u32 = 3;
 
 /// A 3D point distribution model of the 58 IMM points (model millimetres: x to the subject's left,
 /// y up, z towards the camera), coefficients limited to ±`constrain`·√λ.
@@ -513,7 +516,7 @@ pub fn annotation_offsets(fm: &FaceModel, fit: &crate::morph::FittedFace, annota
 }
 
 /// Mean colour of the photo's top-left corner (IMM: the plain studio background).
-fn background_colour(rgb: &image::RgbImage) -> [u8; 3] {
+pub fn background_colour(rgb: &image::RgbImage) -> [u8; 3] {
     let n = 16.min(rgb.width()).min(rgb.height());
     let mut acc = [0u32; 3];
     for y in 0..n {
@@ -862,6 +865,17 @@ fn start_scales(pdms: &[Pdm3d], real_fits: &[(usize, Camera, Vec<Point>)]) -> Ve
         .collect()
 }
 
+/// |yaw| (degrees) of the C-ASM's points ([`Asm3dLandmarker::yaw_of`]) from which the service uses
+/// the 3D-ASM (refined by the C-ASM) instead. The crossover measured on renders of held-out faces
+/// (`facegate eval landmarks`, `eval::landmarks::crossover`) is at a true |yaw| of 15°: from there
+/// on the 3D-ASM has a mean d_eye at least 5% lower and as many d_eye < 0.1; at 0° they are
+/// equal. But the C-ASM's points understate the turn (a true 15° gives 5–8°, 45° gives 35–38°, or
+/// 8–15° where the C-ASM collapsed to a frontal shape), so the threshold on their yaw is lower:
+/// measured d_eye < 0.1 of the switch on the 45° renders 76.6% with 15°, 90.6% with 10°, 93.8%
+/// with 5° (the 3D-ASM on every face: 93.8%); held-out IMM photos mean d_eye 0.0213 / 0.0214 /
+/// 0.0212 (C-ASM alone 0.0218), frontal views 0.0170 / 0.0170 / 0.0169 (C-ASM 0.0170).
+pub const SERVICE_MIN_YAW: f32 = 5.0;
+
 /// The 2D model that refines the 3D search's coarse result (coarse to fine, `search::search_levels`).
 #[derive(Debug, Clone, Copy)]
 pub enum Refinement<'a> {
@@ -969,6 +983,41 @@ impl Asm3dLandmarker {
     /// images give the placed frontal mean.
     pub fn fit(&self, gray: &GrayF32, face: &Rect) -> Asm3dLandmarks {
         self.fit_with(gray, face, Refinement::View)
+    }
+
+    /// Head yaw (degrees, the morph module's sign) of 58 points in image pixels: the frontal view's
+    /// 3D PDM fitted to them. `None` for degenerate points.
+    pub fn yaw_of(&self, points: &[Point]) -> Option<f32> {
+        let m = &self.model;
+        let view = &m.views[nearest_view(&self.yaws(), 0.0)];
+        // The PDM's prior σ is in crop pixels: fit in the crop's scale.
+        let c = centroid(points);
+        let scale = {
+            let (x0, x1) = points.iter().fold((f32::MAX, f32::MIN), |(a, b), q| (a.min(q[0]), b.max(q[0])));
+            m.params.ref_width / (x1 - x0).max(1e-3)
+        };
+        let local: Vec<Point> = points.iter().map(|p| [scale * (p[0] - c[0]), scale * (p[1] - c[1])]).collect();
+        view.pdm.fit(&local, m.sigma_px as f64, 4).map(|f| f.camera.pose().yaw)
+    }
+
+    /// The service's landmarks: the C-ASM's (`casm`, already searched by `landmarker` in `face`)
+    /// while their [`yaw_of`](Self::yaw_of) is below `min_yaw` degrees, else the 3D-ASM's refined
+    /// by the C-ASM. Returns the points and whether the 3D-ASM was used.
+    pub fn switch(
+        &self,
+        gray: &GrayF32,
+        face: &Rect,
+        landmarker: &super::Landmarker,
+        casm: super::Landmarks,
+        min_yaw: f32,
+    ) -> (super::Landmarks, bool) {
+        match self.yaw_of(&casm.points) {
+            Some(yaw) if yaw.abs() >= min_yaw => {
+                let r = self.fit_with(gray, face, Refinement::Casm(&landmarker.model));
+                (super::Landmarks { points: r.points, keypoints: r.keypoints }, true)
+            }
+            _ => (casm, false),
+        }
     }
 
     /// [`fit`](Self::fit) with the 2D model of the refinement stage chosen by `refinement`.
@@ -1217,6 +1266,28 @@ mod tests {
         let found = lm.fit(&photo.gray, &super::super::train::annotation_box(&truth));
         let de = crate::eval::landmarks::d_eye(&found.keypoints, &KeyPoints::from_imm(&truth));
         assert!(de < 0.1, "d_eye {de}");
+        // The yaw of a projected model shape comes back, at any image scale.
+        let view = &lm.model.views[3];
+        for (yaw, scale) in [(0.0f32, 2.0), (30.0, 1.2), (-25.0, 3.0)] {
+            let cam = Camera::from_pose(Pose { yaw, pitch: 5.0, roll: 3.0 }, scale, 300.0, 240.0);
+            let pts = view.pdm.project(&vec![0.0; view.pdm.modes()], &cam);
+            let got = lm.yaw_of(&pts).unwrap();
+            assert!((got - yaw).abs() < 3.0, "yaw {yaw}: estimated {got}");
+        }
+        assert!(lm.yaw_of(&vec![[5.0, 5.0]; IMM_POINTS]).is_none());
+        // The service switch keeps the C-ASM's points below the yaw threshold and replaces them
+        // beyond it.
+        let casm = super::super::Landmarker {
+            model: super::super::train::train(&samples, None, &super::super::train::TrainOptions::default(), &|| {}).unwrap(),
+        };
+        let face = super::super::train::annotation_box(&truth);
+        let c = casm.fit(&photo.gray, &face, Variant::Casm);
+        let (kept, used) = lm.switch(&photo.gray, &face, &casm, c.clone(), 90.0);
+        assert!(!used && kept == c);
+        let (replaced, used) = lm.switch(&photo.gray, &face, &casm, c.clone(), 0.0);
+        assert!(used && replaced.points != c.points);
+        let de = crate::eval::landmarks::d_eye(&replaced.keypoints, &KeyPoints::from_imm(&truth));
+        assert!(de < 0.1, "switched d_eye {de}");
         let img = GrayF32::from_fn(92, 112, |x, y| ((x * 3 + y * 5) % 17) as f32 * 10.0);
         for b in [
             Rect::new(10.0, 20.0, 60.0, 60.0),
@@ -1278,13 +1349,16 @@ mod tests {
         let lm = Asm3dLandmarker { model };
         let only = std::env::var("ASM3D_ONLY").ok();
         // The searches compared: the 3D-ASM with each refinement, and the C-ASM alone.
-        let names = ["3D-ASM", "3D+C-ASM", "3D+C-ASM st", "C-ASM"];
+        let names = ["3D-ASM", "3D+C-ASM", "3D+C-ASM st", "C-ASM", "switch"];
+        // `ASM3D_MIN_YAW`: the switch's threshold (default the service's).
+        let min_yaw: f32 = std::env::var("ASM3D_MIN_YAW").ok().and_then(|v| v.parse().ok()).unwrap_or(SERVICE_MIN_YAW);
         let search = |k: usize, g: &GrayF32, b: &Rect| -> (Vec<Point>, Option<Asm3dLandmarks>) {
             let r = match k {
                 0 => lm.fit(g, b),
                 1 => lm.fit_with(g, b, Refinement::Casm(&casm.model)),
                 2 => lm.fit_with(g, b, Refinement::CasmWithStarts(&casm.model)),
-                _ => return (casm.fit(g, b, Variant::Casm).points, None),
+                3 => return (casm.fit(g, b, Variant::Casm).points, None),
+                _ => return (lm.switch(g, b, &casm, casm.fit(g, b, Variant::Casm), min_yaw).0.points, None),
             };
             (r.points.clone(), Some(r))
         };
@@ -1376,5 +1450,20 @@ mod tests {
         let ms: Vec<String> =
             (0..names.len()).map(|k| format!("{} {:.1}", names[k], mean(&rows.iter().map(|r| r.ms[k]).collect::<Vec<_>>()))).collect();
         eprintln!("thread CPU ms/face (this build's profile): {}", ms.join(", "));
+        // `ASM3D_CROSSOVER=1`: C-ASM against the 3D-ASM (each refinement) on renders of the
+        // held-out faces at yaw 0…±60°.
+        if std::env::var("ASM3D_CROSSOVER").is_ok() {
+            let det = det.as_ref().expect("the face detector");
+            let searches: [(&str, &dyn Fn(&GrayF32, &Rect) -> KeyPoints); 3] = [
+                ("3D-ASM with the C-ASM refinement", &|g, b| lm.fit_with(g, b, Refinement::Casm(&casm.model)).keypoints),
+                ("3D-ASM with the view refinement", &|g, b| lm.fit_with(g, b, Refinement::View).keypoints),
+                ("the service switch", &|g, b| lm.switch(g, b, &casm, casm.fit(g, b, Variant::Casm), min_yaw).0.keypoints),
+            ];
+            for (name, search) in searches {
+                println!("{name}:");
+                let rows = crate::eval::landmarks::crossover(fm, &test, det, &casm, search).unwrap();
+                crate::eval::landmarks::print_crossover(&rows);
+            }
+        }
     }
 }
