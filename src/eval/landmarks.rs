@@ -188,10 +188,10 @@ pub fn run_scaled(imm: &Path, detector: Option<&Detector>, out: &Path, halvings:
     let mut summaries: Vec<VariantSummary> = Variant::ALL.iter().map(|&v| measure(&landmarker, &photos, v)).collect();
     // The 3D-ASM beside them, and the head yaw of each photo for the per-view table.
     let (yaws, crossover_rows) = match measure_asm3d(&training, if halvings == 0 { &test } else { &[] }, detector, &photos, &landmarker) {
-        Some((asm3d, switch, yaws, rows)) => {
-            summaries.push(asm3d);
-            summaries.push(switch);
-            (yaws, rows)
+        Some(m) => {
+            summaries.push(m.asm3d);
+            summaries.push(m.switch);
+            (m.yaws, m.crossover)
         }
         None => (vec![f32::NAN; photos.len()], Vec::new()),
     };
@@ -307,6 +307,21 @@ fn summarise(variant: &'static str, errors: Vec<PhotoError>, ms_per_face: f64) -
     }
 }
 
+/// A landmark search under measurement: photo and face box in, eye and mouth centres out.
+pub type KeypointSearch<'a> = &'a dyn Fn(&crate::imaging::GrayF32, &Rect) -> KeyPoints;
+
+/// What [`measure_asm3d`] measured.
+struct Asm3dMeasurements {
+    /// The 3D-ASM refined by the C-ASM.
+    asm3d: VariantSummary,
+    /// The service's switch between C-ASM and 3D-ASM.
+    switch: VariantSummary,
+    /// Head yaw of each test photo (3DMM fitted to its manual landmarks).
+    yaws: Vec<f32>,
+    /// Crossover rows per search.
+    crossover: Vec<(&'static str, Vec<CrossoverRow>)>,
+}
+
 /// The 3D-ASM beside the 2D variants: trained on the same training persons (needs the Surrey Face
 /// Model; skipped with a message without it), refined by `casm`, measured on the same photos and
 /// boxes, alone and as the service switches to it (`asm3d::Asm3dLandmarker::switch` at
@@ -318,7 +333,7 @@ fn measure_asm3d(
     detector: Option<&Detector>,
     photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)],
     casm: &Landmarker,
-) -> Option<(VariantSummary, VariantSummary, Vec<f32>, Vec<(&'static str, Vec<CrossoverRow>)>)> {
+) -> Option<Asm3dMeasurements> {
     use crate::landmarks::asm3d;
     let fm = match crate::morph::FaceModel::load(&crate::config::sfm_dir()) {
         Ok(m) => m,
@@ -347,8 +362,7 @@ fn measure_asm3d(
         photos.iter().map(|(_, g, truth, _)| fm.fit(truth, g.width as u32, g.height as u32).map_or(f32::NAN, |f| f.pose.yaw)).collect();
     let mut rows = Vec::new();
     if let Some(det) = detector.filter(|_| !test.is_empty()) {
-        let searches: [(&'static str, &dyn Fn(&crate::imaging::GrayF32, &Rect) -> KeyPoints); 2] =
-            [("3D-ASM (refined by C-ASM)", &fit), ("service switch", &switch)];
+        let searches: [(&'static str, KeypointSearch); 2] = [("3D-ASM (refined by C-ASM)", &fit), ("service switch", &switch)];
         for (name, search) in searches {
             match crossover(&fm, test, det, casm, search) {
                 Ok(r) => rows.push((name, r)),
@@ -356,7 +370,7 @@ fn measure_asm3d(
             }
         }
     }
-    Some((summary, switch_summary, yaws, rows))
+    Some(Asm3dMeasurements { asm3d: summary, switch: switch_summary, yaws, crossover: rows })
 }
 
 /// Per IMM view group (frontal 1–2, turned 3–4, spot light and free 5–6) and per |yaw| band of the
@@ -427,7 +441,7 @@ pub fn crossover(
     test: &[ImmSample],
     detector: &Detector,
     casm: &Landmarker,
-    asm3d: &dyn Fn(&crate::imaging::GrayF32, &Rect) -> KeyPoints,
+    asm3d: KeypointSearch,
 ) -> anyhow::Result<Vec<CrossoverRow>> {
     use crate::landmarks::asm3d::{annotation_offsets, background_colour, contour_jaw_vertices, photo_jaw_vertices, synthesise_view};
     let mut bands: Vec<f32> = CROSSOVER_YAWS.iter().map(|y| y.abs()).collect();
