@@ -11,6 +11,7 @@ use serde::Serialize;
 
 use crate::dataset::KeyPoints;
 use crate::detect::{Detector, Face};
+use crate::geometry::Rect;
 use crate::imaging::{GrayF32, Photo};
 use crate::landmarks::asm3d::{Asm3dLandmarker, SERVICE_MIN_YAW};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
@@ -133,12 +134,7 @@ impl Pipeline {
         let face = *faces.first().ok_or(PipelineError::NoFace)?;
 
         let t = Instant::now();
-        let mut landmarks = self.landmarker.fit(&photo.gray, &face.rect, Variant::Casm);
-        // Turned faces: the 3D-ASM (refined by the C-ASM) when the C-ASM's points are turned
-        // beyond the measured switch point (docs/asm3d.md, "Crossover").
-        if let Some(asm3d) = &self.asm3d {
-            landmarks = asm3d.switch(&photo.gray, &face.rect, &self.landmarker, landmarks, SERVICE_MIN_YAW).0;
-        }
+        let landmarks = find_landmarks(&self.landmarker, self.asm3d.as_ref(), &photo.gray, &face.rect);
         timings.landmarks_ms = ms(t);
 
         let t = Instant::now();
@@ -167,6 +163,18 @@ pub struct RecognitionInput<'a> {
     pub gray: Cow<'a, GrayF32>,
     pub keypoints: KeyPoints,
     pub pose: Option<Pose>,
+}
+
+/// The service's 58 landmarks of the face in `face`: the C-ASM's, or, when the 3D-ASM is loaded
+/// and the C-ASM's points are turned by at least [`SERVICE_MIN_YAW`], the 3D-ASM's refined by the
+/// C-ASM (the crossover measured in docs/asm3d.md). Recognition training and evaluation call this
+/// too, so that their crops are made as the service makes them.
+pub fn find_landmarks(landmarker: &Landmarker, asm3d: Option<&Asm3dLandmarker>, gray: &GrayF32, face: &Rect) -> Landmarks {
+    let casm = landmarker.fit(gray, face, Variant::Casm);
+    match asm3d {
+        Some(asm3d) => asm3d.switch(gray, face, landmarker, casm, SERVICE_MIN_YAW).0,
+        None => casm,
+    }
 }
 
 /// Fit the 3DMM to the landmarks (when the model is loaded) for the head pose and, on the 3DMM path,

@@ -19,9 +19,10 @@ use crate::dataset::{self, IMM_POINTS, KeyPoints};
 use crate::detect::Detector;
 use crate::eval::verification::{VerificationSummary, eer, summarize};
 use crate::imaging::{self, GrayF32};
-use crate::landmarks::{Landmarker, Landmarks, Variant};
+use crate::landmarks::asm3d::Asm3dLandmarker;
+use crate::landmarks::{Landmarker, Landmarks};
 use crate::morph::{FaceModel, Pose};
-use crate::pipeline::recognition_input;
+use crate::pipeline::{find_landmarks, recognition_input};
 
 /// One labelled photo with what the split needs to know.
 #[derive(Debug, Clone, PartialEq)]
@@ -106,22 +107,27 @@ pub struct FrontEnd {
     pub source: KeypointSource,
     pub detector: Option<Detector>,
     pub landmarker: Option<Landmarker>,
+    /// The 3D-ASM, which takes over from the C-ASM on turned faces exactly as in the service
+    /// (`Asm3dLandmarker::switch`); `None`: C-ASM only.
+    pub asm3d: Option<Asm3dLandmarker>,
     pub face_model: Option<FaceModel>,
 }
 
 impl FrontEnd {
     /// Annotations only (no automatic front end, no 3DMM).
     pub fn annotations_only() -> FrontEnd {
-        FrontEnd { source: KeypointSource::Annotated, detector: None, landmarker: None, face_model: None }
+        FrontEnd { source: KeypointSource::Annotated, detector: None, landmarker: None, asm3d: None, face_model: None }
     }
 
-    /// Load what is available: the detector, the ASM landmarker (`asm.bin`) and the 3DMM are
-    /// optional; a missing part only matters for the photos that need it.
+    /// Load what is available: the detector, the ASM landmarker (`asm.bin`), the 3D-ASM
+    /// (`asm3d.bin`) and the 3DMM are optional; a missing part only matters for the photos that
+    /// need it.
     pub fn load(source: KeypointSource, models_dir: &Path, sfm_dir: Option<&Path>) -> FrontEnd {
         let detector = Detector::load(models_dir).map_err(|e| tracing::info!("detector unavailable: {e}")).ok();
         let landmarker = Landmarker::load(&models_dir.join("asm.bin")).map_err(|e| tracing::info!("landmarker unavailable: {e}")).ok();
+        let asm3d = Asm3dLandmarker::load(&models_dir.join("asm3d.bin")).map_err(|e| tracing::info!("3D-ASM unavailable: {e}")).ok();
         let face_model = sfm_dir.and_then(|dir| FaceModel::load(dir).map_err(|e| tracing::info!("3DMM unavailable: {e}")).ok());
-        FrontEnd { source, detector, landmarker, face_model }
+        FrontEnd { source, detector, landmarker, asm3d, face_model }
     }
 
     /// The 58 landmarks of a photo from the configured source, and which source gave them.
@@ -137,7 +143,7 @@ impl FrontEnd {
         let (Some(detector), Some(landmarker)) = (&self.detector, &self.landmarker) else { return Err(FrontEndError::NoKeypoints) };
         let faces = detector.detect(&photo.gray);
         let box_ = faces.first().ok_or(FrontEndError::NoFace)?;
-        Ok((landmarker.fit(&photo.gray, &box_.rect, Variant::Casm), "pipeline"))
+        Ok((find_landmarks(landmarker, self.asm3d.as_ref(), &photo.gray, &box_.rect), "pipeline"))
     }
 
     /// The image and keypoints the recognizer normalises, as the service's pipeline makes them.
@@ -200,7 +206,7 @@ pub fn align_all(
 
 /// [`align_all`] through a cache file in `dir`, keyed by the SHA-256 of everything that shapes the
 /// crops: the photos, the keypoint source, the normalisation path and parameters, and the bytes of
-/// the landmark model (`asm.bin`). Photos the front end skipped stay skipped.
+/// the landmark models (`asm.bin`, `asm3d.bin`). Photos the front end skipped stay skipped.
 pub fn align_all_cached(
     dir: &Path,
     source: KeypointSource,
@@ -218,8 +224,10 @@ pub fn align_all_cached(
         hasher.update(f.image.display().to_string());
         hasher.update([f.asf.is_some() as u8]);
     }
-    if let Ok(asm) = std::fs::read(crate::config::models_dir().join("asm.bin")) {
-        hasher.update(&asm);
+    for model in ["asm.bin", "asm3d.bin"] {
+        if let Ok(bytes) = std::fs::read(crate::config::models_dir().join(model)) {
+            hasher.update(&bytes);
+        }
     }
     let key: String = hasher.finalize().iter().take(8).map(|b| format!("{b:02x}")).collect();
     let path = dir.join(format!("crops-{key}.bin"));
