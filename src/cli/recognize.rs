@@ -11,7 +11,7 @@ use crate::eval::verification::{self, rank1, summarize};
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::calibration::DEFAULT_FMR;
 use crate::recognize::train::{self, AlignedFace, FrontEnd, KeypointSource, TrainConfig};
-use crate::recognize::{DldaParams, FeatureKind, Normalization, NormalizeParams, Photometric, Recognizer, Template};
+use crate::recognize::{DldaParams, FeatureKind, Normalization, NormalizeParams, Photometric, Recognizer, Region, Template};
 
 #[derive(clap::Args, Debug)]
 pub struct CompareArgs {
@@ -119,6 +119,45 @@ pub struct ModelOptions {
     /// lowest cross-validated FNMR at FMR 1e-3, the service's operating point; docs/recognition.md).
     #[arg(long, default_value_t = 0.3)]
     pub fuse_weight: f32,
+    /// Face regions with a projection of their own, ensembled with the whole face on each path
+    /// (comma-separated; none by default).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub local_parts: Vec<LocalRegionArg>,
+    /// Total weight of the local parts' cosines in each path's score (shared equally).
+    #[arg(long, default_value_t = 0.5)]
+    pub local_weight: f32,
+}
+
+/// Named regions of the normalised crop (eyes at 34 % of its height, 26 % and 73 % of its width,
+/// the mouth at 82 % of its height).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum LocalRegionArg {
+    /// Both eyes and brows.
+    Eyes,
+    /// The nose, between and below the eyes.
+    Nose,
+    /// The mouth and chin.
+    Mouth,
+    /// Everything above the nose tip (eyes, brows, forehead).
+    Upper,
+    /// Everything below the eyes (nose, cheeks, mouth).
+    Lower,
+    /// The central face without the outline (eyes to mouth).
+    Inner,
+}
+
+impl LocalRegionArg {
+    pub fn region(self) -> Region {
+        let r = |x0, y0, x1, y1| Region { x0, y0, x1, y1 };
+        match self {
+            LocalRegionArg::Eyes => r(0.0, 0.1, 1.0, 0.52),
+            LocalRegionArg::Nose => r(0.25, 0.3, 0.75, 0.78),
+            LocalRegionArg::Mouth => r(0.12, 0.64, 0.88, 1.0),
+            LocalRegionArg::Upper => r(0.0, 0.0, 1.0, 0.6),
+            LocalRegionArg::Lower => r(0.0, 0.45, 1.0, 1.0),
+            LocalRegionArg::Inner => r(0.15, 0.2, 0.85, 0.95),
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -142,6 +181,8 @@ impl ModelOptions {
             },
             dlda: DldaParams { max_dims: self.dims, regularization: self.regularization, pca_dims: self.pca_dims },
             mirror: !self.no_mirror,
+            local_parts: self.local_parts.iter().map(|r| r.region()).collect(),
+            local_weight: self.local_weight,
             cohort_top_k: match self.score_norm {
                 ScoreNormArg::None => None,
                 ScoreNormArg::SNorm => Some(0),

@@ -56,6 +56,80 @@ impl FeatureKind {
     }
 }
 
+/// A rectangle of the normalised crop, in fractions of its width and height (`x0 ≤ x < x1`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Region {
+    pub x0: f32,
+    pub y0: f32,
+    pub x1: f32,
+    pub y1: f32,
+}
+
+impl Region {
+    pub fn contains(&self, fx: f32, fy: f32) -> bool {
+        (self.x0..self.x1).contains(&fx) && (self.y0..self.y1).contains(&fy)
+    }
+
+    /// Inside the unit square and not empty.
+    pub fn is_valid(&self) -> bool {
+        (0.0..1.0).contains(&self.x0)
+            && (0.0..1.0).contains(&self.y0)
+            && self.x1 > self.x0
+            && self.y1 > self.y0
+            && self.x1 <= 1.0
+            && self.y1 <= 1.0
+    }
+}
+
+impl FeatureKind {
+    /// Indices into [`FeatureKind::extract`]'s vector of the features that describe `region`: the
+    /// masked pixels whose centre lies in it, and the LBP cells whose centre does (all their bins).
+    /// A local projection reads these entries of the whole crop's features, so that the features
+    /// are computed once per crop whatever the number of regions.
+    pub fn indices_in(&self, width: usize, height: usize, mask: &[bool], region: &Region) -> Vec<usize> {
+        let pixel_indices = || -> Vec<usize> {
+            let masked = (0..width * height).filter(|&i| mask[i]);
+            masked
+                .enumerate()
+                .filter(|&(_, i)| region.contains(((i % width) as f32 + 0.5) / width as f32, ((i / width) as f32 + 0.5) / height as f32))
+                .map(|(k, _)| k)
+                .collect()
+        };
+        let cell_indices = |grid: usize, offset: usize| -> Vec<usize> {
+            let grid = grid.max(1);
+            let mut out = Vec::new();
+            for cell in 0..grid * grid {
+                let (cx, cy) = (cell % grid, cell / grid);
+                if region.contains((cx as f32 + 0.5) / grid as f32, (cy as f32 + 0.5) / grid as f32) {
+                    out.extend(offset + cell * LBP_BINS..offset + (cell + 1) * LBP_BINS);
+                }
+            }
+            out
+        };
+        let pixels = FeatureKind::Pixels.dims(width, height, mask);
+        match *self {
+            FeatureKind::Pixels => pixel_indices(),
+            FeatureKind::Lbp { grid } => cell_indices(grid, 0),
+            FeatureKind::PixelsLbp { grid } => {
+                let mut out = pixel_indices();
+                out.extend(cell_indices(grid, pixels));
+                out
+            }
+            FeatureKind::PixelsLbpMulti { grid } => {
+                let mut out = pixel_indices();
+                out.extend(cell_indices(grid, pixels));
+                out.extend(cell_indices(grid, pixels + grid.max(1) * grid.max(1) * LBP_BINS));
+                out
+            }
+        }
+    }
+}
+
+/// The entries `indices` of `features` (a region's features, see [`FeatureKind::indices_in`]).
+pub fn gather(features: &[f32], indices: &[usize]) -> Vec<f32> {
+    indices.iter().map(|&i| features[i]).collect()
+}
+
 fn unit(mut v: Vec<f32>) -> Vec<f32> {
     let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
     if norm > 1e-12 {
@@ -189,6 +263,34 @@ mod tests {
         });
         let fast = lbp2_histograms(&crop, 2);
         assert!(reference.iter().zip(&fast).all(|(a, b)| (a - b).abs() < 1e-6), "{reference:?}\n{fast:?}");
+    }
+
+    /// A region's indices pick exactly its pixels and its LBP cells, in the extracted vector's order.
+    #[test]
+    fn region_indices_select_the_region_features() {
+        let (w, h) = (16, 16);
+        let mask: Vec<bool> = (0..w * h).map(|i| i % 5 != 0).collect();
+        let crop = GrayF32::from_fn(w, h, |x, y| ((x * 7 + y * 3) % 11) as f32 + 0.1 * y as f32);
+        let kind = FeatureKind::PixelsLbpMulti { grid: 4 };
+        let features = kind.extract(&crop, &mask);
+        // The upper-left quarter: 64 pixels less the masked-out ones, 4 of the 16 cells per LBP part.
+        let region = Region { x0: 0.0, y0: 0.0, x1: 0.5, y1: 0.5 };
+        let idx = kind.indices_in(w, h, &mask, &region);
+        let pixels_in = (0..w * h).filter(|&i| mask[i] && i % w < 8 && i / w < 8).count();
+        assert_eq!(idx.len(), pixels_in + 2 * 4 * LBP_BINS);
+        assert!(idx.windows(2).all(|p| p[0] < p[1]) && *idx.last().unwrap() < features.len());
+        // The pixel part: the standardised values of exactly those pixels.
+        let all_pixels = pixels(&crop, &mask);
+        let unit_scale = features[0] / all_pixels[0];
+        let first_row: Vec<f32> =
+            (0..8).filter(|&x| mask[x]).map(|x| all_pixels[(0..x).filter(|&i| mask[i]).count()] * unit_scale).collect();
+        let picked = gather(&features, &idx[..first_row.len()]);
+        assert!(picked.iter().zip(&first_row).all(|(a, b)| (a - b).abs() < 1e-6), "{picked:?} {first_row:?}");
+        // The LBP(8,1) part starts with cell (0, 0); cell (1, 0) follows, then (0, 1) (row-major).
+        let p = FeatureKind::Pixels.dims(w, h, &mask);
+        let lbp1 = &idx[pixels_in..pixels_in + 4 * LBP_BINS];
+        assert_eq!((lbp1[0], lbp1[LBP_BINS], lbp1[2 * LBP_BINS]), (p, p + LBP_BINS, p + 4 * LBP_BINS));
+        assert!(Region { x0: 0.2, y0: 0.1, x1: 0.9, y1: 1.0 }.is_valid() && !Region { x0: 0.5, y0: 0.1, x1: 0.4, y1: 1.0 }.is_valid());
     }
 
     #[test]

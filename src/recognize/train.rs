@@ -11,10 +11,10 @@ use serde::Serialize;
 
 use super::calibration::{CALIBRATED_FMRS, Calibration};
 use super::dlda::{Dlda, DldaParams};
-use super::features::FeatureKind;
+use super::features::{self, FeatureKind, Region};
 use super::normalize::{self, NormalizeParams};
 use super::template::{Combine, Template};
-use super::{Cohort, Model, Normalization, Provenance, Recognizer, SecondaryPath};
+use super::{Cohort, LocalPart, Model, Normalization, Provenance, Recognizer, SecondaryPath};
 use crate::dataset::{self, IMM_POINTS, KeyPoints};
 use crate::detect::Detector;
 use crate::eval::verification::{VerificationSummary, eer, summarize};
@@ -306,6 +306,10 @@ pub struct TrainConfig {
     pub secondary: Option<Normalization>,
     /// The second path's weight in the fused score.
     pub secondary_weight: f32,
+    /// Regions of the crop with a projection of their own, ensembled with the whole face.
+    pub local_parts: Vec<Region>,
+    /// Total weight of the local parts' cosines (shared equally), the whole face keeping the rest.
+    pub local_weight: f32,
 }
 
 impl Default for TrainConfig {
@@ -320,6 +324,8 @@ impl Default for TrainConfig {
             cohort_top_k: None,
             secondary: None,
             secondary_weight: 0.3,
+            local_parts: Vec::new(),
+            local_weight: 0.5,
         }
     }
 }
@@ -413,7 +419,15 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
     let mut labels: Vec<String> = train.iter().map(|a| a.face.label.clone()).collect();
     labels.sort();
     labels.dedup();
-    let project = |crop_of: &dyn Fn(&AlignedFace) -> Option<&GrayF32>| -> anyhow::Result<Dlda> {
+    anyhow::ensure!(
+        config.local_parts.is_empty() || (0.0..1.0).contains(&config.local_weight),
+        "the local parts' weight must be in [0, 1)"
+    );
+    let part_indices: Vec<Vec<usize>> =
+        config.local_parts.iter().map(|r| config.features.indices_in(config.normalize.width, config.normalize.height, &mask, r)).collect();
+    anyhow::ensure!(part_indices.iter().all(|i| !i.is_empty()), "a local region holds no features");
+    // One path's projections: the whole face's, then each local part's (on the same samples).
+    let project = |crop_of: &dyn Fn(&AlignedFace) -> Option<&GrayF32>| -> anyhow::Result<(Dlda, Vec<Dlda>)> {
         let mut xs = Vec::new();
         let mut ys = Vec::new();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2011);
@@ -433,17 +447,38 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
                 ys.push(y);
             }
         }
-        Ok(Dlda::train(&xs, &ys, &config.dlda)?)
+        let whole = Dlda::train(&xs, &ys, &config.dlda)?;
+        let parts = part_indices
+            .iter()
+            .map(|indices| {
+                let local: Vec<Vec<f32>> = xs.iter().map(|x| features::gather(x, indices)).collect();
+                Dlda::train(&local, &ys, &config.dlda)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok((whole, parts))
     };
-    let dlda = project(&|a| Some(&a.crop))?;
-    let secondary = match config.secondary {
+    let (dlda, primary_parts) = project(&|a| Some(&a.crop))?;
+    let (secondary, secondary_parts) = match config.secondary {
         Some(normalization) => {
             anyhow::ensure!(normalization != config.normalization, "the second path must differ from the first");
             anyhow::ensure!(held.iter().all(|a| a.secondary_crop.is_some()), "held-out photos without a crop on the second path");
-            Some(SecondaryPath { normalization, dlda: project(&|a| a.secondary_crop.as_ref())?, weight: config.secondary_weight })
+            let (dlda, parts) = project(&|a| a.secondary_crop.as_ref())?;
+            (Some(SecondaryPath { normalization, dlda, weight: config.secondary_weight }), parts)
         }
-        None => None,
+        None => (None, Vec::new()),
     };
+    let part_weight = config.local_weight / config.local_parts.len().max(1) as f32;
+    let mut secondary_parts = secondary_parts.into_iter();
+    let parts: Vec<LocalPart> = config
+        .local_parts
+        .iter()
+        .zip(primary_parts)
+        .map(|(&region, primary)| LocalPart {
+            region,
+            weight: part_weight,
+            projections: std::iter::once(primary).chain(secondary_parts.next()).collect(),
+        })
+        .collect();
     let mut held_persons: Vec<String> = held.iter().map(|a| a.face.label.clone()).collect();
     held_persons.sort();
     held_persons.dedup();
@@ -463,6 +498,7 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
     };
     let mut model = Model::new(config.normalization, config.normalize.clone(), config.features, dlda, provenance);
     model.secondary = secondary;
+    model.parts = parts;
     if let Some(top_k) = config.cohort_top_k {
         // The cohort: one template per training photo (not the mirrored copies), never a held-out person.
         let raw = Recognizer::from_model(model.clone());
