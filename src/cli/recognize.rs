@@ -61,6 +61,8 @@ pub enum FeaturesArg {
     PixelsLbp,
     /// Pixels, LBP(8,1) and LBP(8,2) histograms concatenated.
     PixelsLbpMulti,
+    /// Pixels, LBP(8,1), LBP(8,2) and Gabor magnitudes (3 wavelengths × 8 orientations).
+    PixelsLbpGabor,
 }
 
 /// The choices that make a model, with the measured defaults.
@@ -144,6 +146,14 @@ pub enum LocalRegionArg {
     Lower,
     /// The central face without the outline (eyes to mouth).
     Inner,
+    /// The eye and brow on the image's left.
+    LeftEye,
+    /// The eye and brow on the image's right.
+    RightEye,
+    /// The image's left half of the face.
+    LeftHalf,
+    /// The image's right half of the face.
+    RightHalf,
 }
 
 impl LocalRegionArg {
@@ -156,6 +166,10 @@ impl LocalRegionArg {
             LocalRegionArg::Upper => r(0.0, 0.0, 1.0, 0.6),
             LocalRegionArg::Lower => r(0.0, 0.45, 1.0, 1.0),
             LocalRegionArg::Inner => r(0.15, 0.2, 0.85, 0.95),
+            LocalRegionArg::LeftEye => r(0.0, 0.1, 0.55, 0.55),
+            LocalRegionArg::RightEye => r(0.45, 0.1, 1.0, 0.55),
+            LocalRegionArg::LeftHalf => r(0.0, 0.0, 0.55, 1.0),
+            LocalRegionArg::RightHalf => r(0.45, 0.0, 1.0, 1.0),
         }
     }
 }
@@ -178,6 +192,7 @@ impl ModelOptions {
                 FeaturesArg::Lbp => FeatureKind::Lbp { grid: self.lbp_grid },
                 FeaturesArg::PixelsLbp => FeatureKind::PixelsLbp { grid: self.lbp_grid },
                 FeaturesArg::PixelsLbpMulti => FeatureKind::PixelsLbpMulti { grid: self.lbp_grid },
+                FeaturesArg::PixelsLbpGabor => FeatureKind::PixelsLbpGabor { grid: self.lbp_grid },
             },
             dlda: DldaParams { max_dims: self.dims, regularization: self.regularization, pca_dims: self.pca_dims },
             mirror: !self.no_mirror,
