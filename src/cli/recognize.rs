@@ -243,6 +243,13 @@ pub struct TrainDldaArgs {
     /// Only cross-validate (with --cv-folds); do not train or write the model.
     #[arg(long)]
     pub cv_only: bool,
+    /// Add 3DMM re-posed copies of the training photos: the fitted, textured face rendered at its
+    /// pose plus each of these yaw offsets (degrees, comma-separated), pitch unchanged.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub repose_yaw: Vec<f32>,
+    /// … and at each of these pitch offsets (degrees), yaw unchanged.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub repose_pitch: Vec<f32>,
 
     #[command(flatten)]
     pub model: ModelOptions,
@@ -317,7 +324,18 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
     let paths: Vec<Normalization> = std::iter::once(config.normalization).chain(config.secondary).collect();
     let sfm = paths.contains(&Normalization::Morph).then(crate::config::sfm_dir);
     let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
-    let aligned = train::align_paths(args.crop_cache.as_deref(), args.keypoints, &front, &faces, &paths, &config.normalize)?;
+    let mut aligned = train::align_paths(args.crop_cache.as_deref(), args.keypoints, &front, &faces, &paths, &config.normalize)?;
+    let repose: Vec<(f32, f32)> =
+        args.repose_yaw.iter().map(|&yaw| (yaw, 0.0)).chain(args.repose_pitch.iter().map(|&pitch| (0.0, pitch))).collect();
+    if !repose.is_empty() {
+        let front = if front.face_model.is_some() {
+            front
+        } else {
+            FrontEnd::load(args.keypoints, &crate::config::models_dir(), Some(&crate::config::sfm_dir()))
+        };
+        anyhow::ensure!(front.face_model.is_some(), "--repose-yaw/--repose-pitch need the Surrey Face Model");
+        train::attach_reposed_crops(args.crop_cache.as_deref(), &front, &mut aligned, &paths, &config.normalize, &repose)?;
+    }
     let data: Vec<String> = args.data.iter().map(|d| d.display().to_string()).collect();
     if let Some(folds) = args.cv_folds {
         let folds = train::cross_validate(&aligned, &config, folds)?;
