@@ -538,19 +538,53 @@ mod tests {
         std::fs::remove_dir_all(&dir).ok();
     }
 
-    /// The committed models are format 2 (no local parts) unless retrained: they still load, with
-    /// the version they were committed with (enrolled templates stay valid).
+    /// Format-2 files (the models before local parts) still load: same version, same templates.
     #[test]
     fn format_2_models_load_with_their_version() {
-        let dir = crate::config::models_dir();
-        for (file, committed_version) in [("dlda.bin", "dlda-2e5f7565237c"), ("dlda-2d.bin", "dlda-76be4815e175")] {
-            let bytes = std::fs::read(dir.join(file)).unwrap();
-            let model = Model::load(&dir.join(file)).unwrap();
-            if postcard::take_from_bytes::<u32>(&bytes).unwrap().0 == 2 {
-                assert!(model.parts.is_empty());
-                assert_eq!(model.version(), committed_version, "{file}");
-            }
-        }
+        let params = NormalizeParams::default();
+        let mask = params.mask();
+        let dims = FeatureKind::Pixels.dims(params.width, params.height, &mask);
+        let provenance = Provenance {
+            keypoint_source: "imm-annotations".into(),
+            data: Vec::new(),
+            train_persons: vec!["imm-04".into()],
+            train_images: 1,
+            calibration_persons: Vec::new(),
+            calibration_images: 0,
+            mirrored: true,
+        };
+        let mut model = Model::new(Normalization::Morph, params.clone(), FeatureKind::Pixels, projection(dims, 5, 1), provenance);
+        model.secondary = Some(SecondaryPath { normalization: Normalization::TwoD, dlda: projection(dims, 4, 2), weight: 0.3 });
+        let m = &model;
+        // A format-2 file: the same fields in the same order, without the parts (postcard is positional).
+        let bytes = postcard::to_stdvec(&(
+            2u32,
+            &m.normalization,
+            &m.normalize,
+            &m.features,
+            &m.dlda,
+            &m.secondary,
+            &m.combine,
+            &m.cohort,
+            &m.calibration,
+            &m.provenance,
+        ))
+        .unwrap();
+        let dir = std::env::temp_dir().join(format!("facegate-format2-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join(MODEL_FILE), &bytes).unwrap();
+        let loaded = Recognizer::load(&dir).unwrap();
+        let fresh = Recognizer::from_model(model.clone());
+        assert_eq!((loaded.model().parts.len(), loaded.model().format), (0, MODEL_FORMAT));
+        assert_eq!(loaded.model_version(), fresh.model_version());
+        let crop = GrayF32::from_fn(params.width, params.height, |x, y| ((x * 5 + y * 11) % 17) as f32);
+        assert_eq!(loaded.template_of_crops(&[&crop, &crop]).unwrap(), fresh.template_of_crops(&[&crop, &crop]).unwrap());
+        // An unknown format is refused with a typed error.
+        let mut future = bytes.clone();
+        future[0] = 9;
+        std::fs::write(dir.join(MODEL_FILE), &future).unwrap();
+        assert!(matches!(Recognizer::load(&dir), Err(RecognizeError::Model { .. })));
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     /// A fused model's template is both paths' unit projections, weighted so that the cosine of two
