@@ -330,21 +330,21 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
         faces.retain(|f| f.held_out || !f.is_rotated_view());
     }
     let paths: Vec<Normalization> = std::iter::once(config.normalization).chain(config.secondary).collect();
-    let sfm = paths.contains(&Normalization::Morph).then(crate::config::sfm_dir);
-    let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
-    let mut aligned = train::align_paths(args.crop_cache.as_deref(), args.keypoints, &front, &faces, &paths, &config.normalize)?;
     let repose: Vec<(f32, f32)> = if args.no_repose {
         Vec::new()
     } else {
         args.repose_yaw.iter().map(|&yaw| (yaw, 0.0)).chain(args.repose_pitch.iter().map(|&pitch| (0.0, pitch))).collect()
     };
+    // The 3DMM is needed by its path and by the re-posed copies (on the 2D path it only reports
+    // the pose: the crops are the same with or without it).
+    let sfm = (paths.contains(&Normalization::Morph) || !repose.is_empty()).then(crate::config::sfm_dir);
+    let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
+    let mut aligned = train::align_paths(args.crop_cache.as_deref(), args.keypoints, &front, &faces, &paths, &config.normalize)?;
     if !repose.is_empty() {
-        let front = if front.face_model.is_some() {
-            front
-        } else {
-            FrontEnd::load(args.keypoints, &crate::config::models_dir(), Some(&crate::config::sfm_dir()))
-        };
-        anyhow::ensure!(front.face_model.is_some(), "--repose-yaw/--repose-pitch need the Surrey Face Model");
+        anyhow::ensure!(
+            front.face_model.is_some(),
+            "the re-posed training copies (--repose-yaw, default ±20°) need the Surrey Face Model (FACEGATE_SFM); or pass --no-repose"
+        );
         train::attach_reposed_crops(args.crop_cache.as_deref(), &front, &mut aligned, &paths, &config.normalize, &repose)?;
     }
     let data: Vec<String> = args.data.iter().map(|d| d.display().to_string()).collect();

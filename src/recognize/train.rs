@@ -187,7 +187,7 @@ pub struct AlignedFace {
     pub secondary_crop: Option<GrayF32>,
     pub pose: Option<Pose>,
     pub keypoint_source: &'static str,
-    /// 3DMM re-posed copies of the face ([`reposed_crops`]), used as extra training samples of
+    /// 3DMM re-posed copies of the face ([`attach_reposed_crops`]), used as extra training samples of
     /// its person: per copy, the crop on the primary path and on the second path.
     pub reposed: Vec<(GrayF32, Option<GrayF32>)>,
 }
