@@ -271,7 +271,7 @@ impl Model {
                 return Err(err("a local part's projections do not match its region's features".into()));
             }
         }
-        if !(0.0..=1.0).contains(&model.whole_face_weight()) || model.parts.iter().any(|p| !(p.weight >= 0.0)) {
+        if !(0.0..=1.0).contains(&model.whole_face_weight()) || model.parts.iter().any(|p| p.weight.is_nan() || p.weight < 0.0) {
             return Err(err("the local parts' weights are not between 0 and 1 in sum".into()));
         }
         Ok(model)
