@@ -17,6 +17,9 @@ pub enum FeatureKind {
     /// Pixels, LBP(8,1) and LBP(8,2) histograms (radius-2 neighbours sampled bilinearly), each part
     /// scaled to unit length, concatenated.
     PixelsLbpMulti { grid: usize },
+    /// [`FeatureKind::PixelsLbpMulti`] and Gabor magnitudes ([`gabor_magnitudes`]), each part
+    /// scaled to unit length, concatenated.
+    PixelsLbpGabor { grid: usize },
 }
 
 impl FeatureKind {
@@ -32,6 +35,9 @@ impl FeatureKind {
             }
             FeatureKind::PixelsLbpMulti { grid } => {
                 FeatureKind::Pixels.dims(width, height, mask) + 2 * FeatureKind::Lbp { grid }.dims(width, height, mask)
+            }
+            FeatureKind::PixelsLbpGabor { grid } => {
+                FeatureKind::PixelsLbpMulti { grid }.dims(width, height, mask) + GABOR_FILTERS * gabor_positions(width, height).len()
             }
         }
     }
@@ -52,8 +58,97 @@ impl FeatureKind {
                 out.extend(unit(lbp2_histograms(crop, grid)));
                 out
             }
+            FeatureKind::PixelsLbpGabor { grid } => {
+                let mut out = FeatureKind::PixelsLbpMulti { grid }.extract(crop, mask);
+                out.extend(unit(gabor_magnitudes(crop)));
+                out
+            }
         }
     }
+}
+
+/// A rectangle of the normalised crop, in fractions of its width and height (`x0 ≤ x < x1`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Region {
+    pub x0: f32,
+    pub y0: f32,
+    pub x1: f32,
+    pub y1: f32,
+}
+
+impl Region {
+    pub fn contains(&self, fx: f32, fy: f32) -> bool {
+        (self.x0..self.x1).contains(&fx) && (self.y0..self.y1).contains(&fy)
+    }
+
+    /// Inside the unit square and not empty.
+    pub fn is_valid(&self) -> bool {
+        (0.0..1.0).contains(&self.x0)
+            && (0.0..1.0).contains(&self.y0)
+            && self.x1 > self.x0
+            && self.y1 > self.y0
+            && self.x1 <= 1.0
+            && self.y1 <= 1.0
+    }
+}
+
+impl FeatureKind {
+    /// Indices into [`FeatureKind::extract`]'s vector of the features that describe `region`: the
+    /// masked pixels whose centre lies in it, and the LBP cells whose centre does (all their bins).
+    /// A local projection reads these entries of the whole crop's features, so that the features
+    /// are computed once per crop whatever the number of regions.
+    pub fn indices_in(&self, width: usize, height: usize, mask: &[bool], region: &Region) -> Vec<usize> {
+        let pixel_indices = || -> Vec<usize> {
+            let masked = (0..width * height).filter(|&i| mask[i]);
+            masked
+                .enumerate()
+                .filter(|&(_, i)| region.contains(((i % width) as f32 + 0.5) / width as f32, ((i / width) as f32 + 0.5) / height as f32))
+                .map(|(k, _)| k)
+                .collect()
+        };
+        let cell_indices = |grid: usize, offset: usize| -> Vec<usize> {
+            let grid = grid.max(1);
+            let mut out = Vec::new();
+            for cell in 0..grid * grid {
+                let (cx, cy) = (cell % grid, cell / grid);
+                if region.contains((cx as f32 + 0.5) / grid as f32, (cy as f32 + 0.5) / grid as f32) {
+                    out.extend(offset + cell * LBP_BINS..offset + (cell + 1) * LBP_BINS);
+                }
+            }
+            out
+        };
+        let pixels = FeatureKind::Pixels.dims(width, height, mask);
+        match *self {
+            FeatureKind::Pixels => pixel_indices(),
+            FeatureKind::Lbp { grid } => cell_indices(grid, 0),
+            FeatureKind::PixelsLbp { grid } => {
+                let mut out = pixel_indices();
+                out.extend(cell_indices(grid, pixels));
+                out
+            }
+            FeatureKind::PixelsLbpMulti { grid } => {
+                let mut out = pixel_indices();
+                out.extend(cell_indices(grid, pixels));
+                out.extend(cell_indices(grid, pixels + grid.max(1) * grid.max(1) * LBP_BINS));
+                out
+            }
+            FeatureKind::PixelsLbpGabor { grid } => {
+                let mut out = FeatureKind::PixelsLbpMulti { grid }.indices_in(width, height, mask, region);
+                let offset = FeatureKind::PixelsLbpMulti { grid }.dims(width, height, mask);
+                let positions = gabor_positions(width, height);
+                for filter in 0..GABOR_FILTERS {
+                    let first = offset + filter * positions.len();
+                    out.extend(positions.iter().enumerate().filter(|(_, (fx, fy))| region.contains(*fx, *fy)).map(|(p, _)| first + p));
+                }
+                out
+            }
+        }
+    }
+}
+
+/// The entries `indices` of `features` (a region's features, see [`FeatureKind::indices_in`]).
+pub fn gather(features: &[f32], indices: &[usize]) -> Vec<f32> {
+    indices.iter().map(|&i| features[i]).collect()
 }
 
 fn unit(mut v: Vec<f32>) -> Vec<f32> {
@@ -168,6 +263,103 @@ fn lbp_cell_histograms(crop: &GrayF32, grid: usize, radius: usize, code: impl Fn
     hist
 }
 
+/// Wavelengths (pixels of the half-size crop) and orientations of the Gabor bank.
+const GABOR_WAVELENGTHS: [f32; 3] = [3.0, 4.5, 6.75];
+const GABOR_ORIENTATIONS: usize = 8;
+const GABOR_FILTERS: usize = GABOR_WAVELENGTHS.len() * GABOR_ORIENTATIONS;
+
+/// One complex Gabor kernel: its radius and its (real, imaginary) taps, row-major over
+/// `(2 radius + 1)²`, the real part made zero-mean so that a flat patch gives no response.
+struct GaborKernel {
+    radius: usize,
+    taps: Vec<(f32, f32)>,
+}
+
+/// The bank, built once: envelope σ = 0.56 λ (one octave of bandwidth), cut at 2σ.
+fn gabor_bank() -> &'static [GaborKernel] {
+    static BANK: std::sync::OnceLock<Vec<GaborKernel>> = std::sync::OnceLock::new();
+    BANK.get_or_init(|| {
+        let mut bank = Vec::with_capacity(GABOR_FILTERS);
+        for &lambda in &GABOR_WAVELENGTHS {
+            let sigma = 0.56 * lambda;
+            let radius = (2.0 * sigma).ceil() as usize;
+            for o in 0..GABOR_ORIENTATIONS {
+                let theta = std::f32::consts::PI * o as f32 / GABOR_ORIENTATIONS as f32;
+                let (sin, cos) = theta.sin_cos();
+                let r = radius as f32;
+                let side = 2 * radius + 1;
+                let mut envelopes = Vec::with_capacity(side * side);
+                let mut taps: Vec<(f32, f32)> = Vec::with_capacity(side * side);
+                for dy in 0..side {
+                    for dx in 0..side {
+                        let (x, y) = (dx as f32 - r, dy as f32 - r);
+                        let envelope = (-(x * x + y * y) / (2.0 * sigma * sigma)).exp();
+                        let phase = std::f32::consts::TAU * (x * cos + y * sin) / lambda;
+                        envelopes.push(envelope);
+                        taps.push((envelope * phase.cos(), envelope * phase.sin()));
+                    }
+                }
+                // The real part's sum removed in proportion to the envelope (the imaginary part is
+                // odd, its sum is zero already).
+                let dc = taps.iter().map(|t| t.0).sum::<f32>() / envelopes.iter().sum::<f32>();
+                for (t, e) in taps.iter_mut().zip(&envelopes) {
+                    t.0 -= dc * e;
+                }
+                bank.push(GaborKernel { radius, taps });
+            }
+        }
+        bank
+    })
+}
+
+/// Where the Gabor magnitudes are taken, as fractions of the crop: every other pixel of the
+/// half-size crop (a 4-pixel step on the crop), starting at the second.
+fn gabor_positions(width: usize, height: usize) -> Vec<(f32, f32)> {
+    let (hw, hh) = ((width / 2).max(1), (height / 2).max(1));
+    let mut out = Vec::new();
+    for y in (1..hh).step_by(2) {
+        for x in (1..hw).step_by(2) {
+            out.push(((2 * x + 1) as f32 / width as f32, (2 * y + 1) as f32 / height as f32));
+        }
+    }
+    out
+}
+
+/// Gabor magnitude features (Liu & Wechsler 2002, reduced): the crop halved, convolved with the
+/// bank at [`gabor_positions`], the square root of each complex response's magnitude (as with the
+/// LBP histograms, a variance-stabilising root), filter by filter.
+fn gabor_magnitudes(crop: &GrayF32) -> Vec<f32> {
+    let half = crop.downsample_half();
+    let bank = gabor_bank();
+    let pad = bank.iter().map(|k| k.radius).max().unwrap_or(0);
+    // The half-size crop with its border replicated `pad` pixels out, so the taps need no bounds checks.
+    let (pw, ph) = (half.width + 2 * pad, half.height + 2 * pad);
+    let padded: Vec<f32> = (0..pw * ph)
+        .map(|i| {
+            let (x, y) = ((i % pw) as isize - pad as isize, (i / pw) as isize - pad as isize);
+            half.get(x.clamp(0, half.width as isize - 1) as usize, y.clamp(0, half.height as isize - 1) as usize)
+        })
+        .collect();
+    let positions: Vec<(usize, usize)> =
+        (1..half.height).step_by(2).flat_map(|y| (1..half.width).step_by(2).map(move |x| (x + pad, y + pad))).collect();
+    let mut out = Vec::with_capacity(bank.len() * positions.len());
+    for kernel in bank {
+        let side = 2 * kernel.radius + 1;
+        for &(cx, cy) in &positions {
+            let (mut re, mut im) = (0.0f32, 0.0f32);
+            for (row, taps) in kernel.taps.chunks_exact(side).enumerate() {
+                let start = (cy + row - kernel.radius) * pw + cx - kernel.radius;
+                for (&(kr, ki), &v) in taps.iter().zip(&padded[start..start + side]) {
+                    re += kr * v;
+                    im += ki * v;
+                }
+            }
+            out.push((re * re + im * im).sqrt().sqrt());
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -189,6 +381,61 @@ mod tests {
         });
         let fast = lbp2_histograms(&crop, 2);
         assert!(reference.iter().zip(&fast).all(|(a, b)| (a - b).abs() < 1e-6), "{reference:?}\n{fast:?}");
+    }
+
+    /// A region's indices pick exactly its pixels and its LBP cells, in the extracted vector's order.
+    #[test]
+    fn region_indices_select_the_region_features() {
+        let (w, h) = (16, 16);
+        let mask: Vec<bool> = (0..w * h).map(|i| i % 5 != 0).collect();
+        let crop = GrayF32::from_fn(w, h, |x, y| ((x * 7 + y * 3) % 11) as f32 + 0.1 * y as f32);
+        let kind = FeatureKind::PixelsLbpMulti { grid: 4 };
+        let features = kind.extract(&crop, &mask);
+        // The upper-left quarter: 64 pixels less the masked-out ones, 4 of the 16 cells per LBP part.
+        let region = Region { x0: 0.0, y0: 0.0, x1: 0.5, y1: 0.5 };
+        let idx = kind.indices_in(w, h, &mask, &region);
+        let pixels_in = (0..w * h).filter(|&i| mask[i] && i % w < 8 && i / w < 8).count();
+        assert_eq!(idx.len(), pixels_in + 2 * 4 * LBP_BINS);
+        assert!(idx.windows(2).all(|p| p[0] < p[1]) && *idx.last().unwrap() < features.len());
+        // The pixel part: the standardised values of exactly those pixels.
+        let all_pixels = pixels(&crop, &mask);
+        let unit_scale = features[0] / all_pixels[0];
+        let first_row: Vec<f32> =
+            (0..8).filter(|&x| mask[x]).map(|x| all_pixels[(0..x).filter(|&i| mask[i]).count()] * unit_scale).collect();
+        let picked = gather(&features, &idx[..first_row.len()]);
+        assert!(picked.iter().zip(&first_row).all(|(a, b)| (a - b).abs() < 1e-6), "{picked:?} {first_row:?}");
+        // The LBP(8,1) part starts with cell (0, 0); cell (1, 0) follows, then (0, 1) (row-major).
+        let p = FeatureKind::Pixels.dims(w, h, &mask);
+        let lbp1 = &idx[pixels_in..pixels_in + 4 * LBP_BINS];
+        assert_eq!((lbp1[0], lbp1[LBP_BINS], lbp1[2 * LBP_BINS]), (p, p + LBP_BINS, p + 4 * LBP_BINS));
+        assert!(Region { x0: 0.2, y0: 0.1, x1: 0.9, y1: 1.0 }.is_valid() && !Region { x0: 0.5, y0: 0.1, x1: 0.4, y1: 1.0 }.is_valid());
+    }
+
+    /// The Gabor kernels ignore flat patches; a grating responds most to the filter of its
+    /// orientation and wavelength; the layout matches `dims` and `indices_in`.
+    #[test]
+    fn gabor_bank_is_zero_mean_and_tuned() {
+        for k in gabor_bank() {
+            let (re, im) = k.taps.iter().fold((0.0f32, 0.0f32), |a, t| (a.0 + t.0, a.1 + t.1));
+            assert!(re.abs() < 1e-4 && im.abs() < 1e-4, "kernel sums {re} {im}");
+        }
+        let flat = GrayF32::from_fn(48, 48, |_, _| 100.0);
+        assert!(gabor_magnitudes(&flat).iter().all(|v| v * v < 1e-2), "a flat patch responds (magnitudes below 0.01 of 100)");
+        // Vertical stripes of period 9 crop pixels (4.5 on the half-size crop): orientation 0
+        // (varying along x), wavelength 4.5.
+        let stripes = GrayF32::from_fn(48, 48, |x, _| 100.0 + 50.0 * (std::f32::consts::TAU * x as f32 / 9.0).cos());
+        let m = gabor_magnitudes(&stripes);
+        let per_filter = gabor_positions(48, 48).len();
+        let energy: Vec<f32> = m.chunks(per_filter).map(|c| c.iter().sum()).collect();
+        let best = (0..energy.len()).max_by(|&a, &b| energy[a].total_cmp(&energy[b])).unwrap();
+        assert_eq!(best, GABOR_ORIENTATIONS, "filter energies {energy:?}");
+        let kind = FeatureKind::PixelsLbpGabor { grid: 4 };
+        let mask = vec![true; 48 * 48];
+        assert_eq!(kind.extract(&stripes, &mask).len(), kind.dims(48, 48, &mask));
+        let top = kind.indices_in(48, 48, &mask, &Region { x0: 0.0, y0: 0.0, x1: 1.0, y1: 0.5 });
+        let multi = FeatureKind::PixelsLbpMulti { grid: 4 };
+        let gabor_top = top.len() - multi.indices_in(48, 48, &mask, &Region { x0: 0.0, y0: 0.0, x1: 1.0, y1: 0.5 }).len();
+        assert_eq!(gabor_top, GABOR_FILTERS * per_filter / 2);
     }
 
     #[test]

@@ -25,7 +25,7 @@ use crate::imaging::GrayF32;
 
 pub use calibration::{Calibration, DEFAULT_FMR};
 pub use dlda::{Dlda, DldaParams};
-pub use features::FeatureKind;
+pub use features::{FeatureKind, Region};
 pub use normalize::{NormalizeParams, Photometric};
 pub use score_norm::{Cohort, CohortStats};
 pub use template::{Combine, Template};
@@ -99,6 +99,18 @@ pub struct SecondaryPath {
     pub weight: f32,
 }
 
+/// A projection of one face region (a subset of each path's features, [`FeatureKind::indices_in`]):
+/// a local model, which a change confined to another region (glasses, an open mouth) leaves
+/// alone. Its unit projection joins the template scaled by √weight, like a path's.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LocalPart {
+    pub region: Region,
+    /// Weight of this region's cosine within each path's score; the whole face keeps 1 − Σ weights.
+    pub weight: f32,
+    /// One projection per path, primary first.
+    pub projections: Vec<Dlda>,
+}
+
 /// Everything a template depends on, saved as `models/dlda.bin`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Model {
@@ -118,10 +130,47 @@ pub struct Model {
     pub cohort: Option<Cohort>,
     pub calibration: Calibration,
     pub provenance: Provenance,
+    /// Local region projections ensembled with the whole face (empty: the whole face only).
+    pub parts: Vec<LocalPart>,
 }
 
-/// 2: the fused second path and the cohort for score normalisation.
-const MODEL_FORMAT: u32 = 2;
+/// A format-2 model file: [`Model`] before the local parts (read, then given no parts).
+#[derive(Deserialize)]
+struct ModelFormat2 {
+    /// Read for the field order only (postcard is positional); it is 2.
+    _format: u32,
+    normalization: Normalization,
+    normalize: NormalizeParams,
+    features: FeatureKind,
+    dlda: Dlda,
+    secondary: Option<SecondaryPath>,
+    combine: Combine,
+    cohort: Option<Cohort>,
+    calibration: Calibration,
+    provenance: Provenance,
+}
+
+impl From<ModelFormat2> for Model {
+    fn from(m: ModelFormat2) -> Model {
+        let ModelFormat2 { _format: _, normalization, normalize, features, dlda, secondary, combine, cohort, calibration, provenance } = m;
+        Model {
+            format: MODEL_FORMAT,
+            normalization,
+            normalize,
+            features,
+            dlda,
+            secondary,
+            combine,
+            cohort,
+            calibration,
+            provenance,
+            parts: Vec::new(),
+        }
+    }
+}
+
+/// 2: the fused second path and the cohort for score normalisation; 3: the local parts.
+const MODEL_FORMAT: u32 = 3;
 pub const MODEL_FILE: &str = "dlda.bin";
 
 impl Model {
@@ -143,13 +192,17 @@ impl Model {
             cohort: None,
             calibration: Calibration { points: Vec::new(), genuine_count: 0, impostor_count: 0, source: String::new() },
             provenance,
+            parts: Vec::new(),
         }
     }
 
     /// `dlda-` and 12 hex digits of the SHA-256 of everything that shapes a template (normalisation,
-    /// features, projection); calibration and provenance do not change templates, so not the version.
+    /// features, projections); calibration and provenance do not change templates, so not the
+    /// version. The local parts are hashed only when there are some, so that a model without parts
+    /// keeps the version it had in format 2 (and its enrolled templates stay valid).
     pub fn version(&self) -> String {
-        let bytes = postcard::to_stdvec(&(&self.normalization, &self.normalize, &self.features, &self.dlda, &self.secondary))
+        let shape = (&self.normalization, &self.normalize, &self.features, &self.dlda, &self.secondary);
+        let bytes = if self.parts.is_empty() { postcard::to_stdvec(&shape) } else { postcard::to_stdvec(&(shape, &self.parts)) }
             .expect("model serialises");
         let digest = Sha256::digest(&bytes);
         let hex: String = digest.iter().take(6).map(|b| format!("{b:02x}")).collect();
@@ -161,9 +214,27 @@ impl Model {
         std::iter::once(self.normalization).chain(self.secondary.as_ref().map(|s| s.normalization)).collect()
     }
 
-    /// Dimension of the templates (both projections for a fused model).
+    /// Dimension of the templates (both paths for a fused model, each with its local parts).
     pub fn template_dims(&self) -> usize {
-        self.dlda.dims + self.secondary.as_ref().map_or(0, |s| s.dlda.dims)
+        self.dlda.dims
+            + self.secondary.as_ref().map_or(0, |s| s.dlda.dims)
+            + self.parts.iter().flat_map(|p| &p.projections).map(|d| d.dims).sum::<usize>()
+    }
+
+    /// Weight of each path's cosine in the score, primary first.
+    fn path_weights(&self) -> Vec<f32> {
+        match &self.secondary {
+            Some(s) => {
+                let w = s.weight.clamp(0.0, 1.0);
+                vec![1.0 - w, w]
+            }
+            None => vec![1.0],
+        }
+    }
+
+    /// Weight of the whole face's cosine within a path (1 without local parts).
+    fn whole_face_weight(&self) -> f32 {
+        1.0 - self.parts.iter().map(|p| p.weight).sum::<f32>()
     }
 
     pub fn save(&self, path: &Path) -> anyhow::Result<()> {
@@ -173,10 +244,13 @@ impl Model {
     pub fn load(path: &Path) -> Result<Model, RecognizeError> {
         let err = |message: String| RecognizeError::Model { path: path.display().to_string(), message };
         let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
-        let model: Model = postcard::from_bytes(&bytes).map_err(|e| err(format!("not a facegate DLDA model ({e})")))?;
-        if model.format != MODEL_FORMAT {
-            return Err(err(format!("model format {} (this build reads {MODEL_FORMAT})", model.format)));
-        }
+        let not_a_model = |e: postcard::Error| err(format!("not a facegate DLDA model ({e})"));
+        let (format, _) = postcard::take_from_bytes::<u32>(&bytes).map_err(not_a_model)?;
+        let model: Model = match format {
+            2 => postcard::from_bytes::<ModelFormat2>(&bytes).map_err(not_a_model)?.into(),
+            MODEL_FORMAT => postcard::from_bytes(&bytes).map_err(not_a_model)?,
+            _ => return Err(err(format!("model format {format} (this build reads 2 and {MODEL_FORMAT})"))),
+        };
         let mask = model.normalize.mask();
         let dims = model.features.dims(model.normalize.width, model.normalize.height, &mask);
         if let Some(second) = &model.secondary {
@@ -190,6 +264,16 @@ impl Model {
         if !model.dlda.accepts(dims) {
             return Err(err("projection does not match the feature layout".into()));
         }
+        let paths = model.paths().len();
+        for part in &model.parts {
+            let indices = model.features.indices_in(model.normalize.width, model.normalize.height, &mask, &part.region);
+            if !part.region.is_valid() || part.projections.len() != paths || !part.projections.iter().all(|d| d.accepts(indices.len())) {
+                return Err(err("a local part's projections do not match its region's features".into()));
+            }
+        }
+        if !(0.0..=1.0).contains(&model.whole_face_weight()) || model.parts.iter().any(|p| p.weight.is_nan() || p.weight < 0.0) {
+            return Err(err("the local parts' weights are not between 0 and 1 in sum".into()));
+        }
         Ok(model)
     }
 }
@@ -201,6 +285,8 @@ pub struct Recognizer {
     mask: Vec<bool>,
     /// `P · mean` of the primary and the second projection (see [`Dlda::offsets`]).
     offsets: Vec<Vec<f32>>,
+    /// Per local part, its features' indices and per path its projection's `P · mean`.
+    parts: Vec<(Vec<usize>, Vec<Vec<f32>>)>,
 }
 
 impl Recognizer {
@@ -217,7 +303,13 @@ impl Recognizer {
         let version = model.version();
         let mask = model.normalize.mask();
         let offsets = std::iter::once(&model.dlda).chain(model.secondary.as_ref().map(|s| &s.dlda)).map(Dlda::offsets).collect();
-        Recognizer { model, version, mask, offsets }
+        let (w, h) = (model.normalize.width, model.normalize.height);
+        let parts = model
+            .parts
+            .iter()
+            .map(|p| (model.features.indices_in(w, h, &mask, &p.region), p.projections.iter().map(Dlda::offsets).collect()))
+            .collect();
+        Recognizer { model, version, mask, offsets, parts }
     }
 
     pub fn model(&self) -> &Model {
@@ -249,13 +341,20 @@ impl Recognizer {
         if crops.len() != expected {
             return Err(RecognizeError::Views { expected, found: crops.len() });
         }
-        let primary = self.model.features.extract(crops[0], &self.mask);
-        let mut vector = unit(self.model.dlda.project_with_offsets(&primary, &self.offsets[0]));
-        if let Some(second) = &self.model.secondary {
-            let w = second.weight.clamp(0.0, 1.0);
-            vector.iter_mut().for_each(|v| *v *= (1.0 - w).sqrt());
-            let features = self.model.features.extract(crops[1], &self.mask);
-            vector.extend(unit(second.dlda.project_with_offsets(&features, &self.offsets[1])).into_iter().map(|v| v * w.sqrt()));
+        // Each block (per path: the whole face, then each local part) is a unit projection scaled
+        // by the square root of its weight, so that the cosine of two templates is the weighted
+        // sum of the blocks' cosines.
+        let mut vector = Vec::with_capacity(self.model.template_dims());
+        let mut push = |block: Vec<f32>, weight: f32| vector.extend(unit(block).into_iter().map(|v| v * weight.sqrt()));
+        let whole_weight = self.model.whole_face_weight();
+        let wholes = std::iter::once(&self.model.dlda).chain(self.model.secondary.as_ref().map(|s| &s.dlda));
+        for (p, ((crop, whole), path_weight)) in crops.iter().zip(wholes).zip(self.model.path_weights()).enumerate() {
+            let features = self.model.features.extract(crop, &self.mask);
+            push(whole.project_with_offsets(&features, &self.offsets[p]), path_weight * whole_weight);
+            for (part, (indices, offsets)) in self.model.parts.iter().zip(&self.parts) {
+                let local = features::gather(&features, indices);
+                push(part.projections[p].project_with_offsets(&local, &offsets[p]), path_weight * part.weight);
+            }
         }
         Ok(Template::new(&self.version, vector))
     }
@@ -382,6 +481,110 @@ mod tests {
             projection: (0..input_dims * dims).map(value).collect(),
             within_eigenvalues: vec![1.0; dims],
         }
+    }
+
+    /// Local parts: each region's projection reads its own features, and the cosine of two
+    /// templates is the weighted sum of the whole face's and the regions' cosines per path; the
+    /// version changes with the parts, the file round-trips, and inconsistent parts are refused.
+    #[test]
+    fn local_parts_score_the_weighted_sum_of_the_regions() {
+        let params = NormalizeParams::default();
+        let mask = params.mask();
+        let kind = FeatureKind::PixelsLbp { grid: 4 };
+        let dims = kind.dims(params.width, params.height, &mask);
+        let provenance = Provenance {
+            keypoint_source: String::new(),
+            data: Vec::new(),
+            train_persons: Vec::new(),
+            train_images: 0,
+            calibration_persons: Vec::new(),
+            calibration_images: 0,
+            mirrored: false,
+        };
+        let plain = Model::new(Normalization::TwoD, params.clone(), kind, projection(dims, 6, 1), provenance);
+        let (upper, lower) = (Region { x0: 0.0, y0: 0.0, x1: 1.0, y1: 0.5 }, Region { x0: 0.1, y0: 0.5, x1: 0.9, y1: 1.0 });
+        let local_dims = |r: &Region| kind.indices_in(params.width, params.height, &mask, r).len();
+        let mut with_parts = plain.clone();
+        with_parts.parts = vec![
+            LocalPart { region: upper, weight: 0.2, projections: vec![projection(local_dims(&upper), 3, 2)] },
+            LocalPart { region: lower, weight: 0.3, projections: vec![projection(local_dims(&lower), 4, 3)] },
+        ];
+        assert_ne!(plain.version(), with_parts.version());
+        assert_eq!(with_parts.template_dims(), 13);
+        let crop = |k: usize| GrayF32::from_fn(params.width, params.height, |x, y| ((x * (3 + k) + y * (7 + 2 * k)) % 13) as f32);
+        let (a, b) = (crop(0), crop(1));
+        let recognizer = Recognizer::from_model(with_parts.clone());
+        let (ta, tb) = (recognizer.template_of_crop(&a), recognizer.template_of_crop(&b));
+        let cos = |dlda: &Dlda, indices: Option<Vec<usize>>| {
+            let pick = |c: &GrayF32| {
+                let f = kind.extract(c, &mask);
+                indices.as_ref().map_or(f.clone(), |i| features::gather(&f, i))
+            };
+            Template::new("v", dlda.project(&pick(&a))).cosine(&Template::new("v", dlda.project(&pick(&b))))
+        };
+        let indices = |r: &Region| Some(kind.indices_in(params.width, params.height, &mask, r));
+        let expected = 0.5 * cos(&with_parts.dlda, None)
+            + 0.2 * cos(&with_parts.parts[0].projections[0], indices(&upper))
+            + 0.3 * cos(&with_parts.parts[1].projections[0], indices(&lower));
+        assert!((ta.cosine(&tb) - expected).abs() < 1e-5, "{} against {expected}", ta.cosine(&tb));
+        let dir = std::env::temp_dir().join(format!("facegate-parts-test-{}", std::process::id()));
+        with_parts.save(&dir.join(MODEL_FILE)).unwrap();
+        let loaded = Recognizer::load(&dir).unwrap();
+        assert_eq!((loaded.model_version(), loaded.template_of_crop(&a)), (recognizer.model_version(), ta));
+        // A part whose projection does not fit its region is refused at load.
+        with_parts.parts[1].projections[0] = projection(local_dims(&upper), 4, 3);
+        with_parts.save(&dir.join(MODEL_FILE)).unwrap();
+        assert!(matches!(Recognizer::load(&dir), Err(RecognizeError::Model { .. })));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// Format-2 files (the models before local parts) still load: same version, same templates.
+    #[test]
+    fn format_2_models_load_with_their_version() {
+        let params = NormalizeParams::default();
+        let mask = params.mask();
+        let dims = FeatureKind::Pixels.dims(params.width, params.height, &mask);
+        let provenance = Provenance {
+            keypoint_source: "imm-annotations".into(),
+            data: Vec::new(),
+            train_persons: vec!["imm-04".into()],
+            train_images: 1,
+            calibration_persons: Vec::new(),
+            calibration_images: 0,
+            mirrored: true,
+        };
+        let mut model = Model::new(Normalization::Morph, params.clone(), FeatureKind::Pixels, projection(dims, 5, 1), provenance);
+        model.secondary = Some(SecondaryPath { normalization: Normalization::TwoD, dlda: projection(dims, 4, 2), weight: 0.3 });
+        let m = &model;
+        // A format-2 file: the same fields in the same order, without the parts (postcard is positional).
+        let bytes = postcard::to_stdvec(&(
+            2u32,
+            &m.normalization,
+            &m.normalize,
+            &m.features,
+            &m.dlda,
+            &m.secondary,
+            &m.combine,
+            &m.cohort,
+            &m.calibration,
+            &m.provenance,
+        ))
+        .unwrap();
+        let dir = std::env::temp_dir().join(format!("facegate-format2-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join(MODEL_FILE), &bytes).unwrap();
+        let loaded = Recognizer::load(&dir).unwrap();
+        let fresh = Recognizer::from_model(model.clone());
+        assert_eq!((loaded.model().parts.len(), loaded.model().format), (0, MODEL_FORMAT));
+        assert_eq!(loaded.model_version(), fresh.model_version());
+        let crop = GrayF32::from_fn(params.width, params.height, |x, y| ((x * 5 + y * 11) % 17) as f32);
+        assert_eq!(loaded.template_of_crops(&[&crop, &crop]).unwrap(), fresh.template_of_crops(&[&crop, &crop]).unwrap());
+        // An unknown format is refused with a typed error.
+        let mut future = bytes.clone();
+        future[0] = 9;
+        std::fs::write(dir.join(MODEL_FILE), &future).unwrap();
+        assert!(matches!(Recognizer::load(&dir), Err(RecognizeError::Model { .. })));
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     /// A fused model's template is both paths' unit projections, weighted so that the cosine of two

@@ -11,10 +11,10 @@ use serde::Serialize;
 
 use super::calibration::{CALIBRATED_FMRS, Calibration};
 use super::dlda::{Dlda, DldaParams};
-use super::features::FeatureKind;
+use super::features::{self, FeatureKind, Region};
 use super::normalize::{self, NormalizeParams};
 use super::template::{Combine, Template};
-use super::{Cohort, Model, Normalization, Provenance, Recognizer, SecondaryPath};
+use super::{Cohort, LocalPart, Model, Normalization, Provenance, Recognizer, SecondaryPath};
 use crate::dataset::{self, IMM_POINTS, KeyPoints};
 use crate::detect::Detector;
 use crate::eval::verification::{VerificationSummary, eer, summarize};
@@ -146,6 +146,35 @@ impl FrontEnd {
         Ok((find_landmarks(landmarker, self.asm3d.as_ref(), &photo.gray, &box_.rect), "pipeline"))
     }
 
+    /// The face of a photo re-posed by the 3DMM: fitted to its landmarks, textured from the photo
+    /// and rendered at its fitted pose plus each (yaw, pitch) offset in degrees, on a flat
+    /// background of the photo's mean grey, at the photo's scale and place, with the 58 landmarks
+    /// of each rendering (moved by the photo's annotation offsets, as the 3D-ASM's synthetic
+    /// views are, so that they follow the same convention as the photo's own landmarks).
+    pub fn reposed_views(&self, face: &FaceImage, offsets: &[(f32, f32)]) -> Result<Vec<(imaging::Photo, Landmarks)>, FrontEndError> {
+        use crate::landmarks::asm3d;
+        let photo = imaging::open(&face.image)?;
+        let (landmarks, _) = self.landmarks(face, &photo)?;
+        let model = self.face_model.as_ref().ok_or(FrontEndError::NoFaceModel)?;
+        let fit = model.fit(&landmarks.points, photo.width(), photo.height()).map_err(|_| FrontEndError::NoFaceModel)?;
+        let texture = model.extract_texture(&photo.rgb, &fit, crate::morph::TEXTURE_SIZE);
+        let annotation_offsets = asm3d::annotation_offsets(model, &fit, &landmarks.points);
+        let jaw = asm3d::photo_jaw_vertices(model, &fit, &asm3d::contour_jaw_vertices(model));
+        let grey = (photo.gray.data.iter().sum::<f32>() / photo.gray.data.len().max(1) as f32).clamp(0.0, 255.0) as u8;
+        Ok(offsets
+            .iter()
+            .map(|&(yaw, pitch)| {
+                let pose = Pose { yaw: fit.pose.yaw + yaw, pitch: fit.pose.pitch + pitch, roll: fit.pose.roll };
+                let view = asm3d::synthesise_view(model, &fit, &texture, pose, [grey; 3], 0.0, &jaw, &annotation_offsets);
+                let rgb = image::RgbImage::from_fn(view.gray.width as u32, view.gray.height as u32, |x, y| {
+                    image::Rgb([view.gray.get(x as usize, y as usize).clamp(0.0, 255.0) as u8; 3])
+                });
+                let keypoints = KeyPoints::from_imm(&view.points);
+                (imaging::Photo { rgb, gray: view.gray }, Landmarks { points: view.points, keypoints })
+            })
+            .collect())
+    }
+
     /// The image and keypoints the recognizer normalises, as the service's pipeline makes them.
     pub fn prepare(&self, face: &FaceImage, normalization: Normalization) -> Result<Prepared, FrontEndError> {
         let photo = imaging::open(&face.image)?;
@@ -165,6 +194,9 @@ pub struct AlignedFace {
     pub secondary_crop: Option<GrayF32>,
     pub pose: Option<Pose>,
     pub keypoint_source: &'static str,
+    /// 3DMM re-posed copies of the face ([`attach_reposed_crops`]), used as extra training samples of
+    /// its person: per copy, the crop on the primary path and on the second path.
+    pub reposed: Vec<(GrayF32, Option<GrayF32>)>,
 }
 
 /// Geometric crops of all `faces` (photos whose front end fails are reported and left out).
@@ -185,6 +217,7 @@ pub fn align_all(
                 secondary_crop: None,
                 pose: p.pose,
                 keypoint_source: p.keypoint_source,
+                reposed: Vec::new(),
             }),
             Err(e) => {
                 let msg = format!("{}: skipped ({e})", face.image.display());
@@ -204,6 +237,25 @@ pub fn align_all(
     out
 }
 
+/// 16 hex digits of the SHA-256 of what shapes cached crops: `settings` (serialised parameters),
+/// the keypoint source, the photos, and the bytes of the landmark models (`asm.bin`, `asm3d.bin`).
+fn cache_key(settings: &[u8], source: KeypointSource, faces: &[FaceImage]) -> String {
+    use sha2::{Digest, Sha256};
+    let mut hasher = Sha256::new();
+    hasher.update(settings);
+    hasher.update(format!("{source:?}"));
+    for f in faces {
+        hasher.update(f.image.display().to_string());
+        hasher.update([f.asf.is_some() as u8]);
+    }
+    for model in ["asm.bin", "asm3d.bin"] {
+        if let Ok(bytes) = std::fs::read(crate::config::models_dir().join(model)) {
+            hasher.update(&bytes);
+        }
+    }
+    hasher.finalize().iter().take(8).map(|b| format!("{b:02x}")).collect()
+}
+
 /// [`align_all`] through a cache file in `dir`, keyed by the SHA-256 of everything that shapes the
 /// crops: the photos, the keypoint source, the normalisation path and parameters, and the bytes of
 /// the landmark models (`asm.bin`, `asm3d.bin`). Photos the front end skipped stay skipped.
@@ -215,21 +267,8 @@ pub fn align_all_cached(
     normalization: Normalization,
     params: &NormalizeParams,
 ) -> anyhow::Result<Vec<AlignedFace>> {
-    use sha2::{Digest, Sha256};
     type Entry = (String, usize, usize, Vec<f32>, String);
-    let mut hasher = Sha256::new();
-    hasher.update(postcard::to_stdvec(&(normalization, params))?);
-    hasher.update(format!("{source:?}"));
-    for f in faces {
-        hasher.update(f.image.display().to_string());
-        hasher.update([f.asf.is_some() as u8]);
-    }
-    for model in ["asm.bin", "asm3d.bin"] {
-        if let Ok(bytes) = std::fs::read(crate::config::models_dir().join(model)) {
-            hasher.update(&bytes);
-        }
-    }
-    let key: String = hasher.finalize().iter().take(8).map(|b| format!("{b:02x}")).collect();
+    let key = cache_key(&postcard::to_stdvec(&(normalization, params))?, source, faces);
     let path = dir.join(format!("crops-{key}.bin"));
     let source_name = |s: &str| -> &'static str {
         match s {
@@ -252,6 +291,7 @@ pub fn align_all_cached(
                 secondary_crop: None,
                 pose: None,
                 keypoint_source: source_name(&e.4),
+                reposed: Vec::new(),
             })
             .collect());
     }
@@ -295,6 +335,75 @@ pub fn align_paths(
     Ok(aligned)
 }
 
+/// Crops of 3DMM re-posed copies ([`FrontEnd::reposed_views`]) of the training persons' photos
+/// (held-out persons get none) on each path of `paths`, attached to `aligned` (see
+/// [`AlignedFace::reposed`]); a copy that fails on a path is left out. With `cache`, the crops are
+/// kept in a file keyed like [`align_all_cached`]'s, and the offsets.
+pub fn attach_reposed_crops(
+    cache: Option<&Path>,
+    front_end: &FrontEnd,
+    aligned: &mut [AlignedFace],
+    paths: &[Normalization],
+    params: &NormalizeParams,
+    offsets: &[(f32, f32)],
+) -> anyhow::Result<()> {
+    type Entry = (String, Vec<(usize, usize, Vec<f32>, Option<Vec<f32>>)>);
+    if offsets.is_empty() {
+        return Ok(());
+    }
+    let faces: Vec<FaceImage> = aligned.iter().filter(|a| !a.face.held_out).map(|a| a.face.clone()).collect();
+    let key = cache_key(&postcard::to_stdvec(&(paths, params, offsets))?, front_end.source, &faces);
+    let file = cache.map(|dir| dir.join(format!("reposed-{key}.bin")));
+    let entries: Vec<Entry> = match file.as_ref().and_then(|f| std::fs::read(f).ok()) {
+        Some(bytes) => postcard::from_bytes(&bytes)?,
+        None => {
+            let bar = crate::cli::progress(faces.len() as u64, "re-posing");
+            let mut entries = Vec::with_capacity(faces.len());
+            for face in &faces {
+                let mut copies = Vec::new();
+                match front_end.reposed_views(face, offsets) {
+                    Ok(views) => {
+                        for (photo, landmarks) in views {
+                            let crop = |normalization| {
+                                recognition_input(front_end.face_model.as_ref(), &photo, &landmarks, normalization)
+                                    .ok()
+                                    .map(|input| normalize::geometric(&input.gray, &input.keypoints, params))
+                            };
+                            let (Some(first), second) = (crop(paths[0]), paths.get(1).map(|&p| crop(p))) else { continue };
+                            if second.as_ref().is_some_and(|c| c.is_none()) {
+                                continue;
+                            }
+                            copies.push((first.width, first.height, first.data, second.flatten().map(|c| c.data)));
+                        }
+                    }
+                    Err(e) => bar.println(format!("{}: no re-posed copies ({e})", face.image.display())),
+                }
+                entries.push((face.image.display().to_string(), copies));
+                bar.inc(1);
+            }
+            bar.finish_and_clear();
+            if let Some(f) = &file {
+                std::fs::create_dir_all(f.parent().unwrap_or(Path::new(".")))?;
+                std::fs::write(f, postcard::to_stdvec(&entries)?)?;
+            }
+            entries
+        }
+    };
+    let by_path: BTreeMap<String, &Entry> = entries.iter().map(|e| (e.0.clone(), e)).collect();
+    for a in aligned.iter_mut().filter(|a| !a.face.held_out) {
+        if let Some((_, copies)) = by_path.get(&a.face.image.display().to_string()) {
+            a.reposed = copies
+                .iter()
+                .map(|(w, h, first, second)| {
+                    let image = |data: &Vec<f32>| GrayF32 { width: *w, height: *h, data: data.clone() };
+                    (image(first), second.as_ref().map(image))
+                })
+                .collect();
+        }
+    }
+    Ok(())
+}
+
 /// What a training run is made of.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TrainConfig {
@@ -314,6 +423,10 @@ pub struct TrainConfig {
     pub secondary: Option<Normalization>,
     /// The second path's weight in the fused score.
     pub secondary_weight: f32,
+    /// Regions of the crop with a projection of their own, ensembled with the whole face.
+    pub local_parts: Vec<Region>,
+    /// Total weight of the local parts' cosines (shared equally), the whole face keeping the rest.
+    pub local_weight: f32,
 }
 
 impl Default for TrainConfig {
@@ -328,6 +441,8 @@ impl Default for TrainConfig {
             cohort_top_k: None,
             secondary: None,
             secondary_weight: 0.3,
+            local_parts: Vec::new(),
+            local_weight: 0.5,
         }
     }
 }
@@ -421,16 +536,27 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
     let mut labels: Vec<String> = train.iter().map(|a| a.face.label.clone()).collect();
     labels.sort();
     labels.dedup();
-    let project = |crop_of: &dyn Fn(&AlignedFace) -> Option<&GrayF32>| -> anyhow::Result<Dlda> {
+    anyhow::ensure!(
+        config.local_parts.is_empty() || (0.0..1.0).contains(&config.local_weight),
+        "the local parts' weight must be in [0, 1)"
+    );
+    let part_indices: Vec<Vec<usize>> =
+        config.local_parts.iter().map(|r| config.features.indices_in(config.normalize.width, config.normalize.height, &mask, r)).collect();
+    anyhow::ensure!(part_indices.iter().all(|i| !i.is_empty()), "a local region holds no features");
+    // One path's projections: the whole face's, then each local part's (on the same samples).
+    // `second`: the second path's crops, else the primary's; a face's re-posed copies join it.
+    let project = |second: bool| -> anyhow::Result<(Dlda, Vec<Dlda>)> {
         let mut xs = Vec::new();
         let mut ys = Vec::new();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2011);
         for a in &train {
             let y = labels.binary_search(&a.face.label).expect("label listed");
-            let crop = crop_of(a).ok_or_else(|| anyhow::anyhow!("{}: no crop on the second path", a.face.image.display()))?;
-            let mut crops = vec![crop.clone()];
+            let crop = if second { a.secondary_crop.as_ref() } else { Some(&a.crop) };
+            let crop = crop.ok_or_else(|| anyhow::anyhow!("{}: no crop on the second path", a.face.image.display()))?;
+            let copies = a.reposed.iter().filter_map(|(first, other)| if second { other.as_ref() } else { Some(first) });
+            let mut crops: Vec<GrayF32> = std::iter::once(crop).chain(copies).cloned().collect();
             if config.mirror {
-                crops.push(normalize::mirror(crop));
+                crops.extend(crops.iter().map(normalize::mirror).collect::<Vec<_>>());
             }
             for base in crops {
                 for _ in 0..config.jitter {
@@ -441,17 +567,38 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
                 ys.push(y);
             }
         }
-        Ok(Dlda::train(&xs, &ys, &config.dlda)?)
+        let whole = Dlda::train(&xs, &ys, &config.dlda)?;
+        let parts = part_indices
+            .iter()
+            .map(|indices| {
+                let local: Vec<Vec<f32>> = xs.iter().map(|x| features::gather(x, indices)).collect();
+                Dlda::train(&local, &ys, &config.dlda)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok((whole, parts))
     };
-    let dlda = project(&|a| Some(&a.crop))?;
-    let secondary = match config.secondary {
+    let (dlda, primary_parts) = project(false)?;
+    let (secondary, secondary_parts) = match config.secondary {
         Some(normalization) => {
             anyhow::ensure!(normalization != config.normalization, "the second path must differ from the first");
             anyhow::ensure!(held.iter().all(|a| a.secondary_crop.is_some()), "held-out photos without a crop on the second path");
-            Some(SecondaryPath { normalization, dlda: project(&|a| a.secondary_crop.as_ref())?, weight: config.secondary_weight })
+            let (dlda, parts) = project(true)?;
+            (Some(SecondaryPath { normalization, dlda, weight: config.secondary_weight }), parts)
         }
-        None => None,
+        None => (None, Vec::new()),
     };
+    let part_weight = config.local_weight / config.local_parts.len().max(1) as f32;
+    let mut secondary_parts = secondary_parts.into_iter();
+    let parts: Vec<LocalPart> = config
+        .local_parts
+        .iter()
+        .zip(primary_parts)
+        .map(|(&region, primary)| LocalPart {
+            region,
+            weight: part_weight,
+            projections: std::iter::once(primary).chain(secondary_parts.next()).collect(),
+        })
+        .collect();
     let mut held_persons: Vec<String> = held.iter().map(|a| a.face.label.clone()).collect();
     held_persons.sort();
     held_persons.dedup();
@@ -471,6 +618,7 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
     };
     let mut model = Model::new(config.normalization, config.normalize.clone(), config.features, dlda, provenance);
     model.secondary = secondary;
+    model.parts = parts;
     if let Some(top_k) = config.cohort_top_k {
         // The cohort: one template per training photo (not the mirrored copies), never a held-out person.
         let raw = Recognizer::from_model(model.clone());
@@ -542,6 +690,43 @@ mod tests {
         assert_eq!(faces.len(), 180);
         assert_eq!(faces.iter().filter(|f| f.held_out).count(), 9 * 6);
         assert!(faces.iter().all(|f| f.asf.is_some() && f.view.is_some()));
+    }
+
+    /// A re-posed copy is the same face turned by the offset: the 3DMM fitted to the copy's own
+    /// landmarks finds the photo's yaw plus the offset, and its crops exist on both paths.
+    #[test]
+    fn reposed_copies_turn_the_face_by_the_offset() {
+        let faces = list_faces(&[crate::config::shared_dir().join("data/imm")]).unwrap();
+        let face = faces.iter().find(|f| !f.held_out && f.view == Some(1)).unwrap().clone();
+        let front = FrontEnd { face_model: Some(FaceModel::load(&crate::config::sfm_dir()).unwrap()), ..FrontEnd::annotations_only() };
+        let model = front.face_model.as_ref().unwrap();
+        let photo = imaging::open(&face.image).unwrap();
+        let (landmarks, _) = front.landmarks(&face, &photo).unwrap();
+        let yaw0 = model.fit(&landmarks.points, photo.width(), photo.height()).unwrap().pose.yaw;
+        let views = front.reposed_views(&face, &[(20.0, 0.0), (-20.0, 0.0)]).unwrap();
+        assert_eq!(views.len(), 2);
+        for ((view, marks), offset) in views.iter().zip([20.0f32, -20.0]) {
+            assert_eq!((view.width(), view.height()), (photo.width(), photo.height()));
+            let yaw = model.fit(&marks.points, view.width(), view.height()).unwrap().pose.yaw;
+            assert!((yaw - (yaw0 + offset)).abs() < 6.0, "fitted yaw {yaw}, photo {yaw0}, offset {offset}");
+        }
+        let params = NormalizeParams::default();
+        let mut aligned = align_all(&front, &[face], Normalization::TwoD, &params, false);
+        let paths = [Normalization::TwoD, Normalization::Morph];
+        attach_reposed_crops(None, &front, &mut aligned, &paths, &params, &[(20.0, 0.0)]).unwrap();
+        assert_eq!(aligned[0].reposed.len(), 1);
+        let (first, second) = &aligned[0].reposed[0];
+        assert_eq!((first.width, second.as_ref().map(|c| c.width)), (params.width, Some(params.width)));
+        // The turned face is not the photo's crop, but close to it.
+        let correlation = {
+            let (a, b) = (&aligned[0].crop.data, &first.data);
+            let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32;
+            let (ma, mb) = (mean(a), mean(b));
+            let cov: f32 = a.iter().zip(b).map(|(x, y)| (x - ma) * (y - mb)).sum();
+            let var = |v: &[f32], m: f32| v.iter().map(|x| (x - m).powi(2)).sum::<f32>();
+            cov / (var(a, ma) * var(b, mb)).sqrt()
+        };
+        assert!((0.5..0.995).contains(&correlation), "correlation with the photo's crop {correlation}");
     }
 
     /// Train on IMM frontal views of the training persons with annotated keypoints: the projection
