@@ -9,6 +9,8 @@
 #
 #   scripts/loadtest.sh            # 30 s, 4 connections, 2 wrk threads
 #   DURATION=60 CONNECTIONS=8 scripts/loadtest.sh
+#   PROBE=../shared/data/imm/01-3m.jpg scripts/loadtest.sh     # a turned face (C-ASM + 3D-ASM)
+#   BIN=/tmp/old/facegate FACEGATE_MODELS=/tmp/old/models scripts/loadtest.sh   # another build
 #
 # Needs wrk (apt-get install wrk) and the shared data at ../shared (FACEGATE_SHARED).
 set -euo pipefail
@@ -26,7 +28,11 @@ command -v wrk >/dev/null || { echo "loadtest: wrk is missing (apt-get install w
 command -v curl >/dev/null || { echo "loadtest: curl is missing" >&2; exit 1; }
 for f in "$ENROL" "$PROBE"; do [[ -f "$f" ]] || { echo "loadtest: no photo $f" >&2; exit 1; }; done
 
-cargo build --release --bin facegate
+BIN="${BIN:-}"
+if [[ -z "$BIN" ]]; then
+    cargo build --release --bin facegate
+    BIN=target/release/facegate
+fi
 tmp="$(mktemp -d)"
 server_pid=""
 cleanup() {
@@ -35,7 +41,7 @@ cleanup() {
 }
 trap cleanup EXIT
 
-FACEGATE_API_KEYS="" RUST_LOG=warn target/release/facegate serve \
+FACEGATE_API_KEYS="" RUST_LOG=warn "$BIN" serve \
     --bind "127.0.0.1:$PORT" --database "sqlite://$tmp/loadtest.db" --queue 256 >"$tmp/server.log" 2>&1 &
 server_pid=$!
 base="http://127.0.0.1:$PORT"
