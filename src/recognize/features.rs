@@ -151,9 +151,10 @@ pub fn gather(features: &[f32], indices: &[usize]) -> Vec<f32> {
     indices.iter().map(|&i| features[i]).collect()
 }
 
-fn unit(mut v: Vec<f32>) -> Vec<f32> {
+/// `v` scaled to unit length (left as it is when its norm is zero, tiny or not finite).
+pub(super) fn unit(mut v: Vec<f32>) -> Vec<f32> {
     let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
-    if norm > 1e-12 {
+    if norm.is_finite() && norm > 1e-12 {
         v.iter_mut().for_each(|x| *x /= norm);
     }
     v

@@ -75,7 +75,7 @@ pub enum RecognizeError {
 }
 
 /// Where a model's training and calibration data came from.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Provenance {
     /// `imm-annotations` (eye/mouth centres from the `.asf` files) or `pipeline` (detector + ASM).
     pub keypoint_source: String,
@@ -345,7 +345,7 @@ impl Recognizer {
         // by the square root of its weight, so that the cosine of two templates is the weighted
         // sum of the blocks' cosines.
         let mut vector = Vec::with_capacity(self.model.template_dims());
-        let mut push = |block: Vec<f32>, weight: f32| vector.extend(unit(block).into_iter().map(|v| v * weight.sqrt()));
+        let mut push = |block: Vec<f32>, weight: f32| vector.extend(features::unit(block).into_iter().map(|v| v * weight.sqrt()));
         let whole_weight = self.model.whole_face_weight();
         let wholes = std::iter::once(&self.model.dlda).chain(self.model.secondary.as_ref().map(|s| &s.dlda));
         for (p, ((crop, whole), path_weight)) in crops.iter().zip(wholes).zip(self.model.path_weights()).enumerate() {
@@ -452,15 +452,6 @@ impl Recognizer {
     }
 }
 
-/// `v` scaled to unit length (a zero vector stays zero).
-fn unit(mut v: Vec<f32>) -> Vec<f32> {
-    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
-    if norm.is_finite() && norm > 0.0 {
-        v.iter_mut().for_each(|x| *x /= norm);
-    }
-    v
-}
-
 /// The default location of the committed model.
 pub fn default_model_path() -> PathBuf {
     crate::config::models_dir().join(MODEL_FILE)
@@ -492,15 +483,7 @@ mod tests {
         let mask = params.mask();
         let kind = FeatureKind::PixelsLbp { grid: 4 };
         let dims = kind.dims(params.width, params.height, &mask);
-        let provenance = Provenance {
-            keypoint_source: String::new(),
-            data: Vec::new(),
-            train_persons: Vec::new(),
-            train_images: 0,
-            calibration_persons: Vec::new(),
-            calibration_images: 0,
-            mirrored: false,
-        };
+        let provenance = Provenance::default();
         let plain = Model::new(Normalization::TwoD, params.clone(), kind, projection(dims, 6, 1), provenance);
         let (upper, lower) = (Region { x0: 0.0, y0: 0.0, x1: 1.0, y1: 0.5 }, Region { x0: 0.1, y0: 0.5, x1: 0.9, y1: 1.0 });
         let local_dims = |r: &Region| kind.indices_in(params.width, params.height, &mask, r).len();
@@ -546,12 +529,10 @@ mod tests {
         let dims = FeatureKind::Pixels.dims(params.width, params.height, &mask);
         let provenance = Provenance {
             keypoint_source: "imm-annotations".into(),
-            data: Vec::new(),
             train_persons: vec!["imm-04".into()],
             train_images: 1,
-            calibration_persons: Vec::new(),
-            calibration_images: 0,
             mirrored: true,
+            ..Provenance::default()
         };
         let mut model = Model::new(Normalization::Morph, params.clone(), FeatureKind::Pixels, projection(dims, 5, 1), provenance);
         model.secondary = Some(SecondaryPath { normalization: Normalization::TwoD, dlda: projection(dims, 4, 2), weight: 0.3 });
@@ -594,15 +575,7 @@ mod tests {
         let params = NormalizeParams::default();
         let mask = params.mask();
         let dims = FeatureKind::Pixels.dims(params.width, params.height, &mask);
-        let provenance = Provenance {
-            keypoint_source: String::new(),
-            data: Vec::new(),
-            train_persons: Vec::new(),
-            train_images: 0,
-            calibration_persons: Vec::new(),
-            calibration_images: 0,
-            mirrored: false,
-        };
+        let provenance = Provenance::default();
         let single = Model::new(Normalization::Morph, params.clone(), FeatureKind::Pixels, projection(dims, 5, 1), provenance.clone());
         let mut fused = single.clone();
         fused.secondary = Some(SecondaryPath { normalization: Normalization::TwoD, dlda: projection(dims, 4, 2), weight: 0.3 });
