@@ -539,8 +539,10 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
     let sfm = paths.contains(&Normalization::Morph).then(crate::config::sfm_dir);
     let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
     let aligned = train::align_paths(None, args.keypoints, &front, &faces, &paths, &model.normalize)?;
-    let templates: Vec<(String, Template, bool)> =
-        aligned.iter().map(|a| (a.face.label.clone(), train::template_of(&recognizer, a), a.face.is_rotated_view())).collect();
+    let templates: Vec<(String, Template, bool)> = aligned
+        .iter()
+        .map(|a| Ok((a.face.label.clone(), train::template_of(&recognizer, a)?, a.face.is_rotated_view())))
+        .collect::<anyhow::Result<_>>()?;
     let sources = keypoint_sources(&aligned);
     println!(
         "model {} ({}, {:?}, {} dims, keypoints of the model: {}); measured on {} photos of {} persons, keypoints: {sources}",
@@ -629,11 +631,11 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
         let gallery: Vec<(&str, Template)> = aligned
             .iter()
             .filter(|a| a.face.view == Some(1) && (a.face.held_out || args.distractors))
-            .map(|a| (a.face.label.as_str(), train::template_of(&recognizer, a)))
-            .collect();
+            .map(|a| Ok((a.face.label.as_str(), train::template_of(&recognizer, a)?)))
+            .collect::<anyhow::Result<_>>()?;
         for a in held.iter().filter(|a| a.face.view != Some(1)) {
             let Some(truth) = gallery.iter().position(|(l, _)| *l == a.face.label) else { continue };
-            let t = train::template_of(&recognizer, a);
+            let t = train::template_of(&recognizer, a)?;
             let row: Vec<f32> = gallery.iter().map(|(_, g)| recognizer.score(&t, std::slice::from_ref(g))).collect();
             let hit = (rank1(&[row], &[truth]) == 1.0) as usize;
             // Two tables: by IMM view group, and by |yaw| of the 3DMM fit when there is one.

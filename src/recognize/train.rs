@@ -459,8 +459,8 @@ pub struct HeldOutReport {
 }
 
 /// Template of an aligned face under a model (photometric normalisation, features, projection; the
-/// second path's crop too for a fused model).
-pub fn template_of(recognizer: &Recognizer, aligned: &AlignedFace) -> Template {
+/// second path's crop too for a fused model: `RecognizeError::Views` when it is missing).
+pub fn template_of(recognizer: &Recognizer, aligned: &AlignedFace) -> Result<Template, super::RecognizeError> {
     let params = &recognizer.model().normalize;
     let relit = |c: &GrayF32| {
         let mut crop = c.clone();
@@ -471,7 +471,7 @@ pub fn template_of(recognizer: &Recognizer, aligned: &AlignedFace) -> Template {
     if recognizer.model().secondary.is_some() {
         crops.extend(aligned.secondary_crop.as_ref().map(relit));
     }
-    recognizer.template_of_crops(&crops.iter().collect::<Vec<_>>()).unwrap_or_else(|_| recognizer.template_of_crop(&crops[0]))
+    recognizer.template_of_crops(&crops.iter().collect::<Vec<_>>())
 }
 
 /// Genuine and impostor scores of all pairs of templates (one template each), scored as the
@@ -622,11 +622,12 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
     if let Some(top_k) = config.cohort_top_k {
         // The cohort: one template per training photo (not the mirrored copies), never a held-out person.
         let raw = Recognizer::from_model(model.clone());
-        let vectors: Vec<Vec<f32>> = train.iter().map(|a| template_of(&raw, a).vector).collect();
+        let vectors: Vec<Vec<f32>> = train.iter().map(|a| template_of(&raw, a).map(|t| t.vector)).collect::<Result<_, _>>()?;
         model.cohort = Some(Cohort::new(model.template_dims(), &vectors, top_k));
     }
     let recognizer = Recognizer::from_model(model.clone());
-    let templates: Vec<(String, Template)> = held.iter().map(|a| (a.face.label.clone(), template_of(&recognizer, a))).collect();
+    let templates: Vec<(String, Template)> =
+        held.iter().map(|a| Ok((a.face.label.clone(), template_of(&recognizer, a)?))).collect::<Result<_, super::RecognizeError>>()?;
     let (genuine, impostor) = pair_scores(&recognizer, &templates);
     anyhow::ensure!(
         !genuine.is_empty() && !impostor.is_empty(),
@@ -743,7 +744,7 @@ mod tests {
         let (model, report) = train_model(&aligned, &config, &["imm".into()]).unwrap();
         let recognizer = Recognizer::from_model(model.clone());
         let a = aligned.iter().find(|a| !a.face.held_out).unwrap();
-        let t1 = template_of(&recognizer, a);
+        let t1 = template_of(&recognizer, a).unwrap();
         let prepared = front.prepare(&a.face, Normalization::TwoD).unwrap();
         let t2 = recognizer.template(&prepared.gray, &prepared.keypoints);
         assert!(t1.cosine(&t2) > 0.9999, "same photo, same template");
@@ -758,7 +759,7 @@ mod tests {
         model.save(&dir.join("dlda.bin")).unwrap();
         let loaded = Recognizer::load(&dir).unwrap();
         assert_eq!(loaded.model_version(), recognizer.model_version());
-        assert_eq!(template_of(&loaded, a), t1);
+        assert_eq!(template_of(&loaded, a).unwrap(), t1);
         std::fs::remove_dir_all(&dir).ok();
         // Versions are enforced.
         let mut foreign = t1.clone();
