@@ -9,7 +9,7 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use facegate::config::{models_dir, shared_dir};
 use facegate::detect::Detector;
 use facegate::imaging::open;
-use facegate::landmarks::asm3d::{Asm3dLandmarker, Refinement};
+use facegate::landmarks::asm3d::{Asm3dLandmarker, Refinement, SERVICE_MIN_YAW};
 use facegate::landmarks::{Landmarker, Variant};
 
 mod common;
@@ -29,6 +29,21 @@ fn bench_asm3d(c: &mut Criterion<ThreadCpuTime>) {
         group.bench_function(name, |b| b.iter(|| black_box(landmarker.fit_with(black_box(&gray), &face, refinement))));
         group.bench_function(format!("casm_{name}"), |b| b.iter(|| black_box(casm.fit(black_box(&gray), &face, Variant::Casm))));
     }
+    // The service's switched path on a turned photo: C-ASM, its yaw, then the 3D-ASM seeded by
+    // its points (`switch`), against the C-ASM and the blind 3D-ASM (`fit_with`) above/below.
+    let gray = open(&shared_dir().join("data/imm/01-3m.jpg")).expect("IMM photo").gray;
+    let face = detector.detect(&gray).first().map(|f| f.rect).expect("a face");
+    let refinement = Refinement::Casm(&casm.model);
+    assert!(landmarker.switch(&gray, &face, &casm, casm.fit(&gray, &face, Variant::Casm), SERVICE_MIN_YAW).1, "01-3 switches");
+    group.bench_function("switch_turned_01-3", |b| {
+        b.iter(|| black_box(landmarker.switch(black_box(&gray), &face, &casm, casm.fit(&gray, &face, Variant::Casm), SERVICE_MIN_YAW)))
+    });
+    group.bench_function("casm_then_blind_3d_turned_01-3", |b| {
+        b.iter(|| {
+            black_box(casm.fit(black_box(&gray), &face, Variant::Casm));
+            black_box(landmarker.fit_with(black_box(&gray), &face, refinement))
+        })
+    });
     group.finish();
 }
 

@@ -254,8 +254,9 @@ mod tests {
             let yaw = asm3d.yaw_of(&casm.points).unwrap();
             assert_eq!(yaw.abs() >= SERVICE_MIN_YAW, turned, "{name}: C-ASM yaw {yaw}");
             if turned {
-                let three = asm3d.fit_with(&p.gray, &a.face.rect, crate::landmarks::asm3d::Refinement::Casm(&pipeline.landmarker.model));
+                let three = asm3d.fit_seeded(&p.gray, &a.face.rect, &casm.points, &pipeline.landmarker.model);
                 assert_eq!(a.landmarks.points, three.points, "{name}");
+                assert_ne!(a.landmarks.points, casm.points, "{name}: the 3D-ASM's points, not the C-ASM's");
             } else {
                 assert_eq!(a.landmarks, casm, "{name}");
             }
