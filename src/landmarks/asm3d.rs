@@ -1088,52 +1088,17 @@ impl Asm3dLandmarker {
             views.extend(turned);
         }
         let levels = pyramid(frame.crop(gray, m.params.crop_size), m.params.levels);
-        let top = levels.len() - 1;
         let mut ws = Workspace::default();
-        let mut suggested = Vec::with_capacity(IMM_POINTS);
-        let rank = views.len() > 1;
-        let mut best: Option<(f32, State)> = None;
-        for vi in views {
-            let Some(fit) = m.views[vi].pdm.fit(&seed, sigma, 4) else { continue };
-            let mut st = State { view: vi, points: fit.points, camera: fit.camera };
-            // As the blind search: `PROBE_ITERATIONS` per seeded view, the rest of
-            // `max_iterations` for the better one (measured, held-out views 3–4 mean d_eye: every
-            // seeded view iterated to `max_iterations` 0.0225, to 2 only 0.0227, probed 0.0218).
-            let probe = if rank { PROBE_ITERATIONS.min(m.params.max_iterations) } else { m.params.max_iterations };
-            for _ in 0..probe {
-                if self.iterate(&levels, top, &mut st, &mut ws, &mut suggested).1 {
-                    break;
-                }
-            }
-            let cost = if !rank {
-                0.0
-            } else {
-                // As the blind search ranks: texture cost less the view's typical cost.
-                let pts: Vec<Point> = st.points.iter().map(|&p| to_level(p, top)).collect();
-                let view = &m.views[st.view];
-                search::texture_cost(&view.textures, &levels[top], top, &pts, RANK_POINT_STEP, Variant::Casm, &mut ws)
-                    - view.typical_cost * pts.len().div_ceil(RANK_POINT_STEP) as f32 / IMM_POINTS as f32
-            };
-            if best.as_ref().is_none_or(|b| cost < b.0) {
-                best = Some((cost, st));
-            }
-        }
-        let Some((_, mut st)) = best else { return blind() };
-        if rank {
-            for _ in PROBE_ITERATIONS..m.params.max_iterations {
-                if self.iterate(&levels, top, &mut st, &mut ws, &mut suggested).1 {
-                    break;
-                }
-            }
-        }
-        st.points = search::search_levels(casm, &levels, &[st.points.clone()], Variant::Casm, &mut ws);
-        let view = &m.views[st.view];
-        if let Some(fit) = view.pdm.fit(&st.points, sigma, 4) {
-            st.camera = fit.camera;
-        }
-        let points: Vec<Point> = st.points.iter().map(|&p| frame.to_image(p)).collect();
-        let keypoints = KeyPoints::from_imm(&points);
-        Asm3dLandmarks { points, keypoints, pose: st.camera.pose(), view_yaw: view.yaw }
+        let probe = views.len() > 1;
+        let seeded: Vec<State> = views
+            .into_iter()
+            .filter_map(|vi| m.views[vi].pdm.fit(&seed, sigma, 4).map(|fit| State { view: vi, points: fit.points, camera: fit.camera }))
+            .collect();
+        // As the blind search: `PROBE_ITERATIONS` per seeded view, the rest of `max_iterations`
+        // for the better one (measured, held-out views 3–4 mean d_eye: every seeded view iterated
+        // to `max_iterations` 0.0225, to 2 only 0.0227, probed 0.0218).
+        let Some(st) = self.search_coarse(&levels, seeded, probe, &mut ws) else { return blind() };
+        self.refine(&levels, &frame, st, casm, &mut ws)
     }
 
     /// [`fit`](Self::fit) with the 2D model of the refinement stage chosen by `refinement`.
@@ -1152,19 +1117,10 @@ impl Asm3dLandmarker {
             return finish(&states.swap_remove(k));
         }
         let levels = pyramid(frame.crop(gray, m.params.crop_size), m.params.levels);
-        let top = levels.len() - 1;
         let mut ws = Workspace::default();
-        let mut suggested = Vec::with_capacity(IMM_POINTS);
         // Rank the starts by the texture cost where they stand under their own view's models,
         // less that view's typical cost on its training samples.
-        let cost_of = |st: &State, ws: &mut Workspace| {
-            let pts: Vec<Point> = st.points.iter().map(|&p| to_level(p, top)).collect();
-            let view = &m.views[st.view];
-            let cost = search::texture_cost(&view.textures, &levels[top], top, &pts, RANK_POINT_STEP, Variant::Casm, ws);
-            // The typical cost is over all points: scale it to the points ranked on.
-            cost - view.typical_cost * pts.len().div_ceil(RANK_POINT_STEP) as f32 / IMM_POINTS as f32
-        };
-        let mut ranked: Vec<(f32, State)> = states.into_iter().map(|st| (cost_of(&st, &mut ws), st)).collect();
+        let mut ranked: Vec<(f32, State)> = states.into_iter().map(|st| (self.ranking_cost(&levels, &st, &mut ws), st)).collect();
         ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
         // The best starts of the `SEARCHED_VIEWS` best-ranked distinct views are searched on the
         // coarse level; the one with the lowest cost where it converged goes on.
@@ -1174,45 +1130,83 @@ impl Asm3dLandmarker {
                 chosen.push(st);
             }
         }
-        let mut best: Option<(f32, State)> = None;
-        for mut st in chosen {
-            for _ in 0..PROBE_ITERATIONS.min(m.params.max_iterations) {
-                if self.iterate(&levels, top, &mut st, &mut ws, &mut suggested).1 {
-                    break;
-                }
-            }
-            let cost = cost_of(&st, &mut ws);
-            if best.as_ref().is_none_or(|b| cost < b.0) {
-                best = Some((cost, st));
-            }
-        }
-        let Some((_, mut st)) = best else { return finish(&self.starts(&face, &frame).swap_remove(0)) };
-        for _ in PROBE_ITERATIONS..m.params.max_iterations {
-            if self.iterate(&levels, top, &mut st, &mut ws, &mut suggested).1 {
-                break;
-            }
-        }
+        let Some(st) = self.search_coarse(&levels, chosen, true, &mut ws) else {
+            return finish(&self.starts(&face, &frame).swap_remove(0));
+        };
         // Refinement: the 3D search gives the view and a shape on the coarse level; the view's 2D
         // C-ASM (its texture models under its 2D shape models, trained on the view's real and
         // synthetic shapes, so annotation-convention variation is in them) searches coarse to fine
         // from there. Measured: the 3D PDM alone on the fine level left the points ≈ 4 px off the
         // annotation convention (mean d_eye 0.040 → 0.027); a fine-level-only refinement helped
         // half as much.
-        let view = &m.views[st.view];
         // Measured alternatives to refining in the 3D search's crop (held-out, dev): the C-ASM
         // from the 3D result and its own box-placed starts, cost-ranked: identical (the 3D start
         // always won); the C-ASM in a new crop at its training scale from the 3D result: mean
         // d_eye 0.0216 against 0.0215, d_eye < 0.05 96.3% against 100%.
         let model2d = match refinement {
-            Refinement::View => &view.textures,
+            Refinement::View => &m.views[st.view].textures,
             Refinement::Casm(casm) => casm,
         };
-        st.points = search::search_levels(model2d, &levels, &[st.points.clone()], Variant::Casm, &mut ws);
+        self.refine(&levels, &frame, st, model2d, &mut ws)
+    }
+
+    /// The texture cost of `st` on the coarse level under its own view's models (every
+    /// `RANK_POINT_STEP`-th point), less that view's typical cost for as many points: how the
+    /// starts and the probed views are ranked.
+    fn ranking_cost(&self, levels: &[Level], st: &State, ws: &mut Workspace) -> f32 {
+        let top = levels.len() - 1;
+        let pts: Vec<Point> = st.points.iter().map(|&p| to_level(p, top)).collect();
+        let view = &self.model.views[st.view];
+        let cost = search::texture_cost(&view.textures, &levels[top], top, &pts, RANK_POINT_STEP, Variant::Casm, ws);
+        // The typical cost is over all points: scale it to the points ranked on.
+        cost - view.typical_cost * pts.len().div_ceil(RANK_POINT_STEP) as f32 / IMM_POINTS as f32
+    }
+
+    /// The 3D search on the coarse level from `candidates`: with `probe`, each gets
+    /// `PROBE_ITERATIONS` and the one with the lowest [`ranking_cost`](Self::ranking_cost) then
+    /// goes on to `max_iterations`; without, the first is iterated to `max_iterations` at once.
+    /// `None` without candidates.
+    fn search_coarse(&self, levels: &[Level], candidates: Vec<State>, probe: bool, ws: &mut Workspace) -> Option<State> {
+        let max = self.model.params.max_iterations;
+        let top = levels.len() - 1;
+        let mut suggested = Vec::with_capacity(IMM_POINTS);
+        let mut run = |st: &mut State, iterations: std::ops::Range<usize>, ws: &mut Workspace| {
+            for _ in iterations {
+                if self.iterate(levels, top, st, ws, &mut suggested).1 {
+                    break;
+                }
+            }
+        };
+        if !probe {
+            let mut st = candidates.into_iter().next()?;
+            run(&mut st, 0..max, ws);
+            return Some(st);
+        }
+        let mut best: Option<(f32, State)> = None;
+        for mut st in candidates {
+            run(&mut st, 0..PROBE_ITERATIONS.min(max), ws);
+            let cost = self.ranking_cost(levels, &st, ws);
+            if best.as_ref().is_none_or(|b| cost < b.0) {
+                best = Some((cost, st));
+            }
+        }
+        let (_, mut st) = best?;
+        run(&mut st, PROBE_ITERATIONS..max, ws);
+        Some(st)
+    }
+
+    /// `st` refined coarse to fine by the 2D model `model2d` (`search::search_levels`), the pose
+    /// from its view's 3D PDM fitted to the refined points, in image pixels.
+    fn refine(&self, levels: &[Level], frame: &Frame, mut st: State, model2d: &AsmModel, ws: &mut Workspace) -> Asm3dLandmarks {
+        let view = &self.model.views[st.view];
+        st.points = search::search_levels(model2d, levels, &[st.points.clone()], Variant::Casm, ws);
         // The pose reported is the 3D PDM's fitted to the refined points.
-        if let Some(fit) = view.pdm.fit(&st.points, m.sigma_px as f64, 4) {
+        if let Some(fit) = view.pdm.fit(&st.points, self.model.sigma_px as f64, 4) {
             st.camera = fit.camera;
         }
-        finish(&st)
+        let points: Vec<Point> = st.points.iter().map(|&p| frame.to_image(p)).collect();
+        let keypoints = KeyPoints::from_imm(&points);
+        Asm3dLandmarks { points, keypoints, pose: st.camera.pose(), view_yaw: view.yaw }
     }
 }
 
