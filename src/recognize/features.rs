@@ -313,17 +313,16 @@ fn gabor_bank() -> &'static [GaborKernel] {
     })
 }
 
-/// Where the Gabor magnitudes are taken, as fractions of the crop: every other pixel of the
-/// half-size crop (a 4-pixel step on the crop), starting at the second.
+/// Where the Gabor magnitudes are taken on the half-size crop (`half_width` × `half_height`): every
+/// other pixel (a 4-pixel step on the crop), starting at the second, row by row.
+fn gabor_grid(half_width: usize, half_height: usize) -> impl Iterator<Item = (usize, usize)> {
+    (1..half_height).step_by(2).flat_map(move |y| (1..half_width).step_by(2).map(move |x| (x, y)))
+}
+
+/// The [`gabor_grid`] of a `width` × `height` crop as fractions of the crop.
 fn gabor_positions(width: usize, height: usize) -> Vec<(f32, f32)> {
     let (hw, hh) = ((width / 2).max(1), (height / 2).max(1));
-    let mut out = Vec::new();
-    for y in (1..hh).step_by(2) {
-        for x in (1..hw).step_by(2) {
-            out.push(((2 * x + 1) as f32 / width as f32, (2 * y + 1) as f32 / height as f32));
-        }
-    }
-    out
+    gabor_grid(hw, hh).map(|(x, y)| ((2 * x + 1) as f32 / width as f32, (2 * y + 1) as f32 / height as f32)).collect()
 }
 
 /// Gabor magnitude features (Liu & Wechsler 2002, reduced): the crop halved, convolved with the
@@ -341,8 +340,7 @@ fn gabor_magnitudes(crop: &GrayF32) -> Vec<f32> {
             half.get(x.clamp(0, half.width as isize - 1) as usize, y.clamp(0, half.height as isize - 1) as usize)
         })
         .collect();
-    let positions: Vec<(usize, usize)> =
-        (1..half.height).step_by(2).flat_map(|y| (1..half.width).step_by(2).map(move |x| (x + pad, y + pad))).collect();
+    let positions: Vec<(usize, usize)> = gabor_grid(half.width, half.height).map(|(x, y)| (x + pad, y + pad)).collect();
     let mut out = Vec::with_capacity(bank.len() * positions.len());
     for kernel in bank {
         let side = 2 * kernel.radius + 1;
