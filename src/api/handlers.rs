@@ -228,7 +228,7 @@ pub async fn verify(State(state): State<AppState>, request: Request) -> Result<R
     let analysed = analyse_probe(&state, image).await?;
     let t = Instant::now();
     let score = engine.score(&analysed.analysis.template, &comparable);
-    let point = engine.operating_point(fmr);
+    let point = engine.operating_point(fmr, comparable.len());
     let match_ms = ms(t);
     let body = VerifyResponse {
         subject,
@@ -250,12 +250,15 @@ struct Candidate {
     score: f32,
     #[serde(rename = "match")]
     is_match: bool,
+    /// The threshold for this subject's number of templates.
+    threshold: f32,
 }
 
 #[derive(Debug, Serialize)]
 struct IdentifyResponse {
     /// The best-scoring subjects, best first, at most `k`.
     candidates: Vec<Candidate>,
+    /// The threshold for a subject with one template (each candidate carries its own).
     threshold: f32,
     fmr: f64,
     model_version: String,
@@ -295,13 +298,19 @@ pub async fn identify(State(state): State<AppState>, request: Request) -> Result
         .0
         .pool
         .run(&state.0.metrics, move || {
-            gallery.into_iter().map(|(subject, templates)| (subject, scorer.score(&probe, &templates))).collect::<Vec<_>>()
+            gallery.into_iter().map(|(subject, templates)| (subject, scorer.score(&probe, &templates), templates.len())).collect::<Vec<_>>()
         })
         .await?;
     scored.sort_by(|a, b| b.1.total_cmp(&a.1));
     scored.truncate(k);
-    let point = engine.operating_point(fmr);
-    let candidates = scored.into_iter().map(|(subject, score)| Candidate { subject, score, is_match: score >= point.threshold }).collect();
+    let point = engine.operating_point(fmr, 1);
+    let candidates = scored
+        .into_iter()
+        .map(|(subject, score, templates)| {
+            let threshold = engine.operating_point(fmr, templates).threshold;
+            Candidate { subject, score, is_match: score >= threshold, threshold }
+        })
+        .collect();
     let match_ms = ms(t);
     let body = IdentifyResponse {
         candidates,

@@ -43,8 +43,9 @@ pub trait FaceEngine: Send + Sync + 'static {
     fn model_version(&self) -> &str;
     /// Score of a probe against one subject's templates (higher is more alike).
     fn score(&self, probe: &Template, enrolled: &[Template]) -> f32;
-    /// The calibrated operating point closest to `fmr`.
-    fn operating_point(&self, fmr: f64) -> OperatingPoint;
+    /// The calibrated operating point closest to `fmr` for a subject with `enrolled` templates
+    /// (its score is the best of them, so the threshold depends on how many there are).
+    fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint;
 }
 
 impl FaceEngine for Pipeline {
@@ -57,8 +58,8 @@ impl FaceEngine for Pipeline {
     fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
         self.recognizer.score(probe, enrolled)
     }
-    fn operating_point(&self, fmr: f64) -> OperatingPoint {
-        self.recognizer.operating_point(fmr)
+    fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
+        self.recognizer.operating_point(fmr, enrolled)
     }
 }
 

@@ -312,7 +312,7 @@ pub fn run_compare(args: CompareArgs) -> anyhow::Result<ExitCode> {
     };
     let (a, b) = (analyze(&args.a)?, analyze(&args.b)?);
     let score = pipeline.recognizer.try_score(&a, std::slice::from_ref(&b))?;
-    let op = pipeline.recognizer.operating_point(args.fmr);
+    let op = pipeline.recognizer.operating_point(args.fmr, 1);
     let matched = score >= op.threshold;
     if args.json {
         crate::cli::print_json_line(&serde_json::json!({"score": score, "threshold": op.threshold, "fmr": op.fmr, "match": matched}));
@@ -392,20 +392,27 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
         100.0 * report.eer_combine_mean,
         report.combine
     );
-    for p in &model.calibration.points {
+    let tables = std::iter::once((1, &model.calibration)).chain(model.enrolled_calibration.iter().map(|t| (t.enrolled, &t.calibration)));
+    for (enrolled, calibration) in tables {
         eprintln!(
-            "  FMR {:e}: threshold {:.4} (observed FMR {:.5}, FNMR {:.4}{})",
-            p.fmr,
-            p.threshold,
-            p.observed_fmr,
-            p.observed_fnmr,
-            if p.under_sampled { ", under-sampled: fewer than 1/FMR impostor pairs" } else { "" }
+            "  {enrolled} photo(s) enrolled ({} genuine, {} impostor scores):",
+            calibration.genuine_count, calibration.impostor_count
         );
+        for p in &calibration.points {
+            eprintln!(
+                "    FMR {:e}: threshold {:.4} (observed FMR {:.5}, FNMR {:.4}{})",
+                p.fmr,
+                p.threshold,
+                p.observed_fmr,
+                p.observed_fnmr,
+                if p.under_sampled { ", under-sampled: fewer than 1/FMR impostor scores" } else { "" }
+            );
+        }
     }
     crate::cli::print_json_line(&serde_json::json!({
         "model": args.out, "version": version, "normalization": model.normalization, "features": model.features,
         "photometric": model.normalize.photometric, "dims": model.template_dims(), "paths": model.paths(), "keypoints": model.provenance.keypoint_source,
-        "held_out": report, "calibration": model.calibration.points,
+        "held_out": report, "calibration": model.calibration.points, "enrolled_calibration": model.enrolled_calibration,
     }));
     Ok(ExitCode::SUCCESS)
 }
@@ -526,6 +533,9 @@ pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// Enrolment set sizes measured by `eval verify` (k = 1 is the all-pairs figure again).
+const ENROLLED_PHOTOS: [usize; 4] = [1, 2, 3, 5];
+
 pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
     let model_path = args.model.clone().unwrap_or_else(crate::recognize::default_model_path);
     let recognizer = Recognizer::load_file(&model_path)?;
@@ -577,6 +587,33 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
             100.0 * s.fnmr_at_fmr_1e2,
             100.0 * s.fnmr_at_fmr_1e3
         );
+    }
+    // The service's protocol: k photos enrolled per person, the probe scored against all of them.
+    for (name, set) in [("frontal/near-frontal", &frontal), ("all views", &all)] {
+        for k in ENROLLED_PHOTOS {
+            let (g, i) = train::enrolment_scores(&recognizer, set, k, model.combine);
+            if g.is_empty() || i.is_empty() {
+                continue;
+            }
+            let s = summarize(&g, &i);
+            // The shipped threshold was calibrated on one-to-one pairs: the best of k enrolled
+            // photos raises impostor scores too, so report what it does here.
+            let op = recognizer.operating_point(DEFAULT_FMR, k);
+            let rate = |v: &[f32], hit: &dyn Fn(f32) -> bool| v.iter().filter(|&&x| hit(x)).count() as f64 / v.len() as f64;
+            println!(
+                "{name} ({who}), {k} photo(s) enrolled per person ({:?}): {} genuine, {} impostor probes: EER {:.2}%, FNMR@FMR=1e-2 {:.2}%, FNMR@FMR=1e-3 {:.2}%; at the shipped threshold {:.4} (FMR {:e}): FMR {:.3}%, FNMR {:.2}%",
+                model.combine,
+                s.genuine,
+                s.impostor,
+                100.0 * s.eer,
+                100.0 * s.fnmr_at_fmr_1e2,
+                100.0 * s.fnmr_at_fmr_1e3,
+                op.threshold,
+                op.fmr,
+                100.0 * rate(&i, &|x| x >= op.threshold),
+                100.0 * rate(&g, &|x| x < op.threshold)
+            );
+        }
     }
     std::fs::create_dir_all(&args.plots)?;
     let (roc, det) = (args.plots.join("roc.svg"), args.plots.join("det.svg"));

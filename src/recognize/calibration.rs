@@ -19,8 +19,10 @@ pub struct CalibratedPoint {
     pub observed_fmr: f64,
     /// Genuine scores below the threshold, as a fraction.
     pub observed_fnmr: f64,
-    /// True when there were fewer than 1/`fmr` impostor scores: the threshold is then just above
-    /// the highest impostor score seen, and the FMR it achieves is only bounded by 1/impostors.
+    /// True when there were fewer than 1/`fmr` distinct impostor scores: the threshold is then
+    /// (nearly) just above the highest impostor score seen, and the FMR it achieves is only
+    /// bounded by 1/impostors. Distinct, because against enrolment sets one high impostor pair
+    /// is the best of several sets and repeats.
     pub under_sampled: bool,
 }
 
@@ -32,6 +34,19 @@ pub struct Calibration {
     pub impostor_count: usize,
     /// Where the scores came from (persons, images, keypoint source).
     pub source: String,
+}
+
+/// Largest enrolment set with a threshold table of its own: IMM's six photos per person leave one
+/// probe beside five enrolled ones.
+pub const MAX_CALIBRATED_ENROLMENT: usize = 5;
+
+/// The thresholds for a subject enrolled with `enrolled` photos. Its score is the best of that many
+/// comparisons, so an impostor clears the one-photo threshold about `enrolled` times as often: the
+/// table is calibrated on scores against enrolment sets of that size instead.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EnrolledCalibration {
+    pub enrolled: usize,
+    pub calibration: Calibration,
 }
 
 /// The smallest f32 strictly greater than `v` (finite `v`).
@@ -63,13 +78,19 @@ pub fn threshold_at(impostor: &[f32], fmr: f64) -> f32 {
 
 impl Calibration {
     pub fn from_scores(genuine: &[f32], impostor: &[f32], fmrs: &[f64], source: &str) -> Calibration {
+        let distinct = {
+            let mut v: Vec<u32> = impostor.iter().map(|s| s.to_bits()).collect();
+            v.sort_unstable();
+            v.dedup();
+            v.len()
+        };
         let points = fmrs
             .iter()
             .map(|&fmr| {
                 let threshold = threshold_at(impostor, fmr);
                 let observed_fmr = impostor.iter().filter(|&&s| s >= threshold).count() as f64 / impostor.len().max(1) as f64;
                 let observed_fnmr = genuine.iter().filter(|&&s| s < threshold).count() as f64 / genuine.len().max(1) as f64;
-                CalibratedPoint { fmr, threshold, observed_fmr, observed_fnmr, under_sampled: (impostor.len() as f64) * fmr < 1.0 }
+                CalibratedPoint { fmr, threshold, observed_fmr, observed_fnmr, under_sampled: (distinct as f64) * fmr < 1.0 }
             })
             .collect();
         Calibration { points, genuine_count: genuine.len(), impostor_count: impostor.len(), source: source.to_string() }
@@ -118,5 +139,8 @@ mod tests {
         let cal = Calibration::from_scores(&genuine, &impostor[..500], &CALIBRATED_FMRS, "few");
         assert!(cal.points[1].under_sampled);
         assert!(impostor[..500].iter().all(|&s| s < cal.points[1].threshold));
+        // Many scores but few distinct ones (one pair repeated): still under-sampled.
+        let repeated: Vec<f32> = impostor[..500].iter().cycle().take(5000).copied().collect();
+        assert!(Calibration::from_scores(&genuine, &repeated, &CALIBRATED_FMRS, "repeated").points[1].under_sampled);
     }
 }

@@ -23,7 +23,7 @@ use sha2::{Digest, Sha256};
 use crate::dataset::KeyPoints;
 use crate::imaging::GrayF32;
 
-pub use calibration::{Calibration, DEFAULT_FMR};
+pub use calibration::{Calibration, DEFAULT_FMR, EnrolledCalibration, MAX_CALIBRATED_ENROLMENT};
 pub use dlda::{Dlda, DldaParams};
 pub use features::{FeatureKind, Region};
 pub use normalize::{NormalizeParams, Photometric};
@@ -132,6 +132,9 @@ pub struct Model {
     pub provenance: Provenance,
     /// Local region projections ensembled with the whole face (empty: the whole face only).
     pub parts: Vec<LocalPart>,
+    /// Threshold tables for subjects enrolled with 2 … [`MAX_CALIBRATED_ENROLMENT`] photos, by
+    /// size (`calibration` is the one-photo table). Empty in files before format 4.
+    pub enrolled_calibration: Vec<EnrolledCalibration>,
 }
 
 /// A format-2 model file: [`Model`] before the local parts (read, then given no parts).
@@ -150,6 +153,20 @@ struct ModelFormat2 {
     provenance: Provenance,
 }
 
+/// A format-3 model file: [`Model`] before the enrolment-size calibration. Postcard has no struct
+/// framing, so the format-2 fields followed by the parts read a format-3 file.
+#[derive(Deserialize)]
+struct ModelFormat3 {
+    v2: ModelFormat2,
+    parts: Vec<LocalPart>,
+}
+
+impl From<ModelFormat3> for Model {
+    fn from(m: ModelFormat3) -> Model {
+        Model { parts: m.parts, ..m.v2.into() }
+    }
+}
+
 impl From<ModelFormat2> for Model {
     fn from(m: ModelFormat2) -> Model {
         let ModelFormat2 { _format: _, normalization, normalize, features, dlda, secondary, combine, cohort, calibration, provenance } = m;
@@ -165,12 +182,14 @@ impl From<ModelFormat2> for Model {
             calibration,
             provenance,
             parts: Vec::new(),
+            enrolled_calibration: Vec::new(),
         }
     }
 }
 
-/// 2: the fused second path and the cohort for score normalisation; 3: the local parts.
-const MODEL_FORMAT: u32 = 3;
+/// 2: the fused second path and the cohort for score normalisation; 3: the local parts; 4: the
+/// threshold tables per enrolment-set size.
+const MODEL_FORMAT: u32 = 4;
 pub const MODEL_FILE: &str = "dlda.bin";
 
 impl Model {
@@ -193,7 +212,15 @@ impl Model {
             calibration: Calibration { points: Vec::new(), genuine_count: 0, impostor_count: 0, source: String::new() },
             provenance,
             parts: Vec::new(),
+            enrolled_calibration: Vec::new(),
         }
+    }
+
+    /// The threshold table for a subject enrolled with `enrolled` photos: the largest calibrated
+    /// set size not above it (one photo: `calibration`). Beyond the largest calibrated size the
+    /// impostor rate still grows slowly with each photo enrolled (docs/recognition.md).
+    pub fn calibration_for(&self, enrolled: usize) -> &Calibration {
+        self.enrolled_calibration.iter().rev().find(|t| t.enrolled <= enrolled).map_or(&self.calibration, |t| &t.calibration)
     }
 
     /// `dlda-` and 12 hex digits of the SHA-256 of everything that shapes a template (normalisation,
@@ -248,8 +275,9 @@ impl Model {
         let (format, _) = postcard::take_from_bytes::<u32>(&bytes).map_err(not_a_model)?;
         let model: Model = match format {
             2 => postcard::from_bytes::<ModelFormat2>(&bytes).map_err(not_a_model)?.into(),
+            3 => postcard::from_bytes::<ModelFormat3>(&bytes).map_err(not_a_model)?.into(),
             MODEL_FORMAT => postcard::from_bytes(&bytes).map_err(not_a_model)?,
-            _ => return Err(err(format!("model format {format} (this build reads 2 and {MODEL_FORMAT})"))),
+            _ => return Err(err(format!("model format {format} (this build reads 2 to {MODEL_FORMAT})"))),
         };
         let mask = model.normalize.mask();
         let dims = model.features.dims(model.normalize.width, model.normalize.height, &mask);
@@ -273,6 +301,11 @@ impl Model {
         }
         if !(0.0..=1.0).contains(&model.whole_face_weight()) || model.parts.iter().any(|p| p.weight.is_nan() || p.weight < 0.0) {
             return Err(err("the local parts' weights are not between 0 and 1 in sum".into()));
+        }
+        if !model.enrolled_calibration.windows(2).all(|w| w[0].enrolled < w[1].enrolled)
+            || model.enrolled_calibration.first().is_some_and(|t| t.enrolled < 2)
+        {
+            return Err(err("the enrolment-size threshold tables are not in increasing size from 2".into()));
         }
         Ok(model)
     }
@@ -446,9 +479,10 @@ impl Recognizer {
         self.check(t).is_ok()
     }
 
-    /// The calibrated operating point closest to `fmr` (the default is 1e-3).
-    pub fn operating_point(&self, fmr: f64) -> OperatingPoint {
-        self.model.calibration.operating_point(fmr)
+    /// The calibrated operating point closest to `fmr` (the default is 1e-3) for a subject
+    /// enrolled with `enrolled` templates (1 for a one-to-one comparison).
+    pub fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
+        self.model.calibration_for(enrolled).operating_point(fmr)
     }
 }
 
@@ -521,9 +555,10 @@ mod tests {
         std::fs::remove_dir_all(&dir).ok();
     }
 
-    /// Format-2 files (the models before local parts) still load: same version, same templates.
+    /// Format-2 files (before the local parts) and format-3 files (before the enrolment-size
+    /// tables) still load: same version, same templates.
     #[test]
-    fn format_2_models_load_with_their_version() {
+    fn format_2_and_3_models_load_with_their_version() {
         let params = NormalizeParams::default();
         let mask = params.mask();
         let dims = FeatureKind::Pixels.dims(params.width, params.height, &mask);
@@ -560,10 +595,62 @@ mod tests {
         assert_eq!(loaded.model_version(), fresh.model_version());
         let crop = GrayF32::from_fn(params.width, params.height, |x, y| ((x * 5 + y * 11) % 17) as f32);
         assert_eq!(loaded.template_of_crops(&[&crop, &crop]).unwrap(), fresh.template_of_crops(&[&crop, &crop]).unwrap());
+        // A format-3 file: the format-2 fields then the parts, without the enrolment-size tables.
+        let mut with_part = model.clone();
+        let upper = Region { x0: 0.0, y0: 0.0, x1: 1.0, y1: 0.5 };
+        let local = FeatureKind::Pixels.indices_in(params.width, params.height, &mask, &upper).len();
+        with_part.parts =
+            vec![LocalPart { region: upper, weight: 0.3, projections: vec![projection(local, 3, 3), projection(local, 2, 4)] }];
+        let m = &with_part;
+        let format3 = postcard::to_stdvec(&(
+            3u32,
+            &m.normalization,
+            &m.normalize,
+            &m.features,
+            &m.dlda,
+            &m.secondary,
+            &m.combine,
+            &m.cohort,
+            &m.calibration,
+            &m.provenance,
+            &m.parts,
+        ))
+        .unwrap();
+        std::fs::write(dir.join(MODEL_FILE), &format3).unwrap();
+        let loaded = Recognizer::load(&dir).unwrap();
+        assert_eq!((loaded.model().parts.len(), loaded.model().enrolled_calibration.len()), (1, 0));
+        assert_eq!(loaded.model_version(), Recognizer::from_model(with_part.clone()).model_version());
         // An unknown format is refused with a typed error.
         let mut future = bytes.clone();
         future[0] = 9;
         std::fs::write(dir.join(MODEL_FILE), &future).unwrap();
+        assert!(matches!(Recognizer::load(&dir), Err(RecognizeError::Model { .. })));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// A subject with k templates is judged by the table of the largest calibrated size up to k;
+    /// the tables survive the model file, and tables out of order are refused at load.
+    #[test]
+    fn thresholds_follow_the_number_of_enrolled_templates() {
+        let params = NormalizeParams::default();
+        let dims = FeatureKind::Pixels.dims(params.width, params.height, &params.mask());
+        let mut model = Model::new(Normalization::TwoD, params, FeatureKind::Pixels, projection(dims, 3, 1), Provenance::default());
+        let impostor: Vec<f32> = (0..2000).map(|i| i as f32 / 4000.0).collect();
+        let table = |shift: f32| Calibration::from_scores(&[0.9], &impostor.iter().map(|s| s + shift).collect::<Vec<_>>(), &[1e-3], "t");
+        model.calibration = table(0.0);
+        model.enrolled_calibration = vec![
+            EnrolledCalibration { enrolled: 2, calibration: table(0.01) },
+            EnrolledCalibration { enrolled: 5, calibration: table(0.03) },
+        ];
+        let recognizer = Recognizer::from_model(model.clone());
+        let threshold = |k: usize| recognizer.operating_point(1e-3, k).threshold;
+        assert!(threshold(1) < threshold(2) && threshold(2) < threshold(5));
+        assert_eq!((threshold(0), threshold(3), threshold(4), threshold(9)), (threshold(1), threshold(2), threshold(2), threshold(5)));
+        let dir = std::env::temp_dir().join(format!("facegate-enrolled-test-{}", std::process::id()));
+        model.save(&dir.join(MODEL_FILE)).unwrap();
+        assert_eq!(Recognizer::load(&dir).unwrap().model(), &model);
+        model.enrolled_calibration.swap(0, 1);
+        model.save(&dir.join(MODEL_FILE)).unwrap();
         assert!(matches!(Recognizer::load(&dir), Err(RecognizeError::Model { .. })));
         std::fs::remove_dir_all(&dir).ok();
     }

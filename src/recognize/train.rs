@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
-use super::calibration::{CALIBRATED_FMRS, Calibration};
+use super::calibration::{CALIBRATED_FMRS, Calibration, EnrolledCalibration, MAX_CALIBRATED_ENROLMENT};
 use super::dlda::{Dlda, DldaParams};
 use super::features::{self, FeatureKind, Region};
 use super::normalize::{self, NormalizeParams};
@@ -509,6 +509,32 @@ pub fn combined_scores(recognizer: &Recognizer, templates: &[(String, Template)]
     (genuine, impostor)
 }
 
+/// Genuine and impostor scores of the service's protocol with `k` photos enrolled per person:
+/// each person's photos (in listing order) give one enrolment set per rotation (photos r … r+k−1,
+/// cyclically); the person's other photos are its genuine probes, every other person's photos its
+/// impostor probes, each scored against the set combined by `combine`. `k` = 1 gives each all-pairs
+/// score twice. Persons with no more than `k` photos are left out.
+pub fn enrolment_scores(recognizer: &Recognizer, templates: &[(String, Template)], k: usize, combine: Combine) -> (Vec<f32>, Vec<f32>) {
+    let stats: Vec<_> = templates.iter().map(|(_, t)| recognizer.cohort_stats(t)).collect();
+    let mut by_person: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
+    for (i, (label, _)) in templates.iter().enumerate() {
+        by_person.entry(label).or_default().push(i);
+    }
+    let k = k.max(1);
+    let (mut genuine, mut impostor) = (Vec::new(), Vec::new());
+    for (person, photos) in by_person.iter().filter(|(_, photos)| photos.len() > k) {
+        for r in 0..photos.len() {
+            let enrolled: Vec<usize> = (0..k).map(|j| photos[(r + j) % photos.len()]).collect();
+            for (p, (label, probe)) in templates.iter().enumerate().filter(|(p, _)| !enrolled.contains(p)) {
+                let scores = enrolled.iter().map(|&e| recognizer.pair_score(probe, stats[p], &templates[e].1, stats[e]));
+                let s = combine.apply(scores).expect("an enrolment set is never empty");
+                if label.as_str() == *person { genuine.push(s) } else { impostor.push(s) }
+            }
+        }
+    }
+    (genuine, impostor)
+}
+
 /// A copy of `crop` under a small random similarity about its centre.
 fn jittered(crop: &GrayF32, rng: &mut impl Rng) -> GrayF32 {
     let angle = rng.random_range(-3.0f32..3.0).to_radians();
@@ -643,6 +669,25 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
     let (ga, ia) = combined_scores(&recognizer, &templates, Combine::Mean);
     let (eer_max, eer_mean) = (eer(&gm, &im), eer(&ga, &ia));
     model.combine = if eer_mean < eer_max { Combine::Mean } else { Combine::Max };
+    // A subject enrolled with k photos scores the best (or mean) of k comparisons: its thresholds
+    // come from the same held-out persons scored that way.
+    model.enrolled_calibration = (2..=MAX_CALIBRATED_ENROLMENT)
+        .filter_map(|k| {
+            let (genuine, impostor) = enrolment_scores(&recognizer, &templates, k, model.combine);
+            (!genuine.is_empty() && !impostor.is_empty()).then(|| EnrolledCalibration {
+                enrolled: k,
+                calibration: Calibration::from_scores(
+                    &genuine,
+                    &impostor,
+                    &CALIBRATED_FMRS,
+                    &format!(
+                        "probes against {k} enrolled photos ({:?}), every rotation of each held-out person's photos; keypoints: {keypoint_source}",
+                        model.combine
+                    ),
+                ),
+            })
+        })
+        .collect();
     let report = HeldOutReport {
         pairs: summarize(&genuine, &impostor),
         eer_combine_max: eer_max,
@@ -728,6 +773,47 @@ mod tests {
             cov / (var(a, ma) * var(b, mb)).sqrt()
         };
         assert!((0.5..0.995).contains(&correlation), "correlation with the photo's crop {correlation}");
+    }
+
+    /// The enrolment protocol: k = 1 is every all-pairs score twice; with k = 2 each probe gets
+    /// the best of its person's two enrolled photos, and a person with no more photos than k
+    /// enrols no set (but still probes the others' sets as an impostor).
+    #[test]
+    fn enrolment_sets_score_the_best_enrolled_photo() {
+        let dlda = Dlda { input_dims: 1, dims: 1, mean: vec![0.0], projection: vec![1.0], within_eigenvalues: vec![1.0] };
+        let recognizer = Recognizer::from_model(Model::new(
+            Normalization::TwoD,
+            NormalizeParams::default(),
+            super::super::FeatureKind::Pixels,
+            dlda,
+            Default::default(),
+        ));
+        let at = |label: &str, degrees: f32| {
+            let r = degrees.to_radians();
+            (label.to_string(), Template::new(recognizer.model_version(), vec![r.cos(), r.sin()]))
+        };
+        let templates = [at("a", 0.0), at("a", 10.0), at("a", 80.0), at("b", 40.0), at("b", 45.0)];
+        let sorted = |mut v: Vec<f32>| {
+            v.sort_by(f32::total_cmp);
+            v
+        };
+        let (g1, i1) = enrolment_scores(&recognizer, &templates, 1, Combine::Max);
+        let (g, i) = pair_scores(&recognizer, &templates);
+        let twice = |v: Vec<f32>| sorted(v.iter().chain(&v).copied().collect());
+        assert_eq!((sorted(g1), sorted(i1)), (twice(g), twice(i)));
+        let (g2, i2) = enrolment_scores(&recognizer, &templates, 2, Combine::Max);
+        let cos = |d: f32| d.to_radians().cos();
+        let expected = [cos(70.0), cos(10.0), cos(10.0)];
+        assert_eq!(g2.len(), 3);
+        for (got, want) in sorted(g2).iter().zip(expected) {
+            assert!((got - want).abs() < 1e-6, "{got} against {want}");
+        }
+        // b's two photos against a's three sets {0°, 10°}, {10°, 80°}, {80°, 0°}.
+        let want = sorted(vec![cos(30.0), cos(35.0), cos(30.0), cos(35.0), cos(40.0), cos(35.0)]);
+        assert_eq!(i2.len(), 6);
+        for (got, want) in sorted(i2).iter().zip(want) {
+            assert!((got - want).abs() < 1e-6, "{got} against {want}");
+        }
     }
 
     /// Train on IMM frontal views of the training persons with annotated keypoints: the projection
