@@ -601,21 +601,9 @@ mod tests {
         let local = FeatureKind::Pixels.indices_in(params.width, params.height, &mask, &upper).len();
         with_part.parts =
             vec![LocalPart { region: upper, weight: 0.3, projections: vec![projection(local, 3, 3), projection(local, 2, 4)] }];
-        let m = &with_part;
-        let format3 = postcard::to_stdvec(&(
-            3u32,
-            &m.normalization,
-            &m.normalize,
-            &m.features,
-            &m.dlda,
-            &m.secondary,
-            &m.combine,
-            &m.cohort,
-            &m.calibration,
-            &m.provenance,
-            &m.parts,
-        ))
-        .unwrap();
+        // The format number is one varint byte: the format-2 bytes renumbered, then the parts.
+        let format3: Vec<u8> =
+            std::iter::once(3u8).chain(bytes[1..].iter().copied()).chain(postcard::to_stdvec(&with_part.parts).unwrap()).collect();
         std::fs::write(dir.join(MODEL_FILE), &format3).unwrap();
         let loaded = Recognizer::load(&dir).unwrap();
         assert_eq!((loaded.model().parts.len(), loaded.model().enrolled_calibration.len()), (1, 0));
