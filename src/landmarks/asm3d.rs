@@ -920,11 +920,7 @@ struct State {
 impl Asm3dLandmarker {
     pub fn load(path: &Path) -> Result<Asm3dLandmarker, LandmarkError> {
         let err = |message: String| LandmarkError::Model { path: path.display().to_string(), message };
-        let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
-        let model: Asm3dModel = postcard::from_bytes(&bytes).map_err(|e| err(format!("not a 3D-ASM model: {e}")))?;
-        if model.format != ASM3D_FORMAT {
-            return Err(err(format!("model format {} (expected {ASM3D_FORMAT}); retrain with `facegate train asm3d`", model.format)));
-        }
+        let model: Asm3dModel = crate::config::read_model(path, "3D-ASM model", ASM3D_FORMAT, "facegate train asm3d").map_err(err)?;
         let ok = !model.views.is_empty()
             && model.views.iter().all(|v| {
                 v.pdm.points() == IMM_POINTS

@@ -187,11 +187,7 @@ pub struct Landmarker {
 impl Landmarker {
     pub fn load(path: &Path) -> Result<Landmarker, LandmarkError> {
         let err = |message: String| LandmarkError::Model { path: path.display().to_string(), message };
-        let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
-        let model: AsmModel = postcard::from_bytes(&bytes).map_err(|e| err(format!("not a landmark model: {e}")))?;
-        if model.format != MODEL_FORMAT {
-            return Err(err(format!("model format {} (expected {MODEL_FORMAT}); retrain with `facegate train asm`", model.format)));
-        }
+        let model: AsmModel = crate::config::read_model(path, "landmark model", MODEL_FORMAT, "facegate train asm").map_err(err)?;
         if model.full.points() != crate::dataset::IMM_POINTS || model.neighbours.len() != crate::dataset::IMM_POINTS {
             return Err(err("the model does not have 58 points".into()));
         }

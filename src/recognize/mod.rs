@@ -270,14 +270,12 @@ impl Model {
 
     pub fn load(path: &Path) -> Result<Model, RecognizeError> {
         let err = |message: String| RecognizeError::Model { path: path.display().to_string(), message };
-        let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
-        let not_a_model = |e: postcard::Error| err(format!("not a facegate DLDA model ({e})"));
-        let (format, _) = postcard::take_from_bytes::<u32>(&bytes).map_err(not_a_model)?;
-        let model: Model = match format {
-            2 => postcard::from_bytes::<ModelFormat2>(&bytes).map_err(not_a_model)?.into(),
-            3 => postcard::from_bytes::<ModelFormat3>(&bytes).map_err(not_a_model)?.into(),
-            MODEL_FORMAT => postcard::from_bytes(&bytes).map_err(not_a_model)?,
-            _ => return Err(err(format!("model format {format} (this build reads 2 to {MODEL_FORMAT})"))),
+        let file = crate::config::ModelFile::read(path, "facegate DLDA model").map_err(err)?;
+        let model: Model = match file.format {
+            2 => file.decode::<ModelFormat2>().map_err(err)?.into(),
+            3 => file.decode::<ModelFormat3>().map_err(err)?.into(),
+            MODEL_FORMAT => file.decode().map_err(err)?,
+            format => return Err(err(format!("model format {format} (this build reads 2 to {MODEL_FORMAT})"))),
         };
         let mask = model.normalize.mask();
         let dims = model.features.dims(model.normalize.width, model.normalize.height, &mask);

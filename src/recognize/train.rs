@@ -256,6 +256,24 @@ fn cache_key(settings: &[u8], source: KeypointSource, faces: &[FaceImage]) -> St
     hasher.finalize().iter().take(8).map(|b| format!("{b:02x}")).collect()
 }
 
+/// The entries of a crop cache file (postcard), or `None` when there is no readable file (a miss:
+/// the caller computes them and writes them with [`write_cache_file`]). A file that is there but
+/// does not decode is an error rather than a miss, so that a cache written by another format is
+/// noticed instead of silently recomputed over.
+fn read_cache_file<T: serde::de::DeserializeOwned>(file: &Path) -> anyhow::Result<Option<T>> {
+    match std::fs::read(file) {
+        Ok(bytes) => Ok(Some(postcard::from_bytes(&bytes)?)),
+        Err(_) => Ok(None),
+    }
+}
+
+/// Writes crop cache `entries` (postcard) to `file`, creating its folder.
+fn write_cache_file<T: Serialize>(file: &Path, entries: &T) -> anyhow::Result<()> {
+    std::fs::create_dir_all(file.parent().unwrap_or(Path::new(".")))?;
+    std::fs::write(file, postcard::to_stdvec(entries)?)?;
+    Ok(())
+}
+
 /// [`align_all`] through a cache file in `dir`, keyed by the SHA-256 of everything that shapes the
 /// crops: the photos, the keypoint source, the normalisation path and parameters, and the bytes of
 /// the landmark models (`asm.bin`, `asm3d.bin`). Photos the front end skipped stay skipped.
@@ -277,8 +295,7 @@ pub fn align_all_cached(
             _ => "detector-box",
         }
     };
-    if let Ok(bytes) = std::fs::read(&path) {
-        let entries: Vec<Entry> = postcard::from_bytes(&bytes)?;
+    if let Some(entries) = read_cache_file::<Vec<Entry>>(&path)? {
         let by_path: BTreeMap<String, &Entry> = entries.iter().map(|e| (e.0.clone(), e)).collect();
         eprintln!("aligned crops from cache {}", path.display());
         return Ok(faces
@@ -300,8 +317,7 @@ pub fn align_all_cached(
         .iter()
         .map(|a| (a.face.image.display().to_string(), a.crop.width, a.crop.height, a.crop.data.clone(), a.keypoint_source.to_string()))
         .collect();
-    std::fs::create_dir_all(dir)?;
-    std::fs::write(&path, postcard::to_stdvec(&entries)?)?;
+    write_cache_file(&path, &entries)?;
     Ok(aligned)
 }
 
@@ -354,8 +370,12 @@ pub fn attach_reposed_crops(
     let faces: Vec<FaceImage> = aligned.iter().filter(|a| !a.face.held_out).map(|a| a.face.clone()).collect();
     let key = cache_key(&postcard::to_stdvec(&(paths, params, offsets))?, front_end.source, &faces);
     let file = cache.map(|dir| dir.join(format!("reposed-{key}.bin")));
-    let entries: Vec<Entry> = match file.as_ref().and_then(|f| std::fs::read(f).ok()) {
-        Some(bytes) => postcard::from_bytes(&bytes)?,
+    let cached = match &file {
+        Some(f) => read_cache_file::<Vec<Entry>>(f)?,
+        None => None,
+    };
+    let entries: Vec<Entry> = match cached {
+        Some(entries) => entries,
         None => {
             let bar = crate::cli::progress(faces.len() as u64, "re-posing");
             let mut entries = Vec::with_capacity(faces.len());
@@ -383,8 +403,7 @@ pub fn attach_reposed_crops(
             }
             bar.finish_and_clear();
             if let Some(f) = &file {
-                std::fs::create_dir_all(f.parent().unwrap_or(Path::new(".")))?;
-                std::fs::write(f, postcard::to_stdvec(&entries)?)?;
+                write_cache_file(f, &entries)?;
             }
             entries
         }
