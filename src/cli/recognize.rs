@@ -596,8 +596,8 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
                 continue;
             }
             let s = summarize(&g, &i);
-            // The shipped threshold was calibrated on one-to-one pairs: the best of k enrolled
-            // photos raises impostor scores too, so report what it does here.
+            // The threshold the service uses for a subject with k templates (its own table: the
+            // best of k comparisons raises impostor scores too), and what it does here.
             let op = recognizer.operating_point(DEFAULT_FMR, k);
             let rate = |v: &[f32], hit: &dyn Fn(f32) -> bool| v.iter().filter(|&&x| hit(x)).count() as f64 / v.len() as f64;
             println!(

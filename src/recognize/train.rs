@@ -507,13 +507,19 @@ pub fn pair_scores(recognizer: &Recognizer, templates: &[(String, Template)]) ->
     (genuine, impostor)
 }
 
-/// Genuine and impostor scores of each template against every person's other templates, combined.
-pub fn combined_scores(recognizer: &Recognizer, templates: &[(String, Template)], combine: Combine) -> (Vec<f32>, Vec<f32>) {
-    let stats: Vec<_> = templates.iter().map(|(_, t)| recognizer.cohort_stats(t)).collect();
+/// The indices of each person's templates, in listing order.
+fn photos_by_person(templates: &[(String, Template)]) -> BTreeMap<&str, Vec<usize>> {
     let mut by_person: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
     for (i, (label, _)) in templates.iter().enumerate() {
         by_person.entry(label).or_default().push(i);
     }
+    by_person
+}
+
+/// Genuine and impostor scores of each template against every person's other templates, combined.
+pub fn combined_scores(recognizer: &Recognizer, templates: &[(String, Template)], combine: Combine) -> (Vec<f32>, Vec<f32>) {
+    let stats: Vec<_> = templates.iter().map(|(_, t)| recognizer.cohort_stats(t)).collect();
+    let by_person = photos_by_person(templates);
     let (mut genuine, mut impostor) = (Vec::new(), Vec::new());
     for (p, (label, probe)) in templates.iter().enumerate() {
         for (person, idx) in &by_person {
@@ -535,10 +541,7 @@ pub fn combined_scores(recognizer: &Recognizer, templates: &[(String, Template)]
 /// score twice. Persons with no more than `k` photos are left out.
 pub fn enrolment_scores(recognizer: &Recognizer, templates: &[(String, Template)], k: usize, combine: Combine) -> (Vec<f32>, Vec<f32>) {
     let stats: Vec<_> = templates.iter().map(|(_, t)| recognizer.cohort_stats(t)).collect();
-    let mut by_person: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
-    for (i, (label, _)) in templates.iter().enumerate() {
-        by_person.entry(label).or_default().push(i);
-    }
+    let by_person = photos_by_person(templates);
     let k = k.max(1);
     let (mut genuine, mut impostor) = (Vec::new(), Vec::new());
     for (person, photos) in by_person.iter().filter(|(_, photos)| photos.len() > k) {
