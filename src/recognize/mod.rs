@@ -140,7 +140,7 @@ pub struct Model {
 /// A format-2 model file: [`Model`] before the local parts (read, then given no parts).
 #[derive(Deserialize)]
 struct ModelFormat2 {
-    /// Read for the field order only (postcard is positional); it is 2.
+    /// Read for the field order only (postcard is positional); it is 2 (3 when read inside a [`ModelFormat3`]).
     _format: u32,
     normalization: Normalization,
     normalize: NormalizeParams,
@@ -218,7 +218,8 @@ impl Model {
 
     /// The threshold table for a subject enrolled with `enrolled` photos: the largest calibrated
     /// set size not above it (one photo: `calibration`). Beyond the largest calibrated size the
-    /// impostor rate still grows slowly with each photo enrolled (docs/recognition.md).
+    /// impostor rate keeps growing with each photo enrolled, above the table's FMR: the held-out
+    /// persons have too few photos to calibrate larger sets (docs/recognition.md).
     pub fn calibration_for(&self, enrolled: usize) -> &Calibration {
         self.enrolled_calibration.iter().rev().find(|t| t.enrolled <= enrolled).map_or(&self.calibration, |t| &t.calibration)
     }
