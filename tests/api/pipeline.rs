@@ -55,6 +55,12 @@ async fn enrol_an_imm_photo_then_verify_the_same_and_another_person() {
     let same = r.json();
     assert_eq!(same["match"], true, "{same}");
     assert_eq!(same["templates_compared"], 2);
+    // The threshold is the committed model's for a subject with two templates, stricter than the
+    // one-photo threshold (the best of two comparisons).
+    let recognizer = &pipeline().recognizer;
+    let (two, one) = (recognizer.operating_point(1e-3, 2), recognizer.operating_point(1e-3, 1));
+    assert_eq!((same["threshold"].as_f64().map(|t| t as f32), same["fmr"].as_f64()), (Some(two.threshold), Some(1e-3)));
+    assert!(two.threshold > one.threshold, "{} against {}", two.threshold, one.threshold);
     let face = &same["face"]["box"];
     let (x, y, w, h) =
         (face["x"].as_f64().unwrap(), face["y"].as_f64().unwrap(), face["width"].as_f64().unwrap(), face["height"].as_f64().unwrap());
