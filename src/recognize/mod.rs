@@ -507,6 +507,13 @@ mod tests {
         }
     }
 
+    /// Saves `model` as the `dlda.bin` of the models folder `dir` and loads the folder back, as the
+    /// service does.
+    fn save_and_load(model: &Model, dir: &Path) -> Result<Recognizer, RecognizeError> {
+        model.save(&dir.join(MODEL_FILE)).unwrap();
+        Recognizer::load(dir)
+    }
+
     /// Local parts: each region's projection reads its own features, and the cosine of two
     /// templates is the weighted sum of the whole face's and the regions' cosines per path; the
     /// version changes with the parts, the file round-trips, and inconsistent parts are refused.
@@ -544,13 +551,11 @@ mod tests {
             + 0.3 * cos(&with_parts.parts[1].projections[0], indices(&lower));
         assert!((ta.cosine(&tb) - expected).abs() < 1e-5, "{} against {expected}", ta.cosine(&tb));
         let dir = std::env::temp_dir().join(format!("facegate-parts-test-{}", std::process::id()));
-        with_parts.save(&dir.join(MODEL_FILE)).unwrap();
-        let loaded = Recognizer::load(&dir).unwrap();
+        let loaded = save_and_load(&with_parts, &dir).unwrap();
         assert_eq!((loaded.model_version(), loaded.template_of_crop(&a)), (recognizer.model_version(), ta));
         // A part whose projection does not fit its region is refused at load.
         with_parts.parts[1].projections[0] = projection(local_dims(&upper), 4, 3);
-        with_parts.save(&dir.join(MODEL_FILE)).unwrap();
-        assert!(matches!(Recognizer::load(&dir), Err(RecognizeError::Model { .. })));
+        assert!(matches!(save_and_load(&with_parts, &dir), Err(RecognizeError::Model { .. })));
         std::fs::remove_dir_all(&dir).ok();
     }
 
@@ -634,11 +639,9 @@ mod tests {
         assert!(threshold(1) < threshold(2) && threshold(2) < threshold(5));
         assert_eq!((threshold(0), threshold(3), threshold(4), threshold(9)), (threshold(1), threshold(2), threshold(2), threshold(5)));
         let dir = std::env::temp_dir().join(format!("facegate-enrolled-test-{}", std::process::id()));
-        model.save(&dir.join(MODEL_FILE)).unwrap();
-        assert_eq!(Recognizer::load(&dir).unwrap().model(), &model);
+        assert_eq!(save_and_load(&model, &dir).unwrap().model(), &model);
         model.enrolled_calibration.swap(0, 1);
-        model.save(&dir.join(MODEL_FILE)).unwrap();
-        assert!(matches!(Recognizer::load(&dir), Err(RecognizeError::Model { .. })));
+        assert!(matches!(save_and_load(&model, &dir), Err(RecognizeError::Model { .. })));
         std::fs::remove_dir_all(&dir).ok();
     }
 
@@ -676,8 +679,7 @@ mod tests {
         assert_eq!(fused.score(&t1, &[t3]), -1.0);
         // The model file round-trips, fusion included.
         let dir = std::env::temp_dir().join(format!("facegate-fused-test-{}", std::process::id()));
-        fused.model().save(&dir.join(MODEL_FILE)).unwrap();
-        let loaded = Recognizer::load(&dir).unwrap();
+        let loaded = save_and_load(fused.model(), &dir).unwrap();
         assert_eq!((loaded.model_version(), loaded.template_of_crops(&[&a, &b]).unwrap()), (fused.model_version(), t1));
         std::fs::remove_dir_all(&dir).ok();
     }
