@@ -7,8 +7,8 @@ use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use facegate::config::{models_dir, shared_dir};
+use facegate::core::imaging::open;
 use facegate::detect::Detector;
-use facegate::imaging::open;
 use facegate::landmarks::asm3d::{Asm3dLandmarker, Refinement, SERVICE_MIN_YAW};
 use facegate::landmarks::{Landmarker, Variant};
 

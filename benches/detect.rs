@@ -6,8 +6,8 @@ use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use facegate::config::{models_dir, shared_dir};
+use facegate::core::imaging::{GrayF32, open};
 use facegate::detect::{Detector, DetectorKind};
-use facegate::imaging::{GrayF32, open};
 
 mod common;
 use common::ThreadCpuTime;

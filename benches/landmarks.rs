@@ -7,9 +7,9 @@ use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use facegate::config::{models_dir, shared_dir};
+use facegate::core::geometry::Rect;
+use facegate::core::imaging::open;
 use facegate::detect::Detector;
-use facegate::geometry::Rect;
-use facegate::imaging::open;
 use facegate::landmarks::{Landmarker, Variant};
 
 mod common;

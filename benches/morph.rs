@@ -6,8 +6,8 @@
 //! shared, loaded machine wall time measures the neighbours too. The work is single-threaded.
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use facegate::dataset::list_imm;
 use facegate::morph::{FaceModel, TEXTURE_SIZE};
+use facegate::research::dataset::list_imm;
 
 mod common;
 use common::ThreadCpuTime;
@@ -19,7 +19,7 @@ fn bench(c: &mut Criterion<ThreadCpuTime>) {
         .into_iter()
         .find(|s| s.person == 2 && s.view == 3)
         .expect("IMM 02-3");
-    let photo = facegate::imaging::open(&sample.image).expect("photo");
+    let photo = facegate::core::imaging::open(&sample.image).expect("photo");
     let points = sample.landmarks().expect("landmarks");
     let (w, h) = (photo.width(), photo.height());
     let fitted = model.fit(&points, w, h).expect("fit");

@@ -4,13 +4,13 @@
 //! same as two different ones).
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
-use facegate::dataset::{KeyPoints, list_imm};
 use facegate::recognize::Recognizer;
+use facegate::research::dataset::{KeyPoints, list_imm};
 
 fn bench(c: &mut Criterion) {
     let recognizer = Recognizer::load(&facegate::config::models_dir()).expect("models/dlda.bin (facegate train dlda)");
     let sample = &list_imm(&facegate::config::shared_dir().join("data/imm")).expect("IMM data")[0];
-    let photo = facegate::imaging::open(&sample.image).expect("IMM photo");
+    let photo = facegate::core::imaging::open(&sample.image).expect("IMM photo");
     let keypoints = KeyPoints::from_imm(&sample.landmarks().expect("IMM landmarks"));
     let crop = recognizer.normalized_crop(&photo.gray, &keypoints);
     let crops = vec![&crop; recognizer.paths().len()];

@@ -7,12 +7,14 @@ use std::borrow::Cow;
 use std::path::PathBuf;
 use std::time::Instant;
 
+use crate::core::elapsed_ms;
+
 use serde::Serialize;
 
-use crate::dataset::KeyPoints;
+use crate::core::face::KeyPoints;
+use crate::core::geometry::Rect;
+use crate::core::imaging::{GrayF32, Photo};
 use crate::detect::{Detector, Face};
-use crate::geometry::Rect;
-use crate::imaging::{GrayF32, Photo};
 use crate::landmarks::asm3d::{Asm3dLandmarker, SERVICE_MIN_YAW};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
 use crate::morph::{FaceModel, Pose};
@@ -130,16 +132,16 @@ impl Pipeline {
         let mut timings = StageTimings::default();
         let t = Instant::now();
         let faces = self.detector.detect(&photo.gray);
-        timings.detect_ms = ms(t);
+        timings.detect_ms = elapsed_ms(t);
         let face = *faces.first().ok_or(PipelineError::NoFace)?;
 
         let t = Instant::now();
         let landmarks = find_landmarks(&self.landmarker, self.asm3d.as_ref(), &photo.gray, &face.rect);
-        timings.landmarks_ms = ms(t);
+        timings.landmarks_ms = elapsed_ms(t);
 
         let t = Instant::now();
         let input = recognition_input(self.face_model.as_ref(), photo, &landmarks, self.recognizer.normalization())?;
-        timings.morph_ms = ms(t);
+        timings.morph_ms = elapsed_ms(t);
 
         let t = Instant::now();
         let template = match self.recognizer.paths().get(1) {
@@ -151,7 +153,7 @@ impl Pipeline {
             }
             None => self.recognizer.template(&input.gray, &input.keypoints),
         };
-        timings.template_ms = ms(t);
+        timings.template_ms = elapsed_ms(t);
 
         Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose: input.pose, template, timings })
     }
@@ -206,16 +208,12 @@ pub fn recognition_input<'a>(
     }
 }
 
-fn ms(t: Instant) -> f64 {
-    t.elapsed().as_secs_f64() * 1e3
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn photo(name: &str) -> Photo {
-        crate::imaging::open(&crate::config::shared_dir().join("data/imm").join(name)).unwrap()
+        crate::core::imaging::open(&crate::config::shared_dir().join("data/imm").join(name)).unwrap()
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //!
 //! On a machine shared with other work, wall time measures the neighbours too; the pipeline's work
 //! is single-threaded, so the thread's CPU time is what one free core takes. Linux only
-//! (`/proc/thread-self/schedstat`, through `facegate::eval::thread_cpu_ns`).
+//! (`/proc/thread-self/schedstat`, through `facegate::research::eval::thread_cpu_ns`).
 
 use std::time::Duration;
 
@@ -11,7 +11,9 @@ use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 pub struct ThreadCpuTime;
 
 fn now() -> Duration {
-    Duration::from_nanos(facegate::eval::thread_cpu_ns().expect("/proc/thread-self/schedstat (Linux) gives the thread's CPU time"))
+    Duration::from_nanos(
+        facegate::research::eval::thread_cpu_ns().expect("/proc/thread-self/schedstat (Linux) gives the thread's CPU time"),
+    )
 }
 
 impl Measurement for ThreadCpuTime {

@@ -96,7 +96,7 @@ pub fn run(args: DetectArgs) -> anyhow::Result<ExitCode> {
     let mut failures = 0;
     for path in &args.images {
         let shown = path.display().to_string();
-        match crate::imaging::open(path) {
+        match crate::core::imaging::open(path) {
             Ok(photo) => {
                 let faces = detector.detect(&photo.gray);
                 if args.json {
@@ -145,7 +145,7 @@ pub fn run_eval(args: EvalDetectArgs) -> anyhow::Result<ExitCode> {
     let imm = args.imm.clone().unwrap_or_else(|| shared.join("data/imm"));
     let orl = args.orl.clone().unwrap_or_else(|| shared.join("data/orl"));
     let detector = args.detector.load()?;
-    let report = crate::eval::detection::evaluate(&detector, &imm, &orl, args.test_only)?;
+    let report = crate::research::eval::detection::evaluate(&detector, &imm, &orl, args.test_only)?;
     let text = serde_json::to_string_pretty(&report)?;
     println!("{}", report.summary());
     if let Some(out) = &args.out {
@@ -157,8 +157,8 @@ pub fn run_eval(args: EvalDetectArgs) -> anyhow::Result<ExitCode> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::core::geometry::Rect;
     use crate::detect::Face;
-    use crate::geometry::Rect;
 
     #[test]
     fn json_lines_follow_the_contract() {

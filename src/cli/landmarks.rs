@@ -4,13 +4,14 @@ use std::process::ExitCode;
 use anyhow::Context;
 use serde_json::json;
 
-use crate::dataset;
-use crate::dataset::KeyPoints;
+use crate::core::geometry::{Point, Rect};
+use crate::core::imaging::GrayF32;
 use crate::detect::Detector;
-use crate::geometry::{Point, Rect};
-use crate::imaging::GrayF32;
 use crate::landmarks::asm3d::{Asm3dLandmarker, Refinement};
-use crate::landmarks::{Landmarker, Variant, train};
+use crate::landmarks::{Landmarker, Variant};
+use crate::research::dataset;
+use crate::research::dataset::KeyPoints;
+use crate::research::train_asm as train;
 
 #[derive(clap::Args, Debug)]
 pub struct LandmarksArgs {
@@ -89,7 +90,7 @@ pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
     };
     let mut failed = false;
     for image in &args.images {
-        let photo = match crate::imaging::open(image) {
+        let photo = match crate::core::imaging::open(image) {
             Ok(p) => p,
             Err(e) => {
                 eprintln!("facegate: {}: {e}", image.display());
@@ -157,10 +158,23 @@ pub fn run_eval(args: EvalLandmarksArgs) -> anyhow::Result<ExitCode> {
     match args.folds {
         Some(folds) => {
             anyhow::ensure!(folds >= 2, "--folds needs at least 2 folds");
-            crate::eval::landmarks::run_folds(&args.imm, detector.as_ref(), &args.out, folds, args.halvings)?;
+            crate::research::eval::landmarks::run_folds(
+                &args.imm,
+                detector.as_ref(),
+                &args.out,
+                folds,
+                args.halvings,
+                &crate::cli::Bar::default(),
+            )?;
         }
         None => {
-            crate::eval::landmarks::run_scaled(&args.imm, detector.as_ref(), &args.out, args.halvings)?;
+            crate::research::eval::landmarks::run_scaled(
+                &args.imm,
+                detector.as_ref(),
+                &args.out,
+                args.halvings,
+                &crate::cli::Bar::default(),
+            )?;
         }
     }
     Ok(ExitCode::SUCCESS)
@@ -192,8 +206,8 @@ pub fn run_train_asm3d(args: TrainAsm3dArgs) -> anyhow::Result<ExitCode> {
     let face_model = crate::morph::FaceModel::load(&args.sfm.clone().unwrap_or_else(crate::config::sfm_dir))?;
     let detector = load_detector();
     let bar = crate::cli::progress(samples.len() as u64, "train asm3d");
-    let options = asm3d::Asm3dTrainOptions::default();
-    let model = asm3d::train(&samples, &face_model, detector.as_ref(), &options, &|| bar.inc(1))?;
+    let options = crate::research::train_asm3d::Asm3dTrainOptions::default();
+    let model = crate::research::train_asm3d::train(&samples, &face_model, detector.as_ref(), &options, &|| bar.inc(1))?;
     bar.finish();
     let landmarker = asm3d::Asm3dLandmarker { model };
     landmarker.save(&args.out)?;

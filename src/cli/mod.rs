@@ -112,3 +112,32 @@ pub fn progress(len: u64, what: &str) -> indicatif::ProgressBar {
     bar.set_message(what.to_string());
     bar
 }
+
+/// [`research::Progress`](crate::research::Progress) drawn as a bar on stderr, one bar per loop;
+/// notes go above the bar (or straight to stderr when the bar is hidden).
+#[derive(Default)]
+pub struct Bar {
+    bar: std::sync::Mutex<Option<indicatif::ProgressBar>>,
+}
+
+impl crate::research::Progress for Bar {
+    fn begin(&self, len: u64, what: &str) {
+        *self.bar.lock().expect("progress bar lock") = Some(progress(len, what));
+    }
+    fn step(&self) {
+        if let Some(bar) = self.bar.lock().expect("progress bar lock").as_ref() {
+            bar.inc(1);
+        }
+    }
+    fn note(&self, message: &str) {
+        match self.bar.lock().expect("progress bar lock").as_ref() {
+            Some(bar) if !bar.is_hidden() => bar.println(message),
+            _ => eprintln!("{message}"),
+        }
+    }
+    fn end(&self) {
+        if let Some(bar) = self.bar.lock().expect("progress bar lock").take() {
+            bar.finish_and_clear();
+        }
+    }
+}

@@ -6,8 +6,8 @@ use std::process::ExitCode;
 
 use anyhow::{Context, bail};
 
-use crate::geometry::Point;
-use crate::imaging::Photo;
+use crate::core::geometry::Point;
+use crate::core::imaging::Photo;
 use crate::morph::{FaceModel, FitOptions, FittedFace, TEXTURE_SIZE, export};
 
 /// Where the model and the landmarks come from (shared by both commands).
@@ -61,8 +61,8 @@ fn load_model(input: &MorphInput) -> anyhow::Result<FaceModel> {
 
 fn landmarks(input: &MorphInput, photo: &Photo) -> anyhow::Result<Vec<Point>> {
     if let Some(asf) = &input.landmarks {
-        let shape = crate::dataset::read_asf(asf, photo.width() as f32, photo.height() as f32)?;
-        if shape.points.len() != crate::dataset::IMM_POINTS {
+        let shape = crate::research::dataset::read_asf(asf, photo.width() as f32, photo.height() as f32)?;
+        if shape.points.len() != crate::research::dataset::IMM_POINTS {
             bail!("{}: {} points, expected 58 (IMM template)", asf.display(), shape.points.len());
         }
         return Ok(shape.xy());
@@ -85,7 +85,7 @@ fn fit(input: &MorphInput, model: &FaceModel, photo: &Photo) -> anyhow::Result<F
 }
 
 fn open(path: &Path) -> anyhow::Result<Photo> {
-    crate::imaging::open(path).with_context(|| format!("cannot read {}", path.display()))
+    crate::core::imaging::open(path).with_context(|| format!("cannot read {}", path.display()))
 }
 
 pub fn run_reconstruct(args: ReconstructArgs) -> anyhow::Result<ExitCode> {
@@ -168,8 +168,8 @@ pub fn run_train_imm_sfm(args: TrainImmSfmArgs) -> anyhow::Result<ExitCode> {
     let imm = args.imm.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/imm"));
     let mut shapes = Vec::new();
     let mut persons = std::collections::BTreeSet::new();
-    for s in crate::dataset::list_imm(&imm)? {
-        if crate::dataset::imm_is_test_person(s.person) || !(s.view == 1 || s.view == 2) {
+    for s in crate::research::dataset::list_imm(&imm)? {
+        if crate::research::dataset::imm_is_test_person(s.person) || !(s.view == 1 || s.view == 2) {
             continue;
         }
         let (w, h) = image::image_dimensions(&s.image)?;

@@ -7,11 +7,11 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 
-use crate::eval::verification::{self, rank1, summarize};
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::calibration::DEFAULT_FMR;
-use crate::recognize::train::{self, AlignedFace, FrontEnd, KeypointSource, TrainConfig};
 use crate::recognize::{DldaParams, FeatureKind, Normalization, NormalizeParams, Photometric, Recognizer, Region, Template};
+use crate::research::eval::verification::{self, rank1, summarize};
+use crate::research::train_dlda::{self as train, AlignedFace, FrontEnd, KeypointSource, TrainConfig};
 
 #[derive(clap::Args, Debug)]
 pub struct CompareArgs {
@@ -307,7 +307,7 @@ pub struct EvalIdentifyArgs {
 pub fn run_compare(args: CompareArgs) -> anyhow::Result<ExitCode> {
     let pipeline = Pipeline::load(&PipelineConfig::default())?;
     let analyze = |path: &Path| -> anyhow::Result<Template> {
-        let photo = crate::imaging::open(path)?;
+        let photo = crate::core::imaging::open(path)?;
         Ok(pipeline.analyze(&photo).with_context(|| path.display().to_string())?.template)
     };
     let (a, b) = (analyze(&args.a)?, analyze(&args.b)?);
@@ -339,13 +339,29 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
     // the pose: the crops are the same with or without it).
     let sfm = (paths.contains(&Normalization::Morph) || !repose.is_empty()).then(crate::config::sfm_dir);
     let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
-    let mut aligned = train::align_paths(args.crop_cache.as_deref(), args.keypoints, &front, &faces, &paths, &config.normalize)?;
+    let mut aligned = train::align_paths(
+        args.crop_cache.as_deref(),
+        args.keypoints,
+        &front,
+        &faces,
+        &paths,
+        &config.normalize,
+        &crate::cli::Bar::default(),
+    )?;
     if !repose.is_empty() {
         anyhow::ensure!(
             front.face_model.is_some(),
             "the re-posed training copies (--repose-yaw, default ±20°) need the Surrey Face Model (FACEGATE_SFM); or pass --no-repose"
         );
-        train::attach_reposed_crops(args.crop_cache.as_deref(), &front, &mut aligned, &paths, &config.normalize, &repose)?;
+        train::attach_reposed_crops(
+            args.crop_cache.as_deref(),
+            &front,
+            &mut aligned,
+            &paths,
+            &config.normalize,
+            &repose,
+            &crate::cli::Bar::default(),
+        )?;
     }
     let data: Vec<String> = args.data.iter().map(|d| d.display().to_string()).collect();
     if let Some(folds) = args.cv_folds {
@@ -514,7 +530,7 @@ pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
     let pipeline = Pipeline::load(&PipelineConfig::default())?;
     let bar = crate::cli::progress(pairs.len() as u64, "pairs");
     let template_of = |path: &Path| -> anyhow::Result<Template> {
-        let photo = crate::imaging::open(path)?;
+        let photo = crate::core::imaging::open(path)?;
         Ok(pipeline.analyze(&photo)?.template)
     };
     let stdout = std::io::stdout().lock();
@@ -548,7 +564,7 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
     let paths = model.paths();
     let sfm = paths.contains(&Normalization::Morph).then(crate::config::sfm_dir);
     let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
-    let aligned = train::align_paths(None, args.keypoints, &front, &faces, &paths, &model.normalize)?;
+    let aligned = train::align_paths(None, args.keypoints, &front, &faces, &paths, &model.normalize, &crate::cli::Bar::default())?;
     let templates: Vec<(String, Template, bool)> = aligned
         .iter()
         .map(|a| Ok((a.face.label.clone(), train::template_of(&recognizer, a)?, a.face.is_rotated_view())))
@@ -658,7 +674,7 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
     let mut sources = String::new();
     for (k, &normalization) in normalizations.iter().enumerate() {
         let config = TrainConfig { normalization, secondary: None, ..args.model.config() };
-        let aligned = train::align_all(&front, &faces, normalization, &config.normalize, true);
+        let aligned = train::align_all(&front, &faces, normalization, &config.normalize, &crate::cli::Bar::default());
         sources = keypoint_sources(&aligned);
         let (model, _) = train::train_model(&aligned, &config, &[data.display().to_string()])?;
         let recognizer = Recognizer::from_model(model);

@@ -10,7 +10,7 @@ use std::time::Duration;
 use anyhow::Context;
 
 use crate::api::{self, ApiConfig, AppState};
-use crate::imaging::DecodeLimits;
+use crate::core::imaging::DecodeLimits;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::store::Store;
 

@@ -10,8 +10,8 @@
 use std::path::Path;
 
 use super::DetectError;
-use crate::geometry::Rect;
-use crate::imaging::GrayF32;
+use crate::core::geometry::Rect;
+use crate::core::imaging::GrayF32;
 
 /// One Haar feature: up to three weighted rectangles in window coordinates.
 #[derive(Debug, Clone, Copy)]
@@ -758,7 +758,7 @@ mod tests {
     #[test]
     fn batched_scan_gives_the_window_by_window_hits() {
         let cascade = Cascade::parse(include_str!("../../models/cascades/haarcascade_frontalface_alt2.xml"), "alt2").unwrap();
-        let photo = crate::imaging::open(&crate::config::shared_dir().join("data/imm/01-1m.jpg")).unwrap();
+        let photo = crate::core::imaging::open(&crate::config::shared_dir().join("data/imm/01-1m.jpg")).unwrap();
         // A quarter-size photo scanned from scale 1.2 (no halving), so both scans see the same levels.
         let gray = photo.gray.resize(160, 120);
         let opts = ScanOptions { min_size: 24.0, ..ScanOptions::default() };

@@ -13,8 +13,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::geometry::Rect;
-use crate::imaging::GrayF32;
+use crate::core::geometry::Rect;
+use crate::core::imaging::GrayF32;
 
 pub use cascade::{Cascade, ScanOptions};
 

@@ -7,8 +7,8 @@
 use rustface::Model;
 
 use super::{DetectError, Face};
-use crate::geometry::Rect;
-use crate::imaging::GrayF32;
+use crate::core::geometry::Rect;
+use crate::core::imaging::GrayF32;
 
 pub struct SeetaDetector {
     model: Model,

@@ -1,7 +1,7 @@
 use super::*;
 use crate::config::{models_dir, shared_dir};
-use crate::dataset::{KeyPoints, list_imm};
-use crate::imaging::open;
+use crate::core::imaging::open;
+use crate::research::dataset::{KeyPoints, list_imm};
 
 fn imm_dir() -> PathBuf {
     shared_dir().join("data/imm")
@@ -129,7 +129,7 @@ fn colour_and_grey_formats_give_the_same_face() {
     use image::ImageFormat;
     let detector = Detector::load(&models_dir()).unwrap();
     let rgb = image::open(imm_dir().join("02-1m.jpg")).unwrap().resize(320, 240, image::imageops::FilterType::Triangle);
-    let reference = detector.detect(&crate::imaging::Photo::from_dynamic(rgb.clone()).gray);
+    let reference = detector.detect(&crate::core::imaging::Photo::from_dynamic(rgb.clone()).gray);
     assert_eq!(reference.len(), 1);
     let grey = image::DynamicImage::ImageLuma8(rgb.to_luma8());
     for (img, format) in [
@@ -142,7 +142,7 @@ fn colour_and_grey_formats_give_the_same_face() {
         let mut bytes = Vec::new();
         let img = if format == ImageFormat::Gif { image::DynamicImage::ImageRgba8(img.to_rgba8()) } else { img.clone() };
         img.write_to(&mut std::io::Cursor::new(&mut bytes), format).unwrap();
-        let photo = crate::imaging::decode(&bytes, &Default::default()).unwrap();
+        let photo = crate::core::imaging::decode(&bytes, &Default::default()).unwrap();
         let faces = detector.detect(&photo.gray);
         assert_eq!(faces.len(), 1, "{format:?}");
         assert!(faces[0].rect.iou(&reference[0].rect) > 0.7, "{format:?}: {faces:?} vs {reference:?}");

@@ -8,7 +8,9 @@
 //!   Gaussian models.
 //! - [`search`]: the face crop (rescaled like the thesis's 260×260 region), the 2-level pyramid and
 //!   the coarse-to-fine matching.
-//! - [`train`]: training all three variants from IMM `.asf` annotations.
+//! - [`asm3d`]: the 3D-ASM for turned heads.
+//!
+//! Training lives in `research::train_asm` (and `research::train_asm3d`).
 
 pub mod asm3d;
 pub mod mahalanobis;
@@ -17,15 +19,14 @@ pub mod profile;
 pub mod search;
 pub mod sift;
 mod simd;
-pub mod train;
 
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::KeyPoints;
-use crate::geometry::{Point, Rect};
-use crate::imaging::GrayF32;
+use crate::core::face::KeyPoints;
+use crate::core::geometry::{Point, Rect};
+use crate::core::imaging::GrayF32;
 
 use mahalanobis::{FullGaussian, PcaGaussian};
 use pdm::ShapeModel;
@@ -187,15 +188,17 @@ pub struct Landmarker {
 impl Landmarker {
     pub fn load(path: &Path) -> Result<Landmarker, LandmarkError> {
         let err = |message: String| LandmarkError::Model { path: path.display().to_string(), message };
-        let model: AsmModel = crate::config::read_model(path, "landmark model", MODEL_FORMAT, "facegate train asm").map_err(err)?;
-        if model.full.points() != crate::dataset::IMM_POINTS || model.neighbours.len() != crate::dataset::IMM_POINTS {
+        let model: AsmModel =
+            crate::core::model_file::read_model(path, "landmark model", MODEL_FORMAT, "facegate train asm").map_err(err)?;
+        if model.full.points() != crate::core::face::IMM_POINTS || model.neighbours.len() != crate::core::face::IMM_POINTS {
             return Err(err("the model does not have 58 points".into()));
         }
         Ok(Landmarker { model })
     }
 
     pub fn save(&self, path: &Path) -> Result<(), LandmarkError> {
-        crate::config::write_model(path, &self.model).map_err(|message| LandmarkError::Model { path: path.display().to_string(), message })
+        crate::core::model_file::write_model(path, &self.model)
+            .map_err(|message| LandmarkError::Model { path: path.display().to_string(), message })
     }
 
     /// Search the 58 points of the face in `face` (a box of the kind the model was trained with,
@@ -215,8 +218,8 @@ impl Landmarker {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dataset::{ImmSample, list_imm};
-    use crate::geometry::{Similarity, distance};
+    use crate::core::geometry::{Similarity, distance};
+    use crate::research::dataset::{ImmSample, list_imm};
     use std::sync::OnceLock;
 
     fn samples() -> Vec<ImmSample> {
@@ -227,8 +230,12 @@ mod tests {
     fn model() -> &'static Landmarker {
         static MODEL: OnceLock<Landmarker> = OnceLock::new();
         MODEL.get_or_init(|| {
-            let training: Vec<ImmSample> = samples().into_iter().filter(|s| !crate::dataset::imm_is_test_person(s.person)).collect();
-            Landmarker { model: train::train(&training, None, &train::TrainOptions::default(), &|| {}).unwrap() }
+            let training: Vec<ImmSample> =
+                samples().into_iter().filter(|s| !crate::research::dataset::imm_is_test_person(s.person)).collect();
+            Landmarker {
+                model: crate::research::train_asm::train(&training, None, &crate::research::train_asm::TrainOptions::default(), &|| {})
+                    .unwrap(),
+            }
         })
     }
 
@@ -241,7 +248,7 @@ mod tests {
         let m = &model().model;
         for (pdm, range) in [(&m.full, 0..58), (&m.internal, 13..58), (&m.contour, 0..13)] {
             let (mut checked, mut clamped) = (0, 0);
-            for s in samples().iter().filter(|s| !crate::dataset::imm_is_test_person(s.person)).step_by(3) {
+            for s in samples().iter().filter(|s| !crate::research::dataset::imm_is_test_person(s.person)).step_by(3) {
                 let truth = s.landmarks().unwrap();
                 let target = &truth[range.clone()];
                 let (fit, pose, b) = pdm.fit(target);
@@ -276,17 +283,17 @@ mod tests {
         let lm = model();
         let s = samples().into_iter().find(|s| s.person == 7 && s.view == 1).unwrap();
         let truth = s.landmarks().unwrap();
-        let photo = crate::imaging::open(&s.image).unwrap();
-        let truth_k = crate::dataset::KeyPoints::from_imm(&truth);
+        let photo = crate::core::imaging::open(&s.image).unwrap();
+        let truth_k = crate::core::face::KeyPoints::from_imm(&truth);
         let eyes = distance(truth_k.left_eye, truth_k.right_eye);
         // The box the model expects, shifted by 10% of its width and scaled by 8%.
-        let b = train::annotation_box(&truth);
+        let b = crate::research::train_asm::annotation_box(&truth);
         let moved = Rect::new(b.x + 0.1 * b.width, b.y - 0.06 * b.width, 1.08 * b.width, 1.08 * b.height);
         for variant in Variant::ALL {
             let start = lm.initial_shape(&moved);
             let found = lm.fit(&photo.gray, &moved, variant);
             let (before, after) = (rms(&start, &truth), rms(&found.points, &truth));
-            let d_eye = crate::eval::landmarks::d_eye(&found.keypoints, &truth_k);
+            let d_eye = crate::research::eval::landmarks::d_eye(&found.keypoints, &truth_k);
             // Plain ASM is the weakest; SIFT-ASM and C-ASM should get much closer.
             let gain = if variant == Variant::Asm { 0.7 } else { 0.4 };
             assert!(after < gain * before, "{variant:?}: rms {before:.1} -> {after:.1} px");

@@ -4,7 +4,7 @@
 use nalgebra::{DMatrix, SymmetricEigen};
 use serde::{Deserialize, Serialize};
 
-use crate::geometry::{Point, Similarity};
+use crate::core::geometry::{Point, Similarity};
 
 /// A linear shape model `x = mean + Σ b_k φ_k` in a reference frame (pixels of the search crop),
 /// with each `b_k` limited to `±constrain·sqrt(λ_k)`.
@@ -24,7 +24,7 @@ pub struct ShapeModel {
 pub fn procrustes(shapes: &[Vec<Point>], ref_width: f32) -> (Vec<Point>, Vec<Vec<Point>>) {
     let n = shapes[0].len();
     let normalise = |s: &[Point]| -> Vec<Point> {
-        let c = crate::geometry::centroid(s);
+        let c = crate::core::geometry::centroid(s);
         let centred: Vec<Point> = s.iter().map(|p| [p[0] - c[0], p[1] - c[1]]).collect();
         let norm = centred.iter().map(|p| p[0] * p[0] + p[1] * p[1]).sum::<f32>().sqrt().max(1e-6);
         centred.iter().map(|p| [p[0] / norm, p[1] / norm]).collect()

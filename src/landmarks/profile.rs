@@ -1,8 +1,8 @@
 //! Grey-level profiles (thesis 2.3.2): `PROFILE_LEN` pixels along the normal to the contour, their
 //! first derivative normalised by the sum of absolute values.
 
-use crate::geometry::Point;
-use crate::imaging::GrayF32;
+use crate::core::geometry::Point;
+use crate::core::imaging::GrayF32;
 
 /// Thesis 2.5.1: profiles of 17 pixels.
 pub const PROFILE_LEN: usize = 17;

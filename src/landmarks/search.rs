@@ -3,9 +3,9 @@
 //! searched coarse to fine over a 2-level Gaussian pyramid: move every point to its best candidate,
 //! constrain by the shape model(s), repeat until ~90% of the points move less than a pixel.
 
-use crate::dataset::{INTERNAL, JAW};
-use crate::geometry::{Point, Rect, Similarity};
-use crate::imaging::GrayF32;
+use crate::core::face::{INTERNAL, JAW};
+use crate::core::geometry::{Point, Rect, Similarity};
+use crate::core::imaging::GrayF32;
 
 use super::profile::{PROFILE_LEN, ProfileStrip};
 use super::sift::{DESCRIPTOR_LEN, DescriptorGrid, Gradients};
@@ -73,66 +73,12 @@ pub fn pyramid(crop: GrayF32, levels: usize) -> Vec<Level> {
     let mut img = crop;
     for l in 0..levels.max(1) {
         if l > 0 {
-            img = blur(&img, 0.8).downsample_half();
+            img = img.gaussian_blur(0.8).downsample_half();
         }
         let gradients = Gradients::new(&img);
         out.push(Level { image: img.clone(), gradients });
     }
     out
-}
-
-/// The same separable Gaussian as `GrayF32::gaussian_blur` (same kernel, same border clamping,
-/// same summation order, hence the same values), with the clamping confined to the borders: the
-/// pyramid is built on every search.
-pub fn blur(img: &GrayF32, sigma: f32) -> GrayF32 {
-    let radius = (3.0 * sigma).ceil() as isize;
-    let mut kernel: Vec<f32> = (-radius..=radius).map(|i| (-(i * i) as f32 / (2.0 * sigma * sigma)).exp()).collect();
-    let sum: f32 = kernel.iter().sum();
-    kernel.iter_mut().for_each(|k| *k /= sum);
-    let (w, h) = (img.width, img.height);
-    let r = radius as usize;
-    let clamp = |i: isize, n: usize| i.clamp(0, n as isize - 1) as usize;
-    let mut tmp = GrayF32::new(w, h);
-    for y in 0..h {
-        let row = &img.data[y * w..(y + 1) * w];
-        for x in 0..w {
-            let mut acc = 0.0;
-            if x >= r && x + r < w {
-                for (k, &kv) in kernel.iter().enumerate() {
-                    acc += kv * row[x + k - r];
-                }
-            } else {
-                for (k, &kv) in kernel.iter().enumerate() {
-                    acc += kv * row[clamp(x as isize + k as isize - radius, w)];
-                }
-            }
-            tmp.data[y * w + x] = acc;
-        }
-    }
-    let mut out = GrayF32::new(w, h);
-    for y in 0..h {
-        let dst = &mut out.data[y * w..(y + 1) * w];
-        for (k, &kv) in kernel.iter().enumerate() {
-            let yi = clamp(y as isize + k as isize - radius, h);
-            let src = &tmp.data[yi * w..(yi + 1) * w];
-            for (o, v) in dst.iter_mut().zip(src) {
-                *o += kv * v;
-            }
-        }
-    }
-    out
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn fast_blur_equals_the_shared_blur() {
-        let img = GrayF32::from_fn(37, 23, |x, y| ((x * 7 + y * 11) % 13) as f32 * 9.0);
-        let (a, b) = (blur(&img, 0.8), img.gaussian_blur(0.8));
-        assert!(a.data.iter().zip(&b.data).all(|(p, q)| (p - q).abs() < 1e-3));
-    }
 }
 
 pub fn to_level(p: Point, level: usize) -> Point {
@@ -342,7 +288,7 @@ fn iterate(
     if next.iter().any(|p| !p[0].is_finite() || !p[1].is_finite()) {
         return (cost, true);
     }
-    let still = next.iter().zip(pts.iter()).filter(|(a, b)| crate::geometry::distance(**a, **b) < 1.0).count();
+    let still = next.iter().zip(pts.iter()).filter(|(a, b)| crate::core::geometry::distance(**a, **b) < 1.0).count();
     *pts = next;
     (cost, still as f32 >= model.params.converged_share * pts.len() as f32)
 }

@@ -8,8 +8,8 @@
 //! oriented gradients are sampled once into a [`DescriptorGrid`] and each candidate's descriptor
 //! is binned from it.
 
-use crate::geometry::Point;
-use crate::imaging::GrayF32;
+use crate::core::geometry::Point;
+use crate::core::imaging::GrayF32;
 
 pub const CELLS: usize = 4;
 pub const CELL_PIXELS: usize = 4;

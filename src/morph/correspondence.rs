@@ -13,7 +13,7 @@
 //!    contour of its side (`sfm_model_contours.json`) whose projection is nearest to it, so the
 //!    correspondence slides along the jaw as the head turns (see `fit.rs`).
 
-use crate::dataset::IMM_POINTS;
+use crate::core::face::IMM_POINTS;
 
 /// How one IMM point is tied to the mesh.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -53,7 +53,7 @@ mod v {
     pub const L_NOSTRIL: u32 = 537; // 36
 }
 
-/// The anchor of every IMM point, in IMM order (see `crate::dataset` for the template).
+/// The anchor of every IMM point, in IMM order (see `crate::core::face` for the template).
 pub fn imm_anchors() -> [Anchor; IMM_POINTS] {
     use Anchor::*;
     let mut a = [Vertex(0); IMM_POINTS];
@@ -207,7 +207,7 @@ pub fn parse_table(text: &str, vertex_count: usize, fallback: [u32; IMM_POINTS])
 /// Returns the table and the RMS landmark residual (px) before and after.
 pub fn derive_from_annotations(
     model: &mut super::FaceModel,
-    shapes: &[(Vec<crate::geometry::Point>, u32, u32)],
+    shapes: &[(Vec<crate::core::geometry::Point>, u32, u32)],
     rounds: usize,
     radius_mm: f32,
 ) -> Result<([u32; IMM_POINTS], f32, f32), super::MorphError> {

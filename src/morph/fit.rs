@@ -13,8 +13,8 @@
 use nalgebra::Matrix2x3;
 
 use super::{Camera, FaceModel, MorphError, Pose};
-use crate::dataset::{IMM_POINTS, JAW};
-use crate::geometry::Point;
+use crate::core::face::{IMM_POINTS, JAW};
+use crate::core::geometry::Point;
 
 /// Parameters of the fit (eos defaults).
 #[derive(Debug, Clone, Copy)]

@@ -21,9 +21,9 @@ use std::path::Path;
 use image::{RgbImage, RgbaImage};
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::{EYE_IMAGE_LEFT, EYE_IMAGE_RIGHT, IMM_POINTS, KeyPoints, MOUTH};
-use crate::geometry::{Point, centroid};
-use crate::imaging::Photo;
+use crate::core::face::{EYE_IMAGE_LEFT, EYE_IMAGE_RIGHT, IMM_POINTS, KeyPoints, MOUTH};
+use crate::core::geometry::{Point, centroid};
+use crate::core::imaging::Photo;
 
 pub use fit::FitOptions;
 pub use model::{Blendshape, ModelContour, ShapeModel};

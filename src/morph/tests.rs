@@ -1,7 +1,7 @@
 use rand::{Rng, SeedableRng};
 
 use super::*;
-use crate::dataset::{JAW, list_imm};
+use crate::research::dataset::{JAW, list_imm};
 
 fn model() -> FaceModel {
     FaceModel::load(&crate::config::sfm_dir()).expect("the Surrey Face Model is in ../shared/models/sfm")
@@ -113,7 +113,7 @@ fn renders_of_a_fitted_face_at_known_yaws_are_fitted_back() {
     let m = model();
     let sample =
         list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 1 && s.view == 1).unwrap();
-    let photo = crate::imaging::open(&sample.image).unwrap();
+    let photo = crate::core::imaging::open(&sample.image).unwrap();
     let fit = m.fit(&sample.landmarks().unwrap(), photo.width(), photo.height()).unwrap();
     let texture = m.extract_texture(&photo.rgb, &fit, 256);
     let seen = texture.pixels().filter(|p| p[3] == render::TEXEL_SEEN).count();
@@ -170,7 +170,7 @@ fn frontal_rendering_puts_the_eyes_level_and_in_order() {
     let m = model();
     let sample =
         list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 2 && s.view == 3).unwrap();
-    let photo = crate::imaging::open(&sample.image).unwrap();
+    let photo = crate::core::imaging::open(&sample.image).unwrap();
     let fit = m.fit(&sample.landmarks().unwrap(), photo.width(), photo.height()).unwrap();
     let frontal = m.frontalize(&photo, &fit).unwrap();
     let k = frontal.keypoints;
@@ -200,7 +200,7 @@ fn exported_avatars_read_back() {
     let m = model();
     let sample =
         list_imm(&crate::config::shared_dir().join("data/imm")).unwrap().into_iter().find(|s| s.person == 1 && s.view == 1).unwrap();
-    let photo = crate::imaging::open(&sample.image).unwrap();
+    let photo = crate::core::imaging::open(&sample.image).unwrap();
     let fit = m.fit(&sample.landmarks().unwrap(), photo.width(), photo.height()).unwrap();
     let texture = m.extract_texture(&photo.rgb, &fit, 64);
     let mesh =
@@ -252,7 +252,7 @@ fn imm_views_are_fitted_with_plausible_yaws() {
         yaws[s.view as usize].push(f.pose.yaw);
         residuals[s.view as usize].push(f.residual_px);
         // The correspondence table was refined on views 1–2 of the training persons.
-        if crate::dataset::imm_is_test_person(s.person) {
+        if crate::research::dataset::imm_is_test_person(s.person) {
             held_out[s.view as usize].push((f.pose.yaw, f.residual_px));
         }
     }
@@ -319,10 +319,10 @@ fn write_doc_pictures() {
         let mut sheet = image::RgbImage::new(5 * tile, 2 * tile);
         for (row, view) in [3u32, 4].into_iter().enumerate() {
             let s = samples.iter().find(|s| s.person == person && s.view == view).unwrap();
-            let photo = crate::imaging::open(&s.image).unwrap();
+            let photo = crate::core::imaging::open(&s.image).unwrap();
             let pts = s.landmarks().unwrap();
             let fit = m.fit(&pts, photo.width(), photo.height()).unwrap();
-            let r = crate::geometry::Rect::bounding(&pts).unwrap();
+            let r = crate::core::geometry::Rect::bounding(&pts).unwrap();
             let side = 1.5 * r.width.max(r.height);
             let (cx, cy) = (r.center()[0], r.center()[1] - 0.1 * side);
             let x0 = (cx - side / 2.0).clamp(0.0, photo.width() as f32 - side) as u32;

@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::imaging::GrayF32;
+use crate::core::imaging::GrayF32;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]

@@ -13,15 +13,14 @@ pub mod features;
 pub mod normalize;
 pub mod score_norm;
 pub mod template;
-pub mod train;
 
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::dataset::KeyPoints;
-use crate::imaging::GrayF32;
+use crate::core::face::KeyPoints;
+use crate::core::imaging::GrayF32;
 
 pub use calibration::{Calibration, DEFAULT_FMR, EnrolledCalibration, MAX_CALIBRATED_ENROLMENT};
 pub use dlda::{Dlda, DldaParams};
@@ -266,12 +265,12 @@ impl Model {
     }
 
     pub fn save(&self, path: &Path) -> anyhow::Result<()> {
-        crate::config::write_model(path, self).map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))
+        crate::core::model_file::write_model(path, self).map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))
     }
 
     pub fn load(path: &Path) -> Result<Model, RecognizeError> {
         let err = |message: String| RecognizeError::Model { path: path.display().to_string(), message };
-        let file = crate::config::ModelFile::read(path, "facegate DLDA model").map_err(err)?;
+        let file = crate::core::model_file::ModelFile::read(path, "facegate DLDA model").map_err(err)?;
         let model: Model = match file.format {
             2 => file.decode::<ModelFormat2>().map_err(err)?.into(),
             3 => file.decode::<ModelFormat3>().map_err(err)?.into(),

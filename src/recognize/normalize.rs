@@ -7,9 +7,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::KeyPoints;
-use crate::geometry::{Point, Similarity};
-use crate::imaging::GrayF32;
+use crate::core::face::KeyPoints;
+use crate::core::geometry::{Point, Similarity};
+use crate::core::imaging::GrayF32;
 
 /// Photometric normalisation of the geometric crop.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

@@ -6,7 +6,7 @@ use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use facegate::api::ApiConfig;
-use facegate::imaging::DecodeLimits;
+use facegate::core::imaging::DecodeLimits;
 use serde_json::json;
 
 use crate::support::*;

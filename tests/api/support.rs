@@ -9,13 +9,13 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
 use facegate::api::{self, ApiConfig, AppState, FaceEngine};
-use facegate::dataset::KeyPoints;
+use facegate::core::geometry::Rect;
+use facegate::core::imaging::Photo;
 use facegate::detect::Face;
-use facegate::geometry::Rect;
-use facegate::imaging::Photo;
 use facegate::landmarks::Landmarks;
 use facegate::pipeline::{FaceAnalysis, PipelineError, StageTimings};
 use facegate::recognize::{OperatingPoint, Template};
+use facegate::research::dataset::KeyPoints;
 use facegate::store::Store;
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;

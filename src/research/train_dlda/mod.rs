@@ -9,20 +9,21 @@ use std::path::{Path, PathBuf};
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
-use super::calibration::{CALIBRATED_FMRS, Calibration, EnrolledCalibration, MAX_CALIBRATED_ENROLMENT};
-use super::dlda::{Dlda, DldaParams};
-use super::features::{self, FeatureKind, Region};
-use super::normalize::{self, NormalizeParams};
-use super::template::{Combine, Template};
-use super::{Cohort, LocalPart, Model, Normalization, Provenance, Recognizer, SecondaryPath};
-use crate::dataset::{self, IMM_POINTS, KeyPoints};
+use crate::core::imaging::{self, GrayF32};
 use crate::detect::Detector;
-use crate::eval::verification::{VerificationSummary, eer, summarize};
-use crate::imaging::{self, GrayF32};
 use crate::landmarks::asm3d::Asm3dLandmarker;
 use crate::landmarks::{Landmarker, Landmarks};
 use crate::morph::{FaceModel, Pose};
 use crate::pipeline::{find_landmarks, recognition_input};
+use crate::recognize::calibration::{CALIBRATED_FMRS, Calibration, EnrolledCalibration, MAX_CALIBRATED_ENROLMENT};
+use crate::recognize::dlda::{Dlda, DldaParams};
+use crate::recognize::features::{self, FeatureKind, Region};
+use crate::recognize::normalize::{self, NormalizeParams};
+use crate::recognize::template::{Combine, Template};
+use crate::recognize::{Cohort, LocalPart, Model, Normalization, Provenance, Recognizer, SecondaryPath};
+use crate::research::Progress;
+use crate::research::dataset::{self, IMM_POINTS, KeyPoints};
+use crate::research::eval::verification::{VerificationSummary, eer, summarize};
 
 /// One labelled photo with what the split needs to know.
 #[derive(Debug, Clone, PartialEq)]
@@ -205,9 +206,9 @@ pub fn align_all(
     faces: &[FaceImage],
     normalization: Normalization,
     params: &NormalizeParams,
-    show_progress: bool,
+    progress: &dyn Progress,
 ) -> Vec<AlignedFace> {
-    let bar = show_progress.then(|| crate::cli::progress(faces.len() as u64, "aligning"));
+    progress.begin(faces.len() as u64, "aligning");
     let mut out = Vec::with_capacity(faces.len());
     for face in faces {
         match front_end.prepare(face, normalization) {
@@ -219,21 +220,11 @@ pub fn align_all(
                 keypoint_source: p.keypoint_source,
                 reposed: Vec::new(),
             }),
-            Err(e) => {
-                let msg = format!("{}: skipped ({e})", face.image.display());
-                match &bar {
-                    Some(b) if !b.is_hidden() => b.println(msg),
-                    _ => eprintln!("warning: {msg}"),
-                }
-            }
+            Err(e) => progress.note(&format!("warning: {}: skipped ({e})", face.image.display())),
         }
-        if let Some(b) = &bar {
-            b.inc(1);
-        }
+        progress.step();
     }
-    if let Some(b) = bar {
-        b.finish_and_clear();
-    }
+    progress.end();
     out
 }
 
@@ -284,6 +275,7 @@ pub fn align_all_cached(
     faces: &[FaceImage],
     normalization: Normalization,
     params: &NormalizeParams,
+    progress: &dyn Progress,
 ) -> anyhow::Result<Vec<AlignedFace>> {
     type Entry = (String, usize, usize, Vec<f32>, String);
     let key = cache_key(&postcard::to_stdvec(&(normalization, params))?, source, faces);
@@ -297,7 +289,7 @@ pub fn align_all_cached(
     };
     if let Some(entries) = read_cache_file::<Vec<Entry>>(&path)? {
         let by_path: BTreeMap<String, &Entry> = entries.iter().map(|e| (e.0.clone(), e)).collect();
-        eprintln!("aligned crops from cache {}", path.display());
+        progress.note(&format!("aligned crops from cache {}", path.display()));
         return Ok(faces
             .iter()
             .filter_map(|f| by_path.get(&f.image.display().to_string()))
@@ -312,7 +304,7 @@ pub fn align_all_cached(
             })
             .collect());
     }
-    let aligned = align_all(front_end, faces, normalization, params, true);
+    let aligned = align_all(front_end, faces, normalization, params, progress);
     let entries: Vec<Entry> = aligned
         .iter()
         .map(|a| (a.face.image.display().to_string(), a.crop.width, a.crop.height, a.crop.data.clone(), a.keypoint_source.to_string()))
@@ -331,10 +323,11 @@ pub fn align_paths(
     faces: &[FaceImage],
     paths: &[Normalization],
     params: &NormalizeParams,
+    progress: &dyn Progress,
 ) -> anyhow::Result<Vec<AlignedFace>> {
     let align = |normalization| match cache {
-        Some(dir) => align_all_cached(dir, source, front_end, faces, normalization, params),
-        None => Ok(align_all(front_end, faces, normalization, params, true)),
+        Some(dir) => align_all_cached(dir, source, front_end, faces, normalization, params, progress),
+        None => Ok(align_all(front_end, faces, normalization, params, progress)),
     };
     let (&primary, rest) = paths.split_first().ok_or_else(|| anyhow::anyhow!("no normalisation path"))?;
     let mut aligned = align(primary)?;
@@ -362,6 +355,7 @@ pub fn attach_reposed_crops(
     paths: &[Normalization],
     params: &NormalizeParams,
     offsets: &[(f32, f32)],
+    progress: &dyn Progress,
 ) -> anyhow::Result<()> {
     type Entry = (String, Vec<(usize, usize, Vec<f32>, Option<Vec<f32>>)>);
     if offsets.is_empty() {
@@ -377,7 +371,7 @@ pub fn attach_reposed_crops(
     let entries: Vec<Entry> = match cached {
         Some(entries) => entries,
         None => {
-            let bar = crate::cli::progress(faces.len() as u64, "re-posing");
+            progress.begin(faces.len() as u64, "re-posing");
             let mut entries = Vec::with_capacity(faces.len());
             for face in &faces {
                 let mut copies = Vec::new();
@@ -396,12 +390,12 @@ pub fn attach_reposed_crops(
                             copies.push((first.width, first.height, first.data, second.flatten().map(|c| c.data)));
                         }
                     }
-                    Err(e) => bar.println(format!("{}: no re-posed copies ({e})", face.image.display())),
+                    Err(e) => progress.note(&format!("{}: no re-posed copies ({e})", face.image.display())),
                 }
                 entries.push((face.image.display().to_string(), copies));
-                bar.inc(1);
+                progress.step();
             }
-            bar.finish_and_clear();
+            progress.end();
             if let Some(f) = &file {
                 write_cache_file(f, &entries)?;
             }
@@ -479,7 +473,7 @@ pub struct HeldOutReport {
 
 /// Template of an aligned face under a model (photometric normalisation, features, projection; the
 /// second path's crop too for a fused model: `RecognizeError::Views` when it is missing).
-pub fn template_of(recognizer: &Recognizer, aligned: &AlignedFace) -> Result<Template, super::RecognizeError> {
+pub fn template_of(recognizer: &Recognizer, aligned: &AlignedFace) -> Result<Template, crate::recognize::RecognizeError> {
     let params = &recognizer.model().normalize;
     let relit = |c: &GrayF32| {
         let mut crop = c.clone();
@@ -674,8 +668,10 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
         model.cohort = Some(Cohort::new(model.template_dims(), &vectors, top_k));
     }
     let recognizer = Recognizer::from_model(model.clone());
-    let templates: Vec<(String, Template)> =
-        held.iter().map(|a| Ok((a.face.label.clone(), template_of(&recognizer, a)?))).collect::<Result<_, super::RecognizeError>>()?;
+    let templates: Vec<(String, Template)> = held
+        .iter()
+        .map(|a| Ok((a.face.label.clone(), template_of(&recognizer, a)?)))
+        .collect::<Result<_, crate::recognize::RecognizeError>>()?;
     let (genuine, impostor) = pair_scores(&recognizer, &templates);
     anyhow::ensure!(
         !genuine.is_empty() && !impostor.is_empty(),
@@ -748,6 +744,7 @@ pub fn cross_validate(aligned: &[AlignedFace], config: &TrainConfig, folds: usiz
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::research::Quiet;
 
     #[test]
     fn person_numbers_and_split_follow_the_labels() {
@@ -779,9 +776,9 @@ mod tests {
             assert!((yaw - (yaw0 + offset)).abs() < 6.0, "fitted yaw {yaw}, photo {yaw0}, offset {offset}");
         }
         let params = NormalizeParams::default();
-        let mut aligned = align_all(&front, &[face], Normalization::TwoD, &params, false);
+        let mut aligned = align_all(&front, &[face], Normalization::TwoD, &params, &Quiet);
         let paths = [Normalization::TwoD, Normalization::Morph];
-        attach_reposed_crops(None, &front, &mut aligned, &paths, &params, &[(20.0, 0.0)]).unwrap();
+        attach_reposed_crops(None, &front, &mut aligned, &paths, &params, &[(20.0, 0.0)], &Quiet).unwrap();
         assert_eq!(aligned[0].reposed.len(), 1);
         let (first, second) = &aligned[0].reposed[0];
         assert_eq!((first.width, second.as_ref().map(|c| c.width)), (params.width, Some(params.width)));
@@ -806,7 +803,7 @@ mod tests {
         let recognizer = Recognizer::from_model(Model::new(
             Normalization::TwoD,
             NormalizeParams::default(),
-            super::super::FeatureKind::Pixels,
+            crate::recognize::FeatureKind::Pixels,
             dlda,
             Default::default(),
         ));
@@ -847,7 +844,7 @@ mod tests {
             list_faces(&[crate::config::shared_dir().join("data/imm")]).unwrap().into_iter().filter(|f| !f.is_rotated_view()).collect();
         let front = FrontEnd::annotations_only();
         let config = TrainConfig::default();
-        let aligned = align_all(&front, &faces, Normalization::TwoD, &config.normalize, false);
+        let aligned = align_all(&front, &faces, Normalization::TwoD, &config.normalize, &Quiet);
         assert_eq!(aligned.len(), faces.len());
         let (model, report) = train_model(&aligned, &config, &["imm".into()]).unwrap();
         let recognizer = Recognizer::from_model(model.clone());
@@ -858,7 +855,7 @@ mod tests {
         assert!(t1.cosine(&t2) > 0.9999, "same photo, same template");
         // A small shift of the keypoints (half a crop pixel) barely moves the template.
         let k = prepared.keypoints;
-        let shift = |p: crate::geometry::Point| [p[0] + 1.5, p[1] + 1.0];
+        let shift = |p: crate::core::geometry::Point| [p[0] + 1.5, p[1] + 1.0];
         let t3 = recognizer
             .template(&prepared.gray, &KeyPoints { left_eye: shift(k.left_eye), right_eye: shift(k.right_eye), mouth: shift(k.mouth) });
         assert!(t1.cosine(&t3) > 0.8, "shifted keypoints: cosine {}", t1.cosine(&t3));

@@ -3,15 +3,15 @@
 //! placement of the mean shape relative to the face boxes. Deterministic: the same photos give the
 //! same model, byte for byte.
 
-use crate::dataset::{self, INTERNAL, ImmSample, JAW};
+use crate::core::geometry::{Point, Rect, Similarity};
+use crate::core::imaging::{self, GrayF32};
 use crate::detect::Detector;
-use crate::geometry::{Point, Rect, Similarity};
-use crate::imaging::{self, GrayF32};
+use crate::research::dataset::{self, INTERNAL, ImmSample, JAW};
 
-use super::mahalanobis::{FullGaussian, PcaGaussian};
-use super::pdm::ShapeModel;
-use super::search::{Frame, normals, pyramid, to_level};
-use super::{AsmModel, BoxSource, LandmarkError, MODEL_FORMAT, Placement, SearchParams, Start, TrainInfo, profile, sift};
+use crate::landmarks::mahalanobis::{FullGaussian, PcaGaussian};
+use crate::landmarks::pdm::ShapeModel;
+use crate::landmarks::search::{Frame, normals, pyramid, to_level};
+use crate::landmarks::{AsmModel, BoxSource, LandmarkError, MODEL_FORMAT, Placement, SearchParams, Start, TrainInfo, profile, sift};
 
 /// Training settings (thesis defaults).
 #[derive(Debug, Clone)]
@@ -45,9 +45,9 @@ pub fn annotation_box(shape: &[Point]) -> Rect {
     Rect::bounding(shape).unwrap_or(Rect::new(0.0, 0.0, 1.0, 1.0))
 }
 
+/// The median, 0 for no values.
 fn median(v: &mut [f32]) -> f32 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    if v.is_empty() { 0.0 } else { v[v.len() / 2] }
+    crate::core::median(v).unwrap_or(0.0)
 }
 
 /// Group the training shapes by their first coefficient (turned one way, frontal, turned the other

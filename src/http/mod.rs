@@ -18,7 +18,7 @@ use axum::routing::{MethodRouter, delete, get, post};
 use sha2::{Digest, Sha256};
 use tokio::sync::Semaphore;
 
-use crate::imaging::{DecodeLimits, Photo};
+use crate::core::imaging::{DecodeLimits, Photo};
 use crate::pipeline::{FaceAnalysis, Pipeline, PipelineError};
 use crate::recognize::{OperatingPoint, Template};
 use crate::store::Store;

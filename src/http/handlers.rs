@@ -4,6 +4,8 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use crate::core::elapsed_ms;
+
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::rejection::PathRejection;
@@ -15,8 +17,8 @@ use serde::{Deserialize, Serialize};
 use super::input::{read_query, read_upload, validate_fmr, validate_subject};
 use super::problem::{Problem, ProblemKind};
 use super::{AppState, FaceEngine, OPENAPI_YAML};
+use crate::core::imaging::{self, DecodeLimits};
 use crate::detect::Face;
-use crate::imaging::{self, DecodeLimits};
 use crate::landmarks::Landmarks;
 use crate::morph::Pose;
 use crate::pipeline::{FaceAnalysis, PipelineError};
@@ -55,15 +57,11 @@ impl Analysed {
     }
 }
 
-fn ms(since: Instant) -> f64 {
-    since.elapsed().as_secs_f64() * 1e3
-}
-
 /// Decode one photo within the limits and run the pipeline on it (on a pool thread).
 fn analyse_photo(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -> Result<Analysed, Problem> {
     let start = Instant::now();
     let photo = imaging::decode(bytes, limits).map_err(|e| Problem::from_decode(&e))?;
-    let decode_ms = ms(start);
+    let decode_ms = elapsed_ms(start);
     let analysis = engine.analyze(&photo).map_err(|e| match e {
         PipelineError::NoFace => Problem::new(ProblemKind::NoFace, "no face was found in the photo"),
         // Landmarks the 3DMM cannot be fitted to: no usable face, as far as the client can act on it.
@@ -229,7 +227,7 @@ pub async fn verify(State(state): State<AppState>, request: Request) -> Result<R
     let t = Instant::now();
     let score = engine.score(&analysed.analysis.template, &comparable);
     let point = engine.operating_point(fmr, comparable.len());
-    let match_ms = ms(t);
+    let match_ms = elapsed_ms(t);
     let body = VerifyResponse {
         subject,
         is_match: score >= point.threshold,
@@ -239,7 +237,7 @@ pub async fn verify(State(state): State<AppState>, request: Request) -> Result<R
         model_version: version.to_string(),
         templates_compared: comparable.len(),
         found: analysed.report(),
-        timings: RequestTimings { photo: analysed.timings, match_ms, total_ms: ms(start) },
+        timings: RequestTimings { photo: analysed.timings, match_ms, total_ms: elapsed_ms(start) },
     };
     Ok(Json(body).into_response())
 }
@@ -311,7 +309,7 @@ pub async fn identify(State(state): State<AppState>, request: Request) -> Result
             Candidate { subject, score, is_match: score >= threshold, threshold }
         })
         .collect();
-    let match_ms = ms(t);
+    let match_ms = elapsed_ms(t);
     let body = IdentifyResponse {
         candidates,
         threshold: point.threshold,
@@ -319,7 +317,7 @@ pub async fn identify(State(state): State<AppState>, request: Request) -> Result
         model_version: engine.model_version().to_string(),
         subjects_searched,
         found: analysed.report(),
-        timings: RequestTimings { photo: analysed.timings, match_ms, total_ms: ms(start) },
+        timings: RequestTimings { photo: analysed.timings, match_ms, total_ms: elapsed_ms(start) },
     };
     Ok(Json(body).into_response())
 }

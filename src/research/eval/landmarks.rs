@@ -7,13 +7,15 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::dataset::{self, ImmSample, KeyPoints};
+use crate::core::geometry::{Rect, distance};
 use crate::detect::Detector;
-use crate::geometry::{Rect, distance};
-use crate::landmarks::{BoxSource, Landmarker, Variant, train};
+use crate::landmarks::{BoxSource, Landmarker, Variant};
+use crate::research::dataset::{self, ImmSample, KeyPoints};
+use crate::research::train_asm as train;
 
 use super::plot::{Chart, Scale, Series, cumulative, line_chart};
 use super::thread_cpu_ns;
+use crate::research::Progress;
 
 /// d_eye = max(d_left, d_right) / ||C_l − C_r|| (Jesorsky et al.).
 pub fn d_eye(found: &KeyPoints, truth: &KeyPoints) -> f64 {
@@ -55,7 +57,7 @@ fn share(errors: &[PhotoError], f: impl Fn(&PhotoError) -> Option<f64>, t: f64) 
 
 /// A face box for a test photo: the detector's largest face (as the pipeline uses it), or the
 /// annotation's bounding box when no detector is given.
-fn test_box(detector: Option<&Detector>, gray: &crate::imaging::GrayF32, truth: &[crate::geometry::Point]) -> Option<Rect> {
+fn test_box(detector: Option<&Detector>, gray: &crate::core::imaging::GrayF32, truth: &[crate::core::geometry::Point]) -> Option<Rect> {
     match detector {
         Some(d) => d.detect(gray).first().map(|f| f.rect),
         None => Some(train::annotation_box(truth)),
@@ -65,7 +67,7 @@ fn test_box(detector: Option<&Detector>, gray: &crate::imaging::GrayF32, truth: 
 /// Measure one variant on `test` photos (boxes precomputed).
 pub fn measure(
     landmarker: &Landmarker,
-    photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)],
+    photos: &[(ImmSample, crate::core::imaging::GrayF32, Vec<crate::core::geometry::Point>, Option<Rect>)],
     variant: Variant,
 ) -> VariantSummary {
     measure_fn(photos, variant.name(), &|gray, rect| landmarker.fit(gray, rect, variant).keypoints)
@@ -73,18 +75,18 @@ pub fn measure(
 
 /// Train on the training persons, measure the three variants on the held-out persons, print the
 /// table, write `summary.json`, `landmarks-d_eye.svg` and `landmarks-mouth.svg` into `out`.
-pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path) -> anyhow::Result<Vec<VariantSummary>> {
-    run_scaled(imm, detector, out, 0)
+pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path, progress: &dyn Progress) -> anyhow::Result<Vec<VariantSummary>> {
+    run_scaled(imm, detector, out, 0, progress)
 }
 
-type TestPhoto = (ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>);
+type TestPhoto = (ImmSample, crate::core::imaging::GrayF32, Vec<crate::core::geometry::Point>, Option<Rect>);
 
 /// Load test photos, halved `halvings` times (2×2 means, the pyramid's convention: a point `p` goes
 /// to `(p − ½)/2`), with the annotation moved alike and the box of the smaller photo.
 fn load_test_photos(test: &[ImmSample], detector: Option<&Detector>, halvings: usize) -> anyhow::Result<Vec<TestPhoto>> {
     let mut photos = Vec::new();
     for s in test {
-        let mut gray = crate::imaging::open(&s.image)?.gray;
+        let mut gray = crate::core::imaging::open(&s.image)?.gray;
         let mut truth = s.landmarks()?;
         for _ in 0..halvings {
             gray = gray.downsample_half();
@@ -106,6 +108,7 @@ pub fn run_folds(
     out: &Path,
     folds: usize,
     halvings: usize,
+    progress: &dyn Progress,
 ) -> anyhow::Result<Vec<VariantSummary>> {
     let all = dataset::list_imm(imm)?;
     let mut persons: Vec<u32> = all.iter().map(|s| s.person).collect();
@@ -117,9 +120,9 @@ pub fn run_folds(
     let mut cpu_ms = vec![0.0f64; Variant::ALL.len()];
     for fold in 0..folds {
         let (test, training): (Vec<ImmSample>, Vec<ImmSample>) = all.iter().cloned().partition(|s| fold_of(s.person) == fold);
-        let bar = crate::cli::progress(training.len() as u64, "train asm");
-        let model = train::train(&training, detector, &train::TrainOptions::default(), &|| bar.inc(1))?;
-        bar.finish_and_clear();
+        progress.begin(training.len() as u64, "train asm");
+        let model = train::train(&training, detector, &train::TrainOptions::default(), &|| progress.step())?;
+        progress.end();
         let landmarker = Landmarker { model };
         let photos = load_test_photos(&test, detector, halvings)?;
         for (k, &v) in Variant::ALL.iter().enumerate() {
@@ -172,13 +175,19 @@ fn print_table(summaries: &[VariantSummary]) {
 }
 
 /// [`run`] with the test photos halved `halvings` times (0: exactly [`run`]).
-pub fn run_scaled(imm: &Path, detector: Option<&Detector>, out: &Path, halvings: usize) -> anyhow::Result<Vec<VariantSummary>> {
+pub fn run_scaled(
+    imm: &Path,
+    detector: Option<&Detector>,
+    out: &Path,
+    halvings: usize,
+    progress: &dyn Progress,
+) -> anyhow::Result<Vec<VariantSummary>> {
     let all = dataset::list_imm(imm)?;
     let (test, training): (Vec<ImmSample>, Vec<ImmSample>) = all.into_iter().partition(|s| dataset::imm_is_test_person(s.person));
     anyhow::ensure!(!test.is_empty() && !training.is_empty(), "need both training and held-out persons in {}", imm.display());
-    let bar = crate::cli::progress(training.len() as u64, "train asm");
-    let model = train::train(&training, detector, &train::TrainOptions::default(), &|| bar.inc(1))?;
-    bar.finish_and_clear();
+    progress.begin(training.len() as u64, "train asm");
+    let model = train::train(&training, detector, &train::TrainOptions::default(), &|| progress.step())?;
+    progress.end();
     let box_source = model.info.box_source;
     let landmarker = Landmarker { model };
     let photos = load_test_photos(&test, detector, halvings)?;
@@ -187,14 +196,15 @@ pub fn run_scaled(imm: &Path, detector: Option<&Detector>, out: &Path, halvings:
     }
     let mut summaries: Vec<VariantSummary> = Variant::ALL.iter().map(|&v| measure(&landmarker, &photos, v)).collect();
     // The 3D-ASM beside them, and the head yaw of each photo for the per-view table.
-    let (yaws, crossover_rows) = match measure_asm3d(&training, if halvings == 0 { &test } else { &[] }, detector, &photos, &landmarker) {
-        Some(m) => {
-            summaries.push(m.asm3d);
-            summaries.push(m.switch);
-            (m.yaws, m.crossover)
-        }
-        None => (vec![f32::NAN; photos.len()], Vec::new()),
-    };
+    let (yaws, crossover_rows) =
+        match measure_asm3d(&training, if halvings == 0 { &test } else { &[] }, detector, &photos, &landmarker, progress) {
+            Some(m) => {
+                summaries.push(m.asm3d);
+                summaries.push(m.switch);
+                (m.yaws, m.crossover)
+            }
+            None => (vec![f32::NAN; photos.len()], Vec::new()),
+        };
 
     let boxes = match (detector, box_source) {
         (Some(_), BoxSource::Detector) => "detector boxes",
@@ -266,9 +276,9 @@ pub fn run_scaled(imm: &Path, detector: Option<&Detector>, out: &Path, halvings:
 
 /// Measure any landmark search (as [`measure`]) under the name `variant`.
 pub fn measure_fn(
-    photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)],
+    photos: &[(ImmSample, crate::core::imaging::GrayF32, Vec<crate::core::geometry::Point>, Option<Rect>)],
     variant: &'static str,
-    fit: &dyn Fn(&crate::imaging::GrayF32, &Rect) -> KeyPoints,
+    fit: &dyn Fn(&crate::core::imaging::GrayF32, &Rect) -> KeyPoints,
 ) -> VariantSummary {
     let mut errors = Vec::new();
     let (mut total_ms, mut fitted) = (0.0, 0usize);
@@ -308,7 +318,7 @@ fn summarise(variant: &'static str, errors: Vec<PhotoError>, ms_per_face: f64) -
 }
 
 /// A landmark search under measurement: photo and face box in, eye and mouth centres out.
-pub type KeypointSearch<'a> = &'a dyn Fn(&crate::imaging::GrayF32, &Rect) -> KeyPoints;
+pub type KeypointSearch<'a> = &'a dyn Fn(&crate::core::imaging::GrayF32, &Rect) -> KeyPoints;
 
 /// What [`measure_asm3d`] measured.
 struct Asm3dMeasurements {
@@ -331,8 +341,9 @@ fn measure_asm3d(
     training: &[ImmSample],
     test: &[ImmSample],
     detector: Option<&Detector>,
-    photos: &[(ImmSample, crate::imaging::GrayF32, Vec<crate::geometry::Point>, Option<Rect>)],
+    photos: &[(ImmSample, crate::core::imaging::GrayF32, Vec<crate::core::geometry::Point>, Option<Rect>)],
     casm: &Landmarker,
+    progress: &dyn Progress,
 ) -> Option<Asm3dMeasurements> {
     use crate::landmarks::asm3d;
     let fm = match crate::morph::FaceModel::load(&crate::config::sfm_dir()) {
@@ -342,20 +353,27 @@ fn measure_asm3d(
             return None;
         }
     };
-    let bar = crate::cli::progress(training.len() as u64, "train asm3d");
-    let model = match asm3d::train(training, &fm, detector, &asm3d::Asm3dTrainOptions::default(), &|| bar.inc(1)) {
+    progress.begin(training.len() as u64, "train asm3d");
+    let model = match crate::research::train_asm3d::train(
+        training,
+        &fm,
+        detector,
+        &crate::research::train_asm3d::Asm3dTrainOptions::default(),
+        &|| progress.step(),
+    ) {
         Ok(m) => m,
         Err(e) => {
             eprintln!("facegate: 3D-ASM not measured: {e}");
             return None;
         }
     };
-    bar.finish_and_clear();
+    progress.end();
     let lm = asm3d::Asm3dLandmarker { model };
-    let fit = |g: &crate::imaging::GrayF32, r: &Rect| lm.fit_with(g, r, asm3d::Refinement::Casm(&casm.model)).keypoints;
+    let fit = |g: &crate::core::imaging::GrayF32, r: &Rect| lm.fit_with(g, r, asm3d::Refinement::Casm(&casm.model)).keypoints;
     let summary = measure_fn(photos, "asm3d", &fit);
-    let switch =
-        |g: &crate::imaging::GrayF32, r: &Rect| lm.switch(g, r, casm, casm.fit(g, r, Variant::Casm), asm3d::SERVICE_MIN_YAW).0.keypoints;
+    let switch = |g: &crate::core::imaging::GrayF32, r: &Rect| {
+        lm.switch(g, r, casm, casm.fit(g, r, Variant::Casm), asm3d::SERVICE_MIN_YAW).0.keypoints
+    };
     let switch_summary = measure_fn(photos, "switch", &switch);
     // The head yaw of every test photo, from the 3DMM fitted to its manual landmarks.
     let yaws =
@@ -451,7 +469,7 @@ pub fn crossover(
     let mut errors: Vec<Vec<(f64, f64)>> = vec![Vec::new(); bands.len()];
     let mut misses = vec![0usize; bands.len()];
     for sample in test {
-        let photo = crate::imaging::open(&sample.image)?;
+        let photo = crate::core::imaging::open(&sample.image)?;
         let truth = sample.landmarks()?;
         let Ok(fit) = fm.fit(&truth, photo.width(), photo.height()) else { continue };
         if fit.pose.yaw.abs() >= 10.0 {

@@ -3,8 +3,8 @@
 
 use std::path::Path;
 
-use crate::eval::plot::{Chart, Scale, Series, line_chart};
 use crate::recognize::calibration::threshold_at;
+use crate::research::eval::plot::{Chart, Scale, Series, line_chart};
 
 /// One point of an error trade-off curve.
 #[derive(Debug, Clone, Copy, PartialEq)]

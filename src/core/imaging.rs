@@ -218,7 +218,9 @@ impl GrayF32 {
         top + fy * (bottom - top)
     }
 
-    /// Separable Gaussian blur with standard deviation `sigma` (kernel radius 3σ).
+    /// Separable Gaussian blur with standard deviation `sigma` (kernel radius 3σ, borders clamped).
+    /// The one blur of the project: the landmark search builds its pyramid with it on every search,
+    /// so the border clamping is confined to the border pixels.
     pub fn gaussian_blur(&self, sigma: f32) -> GrayF32 {
         if sigma <= 0.0 {
             return self.clone();
@@ -228,27 +230,35 @@ impl GrayF32 {
         let sum: f32 = kernel.iter().sum();
         kernel.iter_mut().for_each(|k| *k /= sum);
         let (w, h) = (self.width, self.height);
+        let r = radius as usize;
+        let clamp = |i: isize, n: usize| i.clamp(0, n as isize - 1) as usize;
         let mut tmp = GrayF32::new(w, h);
         for y in 0..h {
             let row = &self.data[y * w..(y + 1) * w];
             for x in 0..w {
                 let mut acc = 0.0;
-                for (k, &kv) in kernel.iter().enumerate() {
-                    let xi = (x as isize + k as isize - radius).clamp(0, w as isize - 1) as usize;
-                    acc += kv * row[xi];
+                if x >= r && x + r < w {
+                    for (k, &kv) in kernel.iter().enumerate() {
+                        acc += kv * row[x + k - r];
+                    }
+                } else {
+                    for (k, &kv) in kernel.iter().enumerate() {
+                        acc += kv * row[clamp(x as isize + k as isize - radius, w)];
+                    }
                 }
                 tmp.data[y * w + x] = acc;
             }
         }
+        // Row by row in kernel order: the same sums, in the same order, as per pixel.
         let mut out = GrayF32::new(w, h);
         for y in 0..h {
-            for x in 0..w {
-                let mut acc = 0.0;
-                for (k, &kv) in kernel.iter().enumerate() {
-                    let yi = (y as isize + k as isize - radius).clamp(0, h as isize - 1) as usize;
-                    acc += kv * tmp.data[yi * w + x];
+            let dst = &mut out.data[y * w..(y + 1) * w];
+            for (k, &kv) in kernel.iter().enumerate() {
+                let yi = clamp(y as isize + k as isize - radius, h);
+                let src = &tmp.data[yi * w..(yi + 1) * w];
+                for (o, v) in dst.iter_mut().zip(src) {
+                    *o += kv * v;
                 }
-                out.data[y * w + x] = acc;
             }
         }
         out

@@ -9,10 +9,10 @@ use std::time::Instant;
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
-use crate::dataset::{KeyPoints, imm_is_test_person, list_imm};
+use crate::core::geometry::Rect;
+use crate::core::imaging::{GrayF32, open};
 use crate::detect::{Detector, Face};
-use crate::geometry::Rect;
-use crate::imaging::{GrayF32, open};
+use crate::research::dataset::{KeyPoints, imm_is_test_person, list_imm};
 
 use super::thread_cpu_ns;
 
@@ -204,7 +204,7 @@ pub fn evaluate(detector: &Detector, imm_dir: &Path, orl_dir: &Path, test_only: 
                 ((eyes[0] - r.x) / r.width) as f64,
                 ((eyes[1] - r.y) / r.height) as f64,
                 ((keys.mouth[1] - r.y) / r.height) as f64,
-                (crate::geometry::distance(keys.left_eye, keys.right_eye) / r.width) as f64,
+                (crate::core::geometry::distance(keys.left_eye, keys.right_eye) / r.width) as f64,
             ]
         });
         outcomes.push(ImmOutcome { person: s.person, view: s.view, ok, false_boxes, placement });

@@ -7,7 +7,7 @@ use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 
-use crate::imaging::DecodeError;
+use crate::core::imaging::DecodeError;
 
 /// The base of every problem type URI.
 pub const PROBLEM_BASE: &str = "https://facegate.dev/problems/";

@@ -1,0 +1,26 @@
+//! The offline side: data sets, training and evaluation. Research code may read data folders,
+//! write files and report progress (through a [`Progress`] the caller hands down); the runtime
+//! (stages, pipeline, service, store, http) never imports it.
+
+pub mod dataset;
+pub mod eval;
+pub mod train_asm;
+pub mod train_asm3d;
+pub mod train_dlda;
+
+/// Progress of a long loop, handed down by the caller (the CLI draws a bar; tests stay quiet).
+pub trait Progress: Sync {
+    /// A loop of `len` steps called `what` begins.
+    fn begin(&self, _len: u64, _what: &str) {}
+    /// One step done.
+    fn step(&self) {}
+    /// A message for the user (a skipped photo, a cache hit), shown beside the bar.
+    fn note(&self, _message: &str) {}
+    /// The loop ended.
+    fn end(&self) {}
+}
+
+/// No progress shown, notes dropped.
+pub struct Quiet;
+
+impl Progress for Quiet {}
