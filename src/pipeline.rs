@@ -4,7 +4,7 @@
 //! blocking pool.
 
 use std::borrow::Cow;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::core::elapsed_ms;
@@ -18,7 +18,7 @@ use crate::detect::{Detector, Face};
 use crate::landmarks::asm3d::{Asm3dLandmarker, SERVICE_MIN_YAW};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
 use crate::morph::{FaceModel, Pose};
-use crate::recognize::{Normalization, Recognizer, Template};
+use crate::recognize::{Normalization, Recognizer, Template, Views};
 
 /// Where the pipeline's models are.
 #[derive(Debug, Clone)]
@@ -27,12 +27,6 @@ pub struct PipelineConfig {
     pub models_dir: PathBuf,
     /// The Surrey Face Model folder; `None` or missing files mean 2D alignment only.
     pub sfm_dir: Option<PathBuf>,
-}
-
-impl Default for PipelineConfig {
-    fn default() -> Self {
-        Self { models_dir: crate::config::models_dir(), sfm_dir: Some(crate::config::sfm_dir()) }
-    }
 }
 
 /// The 2D-alignment recognition model used when the 3DMM is unavailable.
@@ -79,12 +73,75 @@ pub struct FaceAnalysis {
     pub timings: StageTimings,
 }
 
-pub struct Pipeline {
+/// The stages that find a face and its 58 landmarks: the detector, the C-ASM and, on turned
+/// faces, the 3D-ASM. The service's [`Pipeline`] and the training and evaluation tools use this one
+/// chain, so their landmarks are the same.
+pub struct FaceFinder {
     pub detector: Detector,
     pub landmarker: Landmarker,
     /// The 3D-ASM (`asm3d.bin`), used instead of the C-ASM on turned faces; `None` when the file
     /// is missing: C-ASM only.
     pub asm3d: Option<Asm3dLandmarker>,
+}
+
+impl FaceFinder {
+    /// The cascades (or SeetaFace), `asm.bin` and, when the file exists, `asm3d.bin` of `models_dir`.
+    pub fn load(models_dir: &Path) -> Result<FaceFinder, PipelineError> {
+        let detector = Detector::load(models_dir)?;
+        let landmarker = Landmarker::load(&models_dir.join("asm.bin"))?;
+        let asm3d_path = models_dir.join("asm3d.bin");
+        let asm3d = if asm3d_path.exists() { Some(Asm3dLandmarker::load(&asm3d_path)?) } else { None };
+        Ok(FaceFinder { detector, landmarker, asm3d })
+    }
+
+    /// The faces in `gray`, largest first.
+    pub fn detect(&self, gray: &GrayF32) -> Vec<Face> {
+        self.detector.detect(gray)
+    }
+
+    /// The service's 58 landmarks of the face in `face`: the C-ASM's, or, when the 3D-ASM is
+    /// loaded and the C-ASM's points are turned by at least [`SERVICE_MIN_YAW`], the 3D-ASM's
+    /// refined by the C-ASM (the crossover measured in docs/asm3d.md).
+    pub fn landmarks(&self, gray: &GrayF32, face: &Rect) -> Landmarks {
+        let casm = self.landmarker.fit(gray, face, Variant::Casm);
+        match &self.asm3d {
+            Some(asm3d) => asm3d.switch(gray, face, &self.landmarker, casm, SERVICE_MIN_YAW).0,
+            None => casm,
+        }
+    }
+
+    /// The largest face of `gray` and its landmarks.
+    pub fn locate(&self, gray: &GrayF32) -> Result<Located, PipelineError> {
+        let faces = self.detect(gray);
+        let face = *faces.first().ok_or(PipelineError::NoFace)?;
+        Ok(Located { face, faces_found: faces.len(), landmarks: self.landmarks(gray, &face.rect) })
+    }
+}
+
+/// The face [`FaceFinder::locate`] chose, with its landmarks.
+#[derive(Debug, Clone)]
+pub struct Located {
+    /// The largest face found.
+    pub face: Face,
+    pub faces_found: usize,
+    pub landmarks: Landmarks,
+}
+
+/// The face [`FaceModel`] when `sfm_dir` holds one; `None` (with a warning) when it does not:
+/// 2D alignment only.
+pub fn load_face_model(sfm_dir: Option<&Path>) -> Option<FaceModel> {
+    match FaceModel::load(sfm_dir?) {
+        Ok(model) => Some(model),
+        Err(e) => {
+            tracing::warn!("3D morphable model unavailable ({e}); falling back to 2D alignment");
+            None
+        }
+    }
+}
+
+/// The stages assembled: photo → face → landmarks → (3DMM pose correction) → template.
+pub struct Pipeline {
+    pub finder: FaceFinder,
     /// `None` when the Surrey Face Model is not available: 2D alignment only.
     pub face_model: Option<FaceModel>,
     pub recognizer: Recognizer,
@@ -97,20 +154,8 @@ impl Pipeline {
     /// for the other normalisation. Its templates carry its own model version, so subjects
     /// enrolled under one model are not compared with probes of the other.
     pub fn load(config: &PipelineConfig) -> Result<Pipeline, PipelineError> {
-        let detector = Detector::load(&config.models_dir)?;
-        let landmarker = Landmarker::load(&config.models_dir.join("asm.bin"))?;
-        let asm3d_path = config.models_dir.join("asm3d.bin");
-        let asm3d = if asm3d_path.exists() { Some(Asm3dLandmarker::load(&asm3d_path)?) } else { None };
-        let face_model = match &config.sfm_dir {
-            Some(dir) => match FaceModel::load(dir) {
-                Ok(model) => Some(model),
-                Err(e) => {
-                    tracing::warn!("3D morphable model unavailable ({e}); falling back to 2D alignment");
-                    None
-                }
-            },
-            None => None,
-        };
+        let finder = FaceFinder::load(&config.models_dir)?;
+        let face_model = load_face_model(config.sfm_dir.as_deref());
         let mut recognizer = Recognizer::load(&config.models_dir)?;
         if recognizer.normalization() == Normalization::Morph && face_model.is_none() {
             let fallback = config.models_dir.join(TWO_D_MODEL_FILE);
@@ -124,19 +169,19 @@ impl Pipeline {
                 recognizer.model_version()
             );
         }
-        Ok(Pipeline { detector, landmarker, asm3d, face_model, recognizer })
+        Ok(Pipeline { finder, face_model, recognizer })
     }
 
     /// Detect, landmark, pose-correct and template the largest face of `photo`.
     pub fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
         let mut timings = StageTimings::default();
         let t = Instant::now();
-        let faces = self.detector.detect(&photo.gray);
+        let faces = self.finder.detect(&photo.gray);
         timings.detect_ms = elapsed_ms(t);
         let face = *faces.first().ok_or(PipelineError::NoFace)?;
 
         let t = Instant::now();
-        let landmarks = find_landmarks(&self.landmarker, self.asm3d.as_ref(), &photo.gray, &face.rect);
+        let landmarks = self.finder.landmarks(&photo.gray, &face.rect);
         timings.landmarks_ms = elapsed_ms(t);
 
         let t = Instant::now();
@@ -144,14 +189,15 @@ impl Pipeline {
         timings.morph_ms = elapsed_ms(t);
 
         let t = Instant::now();
+        let crop = |input: &RecognitionInput| self.recognizer.normalized_crop(&input.gray, &input.keypoints);
         let template = match self.recognizer.paths().get(1) {
             // A fused model also sees the face on its second path (2D: the photo itself, no fit).
             Some(&second) => {
                 let other =
                     recognition_input(self.face_model.as_ref().filter(|_| second == Normalization::Morph), photo, &landmarks, second)?;
-                self.recognizer.template_of_views(&[(&input.gray, &input.keypoints), (&other.gray, &other.keypoints)])?
+                self.recognizer.template(Views::Fused { primary: &crop(&input), secondary: &crop(&other) })?
             }
-            None => self.recognizer.template(&input.gray, &input.keypoints),
+            None => self.recognizer.template(Views::Single(&crop(&input)))?,
         };
         timings.template_ms = elapsed_ms(t);
 
@@ -165,18 +211,6 @@ pub struct RecognitionInput<'a> {
     pub gray: Cow<'a, GrayF32>,
     pub keypoints: KeyPoints,
     pub pose: Option<Pose>,
-}
-
-/// The service's 58 landmarks of the face in `face`: the C-ASM's, or, when the 3D-ASM is loaded
-/// and the C-ASM's points are turned by at least [`SERVICE_MIN_YAW`], the 3D-ASM's refined by the
-/// C-ASM (the crossover measured in docs/asm3d.md). Recognition training and evaluation call this
-/// too, so that their crops are made as the service makes them.
-pub fn find_landmarks(landmarker: &Landmarker, asm3d: Option<&Asm3dLandmarker>, gray: &GrayF32, face: &Rect) -> Landmarks {
-    let casm = landmarker.fit(gray, face, Variant::Casm);
-    match asm3d {
-        Some(asm3d) => asm3d.switch(gray, face, landmarker, casm, SERVICE_MIN_YAW).0,
-        None => casm,
-    }
 }
 
 /// Fit the 3DMM to the landmarks (when the model is loaded) for the head pose and, on the 3DMM path,
@@ -218,7 +252,7 @@ mod tests {
 
     #[test]
     fn full_pipeline_reports_every_stage() {
-        let pipeline = Pipeline::load(&PipelineConfig::default()).unwrap();
+        let pipeline = Pipeline::load(&crate::config::pipeline_config()).unwrap();
         assert!(pipeline.face_model.is_some());
         let a = pipeline.analyze(&photo("05-1m.jpg")).unwrap();
         assert_eq!(a.faces_found, 1);
@@ -233,7 +267,7 @@ mod tests {
 
     #[test]
     fn without_the_3dmm_the_pipeline_uses_a_2d_model() {
-        let pipeline = Pipeline::load(&PipelineConfig { sfm_dir: None, ..PipelineConfig::default() }).unwrap();
+        let pipeline = Pipeline::load(&PipelineConfig { sfm_dir: None, ..crate::config::pipeline_config() }).unwrap();
         assert!(pipeline.face_model.is_none());
         assert_eq!(pipeline.recognizer.normalization(), Normalization::TwoD);
         let a = pipeline.analyze(&photo("05-1m.jpg")).unwrap();
@@ -243,16 +277,16 @@ mod tests {
 
     #[test]
     fn turned_faces_take_the_3d_asm_points_frontal_ones_the_c_asm() {
-        let pipeline = Pipeline::load(&PipelineConfig::default()).unwrap();
-        let asm3d = pipeline.asm3d.as_ref().expect("models/asm3d.bin");
+        let pipeline = Pipeline::load(&crate::config::pipeline_config()).unwrap();
+        let asm3d = pipeline.finder.asm3d.as_ref().expect("models/asm3d.bin");
         for (name, turned) in [("01-1m.jpg", false), ("02-3m.jpg", true)] {
             let p = photo(name);
             let a = pipeline.analyze(&p).unwrap();
-            let casm = pipeline.landmarker.fit(&p.gray, &a.face.rect, Variant::Casm);
+            let casm = pipeline.finder.landmarker.fit(&p.gray, &a.face.rect, Variant::Casm);
             let yaw = asm3d.yaw_of(&casm.points).unwrap();
             assert_eq!(yaw.abs() >= SERVICE_MIN_YAW, turned, "{name}: C-ASM yaw {yaw}");
             if turned {
-                let three = asm3d.fit_seeded(&p.gray, &a.face.rect, &casm.points, &pipeline.landmarker.model);
+                let three = asm3d.fit_seeded(&p.gray, &a.face.rect, &casm.points, &pipeline.finder.landmarker.model);
                 assert_eq!(a.landmarks.points, three.points, "{name}");
                 assert_ne!(a.landmarks.points, casm.points, "{name}: the 3D-ASM's points, not the C-ASM's");
             } else {
@@ -263,7 +297,7 @@ mod tests {
 
     #[test]
     fn a_photo_without_a_face_is_no_face() {
-        let pipeline = Pipeline::load(&PipelineConfig::default()).unwrap();
+        let pipeline = Pipeline::load(&crate::config::pipeline_config()).unwrap();
         let blank = Photo::from_dynamic(image::DynamicImage::ImageLuma8(image::GrayImage::from_pixel(320, 240, image::Luma([128]))));
         assert!(matches!(pipeline.analyze(&blank), Err(PipelineError::NoFace)));
     }

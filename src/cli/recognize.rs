@@ -1,17 +1,17 @@
 //! `facegate compare`, `train dlda`, `eval pairs`, `eval verify`, `eval identify`.
 
-use std::collections::HashMap;
-use std::io::{BufRead, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context;
 
-use crate::pipeline::{Pipeline, PipelineConfig};
+use crate::pipeline::Pipeline;
 use crate::recognize::calibration::DEFAULT_FMR;
-use crate::recognize::{DldaParams, FeatureKind, Normalization, NormalizeParams, Photometric, Recognizer, Region, Template};
-use crate::research::eval::verification::{self, rank1, summarize};
-use crate::research::train_dlda::{self as train, AlignedFace, FrontEnd, KeypointSource, TrainConfig};
+use crate::recognize::{DldaParams, FeatureKind, Normalization, NormalizeParams, Photometric, Recognizer, Template};
+use crate::research::eval::identification;
+use crate::research::eval::pairs::{read_pairs, score_pairs};
+use crate::research::eval::verification::{self, summarize};
+use crate::research::train_dlda::{self as train, FaceRegion, FrontEnd, KeypointSource, TrainConfig};
 
 #[derive(clap::Args, Debug)]
 pub struct CompareArgs {
@@ -125,57 +125,13 @@ pub struct ModelOptions {
     /// (comma-separated). Eyes, nose and mouth by default: lower EER and FNMR at FMR 1e-3 in
     /// cross-validation over the training persons than the whole face alone (docs/recognition.md).
     #[arg(long, value_enum, value_delimiter = ',', default_value = "eyes,nose,mouth")]
-    pub local_parts: Vec<LocalRegionArg>,
+    pub local_parts: Vec<FaceRegion>,
     /// The whole face only (no local parts).
     #[arg(long, conflicts_with = "local_parts")]
     pub no_local_parts: bool,
     /// Total weight of the local parts' cosines in each path's score (shared equally).
     #[arg(long, default_value_t = 0.5)]
     pub local_weight: f32,
-}
-
-/// Named regions of the normalised crop (eyes at 34 % of its height, 26 % and 73 % of its width,
-/// the mouth at 82 % of its height).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum LocalRegionArg {
-    /// Both eyes and brows.
-    Eyes,
-    /// The nose, between and below the eyes.
-    Nose,
-    /// The mouth and chin.
-    Mouth,
-    /// Everything above the nose tip (eyes, brows, forehead).
-    Upper,
-    /// Everything below the eyes (nose, cheeks, mouth).
-    Lower,
-    /// The central face without the outline (eyes to mouth).
-    Inner,
-    /// The eye and brow on the image's left.
-    LeftEye,
-    /// The eye and brow on the image's right.
-    RightEye,
-    /// The image's left half of the face.
-    LeftHalf,
-    /// The image's right half of the face.
-    RightHalf,
-}
-
-impl LocalRegionArg {
-    pub fn region(self) -> Region {
-        let r = |x0, y0, x1, y1| Region { x0, y0, x1, y1 };
-        match self {
-            LocalRegionArg::Eyes => r(0.0, 0.1, 1.0, 0.52),
-            LocalRegionArg::Nose => r(0.25, 0.3, 0.75, 0.78),
-            LocalRegionArg::Mouth => r(0.12, 0.64, 0.88, 1.0),
-            LocalRegionArg::Upper => r(0.0, 0.0, 1.0, 0.6),
-            LocalRegionArg::Lower => r(0.0, 0.45, 1.0, 1.0),
-            LocalRegionArg::Inner => r(0.15, 0.2, 0.85, 0.95),
-            LocalRegionArg::LeftEye => r(0.0, 0.1, 0.55, 0.55),
-            LocalRegionArg::RightEye => r(0.45, 0.1, 1.0, 0.55),
-            LocalRegionArg::LeftHalf => r(0.0, 0.0, 0.55, 1.0),
-            LocalRegionArg::RightHalf => r(0.45, 0.0, 1.0, 1.0),
-        }
-    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -305,19 +261,19 @@ pub struct EvalIdentifyArgs {
 }
 
 pub fn run_compare(args: CompareArgs) -> anyhow::Result<ExitCode> {
-    let pipeline = Pipeline::load(&PipelineConfig::default())?;
+    let pipeline = Pipeline::load(&crate::config::pipeline_config())?;
     let analyze = |path: &Path| -> anyhow::Result<Template> {
         let photo = crate::core::imaging::open(path)?;
         Ok(pipeline.analyze(&photo).with_context(|| path.display().to_string())?.template)
     };
     let (a, b) = (analyze(&args.a)?, analyze(&args.b)?);
-    let score = pipeline.recognizer.try_score(&a, std::slice::from_ref(&b))?;
-    let op = pipeline.recognizer.operating_point(args.fmr, 1);
-    let matched = score >= op.threshold;
+    // `b` plays a subject enrolled with one photo; both templates come from the loaded model.
+    let d = crate::service::decide(&pipeline, &a, std::slice::from_ref(&b), args.fmr);
     if args.json {
-        crate::cli::print_json_line(&serde_json::json!({"score": score, "threshold": op.threshold, "fmr": op.fmr, "match": matched}));
+        crate::cli::print_json_line(&serde_json::json!({"score": d.score, "threshold": d.threshold, "fmr": d.fmr, "match": d.is_match}));
     } else {
-        println!("score {score:.4}  threshold {:.4} (FMR {:e})  {}", op.threshold, op.fmr, if matched { "match" } else { "no match" });
+        let outcome = if d.is_match { "match" } else { "no match" };
+        println!("score {:.4}  threshold {:.4} (FMR {:e})  {outcome}", d.score, d.threshold, d.fmr);
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -339,15 +295,8 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
     // the pose: the crops are the same with or without it).
     let sfm = (paths.contains(&Normalization::Morph) || !repose.is_empty()).then(crate::config::sfm_dir);
     let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
-    let mut aligned = train::align_paths(
-        args.crop_cache.as_deref(),
-        args.keypoints,
-        &front,
-        &faces,
-        &paths,
-        &config.normalize,
-        &crate::cli::Bar::default(),
-    )?;
+    let mut aligned =
+        train::align_paths(args.crop_cache.as_deref(), &front, &faces, &paths, &config.normalize, &crate::cli::Bar::default())?;
     if !repose.is_empty() {
         anyhow::ensure!(
             front.face_model.is_some(),
@@ -433,101 +382,10 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// One pair of the pairs CSV.
-#[derive(Debug, Clone, PartialEq)]
-pub struct PairRow {
-    pub file_x: String,
-    pub file_y: String,
-}
-
-/// Read the pairs CSV: a header whose first two columns are `file_x,file_y`, then one pair per line
-/// (further columns are ignored; fields may be double-quoted).
-pub fn read_pairs(reader: impl BufRead) -> anyhow::Result<Vec<PairRow>> {
-    let mut lines = reader.lines();
-    let header = lines.next().context("the pairs file is empty")??;
-    let cols = split_csv(&header);
-    anyhow::ensure!(
-        cols.len() >= 2 && cols[0] == "file_x" && cols[1] == "file_y",
-        "the pairs file must start with a header `file_x,file_y,...`, found {header:?}"
-    );
-    let mut out = Vec::new();
-    for (i, line) in lines.enumerate() {
-        let line = line?;
-        if line.trim().is_empty() {
-            continue;
-        }
-        let cols = split_csv(&line);
-        anyhow::ensure!(cols.len() >= 2, "line {}: expected at least two columns: {line:?}", i + 2);
-        out.push(PairRow { file_x: cols[0].clone(), file_y: cols[1].clone() });
-    }
-    Ok(out)
-}
-
-fn split_csv(line: &str) -> Vec<String> {
-    let mut out = Vec::new();
-    let mut field = String::new();
-    let mut quoted = false;
-    let mut chars = line.trim_end_matches('\r').chars().peekable();
-    while let Some(c) = chars.next() {
-        match c {
-            '"' if quoted && chars.peek() == Some(&'"') => {
-                field.push('"');
-                chars.next();
-            }
-            '"' => quoted = !quoted,
-            ',' if !quoted => out.push(std::mem::take(&mut field)),
-            c => field.push(c),
-        }
-    }
-    out.push(field);
-    out.into_iter().map(|f| f.trim().to_string()).collect()
-}
-
-fn csv_field(s: &str) -> String {
-    if s.contains([',', '"', '\n']) { format!("\"{}\"", s.replace('"', "\"\"")) } else { s.to_string() }
-}
-
-/// Score every pair, processing each image once. `template_of` gives an image's template or the
-/// reason it has none; such pairs get an empty score and a warning through `warn`.
-pub fn score_pairs(
-    pairs: &[PairRow],
-    images: &Path,
-    mut template_of: impl FnMut(&Path) -> anyhow::Result<Template>,
-    score: impl Fn(&Template, &Template) -> f32,
-    mut out: impl Write,
-    mut warn: impl FnMut(String),
-) -> anyhow::Result<()> {
-    let mut cache: HashMap<&str, Option<Template>> = HashMap::new();
-    writeln!(out, "file_x,file_y,score")?;
-    for pair in pairs {
-        for name in [&pair.file_x, &pair.file_y] {
-            if !cache.contains_key(name.as_str()) {
-                let t = match template_of(&images.join(name)) {
-                    Ok(t) => Some(t),
-                    Err(e) => {
-                        warn(format!("{name}: no template ({e})"));
-                        None
-                    }
-                };
-                cache.insert(name, t);
-            }
-        }
-        let s = match (&cache[pair.file_x.as_str()], &cache[pair.file_y.as_str()]) {
-            (Some(a), Some(b)) => format!("{:.6}", score(a, b)),
-            _ => {
-                warn(format!("{},{}: empty score (an image has no face or could not be read)", pair.file_x, pair.file_y));
-                String::new()
-            }
-        };
-        writeln!(out, "{},{},{s}", csv_field(&pair.file_x), csv_field(&pair.file_y))?;
-    }
-    Ok(())
-}
-
 pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
     let file = std::fs::File::open(&args.pairs).with_context(|| args.pairs.display().to_string())?;
     let pairs = read_pairs(std::io::BufReader::new(file))?;
-    let pipeline = Pipeline::load(&PipelineConfig::default())?;
+    let pipeline = Pipeline::load(&crate::config::pipeline_config())?;
     let bar = crate::cli::progress(pairs.len() as u64, "pairs");
     let template_of = |path: &Path| -> anyhow::Result<Template> {
         let photo = crate::core::imaging::open(path)?;
@@ -553,7 +411,7 @@ pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
 const ENROLLED_PHOTOS: [usize; 4] = [1, 2, 3, 5];
 
 pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
-    let model_path = args.model.clone().unwrap_or_else(crate::recognize::default_model_path);
+    let model_path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::MODEL_FILE));
     let recognizer = Recognizer::load_file(&model_path)?;
     let model = recognizer.model();
     let mut faces = train::list_faces(&args.dirs)?;
@@ -564,12 +422,12 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
     let paths = model.paths();
     let sfm = paths.contains(&Normalization::Morph).then(crate::config::sfm_dir);
     let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
-    let aligned = train::align_paths(None, args.keypoints, &front, &faces, &paths, &model.normalize, &crate::cli::Bar::default())?;
+    let aligned = train::align_paths(None, &front, &faces, &paths, &model.normalize, &crate::cli::Bar::default())?;
     let templates: Vec<(String, Template, bool)> = aligned
         .iter()
         .map(|a| Ok((a.face.label.clone(), train::template_of(&recognizer, a)?, a.face.is_rotated_view())))
         .collect::<anyhow::Result<_>>()?;
-    let sources = keypoint_sources(&aligned);
+    let sources = identification::keypoint_sources(&aligned);
     println!(
         "model {} ({}, {:?}, {} dims, keypoints of the model: {}); measured on {} photos of {} persons, keypoints: {sources}",
         recognizer.model_version(),
@@ -638,27 +496,6 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-fn keypoint_sources(aligned: &[AlignedFace]) -> String {
-    let mut counts: std::collections::BTreeMap<&str, usize> = Default::default();
-    for a in aligned {
-        *counts.entry(a.keypoint_source).or_default() += 1;
-    }
-    counts.iter().map(|(s, n)| format!("{s} ({n})")).collect::<Vec<_>>().join(", ")
-}
-
-/// Pose bin of a probe: |yaw| from the 3DMM fit when there is one, else the IMM view group.
-fn pose_bin(a: &AlignedFace) -> String {
-    match a.pose {
-        Some(p) => {
-            let y = p.yaw.abs();
-            let lo = ((y / 10.0).floor() as i32 * 10).min(40);
-            if lo >= 40 { "|yaw| ≥ 40°".into() } else { format!("|yaw| {lo}–{}°", lo + 10) }
-        }
-        None if a.face.is_rotated_view() => "IMM views 3-4 (±30°)".into(),
-        None => "IMM views 2,5,6 (frontal)".into(),
-    }
-}
-
 pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
     let data = args.data.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/imm"));
     let faces = train::list_faces(std::slice::from_ref(&data))?;
@@ -669,94 +506,24 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
     } else {
         eprintln!("3DMM unavailable: measuring 2D alignment only");
     }
-    // bin → (probes, hits per normalisation)
-    let mut table: std::collections::BTreeMap<String, (usize, Vec<usize>)> = Default::default();
-    let mut sources = String::new();
-    for (k, &normalization) in normalizations.iter().enumerate() {
-        let config = TrainConfig { normalization, secondary: None, ..args.model.config() };
-        let aligned = train::align_all(&front, &faces, normalization, &config.normalize, &crate::cli::Bar::default());
-        sources = keypoint_sources(&aligned);
-        let (model, _) = train::train_model(&aligned, &config, &[data.display().to_string()])?;
-        let recognizer = Recognizer::from_model(model);
-        let held: Vec<&AlignedFace> = aligned.iter().filter(|a| a.face.held_out).collect();
-        // Gallery: the first frontal view (view 1) of each held-out person (and of the training
-        // persons with --distractors); probes: every other view of the held-out persons.
-        let gallery: Vec<(&str, Template)> = aligned
-            .iter()
-            .filter(|a| a.face.view == Some(1) && (a.face.held_out || args.distractors))
-            .map(|a| Ok((a.face.label.as_str(), train::template_of(&recognizer, a)?)))
-            .collect::<anyhow::Result<_>>()?;
-        for a in held.iter().filter(|a| a.face.view != Some(1)) {
-            let Some(truth) = gallery.iter().position(|(l, _)| *l == a.face.label) else { continue };
-            let t = train::template_of(&recognizer, a)?;
-            let row: Vec<f32> = gallery.iter().map(|(_, g)| recognizer.score(&t, std::slice::from_ref(g))).collect();
-            let hit = (rank1(&[row], &[truth]) == 1.0) as usize;
-            // Two tables: by IMM view group, and by |yaw| of the 3DMM fit when there is one.
-            let view_group = AlignedFace { pose: None, ..(*a).clone() };
-            let mut bins = vec![format!("view: {}", pose_bin(&view_group))];
-            if a.pose.is_some() {
-                bins.push(format!("pose: {}", pose_bin(a)));
-            }
-            for bin in bins {
-                let entry = table.entry(bin).or_insert_with(|| (0, vec![0; normalizations.len()]));
-                if k == 0 {
-                    entry.0 += 1;
-                }
-                entry.1[k] += hit;
-            }
-        }
-    }
+    let table = identification::rank1_by_pose(
+        &front,
+        &faces,
+        &normalizations,
+        |normalization| TrainConfig { normalization, secondary: None, ..args.model.config() },
+        &[data.display().to_string()],
+        args.distractors,
+        &crate::cli::Bar::default(),
+    )?;
+    let sources = &table.keypoint_sources;
     let gallery =
         if args.distractors { "view 1 of all persons (training persons as distractors)" } else { "view 1 of the held-out persons" };
     println!("rank-1 identification of held-out IMM persons (gallery: {gallery}; keypoints: {sources})");
     let names: Vec<String> = normalizations.iter().map(|n| format!("rank1_{n}")).collect();
     println!("pose_bin,probes,{}", names.join(","));
-    for (bin, (n, hits)) in &table {
+    for (bin, (n, hits)) in &table.bins {
         let rates: Vec<String> = hits.iter().map(|&h| format!("{:.1}%", 100.0 * h as f64 / (*n).max(1) as f64)).collect();
         println!("{bin},{n},{}", rates.join(","));
     }
     Ok(ExitCode::SUCCESS)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn pairs_csv_is_parsed_and_missing_faces_give_empty_scores() {
-        let csv = "file_x,file_y,same\na.jpg,b.jpg,1\n\"c,1.jpg\",a.jpg,0\nnoface.jpg,b.jpg,0\n";
-        let pairs = read_pairs(csv.as_bytes()).unwrap();
-        assert_eq!(pairs.len(), 3);
-        assert_eq!(pairs[1].file_x, "c,1.jpg");
-        assert!(read_pairs("x,y\na,b\n".as_bytes()).is_err());
-        assert!(read_pairs("file_x,file_y\nonly-one\n".as_bytes()).is_err());
-
-        let mut calls = Vec::new();
-        let mut out = Vec::new();
-        let mut warnings = Vec::new();
-        score_pairs(
-            &pairs,
-            Path::new("imgs"),
-            |p| {
-                calls.push(p.to_path_buf());
-                anyhow::ensure!(!p.ends_with("noface.jpg"), "no face was found in the image");
-                let name = p.file_name().unwrap().to_string_lossy().to_string();
-                Ok(Template::new("v", vec![name.len() as f32, 1.0]))
-            },
-            |a, b| a.cosine(b),
-            &mut out,
-            |w| warnings.push(w),
-        )
-        .unwrap();
-        // Each image processed once, relative to the images folder.
-        assert_eq!(calls.len(), 4);
-        assert_eq!(calls[0], Path::new("imgs/a.jpg"));
-        let text = String::from_utf8(out).unwrap();
-        let lines: Vec<&str> = text.lines().collect();
-        assert_eq!(lines[0], "file_x,file_y,score");
-        assert!(lines[1].starts_with("a.jpg,b.jpg,1.0000"), "{}", lines[1]);
-        assert!(lines[2].starts_with("\"c,1.jpg\",a.jpg,0.99"), "{}", lines[2]);
-        assert_eq!(lines[3], "noface.jpg,b.jpg,");
-        assert_eq!(warnings.len(), 2);
-    }
 }

@@ -14,7 +14,7 @@ use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
 
-use super::input::{read_query, read_upload, validate_fmr, validate_subject};
+use super::input::{read_query, read_upload, subject_id, validate_fmr};
 use super::problem::{Problem, ProblemKind};
 use super::{AppState, FaceEngine, OPENAPI_YAML};
 use crate::core::imaging::{self, DecodeLimits};
@@ -22,6 +22,7 @@ use crate::detect::Face;
 use crate::landmarks::Landmarks;
 use crate::morph::Pose;
 use crate::pipeline::{FaceAnalysis, PipelineError};
+use crate::service::{self, SubjectId, VerifyError};
 use crate::store::{SubjectDetail, SubjectSummary};
 
 /// Milliseconds spent on one photo, stage by stage.
@@ -78,7 +79,7 @@ fn analyse_photo(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -
 async fn analyse_probe(state: &AppState, image: Bytes) -> Result<Analysed, Problem> {
     let engine = state.0.engine.clone();
     let limits = state.0.config.decode_limits;
-    let analysed = state.0.pool.run(&state.0.metrics, move || analyse_photo(engine.as_ref(), &image, &limits)).await??;
+    let analysed = state.0.pool.run(move || analyse_photo(engine.as_ref(), &image, &limits)).await??;
     state.0.metrics.observe_stages(analysed.timings.decode_ms, &analysed.analysis.timings);
     Ok(analysed)
 }
@@ -137,7 +138,7 @@ pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<R
     let analysed = state
         .0
         .pool
-        .run(&state.0.metrics, move || {
+        .run(move || {
             let mut out = Vec::with_capacity(images.len());
             for (index, bytes) in images.iter().enumerate() {
                 let analysed = analyse_photo(engine.as_ref(), bytes, &limits).map_err(|p| p.for_image(index))?;
@@ -162,7 +163,7 @@ pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<R
     let templates: Vec<_> = analysed.iter().map(|a| a.analysis.template.clone()).collect();
     let count = state.0.store.enroll(&subject, &templates).await?;
     let body = EnrollResponse {
-        subject: subject.clone(),
+        subject: subject.to_string(),
         templates: count,
         added: templates.len(),
         model_version: state.0.engine.model_version().to_string(),
@@ -208,34 +209,23 @@ pub async fn verify(State(state): State<AppState>, request: Request) -> Result<R
     let subject = upload.require_subject()?;
     let image = upload.single_image()?;
     // Look the subject up before the expensive work.
-    let enrolled = state
-        .0
-        .store
-        .templates(&subject)
-        .await?
-        .ok_or_else(|| Problem::new(ProblemKind::UnknownSubject, format!("subject {subject} is not enrolled")))?;
+    let enrolled = state.0.store.templates(&subject).await?.ok_or_else(|| unknown_subject(&subject))?;
     let engine = &state.0.engine;
-    let version = engine.model_version();
-    let comparable: Vec<_> = enrolled.into_iter().filter(|t| t.model_version == version).collect();
-    if comparable.is_empty() {
-        return Err(Problem::new(
-            ProblemKind::ModelMismatch,
-            format!("subject {subject} has no template of the current model version {version}; enrol the subject again"),
-        ));
-    }
+    let comparable = service::comparable_templates(engine.as_ref(), &subject, enrolled).map_err(|e| match e {
+        VerifyError::ModelMismatch { .. } => Problem::new(ProblemKind::ModelMismatch, e.to_string()),
+    })?;
     let analysed = analyse_probe(&state, image).await?;
     let t = Instant::now();
-    let score = engine.score(&analysed.analysis.template, &comparable);
-    let point = engine.operating_point(fmr, comparable.len());
+    let decision = service::decide(engine.as_ref(), &analysed.analysis.template, &comparable, fmr);
     let match_ms = elapsed_ms(t);
     let body = VerifyResponse {
-        subject,
-        is_match: score >= point.threshold,
-        score,
-        threshold: point.threshold,
-        fmr: point.fmr,
-        model_version: version.to_string(),
-        templates_compared: comparable.len(),
+        subject: subject.to_string(),
+        is_match: decision.is_match,
+        score: decision.score,
+        threshold: decision.threshold,
+        fmr: decision.fmr,
+        model_version: engine.model_version().to_string(),
+        templates_compared: decision.templates_compared,
         found: analysed.report(),
         timings: RequestTimings { photo: analysed.timings, match_ms, total_ms: elapsed_ms(start) },
     };
@@ -290,24 +280,13 @@ pub async fn identify(State(state): State<AppState>, request: Request) -> Result
     let gallery = state.0.store.gallery(engine.model_version()).await?;
     let subjects_searched = gallery.len();
     let probe = analysed.analysis.template.clone();
-    let scorer = engine.clone();
+    let matcher = engine.clone();
     // Scoring the whole gallery is CPU work too: it runs on the pool.
-    let mut scored = state
-        .0
-        .pool
-        .run(&state.0.metrics, move || {
-            gallery.into_iter().map(|(subject, templates)| (subject, scorer.score(&probe, &templates), templates.len())).collect::<Vec<_>>()
-        })
-        .await?;
-    scored.sort_by(|a, b| b.1.total_cmp(&a.1));
-    scored.truncate(k);
+    let found = state.0.pool.run(move || service::identify(matcher.as_ref(), &probe, gallery, fmr, k)).await?;
     let point = engine.operating_point(fmr, 1);
-    let candidates = scored
+    let candidates = found
         .into_iter()
-        .map(|(subject, score, templates)| {
-            let threshold = engine.operating_point(fmr, templates).threshold;
-            Candidate { subject, score, is_match: score >= threshold, threshold }
-        })
+        .map(|c| Candidate { subject: c.subject, score: c.decision.score, is_match: c.decision.is_match, threshold: c.decision.threshold })
         .collect();
     let match_ms = elapsed_ms(t);
     let body = IdentifyResponse {
@@ -343,21 +322,18 @@ pub async fn list_subjects(State(state): State<AppState>, request: Request) -> R
     if !(1..=1000).contains(&limit) {
         return Err(Problem::malformed(format!("limit must be between 1 and 1000, got {limit}")));
     }
-    if let Some(after) = &params.after {
-        validate_subject(after)?;
-    }
-    let subjects = state.0.store.list_subjects(params.after.as_deref(), limit).await?;
+    let after = params.after.as_deref().map(subject_id).transpose()?;
+    let subjects = state.0.store.list_subjects(after.as_ref(), limit).await?;
     let next_after = (subjects.len() == limit as usize).then(|| subjects.last().map(|s| s.id.clone())).flatten();
     Ok(Json(SubjectList { subjects, next_after }).into_response())
 }
 
-fn subject_in_path(path: Result<Path<String>, PathRejection>) -> Result<String, Problem> {
+fn subject_in_path(path: Result<Path<String>, PathRejection>) -> Result<SubjectId, Problem> {
     let Path(id) = path.map_err(|e| Problem::malformed(format!("invalid subject id in the path: {}", e.body_text())))?;
-    validate_subject(&id)?;
-    Ok(id)
+    subject_id(&id)
 }
 
-fn unknown_subject(id: &str) -> Problem {
+fn unknown_subject(id: &SubjectId) -> Problem {
     Problem::new(ProblemKind::UnknownSubject, format!("subject {id} is not enrolled"))
 }
 

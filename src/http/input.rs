@@ -9,20 +9,11 @@ use serde::Deserialize;
 use serde::de::DeserializeOwned;
 
 use super::problem::{Problem, ProblemKind};
+use crate::service::SubjectId;
 
-/// Longest subject id accepted.
-pub const MAX_SUBJECT_LEN: usize = 128;
-
-/// Subject ids are 1–128 characters of `[A-Za-z0-9._-]`: safe in URLs, logs and file names.
-pub fn validate_subject(id: &str) -> Result<(), Problem> {
-    let ok_char = |c: char| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-');
-    if id.is_empty() || id.len() > MAX_SUBJECT_LEN || !id.chars().all(ok_char) {
-        return Err(Problem::malformed(format!(
-            "subject id {:?} is invalid: 1 to {MAX_SUBJECT_LEN} characters from A-Z a-z 0-9 . _ -",
-            truncate(id, 40)
-        )));
-    }
-    Ok(())
+/// A subject id of a request, parsed once ([`SubjectId::parse`]); an invalid one is malformed.
+pub fn subject_id(id: &str) -> Result<SubjectId, Problem> {
+    SubjectId::parse(id).map_err(|e| Problem::malformed(e.to_string()))
 }
 
 fn truncate(s: &str, n: usize) -> String {
@@ -146,10 +137,9 @@ pub fn validate_fmr(fmr: Option<f64>) -> Result<Option<f64>, Problem> {
 
 impl Upload {
     /// The subject id, required and valid.
-    pub fn require_subject(&self) -> Result<String, Problem> {
+    pub fn require_subject(&self) -> Result<SubjectId, Problem> {
         let subject = self.subject.as_deref().ok_or_else(|| Problem::malformed("the subject id is missing (field subject)"))?;
-        validate_subject(subject)?;
-        Ok(subject.to_string())
+        subject_id(subject)
     }
 
     /// Exactly one photo.
@@ -169,10 +159,10 @@ mod tests {
     #[test]
     fn subject_ids() {
         for ok in ["a", "person-01", "A.b_c-9", &"x".repeat(128)] {
-            assert!(validate_subject(ok).is_ok(), "{ok}");
+            assert_eq!(subject_id(ok).unwrap().as_str(), ok);
         }
         for bad in ["", "with space", "slash/x", "ünï", "semi;colon", &"x".repeat(129)] {
-            assert_eq!(validate_subject(bad).unwrap_err().kind, ProblemKind::MalformedRequest, "{bad}");
+            assert_eq!(subject_id(bad).unwrap_err().kind, ProblemKind::MalformedRequest, "{bad}");
         }
     }
 

@@ -1,8 +1,9 @@
-//! The HTTP API: an axum router over the face pipeline and the template store.
+//! The HTTP API: an axum router over the service (`crate::service`) and the template store.
 //!
 //! Requests are read and checked on the async runtime; image decoding and the face pipeline run
-//! on a bounded blocking pool ([`WorkPool`]): a fixed number of workers and a bounded queue, so
-//! an overload is refused with 503 instead of piling up. Every error is `application/problem+json`
+//! on the service's bounded blocking pool ([`WorkPool`]): a fixed number of workers and a bounded
+//! queue, so an overload is refused with 503 instead of piling up. What a verification or an
+//! identification decides is the service's; handlers only translate requests and responses. Every error is `application/problem+json`
 //! ([`problem`]). `openapi.yaml` at the crate root describes exactly the routes of [`operations`];
 //! the integration tests hold the two together.
 
@@ -16,12 +17,12 @@ use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{MethodRouter, delete, get, post};
 use sha2::{Digest, Sha256};
-use tokio::sync::Semaphore;
 
-use crate::core::imaging::{DecodeLimits, Photo};
-use crate::pipeline::{FaceAnalysis, Pipeline, PipelineError};
-use crate::recognize::{OperatingPoint, Template};
+use crate::core::imaging::DecodeLimits;
+use crate::service::{PoolError, WorkPool};
 use crate::store::Store;
+
+pub use crate::service::FaceEngine;
 
 mod handlers;
 pub mod input;
@@ -34,36 +35,7 @@ pub use problem::{Problem, ProblemKind};
 /// The OpenAPI description served at `/openapi.yaml`.
 pub const OPENAPI_YAML: &str = include_str!("../../openapi.yaml");
 
-/// The face work behind the API: the real [`Pipeline`] in production. A seam so that the HTTP
-/// layer (decoding, limits, errors, storage) can be tested on its own.
-pub trait FaceEngine: Send + Sync + 'static {
-    /// Detect, landmark, pose-correct and template the largest face of `photo`.
-    fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError>;
-    /// The recognition model version stamped on every template this engine makes.
-    fn model_version(&self) -> &str;
-    /// Score of a probe against one subject's templates (higher is more alike).
-    fn score(&self, probe: &Template, enrolled: &[Template]) -> f32;
-    /// The calibrated operating point closest to `fmr` for a subject with `enrolled` templates
-    /// (its score is the best of them, so the threshold depends on how many there are).
-    fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint;
-}
-
-impl FaceEngine for Pipeline {
-    fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
-        Pipeline::analyze(self, photo)
-    }
-    fn model_version(&self) -> &str {
-        self.recognizer.model_version()
-    }
-    fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
-        self.recognizer.score(probe, enrolled)
-    }
-    fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
-        self.recognizer.operating_point(fmr, enrolled)
-    }
-}
-
-/// Limits and settings of the API.
+/// Limits and settings of the API (made from `config::Settings`, where the defaults are).
 #[derive(Debug, Clone)]
 pub struct ApiConfig {
     /// Largest request body accepted, in bytes.
@@ -82,66 +54,6 @@ pub struct ApiConfig {
     pub api_keys: Vec<String>,
     /// The false match rate whose operating point decides a match unless a request asks otherwise.
     pub default_fmr: f64,
-}
-
-impl Default for ApiConfig {
-    fn default() -> Self {
-        ApiConfig {
-            max_body_bytes: 16 << 20,
-            decode_limits: DecodeLimits { max_width: 8192, max_height: 8192, max_pixels: 16_000_000, max_alloc_bytes: 256 << 20 },
-            max_images: 16,
-            request_timeout: Duration::from_secs(30),
-            workers: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2),
-            queue_depth: 64,
-            api_keys: Vec::new(),
-            default_fmr: 1e-3,
-        }
-    }
-}
-
-/// A bounded pool for CPU work: `workers` jobs run at once on tokio's blocking threads, at most
-/// `queue_depth` more wait, and any further job is refused at once with `overloaded`.
-#[derive(Debug, Clone)]
-pub struct WorkPool {
-    admitted: Arc<Semaphore>,
-    running: Arc<Semaphore>,
-}
-
-impl WorkPool {
-    pub fn new(workers: usize, queue_depth: usize) -> WorkPool {
-        let workers = workers.max(1);
-        WorkPool { admitted: Arc::new(Semaphore::new(workers + queue_depth)), running: Arc::new(Semaphore::new(workers)) }
-    }
-
-    /// Run `job` on the pool. The permits move into the job, so a request that times out while
-    /// its job runs still holds its place until the job ends: the bound holds.
-    pub async fn run<T: Send + 'static>(&self, metrics: &Metrics, job: impl FnOnce() -> T + Send + 'static) -> Result<T, Problem> {
-        let Ok(admitted) = self.admitted.clone().try_acquire_owned() else {
-            metrics.queue_rejections.inc();
-            return Err(Problem::new(ProblemKind::Overloaded, "the work queue is full; retry shortly"));
-        };
-        let running = self.running.clone().acquire_owned().await.map_err(Problem::internal)?;
-        // Released when the job ends, even by a panic.
-        let held = InFlight { _permits: (admitted, running), gauge: metrics.jobs_in_flight.clone() };
-        held.gauge.inc();
-        tokio::task::spawn_blocking(move || {
-            let _held = held;
-            job()
-        })
-        .await
-        .map_err(Problem::internal)
-    }
-}
-
-struct InFlight {
-    _permits: (tokio::sync::OwnedSemaphorePermit, tokio::sync::OwnedSemaphorePermit),
-    gauge: prometheus_client::metrics::gauge::Gauge,
-}
-
-impl Drop for InFlight {
-    fn drop(&mut self) {
-        self.gauge.dec();
-    }
 }
 
 /// SHA-256 digests of the accepted API keys, compared in constant time.
@@ -175,14 +87,24 @@ struct Shared {
     metrics: Arc<Metrics>,
 }
 
+impl From<PoolError> for Problem {
+    fn from(error: PoolError) -> Problem {
+        match error {
+            PoolError::Overloaded => Problem::new(ProblemKind::Overloaded, error.to_string()),
+            PoolError::Failed(e) => Problem::internal(e),
+        }
+    }
+}
+
 /// Everything a handler needs; cheap to clone.
 #[derive(Clone)]
 pub struct AppState(Arc<Shared>);
 
 impl AppState {
     pub fn new(engine: Arc<dyn FaceEngine>, store: Store, config: ApiConfig) -> AppState {
-        let pool = WorkPool::new(config.workers, config.queue_depth);
-        AppState(Arc::new(Shared { engine, store, config, pool, metrics: Arc::new(Metrics::new()) }))
+        let metrics = Arc::new(Metrics::new());
+        let pool = WorkPool::new(config.workers, config.queue_depth, metrics.queue_rejections.clone(), metrics.jobs_in_flight.clone());
+        AppState(Arc::new(Shared { engine, store, config, pool, metrics }))
     }
 
     pub fn store(&self) -> &Store {
@@ -283,37 +205,5 @@ mod tests {
         assert!(keys.accepts("alpha") && keys.accepts("beta"));
         assert!(!keys.accepts("") && !keys.accepts("alph") && !keys.accepts("gamma"));
         assert!(ApiKeys::new(&[]).is_open());
-    }
-
-    #[tokio::test]
-    async fn the_pool_refuses_work_beyond_its_queue() {
-        let pool = WorkPool::new(1, 1);
-        let metrics = Metrics::new();
-        let (release, wait) = std::sync::mpsc::channel::<()>();
-        let wait = Arc::new(std::sync::Mutex::new(wait));
-        let blocker = {
-            let (pool, wait) = (pool.clone(), wait.clone());
-            tokio::spawn(async move {
-                let m = Metrics::new();
-                pool.run(&m, move || wait.lock().unwrap().recv().unwrap()).await
-            })
-        };
-        // Let the first job take the only worker, then queue a second.
-        while pool.running.available_permits() > 0 {
-            tokio::task::yield_now().await;
-        }
-        let queued = {
-            let pool = pool.clone();
-            tokio::spawn(async move { pool.run(&Metrics::new(), || 7).await })
-        };
-        while pool.admitted.available_permits() > 0 {
-            tokio::task::yield_now().await;
-        }
-        let refused = pool.run(&metrics, || 0).await.unwrap_err();
-        assert_eq!(refused.kind, ProblemKind::Overloaded);
-        assert_eq!(metrics.queue_rejections.get(), 1);
-        release.send(()).unwrap();
-        blocker.await.unwrap().unwrap();
-        assert_eq!(queued.await.unwrap().unwrap(), 7);
     }
 }

@@ -14,7 +14,7 @@ pub mod normalize;
 pub mod score_norm;
 pub mod template;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -55,6 +55,48 @@ impl std::fmt::Display for Normalization {
 pub struct OperatingPoint {
     pub fmr: f64,
     pub threshold: f32,
+}
+
+/// A face as each normalisation path of a model sees it. A fused model has two paths (its
+/// primary, the 3DMM frontal rendering, and its second, the 2D-aligned photo) and needs both
+/// views; a single-path model needs one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Views<T> {
+    Single(T),
+    Fused { primary: T, secondary: T },
+}
+
+impl<T> Views<T> {
+    /// The same views through `f`, path by path.
+    pub fn map<U>(self, mut f: impl FnMut(T) -> U) -> Views<U> {
+        match self {
+            Views::Single(v) => Views::Single(f(v)),
+            Views::Fused { primary, secondary } => Views::Fused { primary: f(primary), secondary: f(secondary) },
+        }
+    }
+
+    pub fn as_ref(&self) -> Views<&T> {
+        match self {
+            Views::Single(v) => Views::Single(v),
+            Views::Fused { primary, secondary } => Views::Fused { primary, secondary },
+        }
+    }
+
+    /// How many paths: 1 or 2.
+    pub fn count(&self) -> usize {
+        match self {
+            Views::Single(_) => 1,
+            Views::Fused { .. } => 2,
+        }
+    }
+
+    /// The views, primary first.
+    pub fn into_vec(self) -> Vec<T> {
+        match self {
+            Views::Single(v) => vec![v],
+            Views::Fused { primary, secondary } => vec![primary, secondary],
+        }
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -365,12 +407,14 @@ impl Recognizer {
         normalize::normalize(gray, keypoints, &self.model.normalize)
     }
 
-    /// Template of normalised crops (see [`Recognizer::normalized_crop`]), one per path of
-    /// [`Recognizer::paths`].
-    pub fn template_of_crops(&self, crops: &[&GrayF32]) -> Result<Template, RecognizeError> {
+    /// The template of a face: its normalised crops (see [`Recognizer::normalized_crop`]) as each
+    /// path of the model sees it, [`Views::Single`] for a single-path model and [`Views::Fused`]
+    /// for a fused one. Any other shape is [`RecognizeError::Views`]: one view never stands in for
+    /// both paths. The one way to make a template.
+    pub fn template(&self, crops: Views<&GrayF32>) -> Result<Template, RecognizeError> {
         let expected = 1 + self.model.secondary.is_some() as usize;
-        if crops.len() != expected {
-            return Err(RecognizeError::Views { expected, found: crops.len() });
+        if crops.count() != expected {
+            return Err(RecognizeError::Views { expected, found: crops.count() });
         }
         // Each block (per path: the whole face, then each local part) is a unit projection scaled
         // by the square root of its weight, so that the cosine of two templates is the weighted
@@ -379,7 +423,7 @@ impl Recognizer {
         let mut push = |block: Vec<f32>, weight: f32| vector.extend(features::unit(block).into_iter().map(|v| v * weight.sqrt()));
         let whole_weight = self.model.whole_face_weight();
         let wholes = std::iter::once(&self.model.dlda).chain(self.model.secondary.as_ref().map(|s| &s.dlda));
-        for (p, ((crop, whole), path_weight)) in crops.iter().zip(wholes).zip(self.model.path_weights()).enumerate() {
+        for (p, ((crop, whole), path_weight)) in crops.into_vec().into_iter().zip(wholes).zip(self.model.path_weights()).enumerate() {
             let features = self.model.features.extract(crop, &self.mask);
             push(whole.project_with_offsets(&features, &self.offsets[p]), path_weight * whole_weight);
             for (part, (indices, offsets)) in self.model.parts.iter().zip(&self.parts) {
@@ -388,26 +432,6 @@ impl Recognizer {
             }
         }
         Ok(Template::new(&self.version, vector))
-    }
-
-    /// Template of a face seen through each path of [`Recognizer::paths`]: per path, the grey
-    /// image (the photo, or the 3DMM's frontal rendering) and its eye and mouth centres.
-    pub fn template_of_views(&self, views: &[(&GrayF32, &KeyPoints)]) -> Result<Template, RecognizeError> {
-        let crops: Vec<GrayF32> = views.iter().map(|(g, k)| self.normalized_crop(g, k)).collect();
-        self.template_of_crops(&crops.iter().collect::<Vec<_>>())
-    }
-
-    /// Template of one normalised crop. For a fused model the crop stands in for every path
-    /// (use [`Recognizer::template_of_crops`] with each path's own crop).
-    pub fn template_of_crop(&self, crop: &GrayF32) -> Template {
-        let crops = vec![crop; 1 + self.model.secondary.is_some() as usize];
-        self.template_of_crops(&crops).expect("one crop per path")
-    }
-
-    /// Template of a face in `gray` whose eye and mouth centres are `keypoints`. For a fused model
-    /// this one view stands in for every path (use [`Recognizer::template_of_views`]).
-    pub fn template(&self, gray: &GrayF32, keypoints: &KeyPoints) -> Template {
-        self.template_of_crop(&self.normalized_crop(gray, keypoints))
     }
 
     /// Score of a probe against one subject's templates (higher is more alike), combining
@@ -484,11 +508,6 @@ impl Recognizer {
     }
 }
 
-/// The default location of the committed model.
-pub fn default_model_path() -> PathBuf {
-    crate::config::models_dir().join(MODEL_FILE)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -536,7 +555,7 @@ mod tests {
         let crop = |k: usize| GrayF32::from_fn(params.width, params.height, |x, y| ((x * (3 + k) + y * (7 + 2 * k)) % 13) as f32);
         let (a, b) = (crop(0), crop(1));
         let recognizer = Recognizer::from_model(with_parts.clone());
-        let (ta, tb) = (recognizer.template_of_crop(&a), recognizer.template_of_crop(&b));
+        let (ta, tb) = (recognizer.template(Views::Single(&a)).unwrap(), recognizer.template(Views::Single(&b)).unwrap());
         let cos = |dlda: &Dlda, indices: Option<Vec<usize>>| {
             let pick = |c: &GrayF32| {
                 let f = kind.extract(c, &mask);
@@ -551,7 +570,7 @@ mod tests {
         assert!((ta.cosine(&tb) - expected).abs() < 1e-5, "{} against {expected}", ta.cosine(&tb));
         let dir = std::env::temp_dir().join(format!("facegate-parts-test-{}", std::process::id()));
         let loaded = save_and_load(&with_parts, &dir).unwrap();
-        assert_eq!((loaded.model_version(), loaded.template_of_crop(&a)), (recognizer.model_version(), ta));
+        assert_eq!((loaded.model_version(), loaded.template(Views::Single(&a)).unwrap()), (recognizer.model_version(), ta));
         // A part whose projection does not fit its region is refused at load.
         with_parts.parts[1].projections[0] = projection(local_dims(&upper), 4, 3);
         assert!(matches!(save_and_load(&with_parts, &dir), Err(RecognizeError::Model { .. })));
@@ -597,7 +616,10 @@ mod tests {
         assert_eq!((loaded.model().parts.len(), loaded.model().format), (0, MODEL_FORMAT));
         assert_eq!(loaded.model_version(), fresh.model_version());
         let crop = GrayF32::from_fn(params.width, params.height, |x, y| ((x * 5 + y * 11) % 17) as f32);
-        assert_eq!(loaded.template_of_crops(&[&crop, &crop]).unwrap(), fresh.template_of_crops(&[&crop, &crop]).unwrap());
+        assert_eq!(
+            loaded.template(Views::Fused { primary: &crop, secondary: &crop }).unwrap(),
+            fresh.template(Views::Fused { primary: &crop, secondary: &crop }).unwrap()
+        );
         // A format-3 file: the format-2 fields then the parts, without the enrolment-size tables.
         let mut with_part = model.clone();
         let upper = Region { x0: 0.0, y0: 0.0, x1: 1.0, y1: 0.5 };
@@ -660,8 +682,11 @@ mod tests {
         let crop = |k: usize| GrayF32::from_fn(params.width, params.height, |x, y| ((x * (3 + k) + y * (7 + 2 * k)) % 13) as f32);
         let (a, b, c, d) = (crop(0), crop(1), crop(2), crop(3));
         let fused = Recognizer::from_model(fused);
-        assert!(matches!(fused.template_of_crops(&[&a]), Err(RecognizeError::Views { expected: 2, found: 1 })));
-        let (t1, t2) = (fused.template_of_crops(&[&a, &b]).unwrap(), fused.template_of_crops(&[&c, &d]).unwrap());
+        assert!(matches!(fused.template(Views::Single(&a)), Err(RecognizeError::Views { expected: 2, found: 1 })));
+        let (t1, t2) = (
+            fused.template(Views::Fused { primary: &a, secondary: &b }).unwrap(),
+            fused.template(Views::Fused { primary: &c, secondary: &d }).unwrap(),
+        );
         assert_eq!(t1.vector.len(), 9);
         // The paths' own cosines, from their unit projections.
         let cos = |dlda: &Dlda, x: &GrayF32, y: &GrayF32| {
@@ -673,13 +698,16 @@ mod tests {
         assert!((fused.score(&t1, std::slice::from_ref(&t2)) - expected).abs() < 1e-5);
         // Templates of the single-path model are not comparable with the fused ones.
         let single = Recognizer::from_model(single);
-        let t3 = single.template_of_crop(&a);
+        let t3 = single.template(Views::Single(&a)).unwrap();
         assert!(fused.try_score(&t1, &[t3.clone()]).is_err());
         assert_eq!(fused.score(&t1, &[t3]), -1.0);
         // The model file round-trips, fusion included.
         let dir = std::env::temp_dir().join(format!("facegate-fused-test-{}", std::process::id()));
         let loaded = save_and_load(fused.model(), &dir).unwrap();
-        assert_eq!((loaded.model_version(), loaded.template_of_crops(&[&a, &b]).unwrap()), (fused.model_version(), t1));
+        assert_eq!(
+            (loaded.model_version(), loaded.template(Views::Fused { primary: &a, secondary: &b }).unwrap()),
+            (fused.model_version(), t1)
+        );
         std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -306,62 +306,11 @@ pub fn train(
     }
     let start_scales = start_scales(&pdms, &real_fits);
     let box_source = if detected >= 3 { BoxSource::Detector } else { BoxSource::Annotation };
-    if box_source == BoxSource::Annotation {
-        for v in views.iter_mut() {
-            v.scale_per_width.clear();
-            v.dx.clear();
-            v.dy.clear();
-        }
-        for (vi, scale, b, c) in &annotation_boxes {
-            let v = &mut views[*vi];
-            v.scale_per_width.push(scale / b.width);
-            v.dx.push((c[0] - b.center()[0]) / b.width);
-            v.dy.push((c[1] - b.center()[1]) / b.width);
-        }
-    }
-    // Placements: the view's own photos when it has 3 or more, else the nearest view that has.
-    let own: Vec<Option<Placement>> = views
-        .iter_mut()
-        .map(|v| {
-            if v.scale_per_width.len() < 3 {
-                return None;
-            }
-            Some(Placement {
-                scale_per_width: crate::core::median(&mut v.scale_per_width)?,
-                dx: crate::core::median(&mut v.dx)?,
-                dy: crate::core::median(&mut v.dy)?,
-            })
-        })
-        .collect();
-    if own.iter().all(|o| o.is_none()) {
-        return Err(LandmarkError::Training("no view has 3 photos with a face box".into()));
-    }
+    let own = view_placements(&mut views, box_source, &annotation_boxes)?;
     let mut persons: Vec<u32> = samples.iter().map(|s| s.person).collect();
     persons.dedup();
     let info = TrainInfo { images: samples.len(), persons: persons.clone(), box_source, detector_misses: misses };
-    let mut out_views = Vec::with_capacity(views.len());
-    for (vi, (v, pdm)) in views.into_iter().zip(pdms).enumerate() {
-        if v.shapes.len() < 3 {
-            return Err(LandmarkError::Training(format!("view {} has {} training shapes", options.yaws[vi], v.shapes.len())));
-        }
-        let placement = (0..own.len())
-            .filter_map(|k| own[k].map(|pl| (k.abs_diff(vi), pl)))
-            .min_by_key(|(d, _)| *d)
-            .map(|(_, pl)| pl)
-            .expect("one view has a placement");
-        let textures = view_textures(&v, p, &neighbours, options, &info);
-        let typical_cost = typical_cost(&textures, &v);
-        out_views.push(View3d {
-            yaw: options.yaws[vi],
-            pdm,
-            textures,
-            placement,
-            start_scale: start_scales[vi],
-            samples: v.shapes.len(),
-            real_photos: v.real,
-            typical_cost,
-        });
-    }
+    let out_views = finish_views(views, pdms, &own, &start_scales, &neighbours, options, &info)?;
     Ok(Asm3dModel {
         format: ASM3D_FORMAT,
         params: p.clone(),
@@ -378,6 +327,82 @@ pub fn train(
             seed: options.seed,
         },
     })
+}
+
+/// Each view's own start placement (the medians over its photos, from the detector's boxes or,
+/// with `BoxSource::Annotation`, from the annotations' boxes) when it has 3 photos or more.
+fn view_placements(
+    views: &mut [ViewSamples],
+    box_source: BoxSource,
+    annotation_boxes: &[(usize, f32, Rect, Point)],
+) -> Result<Vec<Option<Placement>>, LandmarkError> {
+    if box_source == BoxSource::Annotation {
+        for v in views.iter_mut() {
+            v.scale_per_width.clear();
+            v.dx.clear();
+            v.dy.clear();
+        }
+        for (vi, scale, b, c) in annotation_boxes {
+            let v = &mut views[*vi];
+            v.scale_per_width.push(scale / b.width);
+            v.dx.push((c[0] - b.center()[0]) / b.width);
+            v.dy.push((c[1] - b.center()[1]) / b.width);
+        }
+    }
+    let own: Vec<Option<Placement>> = views
+        .iter_mut()
+        .map(|v| {
+            if v.scale_per_width.len() < 3 {
+                return None;
+            }
+            Some(Placement {
+                scale_per_width: crate::core::median(&mut v.scale_per_width)?,
+                dx: crate::core::median(&mut v.dx)?,
+                dy: crate::core::median(&mut v.dy)?,
+            })
+        })
+        .collect();
+    if own.iter().all(|o| o.is_none()) {
+        return Err(LandmarkError::Training("no view has 3 photos with a face box".into()));
+    }
+    Ok(own)
+}
+
+/// The trained views: per view its 3D PDM, its texture models, its placement (its own when it has
+/// one, else the nearest view's) and its start scale.
+fn finish_views(
+    views: Vec<ViewSamples>,
+    pdms: Vec<Pdm3d>,
+    own: &[Option<Placement>],
+    start_scales: &[f32],
+    neighbours: &[[u16; 2]],
+    options: &Asm3dTrainOptions,
+    info: &TrainInfo,
+) -> Result<Vec<View3d>, LandmarkError> {
+    let mut out_views = Vec::with_capacity(views.len());
+    for (vi, (v, pdm)) in views.into_iter().zip(pdms).enumerate() {
+        if v.shapes.len() < 3 {
+            return Err(LandmarkError::Training(format!("view {} has {} training shapes", options.yaws[vi], v.shapes.len())));
+        }
+        let placement = (0..own.len())
+            .filter_map(|k| own[k].map(|pl| (k.abs_diff(vi), pl)))
+            .min_by_key(|(d, _)| *d)
+            .map(|(_, pl)| pl)
+            .expect("one view has a placement");
+        let textures = view_textures(&v, &options.params, neighbours, options, info);
+        let typical_cost = typical_cost(&textures, &v);
+        out_views.push(View3d {
+            yaw: options.yaws[vi],
+            pdm,
+            textures,
+            placement,
+            start_scale: start_scales[vi],
+            samples: v.shapes.len(),
+            real_photos: v.real,
+            typical_cost,
+        });
+    }
+    Ok(out_views)
 }
 
 /// Per view, the median ratio of the least-squares scale of the view's PDM mean onto a real

@@ -16,6 +16,7 @@ use sqlx::Row;
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous};
 
 use crate::recognize::Template;
+use crate::service::SubjectId;
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -86,18 +87,18 @@ impl Store {
 
     /// Add `templates` to `subject` (created if new), all in one transaction.
     /// Returns the subject's template count afterwards.
-    pub async fn enroll(&self, subject: &str, templates: &[Template]) -> Result<u32, StoreError> {
+    pub async fn enroll(&self, subject: &SubjectId, templates: &[Template]) -> Result<u32, StoreError> {
         let mut tx = self.pool.begin().await?;
         sqlx::query(
             "INSERT INTO subjects (id) VALUES (?1)
              ON CONFLICT (id) DO UPDATE SET updated_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now')",
         )
-        .bind(subject)
+        .bind(subject.as_str())
         .execute(&mut *tx)
         .await?;
         for template in templates {
             sqlx::query("INSERT INTO templates (subject_id, model_version, dimension, vector) VALUES (?1, ?2, ?3, ?4)")
-                .bind(subject)
+                .bind(subject.as_str())
                 .bind(&template.model_version)
                 .bind(template.vector.len() as i64)
                 .bind(vector_to_blob(&template.vector))
@@ -105,20 +106,21 @@ impl Store {
                 .await?;
         }
         let count: i64 =
-            sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = ?1").bind(subject).fetch_one(&mut *tx).await?;
+            sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = ?1").bind(subject.as_str()).fetch_one(&mut *tx).await?;
         tx.commit().await?;
         Ok(count as u32)
     }
 
     /// All templates of `subject`, or `None` when the subject is unknown.
-    pub async fn templates(&self, subject: &str) -> Result<Option<Vec<Template>>, StoreError> {
+    pub async fn templates(&self, subject: &SubjectId) -> Result<Option<Vec<Template>>, StoreError> {
         let mut tx = self.pool.begin().await?;
-        let exists: Option<i64> = sqlx::query_scalar("SELECT 1 FROM subjects WHERE id = ?1").bind(subject).fetch_optional(&mut *tx).await?;
+        let exists: Option<i64> =
+            sqlx::query_scalar("SELECT 1 FROM subjects WHERE id = ?1").bind(subject.as_str()).fetch_optional(&mut *tx).await?;
         if exists.is_none() {
             return Ok(None);
         }
         let rows = sqlx::query("SELECT id, model_version, dimension, vector FROM templates WHERE subject_id = ?1 ORDER BY id")
-            .bind(subject)
+            .bind(subject.as_str())
             .fetch_all(&mut *tx)
             .await?;
         tx.commit().await?;
@@ -148,13 +150,13 @@ impl Store {
     }
 
     /// Subjects ordered by id, at most `limit` of them, starting after the id `after`.
-    pub async fn list_subjects(&self, after: Option<&str>, limit: u32) -> Result<Vec<SubjectSummary>, StoreError> {
+    pub async fn list_subjects(&self, after: Option<&SubjectId>, limit: u32) -> Result<Vec<SubjectSummary>, StoreError> {
         let rows = sqlx::query(
             "SELECT s.id, s.created_at, s.updated_at, count(t.id) AS templates
              FROM subjects s LEFT JOIN templates t ON t.subject_id = s.id
              WHERE s.id > ?1 GROUP BY s.id ORDER BY s.id LIMIT ?2",
         )
-        .bind(after.unwrap_or(""))
+        .bind(after.map_or("", SubjectId::as_str))
         .bind(limit as i64)
         .fetch_all(&self.pool)
         .await?;
@@ -171,17 +173,17 @@ impl Store {
     }
 
     /// One subject with its template counts per model version, or `None` when unknown.
-    pub async fn subject(&self, id: &str) -> Result<Option<SubjectDetail>, StoreError> {
+    pub async fn subject(&self, id: &SubjectId) -> Result<Option<SubjectDetail>, StoreError> {
         let mut tx = self.pool.begin().await?;
         let Some(row) =
-            sqlx::query("SELECT id, created_at, updated_at FROM subjects WHERE id = ?1").bind(id).fetch_optional(&mut *tx).await?
+            sqlx::query("SELECT id, created_at, updated_at FROM subjects WHERE id = ?1").bind(id.as_str()).fetch_optional(&mut *tx).await?
         else {
             return Ok(None);
         };
         let versions = sqlx::query(
             "SELECT model_version, count(*) AS n FROM templates WHERE subject_id = ?1 GROUP BY model_version ORDER BY model_version",
         )
-        .bind(id)
+        .bind(id.as_str())
         .fetch_all(&mut *tx)
         .await?;
         tx.commit().await?;
@@ -200,11 +202,11 @@ impl Store {
 
     /// Erase a subject and all its templates. Returns how many templates were erased, or `None`
     /// when the subject is unknown.
-    pub async fn delete_subject(&self, id: &str) -> Result<Option<u32>, StoreError> {
+    pub async fn delete_subject(&self, id: &SubjectId) -> Result<Option<u32>, StoreError> {
         let mut tx = self.pool.begin().await?;
         let templates: i64 =
-            sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = ?1").bind(id).fetch_one(&mut *tx).await?;
-        let deleted = sqlx::query("DELETE FROM subjects WHERE id = ?1").bind(id).execute(&mut *tx).await?.rows_affected();
+            sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = ?1").bind(id.as_str()).fetch_one(&mut *tx).await?;
+        let deleted = sqlx::query("DELETE FROM subjects WHERE id = ?1").bind(id.as_str()).execute(&mut *tx).await?.rows_affected();
         tx.commit().await?;
         Ok((deleted > 0).then_some(templates as u32))
     }
@@ -247,6 +249,10 @@ fn template_from_row(row: &sqlx::sqlite::SqliteRow) -> Result<Template, StoreErr
 mod tests {
     use super::*;
 
+    fn id(s: &str) -> SubjectId {
+        SubjectId::parse(s).unwrap()
+    }
+
     fn template(version: &str, v: &[f32]) -> Template {
         Template { model_version: version.into(), vector: v.to_vec() }
     }
@@ -275,32 +281,32 @@ mod tests {
     #[tokio::test]
     async fn enrol_list_read_and_delete() {
         let (store, dir) = temp_store().await;
-        assert_eq!(store.enroll("alice", &[template("m1", &[1.0, 0.0]), template("m1", &[0.0, 1.0])]).await.unwrap(), 2);
-        assert_eq!(store.enroll("alice", &[template("m2", &[0.5, 0.5, 0.0])]).await.unwrap(), 3);
-        assert_eq!(store.enroll("bob", &[template("m1", &[0.6, 0.8])]).await.unwrap(), 1);
+        assert_eq!(store.enroll(&id("alice"), &[template("m1", &[1.0, 0.0]), template("m1", &[0.0, 1.0])]).await.unwrap(), 2);
+        assert_eq!(store.enroll(&id("alice"), &[template("m2", &[0.5, 0.5, 0.0])]).await.unwrap(), 3);
+        assert_eq!(store.enroll(&id("bob"), &[template("m1", &[0.6, 0.8])]).await.unwrap(), 1);
 
-        let alice = store.templates("alice").await.unwrap().unwrap();
+        let alice = store.templates(&id("alice")).await.unwrap().unwrap();
         assert_eq!(alice.len(), 3);
         assert_eq!(alice[2], template("m2", &[0.5, 0.5, 0.0]));
-        assert!(store.templates("carol").await.unwrap().is_none());
+        assert!(store.templates(&id("carol")).await.unwrap().is_none());
 
         let gallery = store.gallery("m1").await.unwrap();
         assert_eq!(gallery.iter().map(|(s, t)| (s.as_str(), t.len())).collect::<Vec<_>>(), [("alice", 2), ("bob", 1)]);
 
         let list = store.list_subjects(None, 10).await.unwrap();
         assert_eq!(list.iter().map(|s| (s.id.as_str(), s.templates)).collect::<Vec<_>>(), [("alice", 3), ("bob", 1)]);
-        assert_eq!(store.list_subjects(Some("alice"), 10).await.unwrap().len(), 1);
+        assert_eq!(store.list_subjects(Some(&id("alice")), 10).await.unwrap().len(), 1);
         assert_eq!(store.list_subjects(None, 1).await.unwrap().len(), 1);
 
-        let detail = store.subject("alice").await.unwrap().unwrap();
+        let detail = store.subject(&id("alice")).await.unwrap().unwrap();
         assert_eq!(detail.templates, 3);
         assert_eq!(
             detail.model_versions,
             [VersionCount { model_version: "m1".into(), templates: 2 }, VersionCount { model_version: "m2".into(), templates: 1 }]
         );
 
-        assert_eq!(store.delete_subject("alice").await.unwrap(), Some(3));
-        assert_eq!(store.delete_subject("alice").await.unwrap(), None);
+        assert_eq!(store.delete_subject(&id("alice")).await.unwrap(), Some(3));
+        assert_eq!(store.delete_subject(&id("alice")).await.unwrap(), None);
         // Foreign keys cascade: no orphan template is left.
         assert_eq!(store.counts().await.unwrap(), (1, 1));
         store.close().await;
@@ -311,9 +317,9 @@ mod tests {
     async fn a_failed_enrolment_stores_nothing() {
         let (store, dir) = temp_store().await;
         // The second template violates the schema (empty vector): the whole enrolment rolls back.
-        let err = store.enroll("alice", &[template("m1", &[1.0]), template("m1", &[])]).await;
+        let err = store.enroll(&id("alice"), &[template("m1", &[1.0]), template("m1", &[])]).await;
         assert!(err.is_err());
-        assert!(store.templates("alice").await.unwrap().is_none());
+        assert!(store.templates(&id("alice")).await.unwrap().is_none());
         assert_eq!(store.counts().await.unwrap(), (0, 0));
         let mode: String = sqlx::query_scalar("PRAGMA journal_mode").fetch_one(&store.pool).await.unwrap();
         assert_eq!(mode, "wal");

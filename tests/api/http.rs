@@ -5,8 +5,8 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use facegate::api::ApiConfig;
 use facegate::core::imaging::DecodeLimits;
+use facegate::http::ApiConfig;
 use serde_json::json;
 
 use crate::support::*;
@@ -16,7 +16,7 @@ fn config() -> ApiConfig {
         max_body_bytes: 2 << 20,
         decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() },
         max_images: 4,
-        ..ApiConfig::default()
+        ..facegate::config::Settings::default().api_config().unwrap()
     }
 }
 
@@ -182,8 +182,8 @@ async fn templates_of_another_model_version_are_not_compared() {
     assert_eq!(first.post_form("/enroll", Some("frank"), &[photo.clone()]).await.status, 201);
     // The same database served by a newer model.
     let app = TestApp::start(StandInEngine::new("v2"), config()).await;
-    let old = first.store.templates("frank").await.unwrap().unwrap();
-    app.store.enroll("frank", &old).await.unwrap();
+    let old = first.store.templates(&facegate::service::SubjectId::parse("frank").unwrap()).await.unwrap().unwrap();
+    app.store.enroll(&facegate::service::SubjectId::parse("frank").unwrap(), &old).await.unwrap();
     app.post_form("/verify", Some("frank"), &[photo.clone()]).await.assert_problem(409, "model-mismatch");
     let r = app.post_form("/identify", None, &[photo.clone()]).await;
     assert_eq!((r.status, r.json()["subjects_searched"].as_u64()), (200, Some(0)));
@@ -240,7 +240,7 @@ async fn health_metrics_and_openapi_are_served() {
     assert!(text.contains(r#"facegate_pipeline_stage_duration_seconds_count{stage="decode"} 1"#), "{text}");
     assert!(text.contains("facegate_subjects 1") && text.contains("facegate_templates 1"), "{text}");
     let r = app.get("/openapi.yaml").await;
-    assert_eq!(r.body, facegate::api::OPENAPI_YAML.as_bytes());
+    assert_eq!(r.body, facegate::http::OPENAPI_YAML.as_bytes());
 }
 
 /// CRC-32 (IEEE) as PNG chunks use it, to forge a consistent header.

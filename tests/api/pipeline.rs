@@ -3,8 +3,7 @@
 
 use std::sync::{Arc, OnceLock};
 
-use facegate::api::ApiConfig;
-use facegate::pipeline::{Pipeline, PipelineConfig};
+use facegate::pipeline::Pipeline;
 use serde_json::json;
 
 use crate::support::*;
@@ -12,13 +11,15 @@ use crate::support::*;
 fn pipeline() -> Arc<Pipeline> {
     static PIPELINE: OnceLock<Arc<Pipeline>> = OnceLock::new();
     PIPELINE
-        .get_or_init(|| Arc::new(Pipeline::load(&PipelineConfig::default()).unwrap_or_else(|e| panic!("cannot load the pipeline: {e}"))))
+        .get_or_init(|| {
+            Arc::new(Pipeline::load(&facegate::config::pipeline_config()).unwrap_or_else(|e| panic!("cannot load the pipeline: {e}")))
+        })
         .clone()
 }
 
 async fn app() -> TestApp {
     let pipeline = pipeline();
-    TestApp::start(pipeline, ApiConfig::default()).await
+    TestApp::start(pipeline, facegate::config::Settings::default().api_config().unwrap()).await
 }
 
 /// Two IMM photos side by side: two faces in one picture.

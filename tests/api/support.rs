@@ -8,14 +8,15 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
-use facegate::api::{self, ApiConfig, AppState, FaceEngine};
+use facegate::core::face::KeyPoints;
 use facegate::core::geometry::Rect;
 use facegate::core::imaging::Photo;
 use facegate::detect::Face;
+use facegate::http::{self, ApiConfig, AppState, FaceEngine};
 use facegate::landmarks::Landmarks;
 use facegate::pipeline::{FaceAnalysis, PipelineError, StageTimings};
 use facegate::recognize::{OperatingPoint, Template};
-use facegate::research::dataset::KeyPoints;
+use facegate::service::Matcher;
 use facegate::store::Store;
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
@@ -48,7 +49,7 @@ impl Reply {
     pub fn problem(&self) -> String {
         assert_eq!(self.headers["content-type"], "application/problem+json", "{} {}", self.status, String::from_utf8_lossy(&self.body));
         let t = self.json()["type"].as_str().unwrap().to_string();
-        t.strip_prefix(api::problem::PROBLEM_BASE).unwrap().to_string()
+        t.strip_prefix(http::problem::PROBLEM_BASE).unwrap().to_string()
     }
 
     /// Assert status and problem type together (the message shows the body when they differ).
@@ -63,7 +64,7 @@ impl TestApp {
         let dir = std::env::temp_dir().join(format!("facegate-api-{}-{}", std::process::id(), N.fetch_add(1, Ordering::Relaxed)));
         std::fs::create_dir_all(&dir).unwrap();
         let store = Store::connect(&format!("sqlite://{}", dir.join("facegate.db").display())).await.unwrap();
-        let app = api::router(AppState::new(engine, store.clone(), config));
+        let app = http::router(AppState::new(engine, store.clone(), config));
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let base = format!("http://{}", listener.local_addr().unwrap());
         let server = tokio::spawn(async move {
@@ -197,7 +198,9 @@ impl FaceEngine for StandInEngine {
             timings: StageTimings::default(),
         })
     }
+}
 
+impl Matcher for StandInEngine {
     fn model_version(&self) -> &str {
         &self.version
     }

@@ -1,7 +1,9 @@
 //! Evaluation: accuracy measures of each stage on held-out people, and their plots.
 
 pub mod detection;
+pub mod identification;
 pub mod landmarks;
+pub mod pairs;
 pub mod plot;
 pub mod verification;
 

@@ -10,17 +10,15 @@ use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
 use crate::core::imaging::{self, GrayF32};
-use crate::detect::Detector;
-use crate::landmarks::asm3d::Asm3dLandmarker;
-use crate::landmarks::{Landmarker, Landmarks};
+use crate::landmarks::Landmarks;
 use crate::morph::{FaceModel, Pose};
-use crate::pipeline::{find_landmarks, recognition_input};
+use crate::pipeline::{FaceFinder, PipelineError, load_face_model, recognition_input};
 use crate::recognize::calibration::{CALIBRATED_FMRS, Calibration, EnrolledCalibration, MAX_CALIBRATED_ENROLMENT};
 use crate::recognize::dlda::{Dlda, DldaParams};
 use crate::recognize::features::{self, FeatureKind, Region};
 use crate::recognize::normalize::{self, NormalizeParams};
 use crate::recognize::template::{Combine, Template};
-use crate::recognize::{Cohort, LocalPart, Model, Normalization, Provenance, Recognizer, SecondaryPath};
+use crate::recognize::{Cohort, LocalPart, Model, Normalization, Provenance, Recognizer, SecondaryPath, Views};
 use crate::research::Progress;
 use crate::research::dataset::{self, IMM_POINTS, KeyPoints};
 use crate::research::eval::verification::{VerificationSummary, eer, summarize};
@@ -68,6 +66,51 @@ pub fn list_faces(dirs: &[PathBuf]) -> Result<Vec<FaceImage>, dataset::DatasetEr
     Ok(out)
 }
 
+/// Named regions of the normalised crop (eyes at 34 % of its height, 26 % and 73 % of its width,
+/// the mouth at 82 % of its height).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum FaceRegion {
+    /// Both eyes and brows.
+    Eyes,
+    /// The nose, between and below the eyes.
+    Nose,
+    /// The mouth and chin.
+    Mouth,
+    /// Everything above the nose tip (eyes, brows, forehead).
+    Upper,
+    /// Everything below the eyes (nose, cheeks, mouth).
+    Lower,
+    /// The central face without the outline (eyes to mouth).
+    Inner,
+    /// The eye and brow on the image's left.
+    LeftEye,
+    /// The eye and brow on the image's right.
+    RightEye,
+    /// The image's left half of the face.
+    LeftHalf,
+    /// The image's right half of the face.
+    RightHalf,
+}
+
+impl FaceRegion {
+    /// The region of the crop, in fractions of its width and height.
+    pub fn region(self) -> Region {
+        let r = |x0, y0, x1, y1| Region { x0, y0, x1, y1 };
+        match self {
+            FaceRegion::Eyes => r(0.0, 0.1, 1.0, 0.52),
+            FaceRegion::Nose => r(0.25, 0.3, 0.75, 0.78),
+            FaceRegion::Mouth => r(0.12, 0.64, 0.88, 1.0),
+            FaceRegion::Upper => r(0.0, 0.0, 1.0, 0.6),
+            FaceRegion::Lower => r(0.0, 0.45, 1.0, 1.0),
+            FaceRegion::Inner => r(0.15, 0.2, 0.85, 0.95),
+            FaceRegion::LeftEye => r(0.0, 0.1, 0.55, 0.55),
+            FaceRegion::RightEye => r(0.45, 0.1, 1.0, 0.55),
+            FaceRegion::LeftHalf => r(0.0, 0.0, 0.55, 1.0),
+            FaceRegion::RightHalf => r(0.45, 0.0, 1.0, 1.0),
+        }
+    }
+}
+
 /// Where the keypoints of a photo come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
 #[serde(rename_all = "kebab-case")]
@@ -85,12 +128,14 @@ pub enum FrontEndError {
     Decode(#[from] imaging::DecodeError),
     #[error(transparent)]
     Dataset(#[from] dataset::DatasetError),
-    #[error("no face found")]
-    NoFace,
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
     #[error("no annotation and no automatic front end loaded")]
     NoKeypoints,
-    #[error("the 3DMM path needs the Surrey Face Model and 58 landmarks, which are not available")]
+    #[error("the re-posed copies need the Surrey Face Model, which is not loaded")]
     NoFaceModel,
+    #[error("the 3DMM cannot be fitted to the landmarks: {0}")]
+    Fit(#[from] crate::morph::MorphError),
 }
 
 /// A photo ready for normalisation: the grey image (the frontal rendering on the 3DMM path), the
@@ -103,32 +148,31 @@ pub struct Prepared {
     pub keypoint_source: &'static str,
 }
 
-/// Keypoints (and the 3DMM) for training and evaluation.
+/// Where training and evaluation get a photo's landmarks and its view for the recognizer: the IMM
+/// annotations, or the service's own stages ([`FaceFinder`]: detector, C-ASM, 3D-ASM), then the
+/// service's [`recognition_input`] (3DMM fit and frontal rendering). Crops are thereby made as the
+/// service makes them.
 pub struct FrontEnd {
     pub source: KeypointSource,
-    pub detector: Option<Detector>,
-    pub landmarker: Option<Landmarker>,
-    /// The 3D-ASM, which takes over from the C-ASM on turned faces exactly as in the service
-    /// (`Asm3dLandmarker::switch`); `None`: C-ASM only.
-    pub asm3d: Option<Asm3dLandmarker>,
+    /// The service's face finder; `None` when its models cannot be loaded (annotations only).
+    pub finder: Option<FaceFinder>,
     pub face_model: Option<FaceModel>,
+    /// The folder the finder's models were loaded from (part of the crop-cache key).
+    pub models_dir: Option<PathBuf>,
 }
 
 impl FrontEnd {
     /// Annotations only (no automatic front end, no 3DMM).
     pub fn annotations_only() -> FrontEnd {
-        FrontEnd { source: KeypointSource::Annotated, detector: None, landmarker: None, asm3d: None, face_model: None }
+        FrontEnd { source: KeypointSource::Annotated, finder: None, face_model: None, models_dir: None }
     }
 
-    /// Load what is available: the detector, the ASM landmarker (`asm.bin`), the 3D-ASM
-    /// (`asm3d.bin`) and the 3DMM are optional; a missing part only matters for the photos that
-    /// need it.
+    /// The service's face finder from `models_dir` and the 3DMM from `sfm_dir`, each when it loads;
+    /// a missing part only matters for the photos that need it.
     pub fn load(source: KeypointSource, models_dir: &Path, sfm_dir: Option<&Path>) -> FrontEnd {
-        let detector = Detector::load(models_dir).map_err(|e| tracing::info!("detector unavailable: {e}")).ok();
-        let landmarker = Landmarker::load(&models_dir.join("asm.bin")).map_err(|e| tracing::info!("landmarker unavailable: {e}")).ok();
-        let asm3d = Asm3dLandmarker::load(&models_dir.join("asm3d.bin")).map_err(|e| tracing::info!("3D-ASM unavailable: {e}")).ok();
-        let face_model = sfm_dir.and_then(|dir| FaceModel::load(dir).map_err(|e| tracing::info!("3DMM unavailable: {e}")).ok());
-        FrontEnd { source, detector, landmarker, asm3d, face_model }
+        let finder = FaceFinder::load(models_dir).map_err(|e| tracing::info!("automatic front end unavailable: {e}")).ok();
+        let models_dir = finder.as_ref().map(|_| models_dir.to_path_buf());
+        FrontEnd { source, finder, face_model: load_face_model(sfm_dir), models_dir }
     }
 
     /// The 58 landmarks of a photo from the configured source, and which source gave them.
@@ -141,10 +185,8 @@ impl FrontEnd {
                 return Ok((Landmarks { points, keypoints }, "imm-annotations"));
             }
         }
-        let (Some(detector), Some(landmarker)) = (&self.detector, &self.landmarker) else { return Err(FrontEndError::NoKeypoints) };
-        let faces = detector.detect(&photo.gray);
-        let box_ = faces.first().ok_or(FrontEndError::NoFace)?;
-        Ok((find_landmarks(landmarker, self.asm3d.as_ref(), &photo.gray, &box_.rect), "pipeline"))
+        let finder = self.finder.as_ref().ok_or(FrontEndError::NoKeypoints)?;
+        Ok((finder.locate(&photo.gray)?.landmarks, "pipeline"))
     }
 
     /// The face of a photo re-posed by the 3DMM: fitted to its landmarks, textured from the photo
@@ -157,7 +199,7 @@ impl FrontEnd {
         let photo = imaging::open(&face.image)?;
         let (landmarks, _) = self.landmarks(face, &photo)?;
         let model = self.face_model.as_ref().ok_or(FrontEndError::NoFaceModel)?;
-        let fit = model.fit(&landmarks.points, photo.width(), photo.height()).map_err(|_| FrontEndError::NoFaceModel)?;
+        let fit = model.fit(&landmarks.points, photo.width(), photo.height())?;
         let texture = model.extract_texture(&photo.rgb, &fit, crate::morph::TEXTURE_SIZE);
         let annotation_offsets = asm3d::annotation_offsets(model, &fit, &landmarks.points);
         let jaw = asm3d::photo_jaw_vertices(model, &fit, &asm3d::contour_jaw_vertices(model));
@@ -180,8 +222,7 @@ impl FrontEnd {
     pub fn prepare(&self, face: &FaceImage, normalization: Normalization) -> Result<Prepared, FrontEndError> {
         let photo = imaging::open(&face.image)?;
         let (landmarks, keypoint_source) = self.landmarks(face, &photo)?;
-        let input =
-            recognition_input(self.face_model.as_ref(), &photo, &landmarks, normalization).map_err(|_| FrontEndError::NoFaceModel)?;
+        let input = recognition_input(self.face_model.as_ref(), &photo, &landmarks, normalization)?;
         Ok(Prepared { gray: input.gray.into_owned(), keypoints: input.keypoints, pose: input.pose, keypoint_source })
     }
 }
@@ -229,8 +270,10 @@ pub fn align_all(
 }
 
 /// 16 hex digits of the SHA-256 of what shapes cached crops: `settings` (serialised parameters),
-/// the keypoint source, the photos, and the bytes of the landmark models (`asm.bin`, `asm3d.bin`).
-fn cache_key(settings: &[u8], source: KeypointSource, faces: &[FaceImage]) -> String {
+/// the keypoint source, the photos, and the bytes of the landmark models the front end loaded
+/// (`asm.bin`, `asm3d.bin` of its models folder).
+fn cache_key(settings: &[u8], front_end: &FrontEnd, faces: &[FaceImage]) -> String {
+    let source = front_end.source;
     use sha2::{Digest, Sha256};
     let mut hasher = Sha256::new();
     hasher.update(settings);
@@ -240,7 +283,7 @@ fn cache_key(settings: &[u8], source: KeypointSource, faces: &[FaceImage]) -> St
         hasher.update([f.asf.is_some() as u8]);
     }
     for model in ["asm.bin", "asm3d.bin"] {
-        if let Ok(bytes) = std::fs::read(crate::config::models_dir().join(model)) {
+        if let Some(Ok(bytes)) = front_end.models_dir.as_ref().map(|dir| std::fs::read(dir.join(model))) {
             hasher.update(&bytes);
         }
     }
@@ -270,7 +313,6 @@ fn write_cache_file<T: Serialize>(file: &Path, entries: &T) -> anyhow::Result<()
 /// the landmark models (`asm.bin`, `asm3d.bin`). Photos the front end skipped stay skipped.
 pub fn align_all_cached(
     dir: &Path,
-    source: KeypointSource,
     front_end: &FrontEnd,
     faces: &[FaceImage],
     normalization: Normalization,
@@ -278,7 +320,7 @@ pub fn align_all_cached(
     progress: &dyn Progress,
 ) -> anyhow::Result<Vec<AlignedFace>> {
     type Entry = (String, usize, usize, Vec<f32>, String);
-    let key = cache_key(&postcard::to_stdvec(&(normalization, params))?, source, faces);
+    let key = cache_key(&postcard::to_stdvec(&(normalization, params))?, front_end, faces);
     let path = dir.join(format!("crops-{key}.bin"));
     let source_name = |s: &str| -> &'static str {
         match s {
@@ -318,7 +360,6 @@ pub fn align_all_cached(
 /// `cache`, each path's crops go through [`align_all_cached`].
 pub fn align_paths(
     cache: Option<&Path>,
-    source: KeypointSource,
     front_end: &FrontEnd,
     faces: &[FaceImage],
     paths: &[Normalization],
@@ -326,7 +367,7 @@ pub fn align_paths(
     progress: &dyn Progress,
 ) -> anyhow::Result<Vec<AlignedFace>> {
     let align = |normalization| match cache {
-        Some(dir) => align_all_cached(dir, source, front_end, faces, normalization, params, progress),
+        Some(dir) => align_all_cached(dir, front_end, faces, normalization, params, progress),
         None => Ok(align_all(front_end, faces, normalization, params, progress)),
     };
     let (&primary, rest) = paths.split_first().ok_or_else(|| anyhow::anyhow!("no normalisation path"))?;
@@ -362,7 +403,7 @@ pub fn attach_reposed_crops(
         return Ok(());
     }
     let faces: Vec<FaceImage> = aligned.iter().filter(|a| !a.face.held_out).map(|a| a.face.clone()).collect();
-    let key = cache_key(&postcard::to_stdvec(&(paths, params, offsets))?, front_end.source, &faces);
+    let key = cache_key(&postcard::to_stdvec(&(paths, params, offsets))?, front_end, &faces);
     let file = cache.map(|dir| dir.join(format!("reposed-{key}.bin")));
     let cached = match &file {
         Some(f) => read_cache_file::<Vec<Entry>>(f)?,
@@ -480,11 +521,13 @@ pub fn template_of(recognizer: &Recognizer, aligned: &AlignedFace) -> Result<Tem
         normalize::photometric(&mut crop, params.photometric, &params.mask());
         crop
     };
-    let mut crops = vec![relit(&aligned.crop)];
-    if recognizer.model().secondary.is_some() {
-        crops.extend(aligned.secondary_crop.as_ref().map(relit));
-    }
-    recognizer.template_of_crops(&crops.iter().collect::<Vec<_>>())
+    let primary = relit(&aligned.crop);
+    let secondary = aligned.secondary_crop.as_ref().filter(|_| recognizer.model().secondary.is_some()).map(relit);
+    let views = match &secondary {
+        Some(secondary) => Views::Fused { primary: &primary, secondary },
+        None => Views::Single(&primary),
+    };
+    recognizer.template(views)
 }
 
 /// Genuine and impostor scores of all pairs of templates (one template each), scored as the
@@ -567,12 +610,6 @@ fn jittered(crop: &GrayF32, rng: &mut impl Rng) -> GrayF32 {
 /// Train the projection on the training persons of `aligned`, then calibrate thresholds and choose
 /// the combination rule on the held-out persons.
 pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String]) -> anyhow::Result<(Model, HeldOutReport)> {
-    let mask = config.normalize.mask();
-    let features_of = |crop: &GrayF32| {
-        let mut c = crop.clone();
-        normalize::photometric(&mut c, config.normalize.photometric, &mask);
-        config.features.extract(&c, &mask)
-    };
     let train: Vec<&AlignedFace> = aligned.iter().filter(|a| !a.face.held_out).collect();
     let held: Vec<&AlignedFace> = aligned.iter().filter(|a| a.face.held_out).collect();
     let mut labels: Vec<String> = train.iter().map(|a| a.face.label.clone()).collect();
@@ -582,49 +619,16 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
         config.local_parts.is_empty() || (0.0..1.0).contains(&config.local_weight),
         "the local parts' weight must be in [0, 1)"
     );
+    let mask = config.normalize.mask();
     let part_indices: Vec<Vec<usize>> =
         config.local_parts.iter().map(|r| config.features.indices_in(config.normalize.width, config.normalize.height, &mask, r)).collect();
     anyhow::ensure!(part_indices.iter().all(|i| !i.is_empty()), "a local region holds no features");
-    // One path's projections: the whole face's, then each local part's (on the same samples).
-    // `second`: the second path's crops, else the primary's; a face's re-posed copies join it.
-    let project = |second: bool| -> anyhow::Result<(Dlda, Vec<Dlda>)> {
-        let mut xs = Vec::new();
-        let mut ys = Vec::new();
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2011);
-        for a in &train {
-            let y = labels.binary_search(&a.face.label).expect("label listed");
-            let crop = if second { a.secondary_crop.as_ref() } else { Some(&a.crop) };
-            let crop = crop.ok_or_else(|| anyhow::anyhow!("{}: no crop on the second path", a.face.image.display()))?;
-            let copies = a.reposed.iter().filter_map(|(first, other)| if second { other.as_ref() } else { Some(first) });
-            let mut crops: Vec<GrayF32> = std::iter::once(crop).chain(copies).cloned().collect();
-            if config.mirror {
-                crops.extend(crops.iter().map(normalize::mirror).collect::<Vec<_>>());
-            }
-            for base in crops {
-                for _ in 0..config.jitter {
-                    xs.push(features_of(&jittered(&base, &mut rng)));
-                    ys.push(y);
-                }
-                xs.push(features_of(&base));
-                ys.push(y);
-            }
-        }
-        let whole = Dlda::train(&xs, &ys, &config.dlda)?;
-        let parts = part_indices
-            .iter()
-            .map(|indices| {
-                let local: Vec<Vec<f32>> = xs.iter().map(|x| features::gather(x, indices)).collect();
-                Dlda::train(&local, &ys, &config.dlda)
-            })
-            .collect::<Result<Vec<_>, _>>()?;
-        Ok((whole, parts))
-    };
-    let (dlda, primary_parts) = project(false)?;
+    let (dlda, primary_parts) = project_path(&train, &labels, config, &part_indices, false)?;
     let (secondary, secondary_parts) = match config.secondary {
         Some(normalization) => {
             anyhow::ensure!(normalization != config.normalization, "the second path must differ from the first");
             anyhow::ensure!(held.iter().all(|a| a.secondary_crop.is_some()), "held-out photos without a crop on the second path");
-            let (dlda, parts) = project(true)?;
+            let (dlda, parts) = project_path(&train, &labels, config, &part_indices, true)?;
             (Some(SecondaryPath { normalization, dlda, weight: config.secondary_weight }), parts)
         }
         None => (None, Vec::new()),
@@ -641,23 +645,7 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
             projections: std::iter::once(primary).chain(secondary_parts.next()).collect(),
         })
         .collect();
-    let mut held_persons: Vec<String> = held.iter().map(|a| a.face.label.clone()).collect();
-    held_persons.sort();
-    held_persons.dedup();
-    let mut sources: BTreeMap<&str, usize> = BTreeMap::new();
-    for a in aligned {
-        *sources.entry(a.keypoint_source).or_default() += 1;
-    }
-    let keypoint_source = sources.iter().map(|(s, n)| format!("{s} ({n} photos)")).collect::<Vec<_>>().join(", ");
-    let provenance = Provenance {
-        keypoint_source: keypoint_source.clone(),
-        data: data.to_vec(),
-        train_persons: labels.clone(),
-        train_images: train.len(),
-        calibration_persons: held_persons.clone(),
-        calibration_images: held.len(),
-        mirrored: config.mirror,
-    };
+    let provenance = provenance(aligned, &train, &held, labels, config, data);
     let mut model = Model::new(config.normalization, config.normalize.clone(), config.features, dlda, provenance);
     model.secondary = secondary;
     model.parts = parts;
@@ -667,6 +655,90 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
         let vectors: Vec<Vec<f32>> = train.iter().map(|a| template_of(&raw, a).map(|t| t.vector)).collect::<Result<_, _>>()?;
         model.cohort = Some(Cohort::new(model.template_dims(), &vectors, top_k));
     }
+    let report = calibrate(&mut model, &held)?;
+    Ok((model, report))
+}
+
+/// One path's projections, the whole face's then each local part's (on the same samples), trained
+/// on the training faces' crops on that path (`second`: the second path's, else the primary's),
+/// their re-posed copies, mirrored copies and jittered copies, each labelled by its person.
+fn project_path(
+    train: &[&AlignedFace],
+    labels: &[String],
+    config: &TrainConfig,
+    part_indices: &[Vec<usize>],
+    second: bool,
+) -> anyhow::Result<(Dlda, Vec<Dlda>)> {
+    let mask = config.normalize.mask();
+    let features_of = |crop: &GrayF32| {
+        let mut c = crop.clone();
+        normalize::photometric(&mut c, config.normalize.photometric, &mask);
+        config.features.extract(&c, &mask)
+    };
+    let mut xs = Vec::new();
+    let mut ys = Vec::new();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2011);
+    for a in train {
+        let y = labels.binary_search(&a.face.label).expect("label listed");
+        let crop = if second { a.secondary_crop.as_ref() } else { Some(&a.crop) };
+        let crop = crop.ok_or_else(|| anyhow::anyhow!("{}: no crop on the second path", a.face.image.display()))?;
+        let copies = a.reposed.iter().filter_map(|(first, other)| if second { other.as_ref() } else { Some(first) });
+        let mut crops: Vec<GrayF32> = std::iter::once(crop).chain(copies).cloned().collect();
+        if config.mirror {
+            crops.extend(crops.iter().map(normalize::mirror).collect::<Vec<_>>());
+        }
+        for base in crops {
+            for _ in 0..config.jitter {
+                xs.push(features_of(&jittered(&base, &mut rng)));
+                ys.push(y);
+            }
+            xs.push(features_of(&base));
+            ys.push(y);
+        }
+    }
+    let whole = Dlda::train(&xs, &ys, &config.dlda)?;
+    let parts = part_indices
+        .iter()
+        .map(|indices| {
+            let local: Vec<Vec<f32>> = xs.iter().map(|x| features::gather(x, indices)).collect();
+            Dlda::train(&local, &ys, &config.dlda)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((whole, parts))
+}
+
+/// Where the model's training and calibration photos came from.
+fn provenance(
+    aligned: &[AlignedFace],
+    train: &[&AlignedFace],
+    held: &[&AlignedFace],
+    labels: Vec<String>,
+    config: &TrainConfig,
+    data: &[String],
+) -> Provenance {
+    let mut held_persons: Vec<String> = held.iter().map(|a| a.face.label.clone()).collect();
+    held_persons.sort();
+    held_persons.dedup();
+    let mut sources: BTreeMap<&str, usize> = BTreeMap::new();
+    for a in aligned {
+        *sources.entry(a.keypoint_source).or_default() += 1;
+    }
+    let keypoint_source = sources.iter().map(|(s, n)| format!("{s} ({n} photos)")).collect::<Vec<_>>().join(", ");
+    Provenance {
+        keypoint_source,
+        data: data.to_vec(),
+        train_persons: labels,
+        train_images: train.len(),
+        calibration_persons: held_persons,
+        calibration_images: held.len(),
+        mirrored: config.mirror,
+    }
+}
+
+/// Calibrates `model` on the held-out faces: the one-photo threshold table from all their pairs,
+/// the template rule (max or mean, whichever has the lower EER), and a table per enrolment size
+/// (a subject enrolled with k photos scores the best, or mean, of k comparisons).
+fn calibrate(model: &mut Model, held: &[&AlignedFace]) -> anyhow::Result<HeldOutReport> {
     let recognizer = Recognizer::from_model(model.clone());
     let templates: Vec<(String, Template)> = held
         .iter()
@@ -677,21 +749,22 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
         !genuine.is_empty() && !impostor.is_empty(),
         "the held-out persons give no genuine or no impostor pairs to calibrate on"
     );
+    let keypoint_source = model.provenance.keypoint_source.clone();
+    let held_persons = model.provenance.calibration_persons.len();
     model.calibration = Calibration::from_scores(
         &genuine,
         &impostor,
         &CALIBRATED_FMRS,
-        &format!("all pairs of {} photos of {} held-out persons; keypoints: {keypoint_source}", held.len(), held_persons.len()),
+        &format!("all pairs of {} photos of {held_persons} held-out persons; keypoints: {keypoint_source}", held.len()),
     );
     let (gm, im) = combined_scores(&recognizer, &templates, Combine::Max);
     let (ga, ia) = combined_scores(&recognizer, &templates, Combine::Mean);
     let (eer_max, eer_mean) = (eer(&gm, &im), eer(&ga, &ia));
     model.combine = if eer_mean < eer_max { Combine::Mean } else { Combine::Max };
-    // A subject enrolled with k photos scores the best (or mean) of k comparisons: its thresholds
-    // come from the same held-out persons scored that way.
+    let combine = model.combine;
     model.enrolled_calibration = (2..=MAX_CALIBRATED_ENROLMENT)
         .filter_map(|k| {
-            let (genuine, impostor) = enrolment_scores(&recognizer, &templates, k, model.combine);
+            let (genuine, impostor) = enrolment_scores(&recognizer, &templates, k, combine);
             (!genuine.is_empty() && !impostor.is_empty()).then(|| EnrolledCalibration {
                 enrolled: k,
                 calibration: Calibration::from_scores(
@@ -699,20 +772,13 @@ pub fn train_model(aligned: &[AlignedFace], config: &TrainConfig, data: &[String
                     &impostor,
                     &CALIBRATED_FMRS,
                     &format!(
-                        "probes against {k} enrolled photos ({:?}), every rotation of each held-out person's photos; keypoints: {keypoint_source}",
-                        model.combine
+                        "probes against {k} enrolled photos ({combine:?}), every rotation of each held-out person's photos; keypoints: {keypoint_source}"
                     ),
                 ),
             })
         })
         .collect();
-    let report = HeldOutReport {
-        pairs: summarize(&genuine, &impostor),
-        eer_combine_max: eer_max,
-        eer_combine_mean: eer_mean,
-        combine: model.combine,
-    };
-    Ok((model, report))
+    Ok(HeldOutReport { pairs: summarize(&genuine, &impostor), eer_combine_max: eer_max, eer_combine_mean: eer_mean, combine })
 }
 
 /// Cross-validation on the training persons only, for choosing parameters without looking at the
@@ -851,13 +917,13 @@ mod tests {
         let a = aligned.iter().find(|a| !a.face.held_out).unwrap();
         let t1 = template_of(&recognizer, a).unwrap();
         let prepared = front.prepare(&a.face, Normalization::TwoD).unwrap();
-        let t2 = recognizer.template(&prepared.gray, &prepared.keypoints);
+        let t2 = recognizer.template(Views::Single(&recognizer.normalized_crop(&prepared.gray, &prepared.keypoints))).unwrap();
         assert!(t1.cosine(&t2) > 0.9999, "same photo, same template");
         // A small shift of the keypoints (half a crop pixel) barely moves the template.
         let k = prepared.keypoints;
         let shift = |p: crate::core::geometry::Point| [p[0] + 1.5, p[1] + 1.0];
-        let t3 = recognizer
-            .template(&prepared.gray, &KeyPoints { left_eye: shift(k.left_eye), right_eye: shift(k.right_eye), mouth: shift(k.mouth) });
+        let shifted = KeyPoints { left_eye: shift(k.left_eye), right_eye: shift(k.right_eye), mouth: shift(k.mouth) };
+        let t3 = recognizer.template(Views::Single(&recognizer.normalized_crop(&prepared.gray, &shifted))).unwrap();
         assert!(t1.cosine(&t3) > 0.8, "shifted keypoints: cosine {}", t1.cosine(&t3));
         // Round trip through the model file keeps the version and the templates.
         let dir = std::env::temp_dir().join(format!("facegate-dlda-test-{}", std::process::id()));

@@ -1,0 +1,98 @@
+//! The rule the layout keeps: nothing in the runtime (the stages, `core`, `pipeline`, `service`,
+//! `store`, `http`) prints, shows progress, reads the environment or imports the offline code
+//! (`research`, `cli`, `config`). This test reads the runtime's sources and fails naming the file
+//! and line that breaks it. Test code (`#[cfg(test)]` modules, `tests.rs` files) is exempt: tests
+//! may read the shared data through `config` and train small models through `research`.
+
+use std::path::{Path, PathBuf};
+
+/// The runtime: every file under these folders, and these files.
+const RUNTIME: [&str; 9] = ["core", "detect", "landmarks", "morph", "recognize", "pipeline.rs", "service", "store", "http"];
+
+/// What the runtime must not contain, with the reason shown on failure.
+const FORBIDDEN: [(&str, &str); 12] = [
+    ("println!", "prints"),
+    ("eprintln!", "prints"),
+    ("print!(", "prints"),
+    ("eprint!(", "prints"),
+    ("dbg!(", "prints"),
+    ("indicatif", "shows progress"),
+    ("std::env::var", "reads the environment"),
+    ("std::env::args", "reads the environment"),
+    ("env::var", "reads the environment"),
+    ("crate::research", "imports research code"),
+    ("crate::cli", "imports the command line"),
+    ("crate::config", "reads the settings (the environment); take plain values instead"),
+];
+
+fn rust_files(path: &Path, out: &mut Vec<PathBuf>) {
+    if path.is_dir() {
+        let mut entries: Vec<PathBuf> = std::fs::read_dir(path).unwrap().map(|e| e.unwrap().path()).collect();
+        entries.sort();
+        for entry in entries {
+            rust_files(&entry, out);
+        }
+    } else if path.extension().is_some_and(|e| e == "rs") && path.file_name().is_some_and(|n| n != "tests.rs") {
+        out.push(path.to_path_buf());
+    }
+}
+
+/// The lines of `source` outside its test module (`#[cfg(test)] mod tests;` declarations are skipped,
+/// an inline `#[cfg(test)] mod … { … }` ends the scan: test modules come last) and outside comments.
+fn runtime_lines(source: &str) -> Vec<(usize, &str)> {
+    let lines: Vec<&str> = source.lines().collect();
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < lines.len() {
+        let line = lines[i].trim();
+        if line == "#[cfg(test)]" {
+            let next = lines.get(i + 1).map_or("", |l| l.trim());
+            if next.starts_with("mod ") && next.ends_with(';') {
+                i += 2;
+                continue;
+            }
+            break;
+        }
+        if !line.starts_with("//") {
+            out.push((i + 1, lines[i]));
+        }
+        i += 1;
+    }
+    out
+}
+
+#[test]
+fn the_runtime_neither_prints_nor_reads_the_environment_nor_imports_research_code() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    for entry in RUNTIME {
+        let path = src.join(entry);
+        assert!(path.exists(), "{} is listed as runtime but does not exist", path.display());
+        rust_files(&path, &mut files);
+    }
+    assert!(files.len() > 30, "only {} runtime files found", files.len());
+    let mut broken = Vec::new();
+    for file in &files {
+        let source = std::fs::read_to_string(file).unwrap();
+        for (number, line) in runtime_lines(&source) {
+            for (pattern, reason) in FORBIDDEN {
+                if line.contains(pattern) {
+                    broken.push(format!("{}:{number}: {reason} ({pattern}): {}", file.strip_prefix(&src).unwrap().display(), line.trim()));
+                }
+            }
+        }
+    }
+    assert!(
+        broken.is_empty(),
+        "the runtime must not print, show progress, read the environment or import research code:\n{}",
+        broken.join("\n")
+    );
+}
+
+#[test]
+fn the_scan_finds_what_it_forbids() {
+    let source = "fn a() {\n    // println!(\"in a comment\")\n    eprintln!(\"x\");\n}\n#[cfg(test)]\nmod tests;\nuse crate::research::dataset;\n#[cfg(test)]\nmod t {\n    println!(\"test\");\n}\n";
+    let lines: Vec<usize> =
+        runtime_lines(source).into_iter().filter(|(_, l)| FORBIDDEN.iter().any(|(p, _)| l.contains(p))).map(|(n, _)| n).collect();
+    assert_eq!(lines, [3, 7]);
+}
