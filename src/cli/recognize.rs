@@ -7,11 +7,11 @@ use anyhow::Context;
 
 use crate::pipeline::Pipeline;
 use crate::recognize::calibration::DEFAULT_FMR;
-use crate::recognize::{DldaParams, FeatureKind, Normalization, NormalizeParams, Photometric, Recognizer, Template};
+use crate::recognize::{DldaParams, FeatureKind, Model, Normalization, NormalizeParams, Photometric, Recognizer, Template};
 use crate::research::eval::identification;
 use crate::research::eval::pairs::{read_pairs, score_pairs};
 use crate::research::eval::verification::{self, summarize};
-use crate::research::train_dlda::{self as train, FaceRegion, FrontEnd, KeypointSource, TrainConfig};
+use crate::research::train_dlda::{self as train, AlignedFace, FaceRegion, FrontEnd, HeldOutReport, KeypointSource, TrainConfig};
 
 #[derive(clap::Args, Debug)]
 pub struct CompareArgs {
@@ -280,6 +280,23 @@ pub fn run_compare(args: CompareArgs) -> anyhow::Result<ExitCode> {
 
 pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
     let config = args.model.config();
+    let aligned = training_crops(&args, &config)?;
+    let data: Vec<String> = args.data.iter().map(|d| d.display().to_string()).collect();
+    if let Some(folds) = args.cv_folds {
+        report_cross_validation(&train::cross_validate(&aligned, &config, folds)?);
+        if args.cv_only {
+            return Ok(ExitCode::SUCCESS);
+        }
+    }
+    eprintln!("training DLDA on {} photos ({} of training persons)…", aligned.len(), aligned.iter().filter(|a| !a.face.held_out).count());
+    let (model, report) = train::train_model(&aligned, &config, &data)?;
+    model.save(&args.out)?;
+    report_model(&args.out, &model, &report);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The crops `train dlda` trains on: every path's, with the re-posed copies unless `--no-repose`.
+fn training_crops(args: &TrainDldaArgs, config: &TrainConfig) -> anyhow::Result<Vec<AlignedFace>> {
     let mut faces = train::list_faces(&args.data)?;
     anyhow::ensure!(!faces.is_empty(), "no labelled images under {:?}", args.data);
     if args.model.train_frontal_only {
@@ -312,33 +329,32 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
             &crate::cli::Bar::default(),
         )?;
     }
-    let data: Vec<String> = args.data.iter().map(|d| d.display().to_string()).collect();
-    if let Some(folds) = args.cv_folds {
-        let folds = train::cross_validate(&aligned, &config, folds)?;
-        let mean = |f: &dyn Fn(&verification::VerificationSummary) -> f64| folds.iter().map(f).sum::<f64>() / folds.len() as f64;
-        let (eer, f2, f3) = (mean(&|s| s.eer), mean(&|s| s.fnmr_at_fmr_1e2), mean(&|s| s.fnmr_at_fmr_1e3));
-        let per: Vec<String> = folds.iter().map(|s| format!("{:.2}%", 100.0 * s.eer)).collect();
-        eprintln!(
-            "cross-validation over training persons: mean EER {:.2}% (folds {}), FNMR@FMR1e-2 {:.2}%, FNMR@FMR1e-3 {:.2}%",
-            100.0 * eer,
-            per.join(", "),
-            100.0 * f2,
-            100.0 * f3
-        );
-        crate::cli::print_json_line(
-            &serde_json::json!({"cv_folds": folds, "cv_eer_mean": eer, "cv_fnmr_at_fmr_1e2_mean": f2, "cv_fnmr_at_fmr_1e3_mean": f3}),
-        );
-        if args.cv_only {
-            return Ok(ExitCode::SUCCESS);
-        }
-    }
-    eprintln!("training DLDA on {} photos ({} of training persons)…", aligned.len(), aligned.iter().filter(|a| !a.face.held_out).count());
-    let (model, report) = train::train_model(&aligned, &config, &data)?;
-    model.save(&args.out)?;
+    Ok(aligned)
+}
+
+/// Prints the cross-validation folds (stderr) and their JSON line (stdout).
+fn report_cross_validation(folds: &[verification::VerificationSummary]) {
+    let mean = |f: &dyn Fn(&verification::VerificationSummary) -> f64| folds.iter().map(f).sum::<f64>() / folds.len() as f64;
+    let (eer, f2, f3) = (mean(&|s| s.eer), mean(&|s| s.fnmr_at_fmr_1e2), mean(&|s| s.fnmr_at_fmr_1e3));
+    let per: Vec<String> = folds.iter().map(|s| format!("{:.2}%", 100.0 * s.eer)).collect();
+    eprintln!(
+        "cross-validation over training persons: mean EER {:.2}% (folds {}), FNMR@FMR1e-2 {:.2}%, FNMR@FMR1e-3 {:.2}%",
+        100.0 * eer,
+        per.join(", "),
+        100.0 * f2,
+        100.0 * f3
+    );
+    crate::cli::print_json_line(
+        &serde_json::json!({"cv_folds": folds, "cv_eer_mean": eer, "cv_fnmr_at_fmr_1e2_mean": f2, "cv_fnmr_at_fmr_1e3_mean": f3}),
+    );
+}
+
+/// Prints what was trained (stderr: version, held-out measures, threshold tables) and its JSON line.
+fn report_model(out: &Path, model: &Model, report: &HeldOutReport) {
     let version = model.version();
     eprintln!(
         "{}: {version}, {} → {} dims, trained on {} photos of {} persons (+mirrored: {}), keypoints {}",
-        args.out.display(),
+        out.display(),
         model.dlda.input_dims,
         model.template_dims(),
         model.provenance.train_images,
@@ -375,11 +391,10 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
         }
     }
     crate::cli::print_json_line(&serde_json::json!({
-        "model": args.out, "version": version, "normalization": model.normalization, "features": model.features,
+        "model": out, "version": version, "normalization": model.normalization, "features": model.features,
         "photometric": model.normalize.photometric, "dims": model.template_dims(), "paths": model.paths(), "keypoints": model.provenance.keypoint_source,
         "held_out": report, "calibration": model.calibration.points, "enrolled_calibration": model.enrolled_calibration,
     }));
-    Ok(ExitCode::SUCCESS)
 }
 
 pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
