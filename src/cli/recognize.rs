@@ -477,10 +477,21 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
             100.0 * s.fnmr_at_fmr_1e3
         );
     }
-    // The service's protocol: k photos enrolled per person, the probe scored against all of them.
-    for (name, set) in [("frontal/near-frontal", &frontal), ("all views", &all)] {
+    print_enrolment_protocol(&recognizer, [("frontal/near-frontal", &frontal), ("all views", &all)], who);
+    std::fs::create_dir_all(&args.plots)?;
+    let (roc, det) = (args.plots.join("roc.svg"), args.plots.join("det.svg"));
+    verification::write_roc_det(&roc, &det, &[("frontal/near-frontal", &gf, &iff), ("all views (incl. IMM ±30°)", &ga, &ia)])?;
+    println!("wrote {} and {}", roc.display(), det.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The service's protocol: k photos enrolled per person, the probe scored against all of them, at
+/// the threshold the service uses for a subject with k templates.
+fn print_enrolment_protocol(recognizer: &Recognizer, sets: [(&str, &Vec<(String, Template)>); 2], who: &str) {
+    let model = recognizer.model();
+    for (name, set) in sets {
         for k in ENROLLED_PHOTOS {
-            let (g, i) = train::enrolment_scores(&recognizer, set, k, model.combine);
+            let (g, i) = train::enrolment_scores(recognizer, set, k, model.combine);
             if g.is_empty() || i.is_empty() {
                 continue;
             }
@@ -504,11 +515,6 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
             );
         }
     }
-    std::fs::create_dir_all(&args.plots)?;
-    let (roc, det) = (args.plots.join("roc.svg"), args.plots.join("det.svg"));
-    verification::write_roc_det(&roc, &det, &[("frontal/near-frontal", &gf, &iff), ("all views (incl. IMM ±30°)", &ga, &ia)])?;
-    println!("wrote {} and {}", roc.display(), det.display());
-    Ok(ExitCode::SUCCESS)
 }
 
 pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
