@@ -219,12 +219,7 @@ pub fn train(
     let p = &options.params;
     // The 3DMM fitted to every photo's annotation first: the fits' jaw vertices give the
     // annotators' jaw convention on the mesh, which the 3D PDMs and the renders follow.
-    let mut fits: Vec<Option<crate::morph::FittedFace>> = Vec::with_capacity(samples.len());
-    for sample in samples {
-        let shape = sample.landmarks().map_err(|e| LandmarkError::Training(e.to_string()))?;
-        let (w, h) = image::image_dimensions(&sample.image).map_err(|e| LandmarkError::Training(e.to_string()))?;
-        fits.push(fm.fit(&shape, w, h).ok());
-    }
+    let fits = fit_annotations(samples, fm)?;
     let jaw = annotated_jaw_vertices(fm, &fits.iter().flatten().collect::<Vec<_>>());
     let mut real_per_view = vec![0usize; options.yaws.len()];
     for f in fits.iter().flatten() {
@@ -281,18 +276,8 @@ pub fn train(
             (0..3).for_each(|k| acc[k] += d[k]);
         }
         fitted_photos += 1;
-        let texture = fm.extract_texture(&photo.rgb, &fit, options.texture_size);
-        let background = background_colour(&photo.rgb);
-        for (vi, &yaw) in options.yaws.iter().enumerate() {
-            // Drawn for every view, so that leaving renders out does not change the others' lighting.
-            let gain = options.lighting * (2.0 * rng.random::<f32>() - 1.0);
-            if real_per_view[vi] >= options.renders_below_real {
-                continue;
-            }
-            let pose = Pose { yaw, pitch: fit.pose.pitch, roll: 0.0 };
-            let view = synthesise_view(fm, &fit, &texture, pose, background, gain, &photo_jaw, &offsets);
-            views[vi].add(&view.gray, &view.points, view.camera.scale, crop_px_per_mm, p, &neighbours);
-        }
+        let renders = Renders { fm, fit: &fit, jaw: &photo_jaw, offsets: &offsets, crop_px_per_mm, neighbours: &neighbours };
+        renders.add_to(&mut views, &photo, &real_per_view, options, &mut rng);
         tick();
     }
     // The 3D PDMs' means follow the annotation convention too: the mean offset of the internal
@@ -327,6 +312,55 @@ pub fn train(
             seed: options.seed,
         },
     })
+}
+
+/// The 3DMM fitted to every photo's annotated landmarks (`None` where the fit fails).
+fn fit_annotations(samples: &[ImmSample], fm: &FaceModel) -> Result<Vec<Option<crate::morph::FittedFace>>, LandmarkError> {
+    let mut fits = Vec::with_capacity(samples.len());
+    for sample in samples {
+        let shape = sample.landmarks().map_err(|e| LandmarkError::Training(e.to_string()))?;
+        let (w, h) = image::image_dimensions(&sample.image).map_err(|e| LandmarkError::Training(e.to_string()))?;
+        fits.push(fm.fit(&shape, w, h).ok());
+    }
+    Ok(fits)
+}
+
+/// One fitted training photo rendered at other views: its fit, its jaw vertices and annotation
+/// offsets, and the crop scale and contour neighbours the texture samples are taken with.
+struct Renders<'a> {
+    fm: &'a FaceModel,
+    fit: &'a crate::morph::FittedFace,
+    jaw: &'a JawVertices,
+    offsets: &'a [[f64; 3]],
+    crop_px_per_mm: f32,
+    neighbours: &'a [[u16; 2]],
+}
+
+impl Renders<'_> {
+    /// Adds the photo's face, textured from `photo` and rendered at each view's yaw under a random
+    /// side light, to the texture samples of every view with fewer real photos than
+    /// `options.renders_below_real`.
+    fn add_to(
+        &self,
+        views: &mut [ViewSamples],
+        photo: &imaging::Photo,
+        real_per_view: &[usize],
+        options: &Asm3dTrainOptions,
+        rng: &mut impl Rng,
+    ) {
+        let texture = self.fm.extract_texture(&photo.rgb, self.fit, options.texture_size);
+        let background = background_colour(&photo.rgb);
+        for (vi, &yaw) in options.yaws.iter().enumerate() {
+            // Drawn for every view, so that leaving renders out does not change the others' lighting.
+            let gain = options.lighting * (2.0 * rng.random::<f32>() - 1.0);
+            if real_per_view[vi] >= options.renders_below_real {
+                continue;
+            }
+            let pose = Pose { yaw, pitch: self.fit.pose.pitch, roll: 0.0 };
+            let view = synthesise_view(self.fm, self.fit, &texture, pose, background, gain, self.jaw, self.offsets);
+            views[vi].add(&view.gray, &view.points, view.camera.scale, self.crop_px_per_mm, &options.params, self.neighbours);
+        }
+    }
 }
 
 /// Each view's own start placement (the medians over its photos, from the detector's boxes or,
