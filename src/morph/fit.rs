@@ -231,7 +231,7 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
                 lhs[p * cols + q] = lhs[q * cols + p];
             }
         }
-        let sol = solve_spd(&mut lhs, &rhs, cols).ok_or_else(|| MorphError::Degenerate("shape system is not positive definite".into()))?;
+        let sol = solve_spd(&lhs, &rhs, cols).ok_or_else(|| MorphError::Degenerate("shape system is not positive definite".into()))?;
         if !sol.iter().all(|v| v.is_finite()) {
             return Err(MorphError::Degenerate("non-finite shape coefficients".into()));
         }
@@ -306,42 +306,9 @@ fn update_contour(model: &FaceModel, cam: &Camera, alpha: &[f64], psi: &[f64], p
 /// on the occluding boundary.
 const SILHOUETTE_COSINE: f64 = 0.25;
 
-/// Solve `A x = b` for a symmetric positive definite `A` (`n`×`n`, row-major, overwritten by its
-/// Cholesky factor). `None` when `A` is not positive definite.
-fn solve_spd(a: &mut [f64], b: &[f64], n: usize) -> Option<Vec<f64>> {
-    for j in 0..n {
-        let mut d = a[j * n + j];
-        for k in 0..j {
-            d -= a[j * n + k] * a[j * n + k];
-        }
-        if !(d > 0.0) {
-            return None;
-        }
-        let d = d.sqrt();
-        a[j * n + j] = d;
-        for i in j + 1..n {
-            let mut s = a[i * n + j];
-            for k in 0..j {
-                s -= a[i * n + k] * a[j * n + k];
-            }
-            a[i * n + j] = s / d;
-        }
-    }
-    let mut y = vec![0.0; n];
-    for i in 0..n {
-        let mut s = b[i];
-        for k in 0..i {
-            s -= a[i * n + k] * y[k];
-        }
-        y[i] = s / a[i * n + i];
-    }
-    let mut x = vec![0.0; n];
-    for i in (0..n).rev() {
-        let mut s = y[i];
-        for k in i + 1..n {
-            s -= a[k * n + i] * x[k];
-        }
-        x[i] = s / a[i * n + i];
-    }
-    Some(x)
+/// Solve `A x = b` for a symmetric positive definite `A` (`n`×`n`, row-major) by nalgebra's
+/// Cholesky factorisation. `None` when `A` is not positive definite.
+fn solve_spd(a: &[f64], b: &[f64], n: usize) -> Option<Vec<f64>> {
+    let cholesky = nalgebra::DMatrix::from_row_slice(n, n, a).cholesky()?;
+    Some(cholesky.solve(&nalgebra::DVector::from_column_slice(b)).as_slice().to_vec())
 }
