@@ -165,12 +165,7 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
     let mut camera = None;
     let mut model_pts = [[0.0f64; 3]; IMM_POINTS];
     let omega = 1.0 / (options.landmark_sigma_px * options.landmark_sigma_px);
-    let cols = m + ne;
-    // Row-major design matrix (2 rows per landmark), normal equations.
-    let mut a_rows = vec![0.0f64; 2 * IMM_POINTS * cols];
-    let mut b_vec = vec![0.0f64; 2 * IMM_POINTS];
-    let mut lhs = vec![0.0f64; cols * cols];
-    let mut rhs = vec![0.0f64; cols];
+    let mut system = ShapeSystem::new(m, ne);
     for iteration in 0..options.iterations.max(1) {
         for (i, mp) in model_pts.iter_mut().enumerate() {
             *mp = model.vertex(corr[i] as usize, &alpha, &psi);
@@ -182,56 +177,11 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
                 weights[j] = if j == 6 { 1.0 } else { options.jaw_weight };
             }
         }
-        // Shape (and expression) coefficients given the camera: rows for x and y of each point.
-        a_rows.fill(0.0);
-        for i in 0..IMM_POINTS {
-            let vid = corr[i] as usize;
-            let mean = model.mean_vertex(vid);
-            let pm = cam.rotate(mean);
-            let w = weights[i].sqrt();
-            b_vec[2 * i] = w * (points[i][0] as f64 - (cam.scale * pm[0] + cam.tx));
-            b_vec[2 * i + 1] = w * ((cam.ty - points[i][1] as f64) - cam.scale * pm[1]);
-            for d in 0..2 {
-                let r = cam.rotation[d];
-                for k in 0..m {
-                    let bx = model.scaled_basis(vid, 0, k);
-                    let by = model.scaled_basis(vid, 1, k);
-                    let bz = model.scaled_basis(vid, 2, k);
-                    a_rows[(2 * i + d) * cols + k] = w * cam.scale * (r[0] * bx + r[1] * by + r[2] * bz);
-                }
-                for e in 0..ne {
-                    let def = &model.blendshapes[e].deformation;
-                    let (bx, by, bz) = (def[3 * vid] as f64, def[3 * vid + 1] as f64, def[3 * vid + 2] as f64);
-                    a_rows[(2 * i + d) * cols + m + e] = w * cam.scale * (r[0] * bx + r[1] * by + r[2] * bz);
-                }
-            }
-        }
-        // Normal equations by hand (our crate is optimised; nalgebra's dense products go through
-        // a dependency that is not, in the dev profile): lhs = AᵀA·ω + Λ, rhs = Aᵀb·ω.
-        lhs.fill(0.0);
-        rhs.fill(0.0);
-        for r in 0..2 * IMM_POINTS {
-            let row = &a_rows[r * cols..(r + 1) * cols];
-            let br = b_vec[r];
-            for p in 0..cols {
-                let ap = row[p] * omega;
-                if ap == 0.0 {
-                    continue;
-                }
-                rhs[p] += ap * br;
-                let lrow = &mut lhs[p * cols..(p + 1) * cols];
-                for q in p..cols {
-                    lrow[q] += ap * row[q];
-                }
-            }
-        }
-        for p in 0..cols {
-            lhs[p * cols + p] += if p < m { options.lambda } else { options.expression_lambda };
-            for q in 0..p {
-                lhs[p * cols + q] = lhs[q * cols + p];
-            }
-        }
-        let sol = solve_spd(&lhs, &rhs, cols).ok_or_else(|| MorphError::Degenerate("shape system is not positive definite".into()))?;
+        // Shape (and expression) coefficients given the camera.
+        system.design(model, &cam, &corr, &weights, points);
+        system.normal_equations(omega, options);
+        let sol = solve_spd(&system.lhs, &system.rhs, system.cols)
+            .ok_or_else(|| MorphError::Degenerate("shape system is not positive definite".into()))?;
         if !sol.iter().all(|v| v.is_finite()) {
             return Err(MorphError::Degenerate("non-finite shape coefficients".into()));
         }
@@ -257,6 +207,88 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
         correspondence: corr,
         residual_px,
     })
+}
+
+/// The regularised least-squares system for the shape (and expression) coefficients given a
+/// camera: a row-major design matrix with 2 rows per landmark, and its normal equations.
+struct ShapeSystem {
+    m: usize,
+    ne: usize,
+    cols: usize,
+    a_rows: Vec<f64>,
+    b_vec: Vec<f64>,
+    lhs: Vec<f64>,
+    rhs: Vec<f64>,
+}
+
+impl ShapeSystem {
+    fn new(m: usize, ne: usize) -> ShapeSystem {
+        let cols = m + ne;
+        ShapeSystem {
+            m,
+            ne,
+            cols,
+            a_rows: vec![0.0; 2 * IMM_POINTS * cols],
+            b_vec: vec![0.0; 2 * IMM_POINTS],
+            lhs: vec![0.0; cols * cols],
+            rhs: vec![0.0; cols],
+        }
+    }
+
+    /// The rows for x and y of each point under `cam`, weighted by √weight.
+    fn design(&mut self, model: &FaceModel, cam: &Camera, corr: &[u32; IMM_POINTS], weights: &[f64; IMM_POINTS], points: &[Point]) {
+        self.a_rows.fill(0.0);
+        for i in 0..IMM_POINTS {
+            let vid = corr[i] as usize;
+            let mean = model.mean_vertex(vid);
+            let pm = cam.rotate(mean);
+            let w = weights[i].sqrt();
+            self.b_vec[2 * i] = w * (points[i][0] as f64 - (cam.scale * pm[0] + cam.tx));
+            self.b_vec[2 * i + 1] = w * ((cam.ty - points[i][1] as f64) - cam.scale * pm[1]);
+            for d in 0..2 {
+                let r = cam.rotation[d];
+                for k in 0..self.m {
+                    let bx = model.scaled_basis(vid, 0, k);
+                    let by = model.scaled_basis(vid, 1, k);
+                    let bz = model.scaled_basis(vid, 2, k);
+                    self.a_rows[(2 * i + d) * self.cols + k] = w * cam.scale * (r[0] * bx + r[1] * by + r[2] * bz);
+                }
+                for e in 0..self.ne {
+                    let def = &model.blendshapes[e].deformation;
+                    let (bx, by, bz) = (def[3 * vid] as f64, def[3 * vid + 1] as f64, def[3 * vid + 2] as f64);
+                    self.a_rows[(2 * i + d) * self.cols + self.m + e] = w * cam.scale * (r[0] * bx + r[1] * by + r[2] * bz);
+                }
+            }
+        }
+    }
+
+    /// The normal equations by hand, `lhs = AᵀA·ω + Λ`, `rhs = Aᵀb·ω` (our crate is optimised;
+    /// nalgebra's dense products go through a dependency that is not, in the dev profile).
+    fn normal_equations(&mut self, omega: f64, options: &FitOptions) {
+        self.lhs.fill(0.0);
+        self.rhs.fill(0.0);
+        for r in 0..2 * IMM_POINTS {
+            let row = &self.a_rows[r * self.cols..(r + 1) * self.cols];
+            let br = self.b_vec[r];
+            for p in 0..self.cols {
+                let ap = row[p] * omega;
+                if ap == 0.0 {
+                    continue;
+                }
+                self.rhs[p] += ap * br;
+                let lrow = &mut self.lhs[p * self.cols..(p + 1) * self.cols];
+                for q in p..self.cols {
+                    lrow[q] += ap * row[q];
+                }
+            }
+        }
+        for p in 0..self.cols {
+            self.lhs[p * self.cols + p] += if p < self.m { options.lambda } else { options.expression_lambda };
+            for q in 0..p {
+                self.lhs[p * self.cols + q] = self.lhs[q * self.cols + p];
+            }
+        }
+    }
 }
 
 /// Give each jaw landmark (except the chin) the vertex of its side whose projection is nearest to
