@@ -165,6 +165,7 @@ pub fn run_eval(args: EvalLandmarksArgs) -> anyhow::Result<ExitCode> {
                 folds,
                 args.halvings,
                 &crate::cli::Bar::default(),
+                &mut std::io::stdout().lock(),
             )?;
         }
         None => {
@@ -174,6 +175,7 @@ pub fn run_eval(args: EvalLandmarksArgs) -> anyhow::Result<ExitCode> {
                 &args.out,
                 args.halvings,
                 &crate::cli::Bar::default(),
+                &mut std::io::stdout().lock(),
             )?;
         }
     }

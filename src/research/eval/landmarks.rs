@@ -2,6 +2,7 @@
 //! variants side by side, from the detector's box to the searched points, with the Jesorsky
 //! d_eye measure and the mouth error (thesis eq. 2.4–2.5), and their cumulative curves.
 
+use std::io::Write;
 use std::path::Path;
 use std::time::Instant;
 
@@ -75,8 +76,14 @@ pub fn measure(
 
 /// Train on the training persons, measure the three variants on the held-out persons, print the
 /// table, write `summary.json`, `landmarks-d_eye.svg` and `landmarks-mouth.svg` into `out`.
-pub fn run(imm: &Path, detector: Option<&Detector>, out: &Path, progress: &dyn Progress) -> anyhow::Result<Vec<VariantSummary>> {
-    run_scaled(imm, detector, out, 0, progress)
+pub fn run(
+    imm: &Path,
+    detector: Option<&Detector>,
+    out: &Path,
+    progress: &dyn Progress,
+    report: &mut dyn Write,
+) -> anyhow::Result<Vec<VariantSummary>> {
+    run_scaled(imm, detector, out, 0, progress, report)
 }
 
 type TestPhoto = (ImmSample, crate::core::imaging::GrayF32, Vec<crate::core::geometry::Point>, Option<Rect>);
@@ -109,6 +116,7 @@ pub fn run_folds(
     folds: usize,
     halvings: usize,
     progress: &dyn Progress,
+    report: &mut dyn Write,
 ) -> anyhow::Result<Vec<VariantSummary>> {
     let all = dataset::list_imm(imm)?;
     let mut persons: Vec<u32> = all.iter().map(|s| s.person).collect();
@@ -140,28 +148,31 @@ pub fn run_folds(
             summarise(v.name(), errors, ms / fitted.max(1) as f64)
         })
         .collect();
-    println!(
+    writeln!(
+        report,
         "IMM person-disjoint {folds}-fold cross-validation over {} persons: {} photos, each measured by a model not trained on its person{}",
         persons.len(),
         all.len(),
         if halvings > 0 { format!(", test photos halved {halvings}×") } else { String::new() }
-    );
-    print_table(&summaries);
+    )?;
+    print_table(&summaries, report)?;
     std::fs::create_dir_all(out)?;
     let name = if halvings > 0 { format!("summary-folds{folds}-halvings{halvings}.json") } else { format!("summary-folds{folds}.json") };
     let summary = serde_json::json!({ "folds": folds, "halvings": halvings, "photos": all.len(), "variants": summaries });
     std::fs::write(out.join(&name), serde_json::to_string_pretty(&summary)?)?;
-    println!("wrote {}", out.join(name).display());
+    writeln!(report, "wrote {}", out.join(name).display())?;
     Ok(summaries)
 }
 
-fn print_table(summaries: &[VariantSummary]) {
-    println!(
+fn print_table(summaries: &[VariantSummary], report: &mut dyn Write) -> std::io::Result<()> {
+    writeln!(
+        report,
         "{:<8} {:>12} {:>12} {:>14} {:>12} {:>9} {:>12}",
         "variant", "d_eye<0.05", "d_eye<0.1", "mouth<0.1", "mean d_eye", "misses", "cpu ms/face"
-    );
+    )?;
     for s in summaries {
-        println!(
+        writeln!(
+            report,
             "{:<8} {:>11.1}% {:>11.1}% {:>13.1}% {:>12.4} {:>9} {:>12.2}",
             s.variant,
             100.0 * s.d_eye_005,
@@ -170,8 +181,9 @@ fn print_table(summaries: &[VariantSummary]) {
             s.mean_d_eye,
             s.detector_misses,
             s.ms_per_face
-        );
+        )?;
     }
+    Ok(())
 }
 
 /// [`run`] with the test photos halved `halvings` times (0: exactly [`run`]).
@@ -181,6 +193,7 @@ pub fn run_scaled(
     out: &Path,
     halvings: usize,
     progress: &dyn Progress,
+    report: &mut dyn Write,
 ) -> anyhow::Result<Vec<VariantSummary>> {
     let all = dataset::list_imm(imm)?;
     let (test, training): (Vec<ImmSample>, Vec<ImmSample>) = all.into_iter().partition(|s| dataset::imm_is_test_person(s.person));
@@ -192,7 +205,7 @@ pub fn run_scaled(
     let landmarker = Landmarker { model };
     let photos = load_test_photos(&test, detector, halvings)?;
     if halvings > 0 {
-        println!("test photos halved {halvings}× before detection and search");
+        writeln!(report, "test photos halved {halvings}× before detection and search")?;
     }
     let mut summaries: Vec<VariantSummary> = Variant::ALL.iter().map(|&v| measure(&landmarker, &photos, v)).collect();
     // The 3D-ASM beside them, and the head yaw of each photo for the per-view table.
@@ -211,7 +224,8 @@ pub fn run_scaled(
         (Some(_), BoxSource::Annotation) => "detector boxes (placement learnt from annotation boxes)",
         (None, _) => "ANNOTATION boxes (no detector available)",
     };
-    println!(
+    writeln!(
+        report,
         "IMM held-out persons {:?}: {} photos, {} training photos, {boxes}",
         {
             let mut p: Vec<u32> = test.iter().map(|s| s.person).collect();
@@ -220,13 +234,13 @@ pub fn run_scaled(
         },
         test.len(),
         training.len()
-    );
-    print_table(&summaries);
+    )?;
+    print_table(&summaries, report)?;
 
-    let per_view = per_view_tables(&summaries, &yaws);
+    let per_view = per_view_tables(&summaries, &yaws, report)?;
     for (name, rows) in &crossover_rows {
-        println!("{name}:");
-        print_crossover(rows);
+        writeln!(report, "{name}:")?;
+        print_crossover(rows, report)?;
     }
 
     std::fs::create_dir_all(out)?;
@@ -270,7 +284,7 @@ pub fn run_scaled(
     )?;
     let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries, "per_view": per_view, "yaw_of_annotation": yaws, "crossover": crossover_rows.iter().map(|(name, rows)| serde_json::json!({ "search": name, "rows": rows, "crossover_yaw": crossover_yaw(rows) })).collect::<Vec<_>>() });
     std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
-    println!("wrote {}", out.display());
+    writeln!(report, "wrote {}", out.display())?;
     Ok(summaries)
 }
 
@@ -349,7 +363,7 @@ fn measure_asm3d(
     let fm = match crate::morph::FaceModel::load(&crate::config::sfm_dir()) {
         Ok(m) => m,
         Err(e) => {
-            eprintln!("facegate: 3D-ASM not measured: {e}");
+            progress.note(&format!("facegate: 3D-ASM not measured: {e}"));
             return None;
         }
     };
@@ -363,7 +377,7 @@ fn measure_asm3d(
     ) {
         Ok(m) => m,
         Err(e) => {
-            eprintln!("facegate: 3D-ASM not measured: {e}");
+            progress.note(&format!("facegate: 3D-ASM not measured: {e}"));
             return None;
         }
     };
@@ -384,7 +398,7 @@ fn measure_asm3d(
         for (name, search) in searches {
             match crossover(&fm, test, det, casm, search) {
                 Ok(r) => rows.push((name, r)),
-                Err(e) => eprintln!("facegate: crossover not measured: {e}"),
+                Err(e) => progress.note(&format!("facegate: crossover not measured: {e}")),
             }
         }
     }
@@ -393,7 +407,7 @@ fn measure_asm3d(
 
 /// Per IMM view group (frontal 1–2, turned 3–4, spot light and free 5–6) and per |yaw| band of the
 /// 3DMM fitted to the manual landmarks: share with d_eye < 0.1 and mean d_eye of every variant.
-fn per_view_tables(summaries: &[VariantSummary], yaws: &[f32]) -> serde_json::Value {
+fn per_view_tables(summaries: &[VariantSummary], yaws: &[f32], report: &mut dyn Write) -> std::io::Result<serde_json::Value> {
     let groups: [(&str, &dyn Fn(&PhotoError, f32) -> bool); 7] = [
         ("views 1-2 (frontal)", &|e, _| matches!(e.view, 1 | 2)),
         ("views 3-4 (turned)", &|e, _| matches!(e.view, 3 | 4)),
@@ -403,11 +417,12 @@ fn per_view_tables(summaries: &[VariantSummary], yaws: &[f32]) -> serde_json::Va
         ("|yaw| 20-30", &|_, y| (20.0..30.0).contains(&y.abs())),
         ("|yaw| >= 30", &|_, y| y.abs() >= 30.0),
     ];
-    println!(
+    writeln!(
+        report,
         "{:<26} {}",
         "group (photos)",
         summaries.iter().map(|s| format!("{:>22}", format!("{} <0.1 / mean", s.variant))).collect::<String>()
-    );
+    )?;
     let mut rows = Vec::new();
     for (name, member) in groups {
         let mut line = String::new();
@@ -423,10 +438,10 @@ fn per_view_tables(summaries: &[VariantSummary], yaws: &[f32]) -> serde_json::Va
             line += &format!("{:>22}", format!("{:.1}% / {:.3}", 100.0 * ok, mean));
             cells.push(serde_json::json!({ "variant": s.variant, "d_eye_01": ok, "mean_d_eye": mean }));
         }
-        println!("{:<26}{line}", format!("{name} ({count})"));
+        writeln!(report, "{:<26}{line}", format!("{name} ({count})"))?;
         rows.push(serde_json::json!({ "group": name, "photos": count, "variants": cells }));
     }
-    serde_json::Value::Array(rows)
+    Ok(serde_json::Value::Array(rows))
 }
 
 /// Yaws (degrees) of the crossover renders.
@@ -539,24 +554,26 @@ pub fn crossover_yaw(rows: &[CrossoverRow]) -> Option<f32> {
 }
 
 /// Print the crossover table.
-pub fn print_crossover(rows: &[CrossoverRow]) {
-    println!("crossover on renders of held-out faces (d_eye < 0.05 / < 0.1 / mean; detector misses count as failures)");
-    println!("{:>6} {:>8} {:>7} {:>26} {:>26}", "|yaw|", "renders", "misses", "C-ASM", "3D-ASM");
+pub fn print_crossover(rows: &[CrossoverRow], report: &mut dyn Write) -> std::io::Result<()> {
+    writeln!(report, "crossover on renders of held-out faces (d_eye < 0.05 / < 0.1 / mean; detector misses count as failures)")?;
+    writeln!(report, "{:>6} {:>8} {:>7} {:>26} {:>26}", "|yaw|", "renders", "misses", "C-ASM", "3D-ASM")?;
     for r in rows {
         let cell = |a: f64, b: f64, m: f64| format!("{:.1}% / {:.1}% / {:.4}", 100.0 * a, 100.0 * b, m);
-        println!(
+        writeln!(
+            report,
             "{:>6.0} {:>8} {:>7} {:>26} {:>26}",
             r.yaw,
             r.renders,
             r.detector_misses,
             cell(r.casm_d_eye_005, r.casm_d_eye_01, r.casm_mean_d_eye),
             cell(r.asm3d_d_eye_005, r.asm3d_d_eye_01, r.asm3d_mean_d_eye)
-        );
+        )?;
     }
     match crossover_yaw(rows) {
-        Some(y) => println!("3D-ASM better than C-ASM from |yaw| {y:.0}° on"),
-        None => println!("no crossover: C-ASM as good or better at the largest |yaw|"),
+        Some(y) => writeln!(report, "3D-ASM better than C-ASM from |yaw| {y:.0}° on")?,
+        None => writeln!(report, "no crossover: C-ASM as good or better at the largest |yaw|")?,
     }
+    Ok(())
 }
 
 #[cfg(test)]
