@@ -89,6 +89,27 @@ fn the_runtime_neither_prints_nor_reads_the_environment_nor_imports_research_cod
     );
 }
 
+/// Research code reports through the writer and the `Progress` its caller hands down; only the CLI
+/// prints.
+#[test]
+fn research_code_does_not_print() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    rust_files(&src.join("research"), &mut files);
+    let mut broken = Vec::new();
+    for file in &files {
+        let source = std::fs::read_to_string(file).unwrap();
+        for (number, line) in runtime_lines(&source) {
+            for (pattern, reason) in FORBIDDEN.iter().filter(|(_, reason)| *reason == "prints" || *reason == "shows progress") {
+                if line.contains(pattern) {
+                    broken.push(format!("{}:{number}: {reason} ({pattern}): {}", file.strip_prefix(&src).unwrap().display(), line.trim()));
+                }
+            }
+        }
+    }
+    assert!(broken.is_empty(), "research code must not print or draw progress bars (the CLI does):\n{}", broken.join("\n"));
+}
+
 #[test]
 fn the_scan_finds_what_it_forbids() {
     let source = "fn a() {\n    // println!(\"in a comment\")\n    eprintln!(\"x\");\n}\n#[cfg(test)]\nmod tests;\nuse crate::research::dataset;\n#[cfg(test)]\nmod t {\n    println!(\"test\");\n}\n";

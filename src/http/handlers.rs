@@ -142,19 +142,11 @@ pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<R
             let mut out = Vec::with_capacity(images.len());
             for (index, bytes) in images.iter().enumerate() {
                 let analysed = analyse_photo(engine.as_ref(), bytes, &limits).map_err(|p| p.for_image(index))?;
-                if analysed.analysis.faces_found > 1 {
-                    return Err(Problem::new(
-                        ProblemKind::SeveralFaces,
-                        format!(
-                            "{} faces were found; an enrolment photo must show exactly one face, since a template of the wrong person is costly",
-                            analysed.analysis.faces_found
-                        ),
-                    )
-                    .for_image(index));
-                }
+                service::check_enrolment_photo(analysed.analysis.faces_found)
+                    .map_err(|e| Problem::new(ProblemKind::SeveralFaces, e.to_string()).for_image(index))?;
                 out.push(analysed);
             }
-            Ok(out)
+            Ok::<_, Problem>(out)
         })
         .await??;
     for a in &analysed {

@@ -1,5 +1,6 @@
 //! What the service does, without HTTP: subject ids parsed once ([`SubjectId`]), the face engine
-//! behind it ([`FaceEngine`]), what "verify" and "identify" mean ([`verify`], [`identify`]: which
+//! behind it ([`FaceEngine`]), which photos can be enrolled ([`check_enrolment_photo`]), what
+//! "verify" and "identify" mean ([`verify`], [`identify`]: which
 //! templates count, the threshold for the subject's number of templates, the decision) and the
 //! bounded work pool ([`WorkPool`]). The HTTP layer and the `compare` command both decide through
 //! here.
@@ -102,6 +103,18 @@ impl FaceEngine for Pipeline {
     fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
         Pipeline::analyze(self, photo)
     }
+}
+
+/// Why a photo cannot be enrolled.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum EnrolError {
+    #[error("{0} faces were found; an enrolment photo must show exactly one face, since a template of the wrong person is costly")]
+    SeveralFaces(usize),
+}
+
+/// An enrolment photo must show exactly one face (a probe may show several: the largest is used).
+pub fn check_enrolment_photo(faces_found: usize) -> Result<(), EnrolError> {
+    if faces_found > 1 { Err(EnrolError::SeveralFaces(faces_found)) } else { Ok(()) }
 }
 
 /// A match decision: the score, the threshold it was held against, and the outcome.
