@@ -37,8 +37,8 @@ fn rust_files(path: &Path, out: &mut Vec<PathBuf>) {
     }
 }
 
-/// The lines of `source` outside its test module (`#[cfg(test)] mod tests;` declarations are skipped,
-/// an inline `#[cfg(test)] mod … { … }` ends the scan: test modules come last) and outside comments.
+/// The lines of `source` outside comments and test code: a `#[cfg(test)]` item is skipped (a
+/// `mod tests;` declaration, or an inline module up to the `}` at its own indentation).
 fn runtime_lines(source: &str) -> Vec<(usize, &str)> {
     let lines: Vec<&str> = source.lines().collect();
     let mut out = Vec::new();
@@ -46,12 +46,15 @@ fn runtime_lines(source: &str) -> Vec<(usize, &str)> {
     while i < lines.len() {
         let line = lines[i].trim();
         if line == "#[cfg(test)]" {
-            let next = lines.get(i + 1).map_or("", |l| l.trim());
-            if next.starts_with("mod ") && next.ends_with(';') {
+            let item = lines.get(i + 1).copied().unwrap_or("");
+            if item.trim().ends_with(';') {
                 i += 2;
                 continue;
             }
-            break;
+            let indent = &item[..item.len() - item.trim_start().len()];
+            let end = lines[i + 1..].iter().position(|l| *l == format!("{indent}}}")).map_or(lines.len(), |k| i + 1 + k);
+            i = end + 1;
+            continue;
         }
         if !line.starts_with("//") {
             out.push((i + 1, lines[i]));
@@ -112,8 +115,8 @@ fn research_code_does_not_print() {
 
 #[test]
 fn the_scan_finds_what_it_forbids() {
-    let source = "fn a() {\n    // println!(\"in a comment\")\n    eprintln!(\"x\");\n}\n#[cfg(test)]\nmod tests;\nuse crate::research::dataset;\n#[cfg(test)]\nmod t {\n    println!(\"test\");\n}\n";
+    let source = "fn a() {\n    // println!(\"in a comment\")\n    eprintln!(\"x\");\n}\n#[cfg(test)]\nmod tests;\nuse crate::research::dataset;\n#[cfg(test)]\nmod t {\n    println!(\"test\");\n}\nfn b() { print!(\"after the tests\"); }\n";
     let lines: Vec<usize> =
         runtime_lines(source).into_iter().filter(|(_, l)| FORBIDDEN.iter().any(|(p, _)| l.contains(p))).map(|(n, _)| n).collect();
-    assert_eq!(lines, [3, 7]);
+    assert_eq!(lines, [3, 7, 12]);
 }
