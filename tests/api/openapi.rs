@@ -211,3 +211,32 @@ fn every_ref_resolves_and_the_validator_rejects_misfits() {
     wrong_type["type"] = "https://facegate.dev/problems/made-up".into();
     assert!(spec().validate(&problem, &wrong_type, "$").is_err());
 }
+
+/// Photo parts of multipart bodies carry both the OpenAPI 3.1 `contentMediaType` and `format:
+/// binary`, which the common client generators read as a file (without it they send text).
+#[test]
+fn multipart_photo_parts_are_binary_for_generators() {
+    let mut parts = 0;
+    for (path, item) in spec().doc["paths"].as_object().unwrap() {
+        for method in METHODS {
+            let Some(properties) = item
+                .get(method)
+                .and_then(|op| op.pointer("/requestBody/content/multipart~1form-data/schema/properties"))
+                .and_then(Value::as_object)
+            else {
+                continue;
+            };
+            for (name, property) in properties {
+                let part = if property["type"] == "array" { &property["items"] } else { property };
+                if part.get("$ref").is_some() {
+                    continue;
+                }
+                assert_eq!(part["type"], "string", "{method} {path} part {name}");
+                assert_eq!(part["format"], "binary", "{method} {path} part {name}: format binary");
+                assert!(part["contentMediaType"].is_string(), "{method} {path} part {name}: contentMediaType");
+                parts += 1;
+            }
+        }
+    }
+    assert_eq!(parts, 3, "the image parts of /enroll, /verify and /identify");
+}

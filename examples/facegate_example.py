@@ -1,0 +1,93 @@
+#!/usr/bin/env python3
+"""facegate from Python with httpx (`pip install httpx`): enrol photos, verify a probe.
+
+    python facegate_example.py enroll alice alice-1.jpg alice-2.jpg
+    python facegate_example.py verify alice probe.jpg [--fmr 1e-4]
+
+FACEGATE_URL (default http://127.0.0.1:8080) and FACEGATE_API_KEY (if the server has keys) set the
+server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, ...),
+3 model mismatch (enrol the subject again), 4 any other error.
+"""
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+PROBLEMS = "https://facegate.dev/problems/"
+
+
+class Problem(Exception):
+    """An application/problem+json answer: `slug` is the type's last segment (`no-face`, ...)."""
+
+    def __init__(self, body: dict):
+        self.slug = body["type"].removeprefix(PROBLEMS)
+        self.status, self.detail, self.image = body["status"], body["detail"], body.get("image")
+        super().__init__(f"{self.slug} ({self.status}): {self.detail}")
+
+
+def post(client: httpx.Client, path: str, fields: dict, photos: list[Path], params=None, attempts: int = 5) -> dict:
+    """POST multipart (photos as `image` file parts); retry `overloaded` after Retry-After seconds."""
+    files = [("image", (p.name, p.read_bytes(), "application/octet-stream")) for p in photos]
+    for attempt in range(1, attempts + 1):
+        r = client.post(path, data=fields, files=files, params=params)
+        if r.headers.get("content-type", "").startswith("application/problem+json"):
+            problem = Problem(r.json())
+            if problem.slug == "overloaded" and attempt < attempts:
+                delay = float(r.headers.get("retry-after", "1"))
+                print(f"facegate is busy; retrying in {delay:g} s", file=sys.stderr)
+                time.sleep(delay)
+                continue
+            raise problem
+        r.raise_for_status()
+        return r.json()
+    raise AssertionError("unreachable")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True)
+    enroll = commands.add_parser("enroll", help="enrol (or add photos to) a subject")
+    enroll.add_argument("subject")
+    enroll.add_argument("photos", nargs="+", type=Path)
+    verify = commands.add_parser("verify", help="is the probe's largest face the subject?")
+    verify.add_argument("subject")
+    verify.add_argument("photo", type=Path)
+    verify.add_argument("--fmr", type=float, help="false match rate of the operating point (default 1e-3)")
+    args = parser.parse_args()
+
+    key = os.environ.get("FACEGATE_API_KEY")
+    headers = {"Authorization": f"Bearer {key}"} if key else {}
+    base_url = os.environ.get("FACEGATE_URL", "http://127.0.0.1:8080")
+    with httpx.Client(base_url=base_url, headers=headers, timeout=60) as client:
+        try:
+            if args.command == "enroll":
+                e = post(client, "/enroll", {"subject": args.subject}, args.photos)
+                print(f"enrolled {e['subject']}: {e['added']} template(s) added, {e['templates']} in all")
+                return 0
+            params = {"fmr": args.fmr} if args.fmr else None
+            v = post(client, "/verify", {"subject": args.subject}, [args.photo], params)
+            verdict = "match" if v["match"] else "no match"
+            print(f"{verdict}: score {v['score']:.3f}, threshold {v['threshold']:.3f} at FMR {v['fmr']:g}")
+            return 0 if v["match"] else 1
+        except Problem as p:
+            if p.slug in ("no-face", "several-faces", "not-an-image", "corrupt-image", "unsupported-format", "too-large"):
+                photos = args.photos if args.command == "enroll" else [args.photo]
+                which = photos[p.image or 0]
+                print(f"{which}: {p.detail} ({p.slug}); take another photo", file=sys.stderr)
+                return 2
+            if p.slug == "model-mismatch":
+                print(f"{args.subject} was enrolled with another model version: enrol the subject again", file=sys.stderr)
+                return 3
+            print(f"facegate refused: {p}", file=sys.stderr)
+            return 4
+        except httpx.HTTPError as e:
+            print(f"request to facegate at {base_url} failed: {e}", file=sys.stderr)
+            return 4
+
+
+if __name__ == "__main__":
+    sys.exit(main())

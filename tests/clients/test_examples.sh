@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# The examples in examples/ against a running facegate, run by tests/clients/run.sh with:
+# BASE (the server), STUB (tests/clients/overload_stub.py in front of it), IMM (the IMM photos),
+# GREY (a face-free photo), PYTHON (a python with httpx), TS_EXAMPLE (the compiled TypeScript
+# example), and a subject `legacy` whose only template is of another model version.
+# Closes with "examples: N passed, M failed"; exits non-zero on any failure.
+set -uo pipefail
+examples="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../examples" && pwd)"
+out="$(mktemp)" err="$(mktemp)"
+trap 'rm -f "$out" "$err"' EXIT
+passed=0 failed=0
+
+# expect LANG STATUS STDOUT-PATTERN STDERR-PATTERN URL -- ARGS...: run the example of LANG with ARGS
+# against URL; its exit status must be STATUS and its outputs must match the (grep -E) patterns
+# (an empty pattern checks nothing).
+expect() {
+    local lang="$1" want="$2" out_pattern="$3" err_pattern="$4" url="$5" status=0
+    shift 6
+    case "$lang" in
+        python) FACEGATE_URL="$url" "$PYTHON" "$examples/facegate_example.py" "$@" >"$out" 2>"$err" || status=$? ;;
+        typescript) FACEGATE_URL="$url" node "$TS_EXAMPLE" "$@" >"$out" 2>"$err" || status=$? ;;
+        curl)
+            local args=("$@")
+            # The curl example takes the FMR as a fourth argument instead of --fmr.
+            [[ "${args[3]:-}" == --fmr ]] && args=("${args[@]:0:3}" "${args[4]}")
+            FACEGATE_URL="$url" "$examples/facegate_example.sh" "${args[@]}" >"$out" 2>"$err" || status=$?
+            ;;
+    esac
+    if [[ $status == "$want" ]] && { [[ -z "$out_pattern" ]] || grep -Eq "$out_pattern" "$out"; } &&
+        { [[ -z "$err_pattern" ]] || grep -Eq "$err_pattern" "$err"; }; then
+        passed=$((passed + 1))
+        echo "ok   examples $lang $*"
+    else
+        failed=$((failed + 1))
+        echo "FAIL examples $lang $*: exit $status (wanted $want)"
+        sed 's/^/    stdout: /' "$out"
+        sed 's/^/    stderr: /' "$err"
+    fi
+}
+
+for lang in python typescript curl; do
+    s="ex-$lang"
+    expect "$lang" 0 "^enrolled $s: 2 template" '' "$BASE" -- enroll "$s" "$IMM/01-1m.jpg" "$IMM/01-3m.jpg"
+    expect "$lang" 0 '^match: .*FMR 0?\.0001|^match: .*FMR 1e-4' '' "$BASE" -- verify "$s" "$IMM/01-5m.jpg" --fmr 1e-4
+    expect "$lang" 1 '^no match: ' '' "$BASE" -- verify "$s" "$IMM/02-4m.jpg"
+    expect "$lang" 2 '' 'no-face' "$BASE" -- verify "$s" "$GREY"
+    expect "$lang" 2 '' 'no-face' "$BASE" -- enroll "$s" "$IMM/01-2m.jpg" "$GREY"
+    expect "$lang" 3 '' 'enrol the subject again' "$BASE" -- verify legacy "$IMM/01-2m.jpg"
+    expect "$lang" 0 '^match: ' 'busy; retrying in 1 s' "$STUB" -- verify "$s" "$IMM/01-5m.jpg"
+done
+echo "examples: $passed passed, $failed failed"
+[[ $failed == 0 ]]

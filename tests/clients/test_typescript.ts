@@ -1,0 +1,151 @@
+// The TypeScript client (types by openapi-typescript, requests by openapi-fetch) against a running
+// facegate on a fresh database. Run by tests/clients/run.sh after `tsc`:
+// node out/test_typescript.js BASE_URL IMM_DIR. Prints one line per check and closes with
+// "typescript: N passed, M failed"; exits non-zero on any failure.
+import fs from "node:fs";
+import path from "node:path";
+import createClient from "openapi-fetch";
+import type { components, paths } from "./schema.js";
+
+type Problem = components["schemas"]["Problem"];
+type Slug = Problem["type"] extends `https://facegate.dev/problems/${infer S}` ? S : never;
+
+const [baseUrl, imm] = process.argv.slice(2) as [string, string];
+const client = createClient<paths>({ baseUrl });
+
+const bytes = (name: string) => fs.readFileSync(path.join(imm, name));
+const photo = (name: string) => new Blob([bytes(name)], { type: "image/jpeg" });
+const b64 = (name: string) => bytes(name).toString("base64");
+
+/** multipart/form-data from a body whose Blob parts go as files (arrays as repeated fields). */
+function form(body: unknown): FormData {
+  const data = new FormData();
+  for (const [name, value] of Object.entries(body as Record<string, string | Blob | Blob[]>)) {
+    for (const item of Array.isArray(value) ? value : [value]) {
+      if (item instanceof Blob) data.append(name, item, `${name}.jpg`);
+      else data.append(name, item);
+    }
+  }
+  return data;
+}
+const multipart = { bodySerializer: form };
+
+function assert(condition: unknown, message: string): asserts condition {
+  if (!condition) throw new Error(message);
+}
+
+/** The body of a success, after checking the status. */
+function ok<T>(r: { data?: T; error?: unknown; response: Response }, status: number): T {
+  assert(r.response.status === status, `status ${r.response.status}, wanted ${status}: ${JSON.stringify(r.error)}`);
+  assert(r.data !== undefined, "no body");
+  return r.data;
+}
+
+/** A problem+json error read as the typed Problem. */
+function problem(r: { error?: Problem; response: Response }, status: number, slug: Slug): Problem {
+  assert(r.response.status === status, `status ${r.response.status}, wanted ${status}`);
+  assert(r.response.headers.get("content-type") === "application/problem+json", `${r.response.headers.get("content-type")}`);
+  const p = r.error;
+  assert(p !== undefined, "no error body");
+  const type: Problem["type"] = `https://facegate.dev/problems/${slug}`;
+  assert(p.type === type && p.status === status && p.title && p.detail, JSON.stringify(p));
+  return p;
+}
+
+const checks: Record<string, () => Promise<void>> = {
+  async fresh_database() {
+    const h = ok(await client.GET("/health"), 200);
+    assert(h.status === "ok" && h.subjects === 0 && h.templates === 0, JSON.stringify(h));
+  },
+
+  async enrol_by_multipart() {
+    const r = await client.POST("/enroll", {
+      body: { subject: "ts-01", image: [photo("01-1m.jpg"), photo("01-3m.jpg")] },
+      ...multipart,
+    });
+    const e = ok(r, 201);
+    assert(e.subject === "ts-01" && e.added === 2 && e.templates === 2, JSON.stringify(e));
+    assert(e.images.every((i) => i.faces_found === 1 && i.landmarks.points.length === 58), "image reports");
+    assert(r.response.headers.get("location")?.endsWith("/subjects/ts-01"), "Location");
+  },
+
+  async enrol_by_json() {
+    let e = ok(await client.POST("/enroll", { body: { subject: "ts-02", images: [b64("02-1m.jpg")] } }), 201);
+    assert(e.added === 1 && e.templates === 1, JSON.stringify(e));
+    e = ok(await client.POST("/enroll", { body: { subject: "ts-02", image: b64("02-2m.jpg") } }), 201);
+    assert(e.added === 1 && e.templates === 2, JSON.stringify(e));
+  },
+
+  async verify_match_by_multipart() {
+    const v = ok(await client.POST("/verify", { body: { subject: "ts-01", image: photo("01-5m.jpg") }, ...multipart }), 200);
+    assert(v.match && v.score >= v.threshold && v.templates_compared === 2 && v.fmr === 0.001, JSON.stringify(v));
+    assert(v.pose !== null && Math.abs(v.pose.yaw) < 30, JSON.stringify(v.pose));
+  },
+
+  async verify_no_match_by_json_with_fmr() {
+    const v = ok(
+      await client.POST("/verify", { params: { query: { fmr: 0.01 } }, body: { subject: "ts-01", image: b64("02-4m.jpg") } }),
+      200,
+    );
+    assert(!v.match && v.score < v.threshold && v.fmr !== 0.001, JSON.stringify(v));
+  },
+
+  async identify_by_multipart() {
+    const i = ok(
+      await client.POST("/identify", { params: { query: { k: 2 } }, body: { image: photo("02-6m.jpg") }, ...multipart }),
+      200,
+    );
+    assert(i.subjects_searched === 2 && i.candidates.length === 2, JSON.stringify(i.candidates));
+    assert(i.candidates[0]?.subject === "ts-02" && i.candidates[0].match, JSON.stringify(i.candidates));
+  },
+
+  async list_subjects_paged() {
+    let page = ok(await client.GET("/subjects", { params: { query: { limit: 1 } } }), 200);
+    assert(page.subjects.map((s) => s.id).join() === "ts-01" && page.next_after === "ts-01", JSON.stringify(page));
+    assert(!Number.isNaN(Date.parse(page.subjects[0]?.created_at ?? "")), "created_at");
+    page = ok(await client.GET("/subjects", { params: { query: { after: page.next_after } } }), 200);
+    assert(page.subjects.map((s) => s.id).join() === "ts-02" && page.next_after === null, JSON.stringify(page));
+  },
+
+  async get_subject_detail() {
+    const d = ok(await client.GET("/subjects/{id}", { params: { path: { id: "ts-02" } } }), 200);
+    assert(d.id === "ts-02" && d.templates === 2 && d.model_versions.length === 1, JSON.stringify(d));
+  },
+
+  async delete_a_subject() {
+    const r = await client.DELETE("/subjects/{id}", { params: { path: { id: "ts-02" } } });
+    assert(r.response.status === 204, `status ${r.response.status}`);
+    problem(await client.GET("/subjects/{id}", { params: { path: { id: "ts-02" } } }), 404, "unknown-subject");
+  },
+
+  async problems_as_typed_errors() {
+    const grey = new Blob([Buffer.from("P5 320 240 255\n"), new Uint8Array(320 * 240).fill(128)]);
+    const p = problem(
+      await client.POST("/enroll", { body: { subject: "ts-03", image: [photo("03-1m.jpg"), grey] }, ...multipart }),
+      422,
+      "no-face",
+    );
+    assert(p.image === 1, JSON.stringify(p));
+    const text = new Blob(["not a photo"], { type: "text/plain" });
+    problem(await client.POST("/verify", { body: { subject: "ts-01", image: text }, ...multipart }), 422, "not-an-image");
+    problem(await client.POST("/verify", { body: { subject: "nobody", image: b64("01-2m.jpg") } }), 404, "unknown-subject");
+    problem(await client.POST("/verify", { body: { subject: "ts-01", image: "%%%" } }), 400, "malformed-request");
+    const h = ok(await client.GET("/health"), 200);
+    assert(h.subjects === 1 && h.templates === 2, JSON.stringify(h));
+  },
+};
+
+let passed = 0;
+let failed = 0;
+for (const [name, check] of Object.entries(checks)) {
+  try {
+    await check();
+    passed++;
+    console.log(`ok   typescript ${name}`);
+  } catch (e) {
+    failed++;
+    console.log(`FAIL typescript ${name}\n${e instanceof Error ? e.stack : e}`);
+  }
+}
+console.log(`typescript: ${passed} passed, ${failed} failed`);
+process.exitCode = failed ? 1 : 0;
