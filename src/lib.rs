@@ -13,6 +13,7 @@ pub mod geometry;
 pub mod imaging;
 
 pub mod detect;
+pub mod embed;
 pub mod eval;
 pub mod landmarks;
 pub mod morph;
