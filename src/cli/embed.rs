@@ -60,6 +60,9 @@ pub struct EmbedArgs {
     /// Write each photo's chip as PNG into this folder (same file stem).
     #[arg(long)]
     pub save_chips: Option<PathBuf>,
+    /// One pass on the chip alone instead of the mirror-averaged embedding.
+    #[arg(long)]
+    pub single: bool,
 }
 
 pub fn run_embed(args: EmbedArgs) -> anyhow::Result<ExitCode> {
@@ -94,7 +97,10 @@ pub fn run_embed(args: EmbedArgs) -> anyhow::Result<ExitCode> {
             let stem = path.file_stem().unwrap_or_default().to_string_lossy();
             chip.to_image().save(dir.join(format!("{stem}.png")))?;
         }
-        let e = embedder.embed(&chip);
+        // What the deep recognizer computes: the mean of the chip's and its mirror's embeddings.
+        let mut ws = embedder.take_workspace();
+        let e = if args.single { embedder.forward(&chip, &mut ws) } else { embedder.embed_mirrored(&chip, &mut ws) };
+        embedder.give_back(ws);
         // CPU time of this photo's whole path (decode, detection, landmarks, chip, network).
         let cpu_ms = cpu_start.zip(crate::eval::thread_cpu_ns()).map(|(a, b)| (b - a) as f64 / 1e6);
         crate::cli::print_json_line(&serde_json::json!({"image": path.display().to_string(), "embedding": e.0.to_vec(), "cpu_ms": cpu_ms}));
@@ -124,19 +130,7 @@ pub fn run_eval_deep(args: EvalDeepArgs) -> anyhow::Result<ExitCode> {
     use crate::recognize::DldaParams;
     let config = PipelineConfig::default();
     let samples = deep::list_samples(&crate::config::shared_dir())?;
-    let key = deep::models_key(&config.models_dir);
-    let embeddings = match deep::read_cache(&args.cache, &key, &samples) {
-        Some(e) => e,
-        None => {
-            let pipeline = Pipeline::load(&config)?;
-            let embedder = embed::load(&config.models_dir)?;
-            let bar = crate::cli::progress(samples.len() as u64, "embed");
-            let e = deep::embed_samples(&pipeline, &embedder, &samples, args.threads, &|| bar.inc(1));
-            bar.finish();
-            deep::write_cache(&args.cache, &key, &samples, &e)?;
-            e
-        }
-    };
+    let embeddings = cached_embeddings(&config, &samples, &args.cache, args.threads)?;
     for set in [Set::Imm, Set::Orl, Set::Lfw] {
         let all = samples.iter().zip(&embeddings).filter(|(s, _)| s.set == set);
         let (n, found, frontal) =
@@ -288,6 +282,167 @@ pub fn run_eval_deep_align(args: EvalDeepAlignArgs) -> anyhow::Result<ExitCode> 
     println!("LFW test persons ({} photos):", test.len());
     for v in [ChipVariant { scale: 1.0, dy: 0.0, flip: false }, ChipVariant { flip: true, ..best.1 }, best.1] {
         show(format!("scale {} dy {} flip {}", v.scale, v.dy, v.flip), &run(&test, v, false));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ProjectionArg {
+    /// The embedding's own cosine (chosen by cross-validation: `facegate eval deep`).
+    None,
+    /// Direct LDA over the embeddings of the training persons.
+    Dlda,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct TrainDeepArgs {
+    #[arg(long, default_value = "models/deep.bin")]
+    pub out: PathBuf,
+    #[arg(long, value_enum, default_value_t = ProjectionArg::None)]
+    pub projection: ProjectionArg,
+    /// Embeddings cache (rebuilt when the front end's models change).
+    #[arg(long, default_value = "target/deep-embeddings.bin")]
+    pub cache: PathBuf,
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+}
+
+/// The deep recognizer's model: projection (none by default), thresholds calibrated per enrolment
+/// size on the calibration persons (LFW's calibration split and the IMM/ORL held-out persons).
+pub fn run_train_deep(args: TrainDeepArgs) -> anyhow::Result<ExitCode> {
+    use crate::eval::deep::{self, Set, Split};
+    use crate::recognize::deep::{ChipSource, DeepModel, DeepProvenance, FORMAT};
+    let config = PipelineConfig::default();
+    let samples = deep::list_samples(&crate::config::shared_dir())?;
+    let embeddings = cached_embeddings(&config, &samples, &args.cache, args.threads)?;
+    let network = embed::read_file(&config.models_dir.join(embed::weights::FILE))?;
+    let items = |f: &dyn Fn(&deep::Sample) -> bool| -> Vec<(&str, &[f32])> {
+        samples
+            .iter()
+            .zip(&embeddings)
+            .filter(|(s, _)| f(s))
+            .filter_map(|(s, e)| e.photo.as_deref().map(|v| (s.label.as_str(), v)))
+            .collect()
+    };
+    let train = items(&|s| s.split == Split::Train);
+    let projection = match args.projection {
+        ProjectionArg::None => None,
+        ProjectionArg::Dlda => {
+            let params = crate::recognize::DldaParams { max_dims: 127, regularization: 0.1, pca_dims: 0 };
+            Some(deep::train_dlda(&train, &params)?)
+        }
+    };
+    let is_calibration = |s: &deep::Sample| match s.set {
+        Set::Lfw => s.split == Split::Calibration,
+        _ => s.split == Split::Test,
+    };
+    let version = DeepModel::version_of(projection.as_ref(), ChipSource::Photo, &network.provenance.sha256);
+    let mut model = DeepModel {
+        format: FORMAT,
+        version,
+        network_sha256: network.provenance.sha256.clone(),
+        chip_source: ChipSource::Photo,
+        projection,
+        calibration: crate::recognize::Calibration::from_scores(&[], &[], &[], ""),
+        enrolled_calibration: Vec::new(),
+        provenance: DeepProvenance {
+            trained_on: match args.projection {
+                ProjectionArg::None => "no projection (the embedding's cosine)".to_string(),
+                ProjectionArg::Dlda => format!("DLDA on {} photos of the training persons (IMM, ORL, LFW train split)", train.len()),
+            },
+            command: format!("facegate train deep --projection {:?}", args.projection).to_lowercase(),
+        },
+    };
+    let calibration: Vec<(&str, Vec<f32>)> = items(&is_calibration)
+        .into_iter()
+        .map(|(l, e)| (l, model.template(&embed::Embedding(e.try_into().expect("128 values"))).vector))
+        .collect();
+    let source =
+        format!("{} photos: LFW calibration persons, IMM and ORL held-out persons (1, 2, 3, 5, 10, 15, 20, 25, 30)", calibration.len());
+    (model.calibration, model.enrolled_calibration) = deep::calibrate(&calibration, &source);
+    crate::config::write_model(&args.out, &model).map_err(anyhow::Error::msg)?;
+    println!("{}: {} ({})", args.out.display(), model.version, model.provenance.trained_on);
+    for (k, cal) in std::iter::once((1, &model.calibration)).chain(model.enrolled_calibration.iter().map(|t| (t.enrolled, &t.calibration)))
+    {
+        let points: Vec<String> = cal
+            .points
+            .iter()
+            .map(|p| {
+                format!(
+                    "FMR {:e}: {:.4} (FNMR {:.2}%{})",
+                    p.fmr,
+                    p.threshold,
+                    100.0 * p.observed_fnmr,
+                    if p.under_sampled { ", under-sampled" } else { "" }
+                )
+            })
+            .collect();
+        println!("  {k} enrolled: {} ({} genuine, {} impostor)", points.join("; "), cal.genuine_count, cal.impostor_count);
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The mirror-averaged embeddings of `samples` through the service's front end, from the cache
+/// when it holds them for the current models.
+fn cached_embeddings(
+    config: &PipelineConfig,
+    samples: &[crate::eval::deep::Sample],
+    cache: &std::path::Path,
+    threads: usize,
+) -> anyhow::Result<Vec<crate::eval::deep::PhotoEmbeddings>> {
+    use crate::eval::deep;
+    let key = deep::models_key(&config.models_dir);
+    if let Some(e) = deep::read_cache(cache, &key, samples) {
+        return Ok(e);
+    }
+    let pipeline = Pipeline::load(config)?;
+    let embedder = embed::load(&config.models_dir)?;
+    let bar = crate::cli::progress(samples.len() as u64, "embed");
+    let e = deep::embed_samples(&pipeline, &embedder, samples, threads, &|| bar.inc(1));
+    bar.finish();
+    deep::write_cache(cache, &key, samples, &e)?;
+    Ok(e)
+}
+
+#[derive(clap::Args, Debug)]
+pub struct EvalVerifyDeepArgs {
+    /// The deep model to measure.
+    #[arg(long, default_value = "models/deep.bin")]
+    pub model: PathBuf,
+    #[arg(long, default_value = "target/deep-embeddings.bin")]
+    pub cache: PathBuf,
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// The deep recognizer on the held-out persons: EER and FNMR at FMR 1e-2 / 1e-3 (threshold-free),
+/// and FNMR / FMR at the model's own calibrated FMR-1e-3 threshold.
+pub fn run_eval_verify_deep(args: EvalVerifyDeepArgs) -> anyhow::Result<ExitCode> {
+    let config = PipelineConfig::default();
+    let model = crate::recognize::deep::DeepModel::load(&args.model)?;
+    let samples = crate::eval::deep::list_samples(&crate::config::shared_dir())?;
+    let embeddings = cached_embeddings(&config, &samples, &args.cache, args.threads)?;
+    println!("{} ({})", model.version, model.provenance.trained_on);
+    for l in crate::eval::deep::held_out_report(&model, &samples, &embeddings) {
+        if args.json {
+            crate::cli::print_json_line(&serde_json::to_value(&l)?);
+            continue;
+        }
+        println!(
+            "  {:<32} {} enrolled, {:>4} photos: EER {:>5.2}%  FNMR@1e-2 {:>5.2}%  FNMR@1e-3 {:>5.2}%  | at the calibrated 1e-3 threshold: FNMR {:>5.2}%, FMR {:.2e}  ({} genuine, {} impostor)",
+            l.set,
+            l.enrolled,
+            l.photos,
+            100.0 * l.summary.eer,
+            100.0 * l.summary.fnmr_at_fmr_1e2,
+            100.0 * l.summary.fnmr_at_fmr_1e3,
+            100.0 * l.fnmr_at_threshold,
+            l.fmr_at_threshold,
+            l.summary.genuine,
+            l.summary.impostor
+        );
     }
     Ok(ExitCode::SUCCESS)
 }

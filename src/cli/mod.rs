@@ -62,6 +62,8 @@ pub enum TrainCommand {
     ImmSfm(morph::TrainImmSfmArgs),
     /// Train the 3D-ASM (3D PDM from the 3DMM, view-based textures from synthesised views).
     Asm3d(landmarks::TrainAsm3dArgs),
+    /// Calibrate the deep recognizer (embedding network + optional DLDA) → models/deep.bin.
+    Deep(embed::TrainDeepArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -80,6 +82,7 @@ pub enum EvalCommand {
     Deep(embed::EvalDeepArgs),
     /// Deep-embedding chip placement variants by cross-validation.
     DeepAlign(embed::EvalDeepAlignArgs),
+    VerifyDeep(embed::EvalVerifyDeepArgs),
 }
 
 pub fn main() -> ExitCode {
@@ -102,8 +105,10 @@ pub fn main() -> ExitCode {
         Command::Eval(EvalCommand::Identify(args)) => recognize::run_eval_identify(args),
         Command::Convert(ConvertCommand::Embedding(args)) => embed::run_convert(args),
         Command::Embed(args) => embed::run_embed(args),
+        Command::Train(TrainCommand::Deep(args)) => embed::run_train_deep(args),
         Command::Eval(EvalCommand::Deep(args)) => embed::run_eval_deep(args),
         Command::Eval(EvalCommand::DeepAlign(args)) => embed::run_eval_deep_align(args),
+        Command::Eval(EvalCommand::VerifyDeep(args)) => embed::run_eval_verify_deep(args),
     };
     match result {
         Ok(code) => code,

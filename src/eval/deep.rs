@@ -77,8 +77,9 @@ pub fn list_samples(shared: &Path) -> Result<Vec<Sample>, dataset::DatasetError>
     Ok(out)
 }
 
-/// The embeddings of one photo: of the photo's own chip, and of the chip of the 3DMM frontal
-/// rendering (when the model is loaded and the fit succeeds). `None`: no face found.
+/// The embeddings of one photo (mirror-averaged, as the deep recognizer computes them): of the
+/// photo's own chip, and of the chip of the 3DMM frontal rendering (when the model is loaded and
+/// the fit succeeds). `None`: no face found.
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct PhotoEmbeddings {
     pub photo: Option<Vec<f32>>,
@@ -118,8 +119,8 @@ pub fn embed_samples(
                     if let Ok(photo) = crate::imaging::open(&s.image)
                         && let Some((direct, frontal)) = photo_chips(pipeline, &photo)
                     {
-                        d.photo = Some(embedder.forward(&direct, &mut ws).0.to_vec());
-                        d.frontal = frontal.map(|f| embedder.forward(&f, &mut ws).0.to_vec());
+                        d.photo = Some(embedder.embed_mirrored(&direct, &mut ws).0.to_vec());
+                        d.frontal = frontal.map(|f| embedder.embed_mirrored(&f, &mut ws).0.to_vec());
                     }
                     tick();
                 }
@@ -142,6 +143,7 @@ pub fn models_key(models_dir: &Path) -> String {
     for f in ["asm.bin", "asm3d.bin", "embedding.bin"] {
         h.update(std::fs::read(models_dir.join(f)).unwrap_or_default());
     }
+    h.update(b"mirror-averaged");
     h.finalize().iter().take(8).map(|b| format!("{b:02x}")).collect()
 }
 
@@ -336,23 +338,118 @@ pub fn embed_variant(
                 for ((_, img, k), d) in chunk.iter().zip(dst) {
                     let t = chip::chip_to_photo(CHIP_SIZE, k[0], k[1], k[2]).compose(&adjust);
                     let ch = chip::extract(img, &t, CHIP_SIZE);
-                    let mut e = embedder.forward(&ch, &mut ws).0;
-                    if variant.flip {
-                        let mut m = ch.clone();
-                        for row in m.rgb.chunks_exact_mut(CHIP_SIZE * 3) {
-                            for x in 0..CHIP_SIZE / 2 {
-                                for k in 0..3 {
-                                    row.swap(x * 3 + k, (CHIP_SIZE - 1 - x) * 3 + k);
-                                }
-                            }
-                        }
-                        let f = embedder.forward(&m, &mut ws).0;
-                        e.iter_mut().zip(f).for_each(|(a, b)| *a = 0.5 * (*a + b));
-                    }
-                    *d = e.to_vec();
+                    let e = if variant.flip { embedder.embed_mirrored(&ch, &mut ws) } else { embedder.forward(&ch, &mut ws) };
+                    *d = e.0.to_vec();
                 }
             });
         }
     });
+    out
+}
+
+/// Genuine and impostor scores of the service's protocol with `k` photos enrolled per person
+/// (the best of the set, as `/verify` scores a subject): each person's photos in listing order
+/// give one enrolment set per rotation (photos r … r+k−1, cyclically); the person's other photos
+/// are its genuine probes, every other person's photos its impostor probes. Persons with no more
+/// than `k` photos are left out as enrolled subjects (their photos still probe as impostors).
+pub fn enrolment_scores(labels: &[&str], k: usize, score: &(dyn Fn(usize, usize) -> f32 + Sync)) -> (Vec<f32>, Vec<f32>) {
+    let mut by_person: std::collections::BTreeMap<&str, Vec<usize>> = std::collections::BTreeMap::new();
+    for (i, l) in labels.iter().enumerate() {
+        by_person.entry(l).or_default().push(i);
+    }
+    let k = k.max(1);
+    let (mut genuine, mut impostor) = (Vec::new(), Vec::new());
+    for (person, photos) in by_person.iter().filter(|(_, p)| p.len() > k) {
+        for r in 0..photos.len() {
+            let enrolled: Vec<usize> = (0..k).map(|j| photos[(r + j) % photos.len()]).collect();
+            for (p, label) in labels.iter().enumerate().filter(|(p, _)| !enrolled.contains(p)) {
+                let s = enrolled.iter().map(|&e| score(p, e)).fold(f32::NEG_INFINITY, f32::max);
+                if label == person { genuine.push(s) } else { impostor.push(s) }
+            }
+        }
+    }
+    (genuine, impostor)
+}
+
+/// Calibrates the deep model's threshold tables (1 … [`crate::recognize::MAX_CALIBRATED_ENROLMENT`]
+/// photos enrolled) on `calibration` (label, unit template) with the cosine score.
+pub fn calibrate(
+    calibration: &[(&str, Vec<f32>)],
+    source: &str,
+) -> (crate::recognize::Calibration, Vec<crate::recognize::EnrolledCalibration>) {
+    use crate::recognize::calibration::CALIBRATED_FMRS;
+    use crate::recognize::{Calibration, EnrolledCalibration, MAX_CALIBRATED_ENROLMENT};
+    let labels: Vec<&str> = calibration.iter().map(|(l, _)| *l).collect();
+    let score = |a: usize, b: usize| calibration[a].1.iter().zip(&calibration[b].1).map(|(x, y)| x * y).sum::<f32>();
+    let table = |k: usize| {
+        let (g, i) = if k == 1 {
+            let items: Vec<(&str, &[f32])> = calibration.iter().map(|(l, v)| (*l, v.as_slice())).collect();
+            all_pair_scores(&items, &Scoring::Cosine)
+        } else {
+            enrolment_scores(&labels, k, &score)
+        };
+        Calibration::from_scores(&g, &i, &CALIBRATED_FMRS, &format!("{source}; {k} photo(s) enrolled"))
+    };
+    let one = table(1);
+    let enrolled = (2..=MAX_CALIBRATED_ENROLMENT).map(|k| EnrolledCalibration { enrolled: k, calibration: table(k) }).collect();
+    (one, enrolled)
+}
+
+/// One line of the deep recognizer's held-out report.
+#[derive(Debug, Clone, Serialize)]
+pub struct HeldOutLine {
+    pub set: String,
+    pub enrolled: usize,
+    pub photos: usize,
+    pub summary: VerificationSummary,
+    /// FNMR and FMR at the model's own calibrated threshold for FMR 1e-3 (the decision `/verify`
+    /// takes), so a reader sees whether the calibration holds on persons it never saw.
+    pub fnmr_at_threshold: f64,
+    pub fmr_at_threshold: f64,
+}
+
+/// The deep model on each held-out set (LFW test persons, IMM and ORL held-out persons): one photo
+/// against one, and `k` = 3 photos enrolled per person (the best of the set).
+pub fn held_out_report(model: &crate::recognize::deep::DeepModel, samples: &[Sample], embeddings: &[PhotoEmbeddings]) -> Vec<HeldOutLine> {
+    let sets: [(&str, Box<dyn Fn(&Sample) -> bool>); 5] = [
+        ("LFW test persons", Box::new(|s| s.set == Set::Lfw && s.split == Split::Test)),
+        ("IMM held-out, all views", Box::new(|s| s.set == Set::Imm && s.split == Split::Test)),
+        ("IMM held-out, frontal views 1-2", Box::new(|s| s.set == Set::Imm && s.split == Split::Test && matches!(s.view, Some(1 | 2)))),
+        ("ORL held-out", Box::new(|s| s.set == Set::Orl && s.split == Split::Test)),
+        ("IMM + ORL held-out", Box::new(|s| s.set != Set::Lfw && s.split == Split::Test)),
+    ];
+    let mut out = Vec::new();
+    for (name, filter) in &sets {
+        let items: Vec<(&str, Vec<f32>)> = samples
+            .iter()
+            .zip(embeddings)
+            .filter(|(s, _)| filter(s))
+            .filter_map(|(s, e)| {
+                e.photo.as_ref().map(|v| (s.label.as_str(), model.template(&Embedding(v.as_slice().try_into().expect("128"))).vector))
+            })
+            .collect();
+        let labels: Vec<&str> = items.iter().map(|(l, _)| *l).collect();
+        let score = |a: usize, b: usize| items[a].1.iter().zip(&items[b].1).map(|(x, y)| x * y).sum::<f32>();
+        for k in [1, 3] {
+            let (g, i) = if k == 1 {
+                let refs: Vec<(&str, &[f32])> = items.iter().map(|(l, v)| (*l, v.as_slice())).collect();
+                all_pair_scores(&refs, &Scoring::Cosine)
+            } else {
+                enrolment_scores(&labels, k, &score)
+            };
+            if g.is_empty() {
+                continue;
+            }
+            let t = model.operating_point(1e-3, k).threshold;
+            out.push(HeldOutLine {
+                set: name.to_string(),
+                enrolled: k,
+                photos: items.len(),
+                summary: summarize(&g, &i),
+                fnmr_at_threshold: g.iter().filter(|&&s| s < t).count() as f64 / g.len() as f64,
+                fmr_at_threshold: i.iter().filter(|&&s| s >= t).count() as f64 / i.len().max(1) as f64,
+            });
+        }
+    }
     out
 }

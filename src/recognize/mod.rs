@@ -8,6 +8,7 @@
 //! content hash is the model version carried by every template.
 
 pub mod calibration;
+pub mod deep;
 pub mod dlda;
 pub mod features;
 pub mod normalize;
