@@ -17,6 +17,7 @@ use crate::core::imaging::DecodeLimits;
 use crate::http::ApiConfig;
 use crate::pipeline::PipelineConfig;
 use crate::recognize::DEFAULT_FMR;
+use crate::recognize::RecognizerKind;
 
 fn env_path(name: &str) -> Option<PathBuf> {
     std::env::var_os(name).filter(|v| !v.is_empty()).map(PathBuf::from)
@@ -43,7 +44,7 @@ pub fn models_dir() -> PathBuf {
 
 /// The pipeline's model folders: [`models_dir`] and [`sfm_dir`].
 pub fn pipeline_config() -> PipelineConfig {
-    PipelineConfig { models_dir: models_dir(), sfm_dir: Some(sfm_dir()) }
+    PipelineConfig { models_dir: models_dir(), sfm_dir: Some(sfm_dir()), recognizer: RecognizerKind::default() }
 }
 
 const DEFAULT_BIND: &str = "127.0.0.1:8080";
@@ -70,6 +71,10 @@ pub struct Settings {
     /// The Surrey Face Model folder for 3DMM pose correction (missing: 2D alignment only).
     #[arg(long, env = "FACEGATE_SFM")]
     pub sfm: Option<PathBuf>,
+    /// Which recognizer makes templates: the deep face embedding (`deep.bin`) or the classical
+    /// pixels + LBP Direct LDA (`dlda.bin`). Templates of one are never compared with the other's.
+    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = RecognizerKind::default())]
+    pub recognizer: RecognizerKind,
     /// Comma-separated API keys; when none are given the API is open to anyone who can reach it.
     #[arg(long, env = "FACEGATE_API_KEYS", value_delimiter = ',', hide_env_values = true)]
     pub api_keys: Vec<String>,
@@ -104,6 +109,7 @@ impl Default for Settings {
             database: DEFAULT_DATABASE.into(),
             models: None,
             sfm: None,
+            recognizer: RecognizerKind::default(),
             api_keys: Vec::new(),
             workers: None,
             queue: DEFAULT_QUEUE,
@@ -141,7 +147,11 @@ impl Settings {
     /// The pipeline's model folders: the flags' when given, else [`pipeline_config`]'s.
     pub fn pipeline_config(&self) -> PipelineConfig {
         let defaults = pipeline_config();
-        PipelineConfig { models_dir: self.models.clone().unwrap_or(defaults.models_dir), sfm_dir: self.sfm.clone().or(defaults.sfm_dir) }
+        PipelineConfig {
+            models_dir: self.models.clone().unwrap_or(defaults.models_dir),
+            sfm_dir: self.sfm.clone().or(defaults.sfm_dir),
+            recognizer: self.recognizer,
+        }
     }
 }
 

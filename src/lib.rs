@@ -13,6 +13,7 @@ pub mod config;
 pub mod core;
 
 pub mod detect;
+pub mod embed;
 pub mod landmarks;
 pub mod morph;
 pub mod recognize;

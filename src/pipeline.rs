@@ -18,7 +18,7 @@ use crate::detect::{Detector, Face};
 use crate::landmarks::asm3d::{Asm3dLandmarker, SERVICE_MIN_YAW};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
 use crate::morph::{FaceModel, Pose};
-use crate::recognize::{Normalization, Recognizer, Template, Views};
+use crate::recognize::{AnyRecognizer, DeepRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views};
 
 /// Where the pipeline's models are.
 #[derive(Debug, Clone)]
@@ -27,6 +27,8 @@ pub struct PipelineConfig {
     pub models_dir: PathBuf,
     /// The Surrey Face Model folder; `None` or missing files mean 2D alignment only.
     pub sfm_dir: Option<PathBuf>,
+    /// The deep embedding (`deep.bin`) or the classical DLDA (`dlda.bin`).
+    pub recognizer: RecognizerKind,
 }
 
 /// The 2D-alignment recognition model used when the 3DMM is unavailable.
@@ -144,31 +146,23 @@ pub struct Pipeline {
     pub finder: FaceFinder,
     /// `None` when the Surrey Face Model is not available: 2D alignment only.
     pub face_model: Option<FaceModel>,
-    pub recognizer: Recognizer,
+    pub recognizer: AnyRecognizer,
 }
 
 impl Pipeline {
-    /// Load every stage. The recognition model is `dlda.bin`; when it was trained on 3DMM frontal
-    /// renderings and the Surrey Face Model is unavailable, the 2D model `dlda-2d.bin` is used
-    /// instead (with a warning), so that templates are never scored against thresholds calibrated
-    /// for the other normalisation. Its templates carry its own model version, so subjects
-    /// enrolled under one model are not compared with probes of the other.
+    /// Load every stage. The deep recognizer is `deep.bin` over `embedding.bin`. The classical
+    /// one is `dlda.bin`; when it was trained on 3DMM frontal renderings and the Surrey Face Model
+    /// is unavailable, the 2D model `dlda-2d.bin` is used instead (with a warning), so that
+    /// templates are never scored against thresholds calibrated for the other normalisation. Every
+    /// model's templates carry its own version, so subjects enrolled under one model are not
+    /// compared with probes of another.
     pub fn load(config: &PipelineConfig) -> Result<Pipeline, PipelineError> {
         let finder = FaceFinder::load(&config.models_dir)?;
         let face_model = load_face_model(config.sfm_dir.as_deref());
-        let mut recognizer = Recognizer::load(&config.models_dir)?;
-        if recognizer.normalization() == Normalization::Morph && face_model.is_none() {
-            let fallback = config.models_dir.join(TWO_D_MODEL_FILE);
-            recognizer = Recognizer::load_file(&fallback)?;
-            if recognizer.normalization() != Normalization::TwoD {
-                return Err(PipelineError::NoTwoDModel(fallback.display().to_string()));
-            }
-            tracing::warn!(
-                "recognition uses the 2D model {} ({}): templates enrolled with the 3DMM model are not comparable",
-                fallback.display(),
-                recognizer.model_version()
-            );
-        }
+        let recognizer = match config.recognizer {
+            RecognizerKind::Deep => AnyRecognizer::Deep(Box::new(DeepRecognizer::load(&config.models_dir)?)),
+            RecognizerKind::Classical => AnyRecognizer::Classical(load_classical(config, face_model.is_some())?),
+        };
         Ok(Pipeline { finder, face_model, recognizer })
     }
 
@@ -184,25 +178,68 @@ impl Pipeline {
         let landmarks = self.finder.landmarks(&photo.gray, &face.rect);
         timings.landmarks_ms = elapsed_ms(t);
 
+        let (template, pose) = match &self.recognizer {
+            AnyRecognizer::Classical(recognizer) => self.classical_template(recognizer, photo, &landmarks, &mut timings)?,
+            AnyRecognizer::Deep(deep) => {
+                // The network sees the photo itself (the 3DMM frontal rendering measured worse as
+                // its input: docs/recognition.md); the fit still reports the head pose.
+                let t = Instant::now();
+                let pose = recognition_input(self.face_model.as_ref(), photo, &landmarks, Normalization::TwoD)?.pose;
+                timings.morph_ms = elapsed_ms(t);
+                let t = Instant::now();
+                let template = deep.template(&photo.rgb, &landmarks.keypoints);
+                timings.template_ms = elapsed_ms(t);
+                (template, pose)
+            }
+        };
+        Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, template, timings })
+    }
+
+    /// The classical recognizer's template: the 3DMM frontal rendering and/or the 2D-aligned photo,
+    /// normalised, projected.
+    fn classical_template(
+        &self,
+        recognizer: &Recognizer,
+        photo: &Photo,
+        landmarks: &Landmarks,
+        timings: &mut StageTimings,
+    ) -> Result<(Template, Option<Pose>), PipelineError> {
         let t = Instant::now();
-        let input = recognition_input(self.face_model.as_ref(), photo, &landmarks, self.recognizer.normalization())?;
+        let input = recognition_input(self.face_model.as_ref(), photo, landmarks, recognizer.normalization())?;
         timings.morph_ms = elapsed_ms(t);
 
         let t = Instant::now();
-        let crop = |input: &RecognitionInput| self.recognizer.normalized_crop(&input.gray, &input.keypoints);
-        let template = match self.recognizer.paths().get(1) {
+        let crop = |input: &RecognitionInput| recognizer.normalized_crop(&input.gray, &input.keypoints);
+        let template = match recognizer.paths().get(1) {
             // A fused model also sees the face on its second path (2D: the photo itself, no fit).
             Some(&second) => {
                 let other =
-                    recognition_input(self.face_model.as_ref().filter(|_| second == Normalization::Morph), photo, &landmarks, second)?;
-                self.recognizer.template(Views::Fused { primary: &crop(&input), secondary: &crop(&other) })?
+                    recognition_input(self.face_model.as_ref().filter(|_| second == Normalization::Morph), photo, landmarks, second)?;
+                recognizer.template(Views::Fused { primary: &crop(&input), secondary: &crop(&other) })?
             }
-            None => self.recognizer.template(Views::Single(&crop(&input)))?,
+            None => recognizer.template(Views::Single(&crop(&input)))?,
         };
         timings.template_ms = elapsed_ms(t);
-
-        Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose: input.pose, template, timings })
+        Ok((template, input.pose))
     }
+}
+
+/// `dlda.bin`, or `dlda-2d.bin` when the former needs the 3DMM and it is not loaded.
+fn load_classical(config: &PipelineConfig, have_face_model: bool) -> Result<Recognizer, PipelineError> {
+    let mut recognizer = Recognizer::load(&config.models_dir)?;
+    if recognizer.normalization() == Normalization::Morph && !have_face_model {
+        let fallback = config.models_dir.join(TWO_D_MODEL_FILE);
+        recognizer = Recognizer::load_file(&fallback)?;
+        if recognizer.normalization() != Normalization::TwoD {
+            return Err(PipelineError::NoTwoDModel(fallback.display().to_string()));
+        }
+        tracing::warn!(
+            "recognition uses the 2D model {} ({}): templates enrolled with the 3DMM model are not comparable",
+            fallback.display(),
+            recognizer.model_version()
+        );
+    }
+    Ok(recognizer)
 }
 
 /// What the recognizer normalises: a grey image, the eye and mouth centres in it, and the head pose
@@ -266,10 +303,28 @@ mod tests {
     }
 
     #[test]
-    fn without_the_3dmm_the_pipeline_uses_a_2d_model() {
-        let pipeline = Pipeline::load(&PipelineConfig { sfm_dir: None, ..crate::config::pipeline_config() }).unwrap();
+    fn deep_and_classical_templates_carry_their_own_versions() {
+        let deep = Pipeline::load(&crate::config::pipeline_config()).unwrap();
+        let classical =
+            Pipeline::load(&PipelineConfig { recognizer: RecognizerKind::Classical, ..crate::config::pipeline_config() }).unwrap();
+        let p = photo("05-1m.jpg");
+        let (a, b) = (deep.analyze(&p).unwrap(), classical.analyze(&p).unwrap());
+        assert!(a.template.model_version.starts_with("deep-") && b.template.model_version.starts_with("dlda-"));
+        assert_eq!(a.template.vector.len(), crate::embed::EMBEDDING_DIMS);
+        assert_eq!((a.face, &a.landmarks), (b.face, &b.landmarks), "one front end for both");
+        // Without the 3DMM the deep recognizer is unchanged (it never needed the rendering); the
+        // pose is then unknown.
+        let flat = Pipeline::load(&PipelineConfig { sfm_dir: None, ..crate::config::pipeline_config() }).unwrap();
+        let c = flat.analyze(&p).unwrap();
+        assert_eq!((c.template.clone(), c.pose), (a.template, None));
+    }
+
+    #[test]
+    fn without_the_3dmm_the_classical_pipeline_uses_a_2d_model() {
+        let config = PipelineConfig { sfm_dir: None, recognizer: RecognizerKind::Classical, ..crate::config::pipeline_config() };
+        let pipeline = Pipeline::load(&config).unwrap();
         assert!(pipeline.face_model.is_none());
-        assert_eq!(pipeline.recognizer.normalization(), Normalization::TwoD);
+        assert_eq!(pipeline.recognizer.classical().map(|r| r.normalization()), Some(Normalization::TwoD));
         let a = pipeline.analyze(&photo("05-1m.jpg")).unwrap();
         assert!(a.pose.is_none());
         assert_eq!(a.template.model_version, pipeline.recognizer.model_version());

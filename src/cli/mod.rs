@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 pub mod detect;
+pub mod embed;
 pub mod landmarks;
 pub mod morph;
 pub mod recognize;
@@ -38,6 +39,17 @@ pub enum Command {
     /// Measure a stage on annotated data.
     #[command(subcommand)]
     Eval(EvalCommand),
+    /// Convert third-party model weights into the project's own files.
+    #[command(subcommand)]
+    Convert(ConvertCommand),
+    /// Face embeddings (deep network) of photos or aligned chips; one JSON object per image.
+    Embed(embed::EmbedArgs),
+}
+
+#[derive(Subcommand, Debug)]
+pub enum ConvertCommand {
+    /// dlib's ResNet face-recognition weights (face_recognition_models) → models/embedding.bin.
+    Embedding(embed::ConvertEmbeddingArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -50,6 +62,8 @@ pub enum TrainCommand {
     ImmSfm(morph::TrainImmSfmArgs),
     /// Train the 3D-ASM (3D PDM from the 3DMM, view-based textures from synthesised views).
     Asm3d(landmarks::TrainAsm3dArgs),
+    /// Calibrate the deep recognizer (embedding network + optional DLDA) → models/deep.bin.
+    Deep(embed::TrainDeepArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -64,6 +78,10 @@ pub enum EvalCommand {
     Verify(recognize::EvalVerifyArgs),
     /// Rank-1 identification per head-pose bin, 2D against 3DMM normalisation.
     Identify(recognize::EvalIdentifyArgs),
+    /// Deep-embedding scoring variants: cross-validation, then held-out IMM, ORL and LFW persons.
+    Deep(embed::EvalDeepArgs),
+    /// Deep-embedding chip placement variants by cross-validation.
+    DeepAlign(embed::EvalDeepAlignArgs),
 }
 
 pub fn main() -> ExitCode {
@@ -84,6 +102,11 @@ pub fn main() -> ExitCode {
         Command::Eval(EvalCommand::Pairs(args)) => recognize::run_eval_pairs(args),
         Command::Eval(EvalCommand::Verify(args)) => recognize::run_eval_verify(args),
         Command::Eval(EvalCommand::Identify(args)) => recognize::run_eval_identify(args),
+        Command::Convert(ConvertCommand::Embedding(args)) => embed::run_convert(args),
+        Command::Embed(args) => embed::run_embed(args),
+        Command::Train(TrainCommand::Deep(args)) => embed::run_train_deep(args),
+        Command::Eval(EvalCommand::Deep(args)) => embed::run_eval_deep(args),
+        Command::Eval(EvalCommand::DeepAlign(args)) => embed::run_eval_deep_align(args),
     };
     match result {
         Ok(code) => code,

@@ -5,9 +5,9 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 
-use crate::pipeline::Pipeline;
+use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::calibration::DEFAULT_FMR;
-use crate::recognize::{DldaParams, FeatureKind, Model, Normalization, NormalizeParams, Photometric, Recognizer, Template};
+use crate::recognize::{DldaParams, FeatureKind, Model, Normalization, NormalizeParams, Photometric, Recognizer, RecognizerKind, Template};
 use crate::research::eval::identification;
 use crate::research::eval::pairs::{read_pairs, score_pairs};
 use crate::research::eval::verification::{self, summarize};
@@ -19,6 +19,9 @@ pub struct CompareArgs {
     pub b: PathBuf,
     #[arg(long)]
     pub json: bool,
+    /// Which recognizer compares the photos.
+    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = RecognizerKind::default())]
+    pub recognizer: RecognizerKind,
     /// Operating point: the calibrated false match rate closest to this (1e-2, 1e-3 or 1e-4).
     #[arg(long, default_value_t = DEFAULT_FMR)]
     pub fmr: f64,
@@ -226,15 +229,29 @@ pub struct EvalPairsArgs {
     pub pairs: PathBuf,
     #[arg(long)]
     pub images: PathBuf,
+    /// Which recognizer scores the pairs.
+    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = RecognizerKind::default())]
+    pub recognizer: RecognizerKind,
 }
 
 #[derive(clap::Args, Debug)]
 pub struct EvalVerifyArgs {
-    #[arg(required = true)]
+    /// Labelled folders (the classical recognizer; the deep one measures IMM, ORL and LFW under
+    /// the shared data folder).
+    #[arg(required_if_eq("recognizer", "classical"))]
     pub dirs: Vec<PathBuf>,
-    /// The model to measure (default: `dlda.bin` in the models folder).
+    /// Which recognizer to measure.
+    #[arg(long, value_enum, default_value_t = RecognizerKind::Classical)]
+    pub recognizer: RecognizerKind,
+    /// The model to measure (default: `dlda.bin`, or `deep.bin` with `--recognizer deep`, in the
+    /// models folder).
     #[arg(long)]
     pub model: Option<PathBuf>,
+    #[command(flatten)]
+    pub deep: crate::cli::embed::DeepDataArgs,
+    /// With `--recognizer deep`: one JSON object per line.
+    #[arg(long)]
+    pub json: bool,
     #[arg(long, value_enum, default_value = "annotated")]
     pub keypoints: KeypointSource,
     /// Measure on every person, including those the projection was trained on (optimistic).
@@ -256,12 +273,16 @@ pub struct EvalIdentifyArgs {
     /// stay held-out persons only).
     #[arg(long)]
     pub distractors: bool,
+    /// `classical`: a 2D and a 3DMM model trained here and compared; `deep`: the deep recognizer
+    /// through the service's pipeline (the IMM data under the shared folder).
+    #[arg(long, value_enum, default_value_t = RecognizerKind::Classical)]
+    pub recognizer: RecognizerKind,
     #[command(flatten)]
     pub model: ModelOptions,
 }
 
 pub fn run_compare(args: CompareArgs) -> anyhow::Result<ExitCode> {
-    let pipeline = Pipeline::load(&crate::config::pipeline_config())?;
+    let pipeline = Pipeline::load(&PipelineConfig { recognizer: args.recognizer, ..crate::config::pipeline_config() })?;
     let analyze = |path: &Path| -> anyhow::Result<Template> {
         let photo = crate::core::imaging::open(path)?;
         Ok(pipeline.analyze(&photo).with_context(|| path.display().to_string())?.template)
@@ -400,7 +421,7 @@ fn report_model(out: &Path, model: &Model, report: &HeldOutReport) {
 pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
     let file = std::fs::File::open(&args.pairs).with_context(|| args.pairs.display().to_string())?;
     let pairs = read_pairs(std::io::BufReader::new(file))?;
-    let pipeline = Pipeline::load(&crate::config::pipeline_config())?;
+    let pipeline = Pipeline::load(&PipelineConfig { recognizer: args.recognizer, ..crate::config::pipeline_config() })?;
     let bar = crate::cli::progress(pairs.len() as u64, "pairs");
     let template_of = |path: &Path| -> anyhow::Result<Template> {
         let photo = crate::core::imaging::open(path)?;
@@ -426,6 +447,10 @@ pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
 const ENROLLED_PHOTOS: [usize; 4] = [1, 2, 3, 5];
 
 pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
+    if args.recognizer == RecognizerKind::Deep {
+        let path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::deep::FILE));
+        return crate::cli::embed::run_eval_verify_deep(&path, &args.deep, args.json);
+    }
     let model_path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::MODEL_FILE));
     let recognizer = Recognizer::load_file(&model_path)?;
     let model = recognizer.model();
@@ -518,6 +543,9 @@ fn print_enrolment_protocol(recognizer: &Recognizer, sets: [(&str, &Vec<(String,
 }
 
 pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
+    if args.recognizer == RecognizerKind::Deep {
+        return crate::cli::embed::run_eval_identify_deep(args.distractors);
+    }
     let data = args.data.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/imm"));
     let faces = train::list_faces(std::slice::from_ref(&data))?;
     let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), Some(&crate::config::sfm_dir()));

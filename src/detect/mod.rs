@@ -206,7 +206,7 @@ impl Detector {
                     min_size,
                     max_size: f32::INFINITY,
                     scale_step: opts.scale_step,
-                    step: if small { 1 } else { opts.step },
+                    step: opts.step,
                     min_neighbours: opts.min_neighbours,
                     group_eps: 0.2,
                 };

@@ -8,6 +8,7 @@
 //! content hash is the model version carried by every template.
 
 pub mod calibration;
+pub mod deep;
 pub mod dlda;
 pub mod features;
 pub mod normalize;
@@ -28,6 +29,63 @@ pub use features::{FeatureKind, Region};
 pub use normalize::{NormalizeParams, Photometric};
 pub use score_norm::{Cohort, CohortStats};
 pub use template::{Combine, Template};
+
+pub use deep::DeepRecognizer;
+
+/// Which recognizer makes the templates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+pub enum RecognizerKind {
+    /// The deep face embedding (`deep.bin` over `embedding.bin`): the accurate one on real photos.
+    #[default]
+    Deep,
+    /// Pixels + LBP through Direct LDA (`dlda.bin`): no third-party weights, less CPU.
+    Classical,
+}
+
+/// The recognizer the pipeline runs: one of the two, behind what the service needs of either
+/// (the model version on templates, the score, the calibrated operating point).
+pub enum AnyRecognizer {
+    Classical(Recognizer),
+    Deep(Box<DeepRecognizer>),
+}
+
+impl AnyRecognizer {
+    pub fn kind(&self) -> RecognizerKind {
+        match self {
+            AnyRecognizer::Classical(_) => RecognizerKind::Classical,
+            AnyRecognizer::Deep(_) => RecognizerKind::Deep,
+        }
+    }
+
+    pub fn model_version(&self) -> &str {
+        match self {
+            AnyRecognizer::Classical(r) => r.model_version(),
+            AnyRecognizer::Deep(d) => &d.model.version,
+        }
+    }
+
+    pub fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
+        match self {
+            AnyRecognizer::Classical(r) => r.score(probe, enrolled),
+            AnyRecognizer::Deep(d) => d.score(probe, enrolled),
+        }
+    }
+
+    pub fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
+        match self {
+            AnyRecognizer::Classical(r) => r.operating_point(fmr, enrolled),
+            AnyRecognizer::Deep(d) => d.model.operating_point(fmr, enrolled),
+        }
+    }
+
+    /// The classical recognizer, when it is the one loaded.
+    pub fn classical(&self) -> Option<&Recognizer> {
+        match self {
+            AnyRecognizer::Classical(r) => Some(r),
+            AnyRecognizer::Deep(_) => None,
+        }
+    }
+}
 
 /// Which normalisation a recognition model was trained for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

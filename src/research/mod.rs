@@ -6,6 +6,7 @@ pub mod dataset;
 pub mod eval;
 pub mod train_asm;
 pub mod train_asm3d;
+pub mod train_deep;
 pub mod train_dlda;
 
 /// Progress of a long loop, handed down by the caller (the CLI draws a bar; tests stay quiet).

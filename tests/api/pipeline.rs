@@ -3,7 +3,8 @@
 
 use std::sync::{Arc, OnceLock};
 
-use facegate::pipeline::Pipeline;
+use facegate::pipeline::{Pipeline, PipelineConfig};
+use facegate::recognize::RecognizerKind;
 use serde_json::json;
 
 use crate::support::*;
@@ -13,6 +14,17 @@ fn pipeline() -> Arc<Pipeline> {
     PIPELINE
         .get_or_init(|| {
             Arc::new(Pipeline::load(&facegate::config::pipeline_config()).unwrap_or_else(|e| panic!("cannot load the pipeline: {e}")))
+        })
+        .clone()
+}
+
+/// The classical recognizer's pipeline (`--recognizer classical`).
+fn classical() -> Arc<Pipeline> {
+    static PIPELINE: OnceLock<Arc<Pipeline>> = OnceLock::new();
+    PIPELINE
+        .get_or_init(|| {
+            let config = PipelineConfig { recognizer: RecognizerKind::Classical, ..facegate::config::pipeline_config() };
+            Arc::new(Pipeline::load(&config).unwrap_or_else(|e| panic!("cannot load the classical pipeline: {e}")))
         })
         .clone()
 }
@@ -111,4 +123,32 @@ async fn every_bad_input_class_with_the_real_pipeline() {
     app.post_json("/verify", &json!({"subject": "imm-05"})).await.assert_problem(400, "malformed-request");
     let r = app.send(app.client.post(app.url("/verify")).header("content-type", "image/jpeg").body(photo)).await;
     r.assert_problem(415, "unsupported-media-type");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn both_recognizers_verify_and_never_compare_each_others_templates() {
+    let config = facegate::config::Settings::default().api_config().unwrap();
+    let deep = pipeline();
+    assert_eq!(deep.recognizer.kind(), RecognizerKind::Deep, "the default recognizer is the deep one");
+    // Enrolled under the classical recognizer, verified there.
+    let old = TestApp::start(classical(), config.clone()).await;
+    let r = old.post_form("/enroll", Some("imm-05"), &[imm("05-1m.jpg"), imm("05-2m.jpg")]).await;
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let classical_version = r.json()["model_version"].as_str().unwrap().to_string();
+    assert!(classical_version.starts_with("dlda-"), "{classical_version}");
+    let r = old.post_form("/verify", Some("imm-05"), &[imm("05-6m.jpg")]).await;
+    assert_eq!(r.json()["match"], true, "{}", r.json());
+    // The same database under the deep recognizer: the subject has no template it can compare.
+    let new = old.restarted_with(deep.clone(), config).await;
+    new.post_form("/verify", Some("imm-05"), &[imm("05-6m.jpg")]).await.assert_problem(409, "model-mismatch");
+    assert_eq!(new.post_form("/identify", None, &[imm("05-6m.jpg")]).await.json()["candidates"].as_array().unwrap().len(), 0);
+    // Enrolled again, the deep templates join the old ones and the deep recognizer decides.
+    let r = new.post_form("/enroll", Some("imm-05"), &[imm("05-1m.jpg")]).await;
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    assert!(r.json()["model_version"].as_str().unwrap().starts_with("deep-"));
+    let r = new.post_form("/verify", Some("imm-05"), &[imm("05-6m.jpg")]).await;
+    let v = r.json();
+    assert_eq!((v["match"].clone(), v["templates_compared"].clone()), (json!(true), json!(1)), "{v}");
+    let versions = new.get("/subjects/imm-05").await.json();
+    assert_eq!(versions["templates"], 3, "{versions}");
 }

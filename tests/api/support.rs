@@ -64,6 +64,18 @@ impl TestApp {
         let dir = std::env::temp_dir().join(format!("facegate-api-{}-{}", std::process::id(), N.fetch_add(1, Ordering::Relaxed)));
         std::fs::create_dir_all(&dir).unwrap();
         let store = Store::connect(&format!("sqlite://{}", dir.join("facegate.db").display())).await.unwrap();
+        Self::serve(engine, store, config, dir).await
+    }
+
+    /// A second app on this one's database with another engine (a service restarted with another
+    /// recognizer); the database folder stays until this app is dropped.
+    pub async fn restarted_with(&self, engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {
+        let scratch = self.dir.join(format!("restart-{}", std::process::id()));
+        std::fs::create_dir_all(&scratch).unwrap();
+        Self::serve(engine, self.store.clone(), config, scratch).await
+    }
+
+    async fn serve(engine: Arc<dyn FaceEngine>, store: Store, config: ApiConfig, dir: PathBuf) -> TestApp {
         let app = http::router(AppState::new(engine, store.clone(), config));
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let base = format!("http://{}", listener.local_addr().unwrap());

@@ -1,10 +1,12 @@
 //! Evaluation: accuracy measures of each stage on held-out people, and their plots.
 
+pub mod deep;
 pub mod detection;
 pub mod identification;
 pub mod landmarks;
 pub mod pairs;
 pub mod plot;
+pub mod protocol;
 pub mod verification;
 
 /// Nanoseconds the calling thread has run on a CPU (Linux `schedstat`), so that timings taken on a

@@ -1,7 +1,5 @@
 //! Scoring protocols: all pairs, several templates per person, the service's enrolment sets.
 
-use std::collections::BTreeMap;
-
 use super::*;
 use crate::core::imaging::GrayF32;
 use crate::recognize::normalize;
@@ -40,19 +38,11 @@ pub fn pair_scores(recognizer: &Recognizer, templates: &[(String, Template)]) ->
     (genuine, impostor)
 }
 
-/// The indices of each person's templates, in listing order.
-fn photos_by_person(templates: &[(String, Template)]) -> BTreeMap<&str, Vec<usize>> {
-    let mut by_person: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
-    for (i, (label, _)) in templates.iter().enumerate() {
-        by_person.entry(label).or_default().push(i);
-    }
-    by_person
-}
-
 /// Genuine and impostor scores of each template against every person's other templates, combined.
 pub fn combined_scores(recognizer: &Recognizer, templates: &[(String, Template)], combine: Combine) -> (Vec<f32>, Vec<f32>) {
     let stats: Vec<_> = templates.iter().map(|(_, t)| recognizer.cohort_stats(t)).collect();
-    let by_person = photos_by_person(templates);
+    let labels: Vec<&str> = templates.iter().map(|(l, _)| l.as_str()).collect();
+    let by_person = crate::research::eval::protocol::photos_by_person(&labels);
     let (mut genuine, mut impostor) = (Vec::new(), Vec::new());
     for (p, (label, probe)) in templates.iter().enumerate() {
         for (person, idx) in &by_person {
@@ -67,25 +57,12 @@ pub fn combined_scores(recognizer: &Recognizer, templates: &[(String, Template)]
     (genuine, impostor)
 }
 
-/// Genuine and impostor scores of the service's protocol with `k` photos enrolled per person:
-/// each person's photos (in listing order) give one enrolment set per rotation (photos r … r+k−1,
-/// cyclically); the person's other photos are its genuine probes, every other person's photos its
-/// impostor probes, each scored against the set combined by `combine`. `k` = 1 gives each all-pairs
-/// score twice. Persons with no more than `k` photos are left out.
+/// Genuine and impostor scores of the service's protocol with `k` photos enrolled per person
+/// ([`crate::research::eval::protocol::enrolment_scores_by`]), scored as the recognizer scores.
 pub fn enrolment_scores(recognizer: &Recognizer, templates: &[(String, Template)], k: usize, combine: Combine) -> (Vec<f32>, Vec<f32>) {
     let stats: Vec<_> = templates.iter().map(|(_, t)| recognizer.cohort_stats(t)).collect();
-    let by_person = photos_by_person(templates);
-    let k = k.max(1);
-    let (mut genuine, mut impostor) = (Vec::new(), Vec::new());
-    for (person, photos) in by_person.iter().filter(|(_, photos)| photos.len() > k) {
-        for r in 0..photos.len() {
-            let enrolled: Vec<usize> = (0..k).map(|j| photos[(r + j) % photos.len()]).collect();
-            for (p, (label, probe)) in templates.iter().enumerate().filter(|(p, _)| !enrolled.contains(p)) {
-                let scores = enrolled.iter().map(|&e| recognizer.pair_score(probe, stats[p], &templates[e].1, stats[e]));
-                let s = combine.apply(scores).expect("an enrolment set is never empty");
-                if label.as_str() == *person { genuine.push(s) } else { impostor.push(s) }
-            }
-        }
-    }
-    (genuine, impostor)
+    let labels: Vec<&str> = templates.iter().map(|(l, _)| l.as_str()).collect();
+    crate::research::eval::protocol::enrolment_scores_by(&labels, k, combine, &|p, e| {
+        recognizer.pair_score(&templates[p].1, stats[p], &templates[e].1, stats[e])
+    })
 }

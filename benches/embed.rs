@@ -1,0 +1,30 @@
+//! Face-embedding speed: one forward pass of the ResNet on a 150×150 chip (target ≤ 12 ms on one
+//! core), and the mirror-averaged embedding the deep recognizer uses (two passes); thread CPU time. The chip is cut from an IMM photo with its annotated key points.
+
+mod common;
+
+use criterion::{Criterion, black_box, criterion_group, criterion_main};
+use facegate::core::face::KeyPoints;
+use facegate::embed::{self, CHIP_SIZE, Workspace};
+use facegate::research::dataset::list_imm;
+
+fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
+    let embedder = embed::load(&facegate::config::models_dir()).expect("models/embedding.bin (facegate convert embedding)");
+    let sample = &list_imm(&facegate::config::shared_dir().join("data/imm")).expect("IMM data")[0];
+    let photo = facegate::imaging::open(&sample.image).expect("IMM photo");
+    let k = KeyPoints::from_imm(&sample.landmarks().expect("IMM landmarks"));
+    let to_photo = embed::chip::chip_to_photo(CHIP_SIZE, k.left_eye, k.right_eye, k.mouth);
+    let chip = embed::chip::extract(&photo.rgb, &to_photo, CHIP_SIZE);
+    let mut ws = Workspace::default();
+
+    c.bench_function("embed_chip_150", |b| b.iter(|| black_box(embedder.forward(black_box(&chip), &mut ws))));
+    c.bench_function("embed_chip_150_mirror_averaged", |b| b.iter(|| black_box(embedder.embed_mirrored(black_box(&chip), &mut ws))));
+    c.bench_function("cut_chip_640x480", |b| b.iter(|| black_box(embed::chip::extract(black_box(&photo.rgb), &to_photo, CHIP_SIZE))));
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().with_measurement(common::ThreadCpuTime).sample_size(30);
+    targets = bench
+}
+criterion_main!(benches);

