@@ -11,7 +11,7 @@ use facegate::research::dataset::list_imm;
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
     let embedder = embed::load(&facegate::config::models_dir()).expect("models/embedding.bin (facegate convert embedding)");
     let sample = &list_imm(&facegate::config::shared_dir().join("data/imm")).expect("IMM data")[0];
-    let photo = facegate::imaging::open(&sample.image).expect("IMM photo");
+    let photo = facegate::core::imaging::open(&sample.image).expect("IMM photo");
     let k = KeyPoints::from_imm(&sample.landmarks().expect("IMM landmarks"));
     let to_photo = embed::chip::chip_to_photo(CHIP_SIZE, k.left_eye, k.right_eye, k.mouth);
     let chip = embed::chip::extract(&photo.rgb, &to_photo, CHIP_SIZE);
