@@ -12,9 +12,10 @@ use sha2::Digest;
 use crate::embed::{self, CHIP_SIZE, FaceChip, weights::Provenance};
 use crate::pipeline::{FaceFinder, Pipeline, load_face_model};
 use crate::recognize::deep::{DeepModel, DeepProvenance};
+use crate::research::dataset::Split;
 use crate::research::eval::deep::{self as deep_eval, ChipVariant, Scoring};
 use crate::research::eval::verification::VerificationSummary;
-use crate::research::train_deep::{self, DeepFrontEnd, PhotoEmbeddings, Sample, Set, Split};
+use crate::research::train_deep::{self, DeepFrontEnd, PhotoEmbeddings, Sample, Set};
 
 #[derive(clap::Args, Debug)]
 pub struct ConvertEmbeddingArgs {
@@ -175,6 +176,15 @@ pub struct EvalDeepArgs {
     /// Stop after the cross-validation.
     #[arg(long)]
     pub cv_only: bool,
+    /// Also measure rank-1 on IMM held-out faces re-posed by the 3DMM to ±30° and ±45°, the photo's
+    /// chip against the 3DMM frontal rendering's.
+    #[arg(long)]
+    pub renders: bool,
+    /// Also fuse with the classical recognizer's score (its templates of LFW's training and test
+    /// persons and the IMM/ORL held-out persons; the weight chosen on LFW's training persons, which
+    /// the classical model never saw).
+    #[arg(long)]
+    pub fusion: bool,
 }
 
 /// The deep embedding's scoring variants: cross-validation over the training persons, then the
@@ -187,6 +197,28 @@ pub fn run_eval_deep(args: EvalDeepArgs) -> anyhow::Result<ExitCode> {
         let (n, found, frontal) =
             all.fold((0, 0, 0), |(n, f, fr), (_, e)| (n + 1, f + e.photo.is_some() as usize, fr + e.frontal.is_some() as usize));
         println!("{set:?}: {n} photos, face found in {found}, frontal rendering for {frontal}");
+    }
+    if args.renders {
+        use crate::research::train_dlda::{FrontEnd, KeypointSource, list_faces};
+        let models = crate::config::models_dir();
+        let front = FrontEnd::load(KeypointSource::Pipeline, &models, Some(&crate::config::sfm_dir()));
+        let imm = list_faces(&[crate::config::shared_dir().join("data/imm")])?;
+        let table = deep_eval::turned_render_rank1(&front, &embed::load(&models)?, &imm, &[-45.0, -30.0, 30.0, 45.0])?;
+        println!("rank-1 of 3DMM renders of the IMM held-out view 1 (gallery: view 2 of {} persons):", table.gallery);
+        for (yaw, direct, frontal) in &table.rows {
+            for (input, r) in [("photo chip", direct), ("3DMM frontal rendering chip", frontal)] {
+                println!(
+                    "  yaw {yaw:+.0}°, {input:<28} rank-1 {}/{}, mean genuine cosine {:.4}, smallest margin over the best impostor {:+.4}",
+                    r.rank1,
+                    r.probes,
+                    r.mean_genuine(),
+                    r.min_margin
+                );
+            }
+        }
+    }
+    if args.fusion {
+        fusion_report(&samples, &embeddings, args.data.threads)?;
     }
     let variants: Vec<(String, DldaParams)> = [(127, 0.01), (64, 0.01), (127, 0.1), (127, 1.0)]
         .iter()
@@ -235,6 +267,54 @@ pub fn run_eval_deep(args: EvalDeepArgs) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Score-level fusion of the deep and the classical recognizers: z-normalised by each one's
+/// impostor scores, the weight of the deep score chosen on LFW's training persons, then measured
+/// on the held-out sets.
+fn fusion_report(samples: &[Sample], embeddings: &[PhotoEmbeddings], threads: usize) -> anyhow::Result<()> {
+    use crate::recognize::RecognizerKind;
+    let config = crate::pipeline::PipelineConfig { recognizer: RecognizerKind::Classical, ..crate::config::pipeline_config() };
+    let classical = Pipeline::load(&config)?;
+    let wanted = |s: &Sample| s.split == Split::Test || (s.set == Set::Lfw && s.split == Split::Train);
+    let templates = deep_eval::classical_templates(&classical, samples, &wanted, threads, &crate::cli::Bar::default());
+    let items = |f: &dyn Fn(&Sample) -> bool| -> Vec<deep_eval::FusionItem> {
+        samples
+            .iter()
+            .zip(embeddings)
+            .zip(&templates)
+            .filter(|((s, _), _)| f(s))
+            .filter_map(|((s, e), c)| {
+                let d = e.photo.as_ref()?;
+                let n = d.iter().map(|v| v * v).sum::<f32>().sqrt();
+                Some((s.label.as_str(), d.iter().map(|v| v / n).collect(), c.as_deref()?))
+            })
+            .collect()
+    };
+    let train = items(&|s| s.set == Set::Lfw && s.split == Split::Train);
+    let stats = deep_eval::impostor_stats(&train);
+    println!("fusion with the classical score (z-normalised on LFW's {} training photos):", train.len());
+    let weights = [1.0, 0.95, 0.9, 0.8, 0.7, 0.5, 0.0];
+    let mut best = (f64::INFINITY, 1.0);
+    for w in weights {
+        let s = deep_eval::fused_summary(&train, stats, w);
+        summary_line(&format!("LFW training persons, deep weight {w}"), &s);
+        if s.eer + s.fnmr_at_fmr_1e3 < best.0 {
+            best = (s.eer + s.fnmr_at_fmr_1e3, w);
+        }
+    }
+    println!(" chosen deep weight {}; held out:", best.1);
+    for (name, f) in [
+        ("LFW test persons", Box::new(|s: &Sample| s.set == Set::Lfw && s.split == Split::Test) as Box<dyn Fn(&Sample) -> bool>),
+        ("IMM + ORL held-out", Box::new(|s: &Sample| s.set != Set::Lfw && s.split == Split::Test)),
+        ("ORL held-out", Box::new(|s: &Sample| s.set == Set::Orl && s.split == Split::Test)),
+    ] {
+        let held = items(f.as_ref());
+        for w in [1.0, best.1, 0.0] {
+            summary_line(&format!("{name}, deep weight {w}"), &deep_eval::fused_summary(&held, stats, w));
+        }
+    }
+    Ok(())
 }
 
 #[derive(clap::Args, Debug)]

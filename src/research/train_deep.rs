@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 use sha2::Digest;
 
 use super::Progress;
-use super::dataset::{self, imm_is_test_person};
+use super::dataset::{self, Split, imm_is_test_person, lfw_split};
 use super::eval::protocol::{all_pairs_by, enrolment_scores_by};
 use crate::embed::{Embedder, face_embedding};
 use crate::morph::FaceModel;
@@ -21,29 +21,6 @@ use crate::recognize::calibration::CALIBRATED_FMRS;
 use crate::recognize::deep::{ChipSource, DeepModel, DeepProvenance, FORMAT};
 use crate::recognize::template::Combine;
 use crate::recognize::{Calibration, Dlda, EnrolledCalibration, MAX_CALIBRATED_ENROLMENT};
-
-/// Which part of the person-disjoint split a person belongs to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Split {
-    /// Trains projections.
-    Train,
-    /// Sets thresholds (LFW only: IMM and ORL calibrate on their held-out persons, as the
-    /// classical model does).
-    Calibration,
-    /// Held out of everything that is reported as accuracy on people never seen.
-    Test,
-}
-
-/// LFW's person-disjoint split, by a hash of the person's name: 60% train, 20% calibration,
-/// 20% test. Stable across machines and independent of the listing order.
-pub fn lfw_split(person: &str) -> Split {
-    let h = sha2::Sha256::digest(person.as_bytes());
-    match h[0] % 10 {
-        0..=5 => Split::Train,
-        6 | 7 => Split::Calibration,
-        _ => Split::Test,
-    }
-}
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Set {
@@ -253,5 +230,12 @@ mod tests {
         assert!((share(Split::Train) - 0.6).abs() < 0.05 && (share(Split::Test) - 0.2).abs() < 0.05);
         // IMM and ORL keep the project's held-out persons.
         assert!(samples.iter().filter(|s| s.set == Set::Imm && s.split == Split::Test).count() == 9 * 6);
+        // The classical training holds out the same LFW persons.
+        let faces = crate::research::train_dlda::list_faces(&[crate::config::shared_dir().join("data/lfw")]).unwrap();
+        assert_eq!(faces.len(), 4990);
+        for f in &faces {
+            let person = f.label.strip_prefix("lfw-").unwrap();
+            assert_eq!(f.held_out, lfw_split(person) != Split::Train, "{}", f.label);
+        }
     }
 }

@@ -12,7 +12,8 @@ use crate::pipeline::FaceFinder;
 use crate::recognize::deep::DeepModel;
 use crate::recognize::template::Combine;
 use crate::recognize::{Dlda, DldaParams};
-use crate::research::train_deep::{PhotoEmbeddings, Sample, Set, Split};
+use crate::research::dataset::Split;
+use crate::research::train_deep::{PhotoEmbeddings, Sample, Set};
 
 /// How two embeddings are scored (higher: more alike).
 #[derive(Debug, Clone)]
@@ -277,4 +278,161 @@ pub fn rank1_by_view(
         e.1 += (best == Some(s.label.as_str())) as usize;
     }
     Ok(RankTable { gallery: gallery.len(), groups })
+}
+
+/// The classical recognizer's template of each sample `keep` selects (through the service's
+/// pipeline; `None`: no face, or not selected), on `threads` threads.
+pub fn classical_templates(
+    pipeline: &crate::pipeline::Pipeline,
+    samples: &[Sample],
+    keep: &(dyn Fn(&Sample) -> bool + Sync),
+    threads: usize,
+    progress: &dyn crate::research::Progress,
+) -> Vec<Option<Vec<f32>>> {
+    progress.begin(samples.len() as u64, "classical");
+    let mut out = vec![None; samples.len()];
+    let per = samples.len().div_ceil(threads.max(1)).max(1);
+    std::thread::scope(|scope| {
+        for (chunk, dst) in samples.chunks(per).zip(out.chunks_mut(per)) {
+            scope.spawn(move || {
+                for (s, d) in chunk.iter().zip(dst) {
+                    if keep(s)
+                        && let Ok(photo) = crate::core::imaging::open(&s.image)
+                        && let Ok(a) = pipeline.analyze(&photo)
+                    {
+                        *d = Some(a.template.vector);
+                    }
+                    progress.step();
+                }
+            });
+        }
+    });
+    progress.end();
+    out
+}
+
+/// One photo for score fusion: its label, deep unit template and classical template.
+pub type FusionItem<'a> = (&'a str, Vec<f32>, &'a [f32]);
+
+/// Mean and standard deviation of the impostor scores of each recognizer on `items`: the
+/// z-normalisation that puts the deep cosines (≈ 0.9 for a match) and the classical ones (≈ 0.4)
+/// on one scale before they are added.
+pub fn impostor_stats(items: &[FusionItem]) -> [(f64, f64); 2] {
+    let mut acc = [(0.0f64, 0.0f64, 0usize); 2];
+    for i in 0..items.len() {
+        for j in i + 1..items.len() {
+            if items[i].0 == items[j].0 {
+                continue;
+            }
+            for (k, s) in [dot(&items[i].1, &items[j].1), dot(items[i].2, items[j].2)].into_iter().enumerate() {
+                acc[k].0 += s as f64;
+                acc[k].1 += (s as f64) * (s as f64);
+                acc[k].2 += 1;
+            }
+        }
+    }
+    acc.map(|(s, sq, n)| {
+        let n = n.max(1) as f64;
+        let mean = s / n;
+        (mean, (sq / n - mean * mean).max(1e-12).sqrt())
+    })
+}
+
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// All-pairs summary of `w · z(deep) + (1 − w) · z(classical)` with the given impostor statistics.
+pub fn fused_summary(items: &[FusionItem], stats: [(f64, f64); 2], w: f64) -> VerificationSummary {
+    let labels: Vec<&str> = items.iter().map(|(l, _, _)| *l).collect();
+    let score = |a: usize, b: usize| {
+        let zd = (dot(&items[a].1, &items[b].1) as f64 - stats[0].0) / stats[0].1;
+        let zc = (dot(items[a].2, items[b].2) as f64 - stats[1].0) / stats[1].1;
+        (w * zd + (1.0 - w) * zc) as f32
+    };
+    let (g, i) = all_pairs_by(&labels, &score);
+    summarize(&g, &i)
+}
+
+/// How one network input fared on the renders of one yaw offset.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RenderScore {
+    pub probes: usize,
+    /// Probes whose best gallery photo is their own person's.
+    pub rank1: usize,
+    /// Sum of the genuine cosines (own person's gallery photo).
+    pub genuine_sum: f32,
+    /// The smallest margin of a probe: its genuine cosine minus its best impostor cosine.
+    pub min_margin: f32,
+}
+
+impl RenderScore {
+    fn add(&mut self, e: Option<&Embedding>, own: &str, gallery: &[(&str, Embedding)]) {
+        if self.probes == 0 {
+            self.min_margin = f32::INFINITY;
+        }
+        self.probes += 1;
+        let Some(e) = e else {
+            self.min_margin = f32::NEG_INFINITY;
+            return;
+        };
+        let genuine = gallery.iter().filter(|(l, _)| *l == own).map(|(_, g)| e.cosine(g)).fold(f32::NEG_INFINITY, f32::max);
+        let impostor = gallery.iter().filter(|(l, _)| *l != own).map(|(_, g)| e.cosine(g)).fold(f32::NEG_INFINITY, f32::max);
+        self.rank1 += (genuine > impostor) as usize;
+        self.genuine_sum += genuine;
+        self.min_margin = self.min_margin.min(genuine - impostor);
+    }
+
+    pub fn mean_genuine(&self) -> f32 {
+        self.genuine_sum / self.probes.max(1) as f32
+    }
+}
+
+/// Turned renders, per yaw offset: (yaw in degrees, the photo's chip, the 3DMM frontal rendering's chip).
+pub struct RenderTable {
+    pub rows: Vec<(f32, RenderScore, RenderScore)>,
+    pub gallery: usize,
+}
+
+/// Does the 3DMM frontal rendering help the network on strongly turned faces? Each IMM held-out
+/// person's view 1 is fitted, textured and rendered at its pose plus each yaw offset (the
+/// re-posing of `train_dlda::FrontEnd::reposed_views`); the service's front end then finds the
+/// face and landmarks on the render, and the network sees either the render's own chip or the
+/// chip of the 3DMM frontal rendering fitted to those landmarks. Gallery: every IMM person's view 2
+/// photo (9 held-out, 21 distractors), embedded as the service enrols. A probe the front end
+/// cannot find counts as a miss.
+pub fn turned_render_rank1(
+    front: &crate::research::train_dlda::FrontEnd,
+    network: &Embedder,
+    imm: &[crate::research::train_dlda::FaceImage],
+    yaws: &[f32],
+) -> anyhow::Result<RenderTable> {
+    use crate::embed::face_embedding;
+    let finder = front.finder.as_ref().ok_or_else(|| anyhow::anyhow!("the face finder's models are missing"))?;
+    let model = front.face_model.as_ref().ok_or_else(|| anyhow::anyhow!("the Surrey Face Model is missing"))?;
+    let mut gallery: Vec<(&str, Embedding)> = Vec::new();
+    for f in imm.iter().filter(|f| f.view == Some(2)) {
+        let photo = crate::core::imaging::open(&f.image)?;
+        if let Ok(located) = finder.locate(&photo.gray) {
+            gallery.push((f.label.as_str(), face_embedding(network, &photo.rgb, &located.landmarks.keypoints)));
+        }
+    }
+    let offsets: Vec<(f32, f32)> = yaws.iter().map(|&y| (y, 0.0)).collect();
+    let mut rows: Vec<(f32, RenderScore, RenderScore)> =
+        yaws.iter().map(|&y| (y, RenderScore::default(), RenderScore::default())).collect();
+    for f in imm.iter().filter(|f| f.held_out && f.view == Some(1)) {
+        let views = front.reposed_views(f, &offsets)?;
+        for ((photo, _), row) in views.iter().zip(rows.iter_mut()) {
+            let located = finder.locate(&photo.gray).ok();
+            let direct = located.as_ref().map(|l| face_embedding(network, &photo.rgb, &l.landmarks.keypoints));
+            row.1.add(direct.as_ref(), &f.label, &gallery);
+            let frontal = located.as_ref().and_then(|l| {
+                let fit = model.fit(&l.landmarks.points, photo.width(), photo.height()).ok()?;
+                let fr = model.frontalize(photo, &fit).ok()?;
+                Some(face_embedding(network, &fr.image, &fr.keypoints))
+            });
+            row.2.add(frontal.as_ref(), &f.label, &gallery);
+        }
+    }
+    Ok(RenderTable { rows, gallery: gallery.len() })
 }

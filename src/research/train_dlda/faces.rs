@@ -9,7 +9,8 @@ use crate::research::dataset;
 #[derive(Debug, Clone, PartialEq)]
 pub struct FaceImage {
     pub label: String,
-    /// The person is in the held-out set (`dataset::imm_is_test_person` on the label's number).
+    /// The person is in the held-out set (`dataset::imm_is_test_person` on the label's number;
+    /// LFW's calibration and test persons, `dataset::lfw_split`).
     pub held_out: bool,
     /// IMM view number (1–6) when the file has an IMM name.
     pub view: Option<u32>,
@@ -41,7 +42,10 @@ pub fn list_faces(dirs: &[PathBuf]) -> Result<Vec<FaceImage>, dataset::DatasetEr
             let name = item.image.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
             let view = dataset::parse_imm_name(&name).map(|(_, v)| v);
             let asf = Some(item.image.with_extension("asf")).filter(|p| p.exists());
-            let held_out = person_number(&item.label).is_some_and(dataset::imm_is_test_person);
+            let held_out = match item.label.strip_prefix("lfw-") {
+                Some(person) => dataset::lfw_split(person) != dataset::Split::Train,
+                None => person_number(&item.label).is_some_and(dataset::imm_is_test_person),
+            };
             out.push(FaceImage { label: item.label, held_out, view, image: item.image, asf });
         }
     }
