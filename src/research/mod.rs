@@ -25,3 +25,20 @@ pub trait Progress: Sync {
 pub struct Quiet;
 
 impl Progress for Quiet {}
+
+/// `f` over `items` on `threads` scoped threads (contiguous chunks), results in input order.
+pub fn par_map<T: Sync, R: Send + Clone + Default>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {
+    let mut out = vec![R::default(); items.len()];
+    let per = items.len().div_ceil(threads.max(1)).max(1);
+    let f = &f;
+    std::thread::scope(|scope| {
+        for (chunk, dst) in items.chunks(per).zip(out.chunks_mut(per)) {
+            scope.spawn(move || {
+                for (item, d) in chunk.iter().zip(dst) {
+                    *d = f(item);
+                }
+            });
+        }
+    });
+    out
+}

@@ -96,20 +96,16 @@ impl DeepFrontEnd<'_> {
 /// Embeddings of every sample, on `threads` threads.
 pub fn embed_samples(front: &DeepFrontEnd, samples: &[Sample], threads: usize, progress: &dyn Progress) -> Vec<PhotoEmbeddings> {
     progress.begin(samples.len() as u64, "embed");
-    let mut out = vec![PhotoEmbeddings::default(); samples.len()];
-    let per = samples.len().div_ceil(threads.max(1)).max(1);
-    std::thread::scope(|scope| {
-        for (chunk, dst) in samples.chunks(per).zip(out.chunks_mut(per)) {
-            scope.spawn(move || {
-                for (s, d) in chunk.iter().zip(dst) {
-                    match crate::core::imaging::open(&s.image) {
-                        Ok(photo) => *d = front.embed(&photo),
-                        Err(e) => progress.note(&format!("{}: {e}", s.image.display())),
-                    }
-                    progress.step();
-                }
-            });
-        }
+    let out = super::par_map(samples, threads, |s| {
+        let e = match crate::core::imaging::open(&s.image) {
+            Ok(photo) => front.embed(&photo),
+            Err(e) => {
+                progress.note(&format!("{}: {e}", s.image.display()));
+                PhotoEmbeddings::default()
+            }
+        };
+        progress.step();
+        e
     });
     progress.end();
     out

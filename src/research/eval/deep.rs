@@ -114,24 +114,15 @@ pub fn cross_validate(items: &[(&str, &[f32])], k: usize, params: Option<&DldaPa
 /// The key points (image-left eye, image-right eye, mouth centre) the service's front end finds
 /// in each sample, `None` where no face was found; on `threads` threads.
 pub fn key_points(finder: &FaceFinder, samples: &[Sample], threads: usize, tick: &(dyn Fn() + Sync)) -> Vec<Option<[[f32; 2]; 3]>> {
-    let mut out = vec![None; samples.len()];
-    let per = samples.len().div_ceil(threads.max(1)).max(1);
-    std::thread::scope(|scope| {
-        for (chunk, dst) in samples.chunks(per).zip(out.chunks_mut(per)) {
-            scope.spawn(move || {
-                for (s, d) in chunk.iter().zip(dst) {
-                    if let Ok(photo) = crate::core::imaging::open(&s.image)
-                        && let Ok(located) = finder.locate(&photo.gray)
-                    {
-                        let k = located.landmarks.keypoints;
-                        *d = Some([k.left_eye, k.right_eye, k.mouth]);
-                    }
-                    tick();
-                }
-            });
-        }
-    });
-    out
+    crate::research::par_map(samples, threads, |s| {
+        let k = crate::core::imaging::open(&s.image)
+            .ok()
+            .and_then(|photo| finder.locate(&photo.gray).ok())
+            .map(|located| located.landmarks.keypoints)
+            .map(|k| [k.left_eye, k.right_eye, k.mouth]);
+        tick();
+        k
+    })
 }
 
 /// A variant of the chip's placement: the face zoomed by `scale` about the chip centre and moved
@@ -150,26 +141,18 @@ pub fn embed_variant(
     variant: ChipVariant,
     threads: usize,
 ) -> Vec<Vec<f32>> {
-    let mut out = vec![Vec::new(); photos.len()];
-    let per = photos.len().div_ceil(threads.max(1)).max(1);
     let c = CHIP_SIZE as f32 / 2.0;
     // Chip pixel → chip pixel of the standard placement: zoom about the centre, then shift.
     let adjust =
         crate::core::geometry::Similarity { a: 1.0 / variant.scale, b: 0.0, tx: c - c / variant.scale, ty: -variant.dy / variant.scale };
-    std::thread::scope(|scope| {
-        for (chunk, dst) in photos.chunks(per).zip(out.chunks_mut(per)) {
-            scope.spawn(move || {
-                let mut ws = crate::embed::Workspace::default();
-                for ((img, k), d) in chunk.iter().zip(dst) {
-                    let t = chip::chip_to_photo(CHIP_SIZE, k[0], k[1], k[2]).compose(&adjust);
-                    let ch = chip::extract(img, &t, CHIP_SIZE);
-                    let e = if variant.flip { embedder.embed_mirrored(&ch, &mut ws) } else { embedder.forward(&ch, &mut ws) };
-                    *d = e.0.to_vec();
-                }
-            });
-        }
-    });
-    out
+    crate::research::par_map(photos, threads, |(img, k)| {
+        let t = chip::chip_to_photo(CHIP_SIZE, k[0], k[1], k[2]).compose(&adjust);
+        let ch = chip::extract(img, &t, CHIP_SIZE);
+        let mut ws = embedder.take_workspace();
+        let e = if variant.flip { embedder.embed_mirrored(&ch, &mut ws) } else { embedder.forward(&ch, &mut ws) };
+        embedder.give_back(ws);
+        e.0.to_vec()
+    })
 }
 
 /// One line of the deep recognizer's held-out report.
@@ -290,22 +273,14 @@ pub fn classical_templates(
     progress: &dyn crate::research::Progress,
 ) -> Vec<Option<Vec<f32>>> {
     progress.begin(samples.len() as u64, "classical");
-    let mut out = vec![None; samples.len()];
-    let per = samples.len().div_ceil(threads.max(1)).max(1);
-    std::thread::scope(|scope| {
-        for (chunk, dst) in samples.chunks(per).zip(out.chunks_mut(per)) {
-            scope.spawn(move || {
-                for (s, d) in chunk.iter().zip(dst) {
-                    if keep(s)
-                        && let Ok(photo) = crate::core::imaging::open(&s.image)
-                        && let Ok(a) = pipeline.analyze(&photo)
-                    {
-                        *d = Some(a.template.vector);
-                    }
-                    progress.step();
-                }
-            });
-        }
+    let out = crate::research::par_map(samples, threads, |s| {
+        let t = keep(s)
+            .then(|| crate::core::imaging::open(&s.image).ok())
+            .flatten()
+            .and_then(|photo| pipeline.analyze(&photo).ok())
+            .map(|a| a.template.vector);
+        progress.step();
+        t
     });
     progress.end();
     out
