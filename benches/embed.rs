@@ -5,7 +5,7 @@ mod common;
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
 use facegate::core::face::KeyPoints;
-use facegate::embed::{self, CHIP_SIZE, Workspace};
+use facegate::embed::{self, Workspace};
 use facegate::research::dataset::list_imm;
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
@@ -13,13 +13,12 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
     let sample = &list_imm(&facegate::config::shared_dir().join("data/imm")).expect("IMM data")[0];
     let photo = facegate::core::imaging::open(&sample.image).expect("IMM photo");
     let k = KeyPoints::from_imm(&sample.landmarks().expect("IMM landmarks"));
-    let to_photo = embed::chip::chip_to_photo(CHIP_SIZE, k.left_eye, k.right_eye, k.mouth);
-    let chip = embed::chip::extract(&photo.rgb, &to_photo, CHIP_SIZE);
+    let chip = embed::face_chip(&photo.rgb, &k);
     let mut ws = Workspace::default();
 
     c.bench_function("embed_chip_150", |b| b.iter(|| black_box(embedder.forward(black_box(&chip), &mut ws))));
     c.bench_function("embed_chip_150_mirror_averaged", |b| b.iter(|| black_box(embedder.embed_mirrored(black_box(&chip), &mut ws))));
-    c.bench_function("cut_chip_640x480", |b| b.iter(|| black_box(embed::chip::extract(black_box(&photo.rgb), &to_photo, CHIP_SIZE))));
+    c.bench_function("cut_chip_640x480", |b| b.iter(|| black_box(embed::face_chip(black_box(&photo.rgb), &k))));
 }
 
 criterion_group! {

@@ -97,8 +97,7 @@ pub fn run_embed(args: EmbedArgs) -> anyhow::Result<ExitCode> {
                     crate::cli::print_json_line(&serde_json::json!({"image": path.display().to_string(), "embedding": null}));
                     continue;
                 };
-                let k = located.landmarks.keypoints;
-                embed::chip::extract(&photo.rgb, &embed::chip::chip_to_photo(CHIP_SIZE, k.left_eye, k.right_eye, k.mouth), CHIP_SIZE)
+                embed::face_chip(&photo.rgb, &located.landmarks.keypoints)
             }
         };
         let e = if args.single { network.forward(&chip, &mut ws) } else { network.embed_mirrored(&chip, &mut ws) };

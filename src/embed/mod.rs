@@ -52,12 +52,17 @@ pub fn load(models_dir: &Path) -> Result<Embedder, EmbedError> {
     Ok(Embedder::new(&file)?)
 }
 
+/// The network's chip of the face whose eye and mouth centres `keypoints` gives in `photo`.
+pub fn face_chip(photo: &image::RgbImage, keypoints: &KeyPoints) -> FaceChip {
+    let to_photo = chip::chip_to_photo(CHIP_SIZE, keypoints.left_eye, keypoints.right_eye, keypoints.mouth);
+    chip::extract(photo, &to_photo, CHIP_SIZE)
+}
+
 /// The embedding of the face whose eye and mouth centres `keypoints` gives in `photo`: the chip
 /// cut there, the mean of its and its mirror image's embeddings ([`Embedder::embed_mirrored`]).
 /// The deep recognizer's one way from a photo to an embedding (the service and training alike).
 pub fn face_embedding(network: &Embedder, photo: &image::RgbImage, keypoints: &KeyPoints) -> Embedding {
-    let to_photo = chip::chip_to_photo(CHIP_SIZE, keypoints.left_eye, keypoints.right_eye, keypoints.mouth);
-    let face = chip::extract(photo, &to_photo, CHIP_SIZE);
+    let face = face_chip(photo, keypoints);
     let mut ws = network.take_workspace();
     let e = network.embed_mirrored(&face, &mut ws);
     network.give_back(ws);
@@ -91,8 +96,7 @@ mod tests {
             let s = imm.iter().find(|s| s.image.file_stem().unwrap().to_string_lossy() == name).unwrap();
             let photo = crate::core::imaging::open(&s.image).unwrap();
             let k = KeyPoints::from_imm(&s.landmarks().unwrap());
-            let t = chip::chip_to_photo(CHIP_SIZE, k.left_eye, k.right_eye, k.mouth);
-            out.push((format!("imm/{name}"), chip::extract(&photo.rgb, &t, CHIP_SIZE)));
+            out.push((format!("imm/{name}"), face_chip(&photo.rgb, &k)));
         }
         for name in ["Hal_Sutton/Hal_Sutton_0001", "Judy_Genshaft/Judy_Genshaft_0002"] {
             let photo = crate::core::imaging::open(&shared.join(format!("data/lfw/{name}.jpg"))).unwrap();

@@ -202,7 +202,8 @@ impl Embedder {
         if layers.rest.next().is_some() {
             return Err(NetworkError::Layout("layers after the fc layer".into()));
         }
-        if stem.channels != 3 || fc_inputs != units.last().map_or(0, |u| u.conv2.filters) {
+        // `forward` pools into a fixed 512-value buffer.
+        if stem.channels != 3 || fc_inputs != units.last().map_or(0, |u| u.conv2.filters) || fc_inputs > 512 {
             return Err(NetworkError::Layout("input or fc sizes do not chain".into()));
         }
         Ok(Embedder {
