@@ -55,6 +55,7 @@ const DEFAULT_MAX_PIXELS: u64 = 16_000_000;
 const DEFAULT_MAX_DECODE_MB: u64 = 256;
 const DEFAULT_MAX_IMAGES: usize = 16;
 const DEFAULT_TIMEOUT_SECS: f64 = 30.0;
+const DEFAULT_CONSOLE: bool = true;
 
 /// The service's settings: command-line flags, each also read from its `FACEGATE_*` variable.
 #[derive(clap::Args, Debug, Clone, PartialEq)]
@@ -99,6 +100,9 @@ pub struct Settings {
     /// Request timeout in seconds (answered with 504).
     #[arg(long, env = "FACEGATE_TIMEOUT_SECS", default_value_t = DEFAULT_TIMEOUT_SECS)]
     pub timeout_secs: f64,
+    /// Serve the web console at `/` (`--console false` serves the API only).
+    #[arg(long, env = "FACEGATE_CONSOLE", default_value_t = DEFAULT_CONSOLE, action = clap::ArgAction::Set)]
+    pub console: bool,
 }
 
 impl Default for Settings {
@@ -118,6 +122,7 @@ impl Default for Settings {
             max_decode_mb: DEFAULT_MAX_DECODE_MB,
             max_images: DEFAULT_MAX_IMAGES,
             timeout_secs: DEFAULT_TIMEOUT_SECS,
+            console: DEFAULT_CONSOLE,
         }
     }
 }
@@ -141,6 +146,7 @@ impl Settings {
             queue_depth: self.queue,
             api_keys: self.api_keys.iter().map(|k| k.trim().to_string()).filter(|k| !k.is_empty()).collect(),
             default_fmr: DEFAULT_FMR,
+            console: self.console,
         })
     }
 
@@ -172,7 +178,7 @@ mod tests {
         let env_set = |name: &str| std::env::var_os(name).is_some();
         if !["BIND", "DATABASE_URL", "MODELS", "SFM", "API_KEYS", "WORKERS", "QUEUE", "MAX_BODY_MB", "MAX_PIXELS", "MAX_DECODE_MB"]
             .iter()
-            .chain(&["MAX_IMAGES", "TIMEOUT_SECS"])
+            .chain(&["MAX_IMAGES", "TIMEOUT_SECS", "CONSOLE"])
             .any(|v| env_set(&format!("FACEGATE_{v}")))
         {
             assert_eq!(parsed, Settings::default());

@@ -17,7 +17,7 @@ use crate::core::imaging::{GrayF32, Photo};
 use crate::detect::{Detector, Face};
 use crate::landmarks::asm3d::{Asm3dLandmarker, SERVICE_MIN_YAW};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
-use crate::morph::{FaceModel, Pose};
+use crate::morph::{AVATAR_TEXTURE_SIZE, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, Pose};
 use crate::recognize::{AnyRecognizer, DeepRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views};
 
 /// Where the pipeline's models are.
@@ -42,7 +42,7 @@ pub enum PipelineError {
     NoFace,
     #[error("the face could not be pose-corrected: {0}")]
     PoseCorrection(crate::morph::MorphError),
-    #[error("the recognition model needs the 3D morphable model, which is not loaded")]
+    #[error("this needs the 3D morphable model, which is not loaded (the Surrey Face Model folder: --sfm, FACEGATE_SFM)")]
     NoFaceModel,
     #[error(transparent)]
     Detect(#[from] crate::detect::DetectError),
@@ -73,6 +73,39 @@ pub struct FaceAnalysis {
     pub pose: Option<Pose>,
     pub template: Template,
     pub timings: StageTimings,
+}
+
+/// Which faces of a photo [`Pipeline::read_faces`] reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FaceChoice {
+    /// The largest face only.
+    #[default]
+    Largest,
+    /// Every face found, largest first.
+    All,
+}
+
+/// One face read in full: where it is, its landmarks, and the 3DMM fit's pose and residual.
+#[derive(Debug, Clone)]
+pub struct FaceReading {
+    pub face: Face,
+    pub landmarks: Landmarks,
+    /// Head pose from the 3DMM fit; `None` when the model is not loaded or the fit failed.
+    pub pose: Option<Pose>,
+    /// RMS distance in pixels between the landmarks and the fitted model's points.
+    pub fit_residual_px: Option<f32>,
+    pub landmarks_ms: f64,
+    pub morph_ms: f64,
+}
+
+/// What [`Pipeline::read_faces`] found in a photo.
+#[derive(Debug, Clone)]
+pub struct PhotoReading {
+    pub faces_found: usize,
+    /// Largest first: one face or all of them, as asked.
+    pub faces: Vec<FaceReading>,
+    pub detect_ms: f64,
 }
 
 /// The stages that find a face and its 58 landmarks: the detector, the C-ASM and, on turned
@@ -195,6 +228,58 @@ impl Pipeline {
         Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, template, timings })
     }
 
+    /// Every face of `photo` (or the largest) with its landmarks and 3DMM fit; no template is made.
+    pub fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError> {
+        let t = Instant::now();
+        let faces = self.finder.detect(&photo.gray);
+        let detect_ms = elapsed_ms(t);
+        if faces.is_empty() {
+            return Err(PipelineError::NoFace);
+        }
+        let wanted = if choice == FaceChoice::All { faces.len() } else { 1 };
+        let readings = faces[..wanted]
+            .iter()
+            .map(|&face| {
+                let t = Instant::now();
+                let landmarks = self.finder.landmarks(&photo.gray, &face.rect);
+                let landmarks_ms = elapsed_ms(t);
+                let t = Instant::now();
+                let fit = self.face_model.as_ref().and_then(|m| m.fit(&landmarks.points, photo.width(), photo.height()).ok());
+                let morph_ms = elapsed_ms(t);
+                FaceReading {
+                    face,
+                    landmarks,
+                    pose: fit.as_ref().map(|f| f.pose),
+                    fit_residual_px: fit.as_ref().map(|f| f.residual_px),
+                    landmarks_ms,
+                    morph_ms,
+                }
+            })
+            .collect();
+        Ok(PhotoReading { faces_found: faces.len(), faces: readings, detect_ms })
+    }
+
+    fn face_model(&self) -> Result<&FaceModel, PipelineError> {
+        self.face_model.as_ref().ok_or(PipelineError::NoFaceModel)
+    }
+
+    /// The textured 3D head of the largest face as a glTF binary file: the bytes `facegate
+    /// reconstruct --out X.glb` writes for the same photo ([`reconstruct`]).
+    pub fn avatar_glb(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
+        let model = self.face_model()?;
+        let avatar = reconstruct(&self.finder, model, photo, &FitOptions::default(), AVATAR_TEXTURE_SIZE)?;
+        model.avatar_glb(&avatar).map_err(PipelineError::PoseCorrection)
+    }
+
+    /// The frontal rendering of the largest face as PNG: the bytes `facegate frontalize --out X.png`
+    /// writes for the same photo.
+    pub fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
+        let model = self.face_model()?;
+        let located = self.finder.locate(&photo.gray)?;
+        let fitted = model.fit(&located.landmarks.points, photo.width(), photo.height()).map_err(PipelineError::PoseCorrection)?;
+        Ok(model.frontal_png(photo, &fitted, FRONTAL_VIEW_SIZE).map_err(PipelineError::PoseCorrection)?.1)
+    }
+
     /// The classical recognizer's template: the 3DMM frontal rendering and/or the 2D-aligned photo,
     /// normalised, projected.
     fn classical_template(
@@ -240,6 +325,19 @@ fn load_classical(config: &PipelineConfig, have_face_model: bool) -> Result<Reco
         );
     }
     Ok(recognizer)
+}
+
+/// The avatar of the largest face of `photo`: the service's landmarks ([`FaceFinder::locate`]),
+/// then [`FaceModel::avatar`]. `POST /avatar` and `facegate reconstruct` both come here.
+pub fn reconstruct(
+    finder: &FaceFinder,
+    model: &FaceModel,
+    photo: &Photo,
+    options: &FitOptions,
+    texture_size: usize,
+) -> Result<crate::morph::Avatar, PipelineError> {
+    let located = finder.locate(&photo.gray)?;
+    model.avatar(photo, &located.landmarks.points, options, texture_size).map_err(PipelineError::PoseCorrection)
 }
 
 /// What the recognizer normalises: a grey image, the eye and mouth centres in it, and the head pose

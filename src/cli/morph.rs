@@ -8,7 +8,7 @@ use anyhow::{Context, bail};
 
 use crate::core::geometry::Point;
 use crate::core::imaging::Photo;
-use crate::morph::{FaceModel, FitOptions, FittedFace, TEXTURE_SIZE, export};
+use crate::morph::{AVATAR_TEXTURE_SIZE, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, FittedFace, export};
 
 /// Where the model and the landmarks come from (shared by both commands).
 #[derive(clap::Args, Debug)]
@@ -34,7 +34,7 @@ pub struct ReconstructArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Side of the exported UV texture in pixels.
-    #[arg(long, default_value_t = 512)]
+    #[arg(long, default_value_t = AVATAR_TEXTURE_SIZE)]
     pub texture_size: usize,
     #[command(flatten)]
     pub input: MorphInput,
@@ -47,7 +47,7 @@ pub struct FrontalizeArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Side of the square frontal rendering in pixels.
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = FRONTAL_VIEW_SIZE)]
     pub size: usize,
     #[command(flatten)]
     pub input: MorphInput,
@@ -68,12 +68,11 @@ fn landmarks(input: &MorphInput, photo: &Photo) -> anyhow::Result<Vec<Point>> {
         return Ok(shape.xy());
     }
     let models = input.models.clone().unwrap_or_else(crate::config::models_dir);
+    // The service's landmarks (detector, C-ASM, 3D-ASM on turned faces): the same avatar as
+    // `POST /avatar` for the same photo.
     let automatic = || -> anyhow::Result<Vec<Point>> {
-        let detector = crate::detect::Detector::load(&models)?;
-        let landmarker = crate::landmarks::Landmarker::load(&models.join("asm.bin"))?;
-        let faces = detector.detect(&photo.gray);
-        let face = faces.first().context("no face was found in the image")?;
-        Ok(landmarker.fit(&photo.gray, &face.rect, crate::landmarks::Variant::Casm).points)
+        let finder = crate::pipeline::FaceFinder::load(&models)?;
+        Ok(finder.locate(&photo.gray)?.landmarks.points)
     };
     automatic().context("automatic landmarks are unavailable; pass --landmarks FILE.asf (58-point IMM annotation)")
 }
@@ -98,18 +97,17 @@ pub fn run_reconstruct(args: ReconstructArgs) -> anyhow::Result<ExitCode> {
     }
     let model = load_model(&args.input)?;
     let photo = open(&args.image)?;
-    let fitted = fit(&args.input, &model, &photo)?;
-    let texture = model.extract_texture(&photo.rgb, &fitted, args.texture_size);
-    let mesh = export::TexturedMesh {
-        vertices: &fitted.vertices,
-        texcoords: &model.shape.texcoords,
-        triangles: &model.shape.triangles,
-        texture: &texture,
-    };
+    let points = landmarks(&args.input, &photo)?;
+    let options = FitOptions { expressions: args.input.expressions, ..Default::default() };
+    let avatar = model.avatar(&photo, &points, &options, args.texture_size)?;
     match ext.as_deref() {
-        Some("glb") => export::write_glb(&mesh, &args.out)?,
-        _ => export::write_obj(&mesh, &args.out)?,
+        Some("glb") => {
+            let bytes = model.avatar_glb(&avatar)?;
+            std::fs::write(&args.out, bytes).with_context(|| format!("cannot write {}", args.out.display()))?;
+        }
+        _ => export::write_obj(&model.avatar_mesh(&avatar), &args.out)?,
     }
+    let fitted = &avatar.fitted;
     super::print_json_line(&serde_json::json!({
         "image": args.image.display().to_string(),
         "pose": {"yaw": fitted.pose.yaw, "pitch": fitted.pose.pitch, "roll": fitted.pose.roll},
@@ -121,14 +119,17 @@ pub fn run_reconstruct(args: ReconstructArgs) -> anyhow::Result<ExitCode> {
 }
 
 pub fn run_frontalize(args: FrontalizeArgs) -> anyhow::Result<ExitCode> {
+    if !args.out.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("png")) {
+        bail!("--out must end in .png");
+    }
     if !(16..=2048).contains(&args.size) {
         bail!("--size must be between 16 and 2048");
     }
     let model = load_model(&args.input)?;
     let photo = open(&args.image)?;
     let fitted = fit(&args.input, &model, &photo)?;
-    let frontal = model.frontalize_sized(&photo, &fitted, args.size, TEXTURE_SIZE.max(args.size))?;
-    frontal.image.save(&args.out).with_context(|| format!("cannot write {}", args.out.display()))?;
+    let (frontal, png) = model.frontal_png(&photo, &fitted, args.size)?;
+    std::fs::write(&args.out, png).with_context(|| format!("cannot write {}", args.out.display()))?;
     let k = frontal.keypoints;
     super::print_json_line(&serde_json::json!({
         "image": args.image.display().to_string(),

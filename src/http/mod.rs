@@ -24,8 +24,10 @@ use crate::store::Store;
 
 pub use crate::service::FaceEngine;
 
+pub mod console;
 mod handlers;
 pub mod input;
+mod inspect;
 pub mod metrics;
 pub mod problem;
 
@@ -54,6 +56,8 @@ pub struct ApiConfig {
     pub api_keys: Vec<String>,
     /// The false match rate whose operating point decides a match unless a request asks otherwise.
     pub default_fmr: f64,
+    /// Serve the web console at `/` (pages only; the API is the same either way).
+    pub console: bool,
 }
 
 /// SHA-256 digests of the accepted API keys, compared in constant time.
@@ -132,6 +136,9 @@ pub fn operations() -> Vec<Operation> {
         op(Method::POST, "/enroll", true, post(handlers::enroll)),
         op(Method::POST, "/verify", true, post(handlers::verify)),
         op(Method::POST, "/identify", true, post(handlers::identify)),
+        op(Method::POST, "/analyze", true, post(inspect::analyze)),
+        op(Method::POST, "/avatar", true, post(inspect::avatar)),
+        op(Method::POST, "/frontalize", true, post(inspect::frontalize)),
         op(Method::GET, "/subjects", true, get(handlers::list_subjects)),
         op(Method::GET, "/subjects/{id}", true, get(handlers::get_subject)),
         op(Method::DELETE, "/subjects/{id}", true, delete(handlers::delete_subject)),
@@ -154,6 +161,9 @@ pub fn router(state: AppState) -> Router {
         }
     }
     let protected = protected.route_layer(middleware::from_fn_with_state(keys, require_api_key));
+    if state.0.config.console {
+        public = public.merge(console::routes());
+    }
     let timeout = state.0.config.request_timeout;
     let metrics = state.0.metrics.clone();
     Router::new()

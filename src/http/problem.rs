@@ -29,6 +29,10 @@ pub enum ProblemKind {
     NoFace,
     /// Several faces in an enrolment photo (enrolment refuses; verify uses the largest).
     SeveralFaces,
+    /// The 3D morphable model the operation needs is not loaded (avatar, frontal rendering).
+    NoFaceModel,
+    /// The 3D morphable model could not be fitted to the face's landmarks.
+    FitFailed,
     /// The subject id is not enrolled.
     UnknownSubject,
     /// The subject's templates were all made by another recognition model version.
@@ -50,7 +54,7 @@ pub enum ProblemKind {
 }
 
 impl ProblemKind {
-    pub const ALL: [ProblemKind; 16] = [
+    pub const ALL: [ProblemKind; 18] = [
         ProblemKind::NotAnImage,
         ProblemKind::UnsupportedFormat,
         ProblemKind::UnsupportedMediaType,
@@ -58,6 +62,8 @@ impl ProblemKind {
         ProblemKind::CorruptImage,
         ProblemKind::NoFace,
         ProblemKind::SeveralFaces,
+        ProblemKind::NoFaceModel,
+        ProblemKind::FitFailed,
         ProblemKind::UnknownSubject,
         ProblemKind::ModelMismatch,
         ProblemKind::MalformedRequest,
@@ -79,6 +85,8 @@ impl ProblemKind {
             ProblemKind::CorruptImage => "corrupt-image",
             ProblemKind::NoFace => "no-face",
             ProblemKind::SeveralFaces => "several-faces",
+            ProblemKind::NoFaceModel => "no-face-model",
+            ProblemKind::FitFailed => "fit-failed",
             ProblemKind::UnknownSubject => "unknown-subject",
             ProblemKind::ModelMismatch => "model-mismatch",
             ProblemKind::MalformedRequest => "malformed-request",
@@ -104,6 +112,8 @@ impl ProblemKind {
             ProblemKind::CorruptImage => "Corrupt image",
             ProblemKind::NoFace => "No face found",
             ProblemKind::SeveralFaces => "Several faces found",
+            ProblemKind::NoFaceModel => "No 3D morphable model",
+            ProblemKind::FitFailed => "3D morphable model fit failed",
             ProblemKind::UnknownSubject => "Unknown subject",
             ProblemKind::ModelMismatch => "Templates of another model version",
             ProblemKind::MalformedRequest => "Malformed request",
@@ -118,9 +128,12 @@ impl ProblemKind {
 
     pub fn status(self) -> StatusCode {
         match self {
-            ProblemKind::NotAnImage | ProblemKind::CorruptImage | ProblemKind::NoFace | ProblemKind::SeveralFaces => {
-                StatusCode::UNPROCESSABLE_ENTITY
-            }
+            ProblemKind::NotAnImage
+            | ProblemKind::CorruptImage
+            | ProblemKind::NoFace
+            | ProblemKind::SeveralFaces
+            | ProblemKind::NoFaceModel
+            | ProblemKind::FitFailed => StatusCode::UNPROCESSABLE_ENTITY,
             ProblemKind::UnsupportedFormat | ProblemKind::UnsupportedMediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             ProblemKind::TooLarge => StatusCode::PAYLOAD_TOO_LARGE,
             ProblemKind::UnknownSubject | ProblemKind::NotFound => StatusCode::NOT_FOUND,

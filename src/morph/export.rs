@@ -21,11 +21,11 @@ fn err(path: &Path, e: impl std::fmt::Display) -> MorphError {
     MorphError::Export { path: path.display().to_string(), message: e.to_string() }
 }
 
-fn png_bytes(texture: &RgbaImage, path: &Path) -> Result<Vec<u8>, MorphError> {
+fn png_bytes(texture: &RgbaImage) -> Result<Vec<u8>, image::ImageError> {
     // The alpha channel only records texel provenance: export opaque RGB.
     let rgb = image::DynamicImage::ImageRgba8(texture.clone()).to_rgb8();
     let mut out = Vec::new();
-    rgb.write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Png).map_err(|e| err(path, e))?;
+    rgb.write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Png)?;
     Ok(out)
 }
 
@@ -35,9 +35,15 @@ fn pad4(buf: &mut Vec<u8>, byte: u8) {
     }
 }
 
-/// Write a glTF binary file: one mesh, one primitive (positions, texcoords, u32 indices), one
-/// material with the texture as base colour.
+/// Write a glTF binary file ([`glb_bytes`]).
 pub fn write_glb(mesh: &TexturedMesh, path: &Path) -> Result<(), MorphError> {
+    let bytes = glb_bytes(mesh).map_err(|e| err(path, e))?;
+    std::fs::write(path, bytes).map_err(|e| err(path, e))
+}
+
+/// A glTF binary file's bytes: one mesh, one primitive (positions, texcoords, u32 indices), one
+/// material with the texture (PNG) as base colour.
+pub fn glb_bytes(mesh: &TexturedMesh) -> Result<Vec<u8>, image::ImageError> {
     let n = mesh.vertices.len();
     let mut bin: Vec<u8> = Vec::new();
     let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
@@ -64,7 +70,7 @@ pub fn write_glb(mesh: &TexturedMesh, path: &Path) -> Result<(), MorphError> {
     }
     let idx_len = bin.len() - idx_off;
     let png_off = bin.len();
-    let png = png_bytes(mesh.texture, path)?;
+    let png = png_bytes(mesh.texture)?;
     bin.extend_from_slice(&png);
     let png_len = png.len();
     pad4(&mut bin, 0);
@@ -100,7 +106,7 @@ pub fn write_glb(mesh: &TexturedMesh, path: &Path) -> Result<(), MorphError> {
             {"bufferView": 2, "componentType": 5125, "count": 3 * mesh.triangles.len(), "type": "SCALAR"}
         ]
     });
-    let mut json_bytes = serde_json::to_vec(&json).map_err(|e| err(path, e))?;
+    let mut json_bytes = serde_json::to_vec(&json).expect("a JSON value serialises");
     pad4(&mut json_bytes, b' ');
     let total = 12 + 8 + json_bytes.len() + 8 + bin.len();
     let mut out = Vec::with_capacity(total);
@@ -113,7 +119,7 @@ pub fn write_glb(mesh: &TexturedMesh, path: &Path) -> Result<(), MorphError> {
     out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
     out.extend_from_slice(b"BIN\0");
     out.extend_from_slice(&bin);
-    std::fs::write(path, out).map_err(|e| err(path, e))
+    Ok(out)
 }
 
 /// Write `path` (.obj), `path.mtl` and `path.png` beside it. OBJ texture v runs upwards.

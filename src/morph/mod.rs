@@ -70,6 +70,18 @@ pub const SYMMETRY_FILE: &str = "sfm_reference_symmetry.txt";
 pub const TEXTURE_SIZE: usize = 128;
 /// Side of the frontal rendering handed to recognition.
 pub const FRONTAL_SIZE: usize = 144;
+/// Side of an avatar's UV texture unless asked otherwise (`facegate reconstruct`, `POST /avatar`).
+pub const AVATAR_TEXTURE_SIZE: usize = 512;
+/// Side of the frontal rendering shown to people (`facegate frontalize`, `POST /frontalize`).
+pub const FRONTAL_VIEW_SIZE: usize = 256;
+
+/// A textured avatar: the fitted shape and its UV texture, completed by symmetry. Made by
+/// [`FaceModel::avatar`], the one path of `facegate reconstruct` and `POST /avatar`.
+#[derive(Debug, Clone)]
+pub struct Avatar {
+    pub fitted: FittedFace,
+    pub texture: RgbaImage,
+}
 
 /// The Surrey Face Model with the IMM correspondence, shareable across threads.
 pub struct FaceModel {
@@ -364,6 +376,41 @@ impl FaceModel {
         let image = render::render_textured(&projected, &self.shape.triangles, &self.shape.texcoords, &texture, size, size, [0, 0, 0]);
         let keypoints = self.keypoints(&projected, &fit.correspondence);
         Ok(Frontal { image, keypoints })
+    }
+
+    /// Fit the model to the 58 landmarks of a face and extract its texture (`texture_size` square,
+    /// the unseen side completed by symmetry).
+    pub fn avatar(&self, photo: &Photo, points: &[Point], options: &FitOptions, texture_size: usize) -> Result<Avatar, MorphError> {
+        let fitted = self.fit_with(points, photo.width(), photo.height(), options)?;
+        let texture = self.extract_texture(&photo.rgb, &fitted, texture_size);
+        Ok(Avatar { fitted, texture })
+    }
+
+    /// The avatar as a mesh to export.
+    pub fn avatar_mesh<'a>(&'a self, avatar: &'a Avatar) -> export::TexturedMesh<'a> {
+        export::TexturedMesh {
+            vertices: &avatar.fitted.vertices,
+            texcoords: &self.shape.texcoords,
+            triangles: &self.shape.triangles,
+            texture: &avatar.texture,
+        }
+    }
+
+    /// The avatar as a glTF binary file (`model/gltf-binary`).
+    pub fn avatar_glb(&self, avatar: &Avatar) -> Result<Vec<u8>, MorphError> {
+        export::glb_bytes(&self.avatar_mesh(avatar)).map_err(|e| MorphError::Export { path: "glb".into(), message: e.to_string() })
+    }
+
+    /// The frontal rendering ([`FaceModel::frontalize_sized`] at `size`, texture at least as fine)
+    /// as PNG bytes: the one path of `facegate frontalize` and `POST /frontalize`.
+    pub fn frontal_png(&self, photo: &Photo, fit: &FittedFace, size: usize) -> Result<(Frontal, Vec<u8>), MorphError> {
+        let frontal = self.frontalize_sized(photo, fit, size, TEXTURE_SIZE.max(size))?;
+        let mut png = Vec::new();
+        frontal
+            .image
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .map_err(|e| MorphError::Export { path: "png".into(), message: e.to_string() })?;
+        Ok((frontal, png))
     }
 
     /// Eye and mouth centres of projected vertices (`left_eye` = the eye on the image left).

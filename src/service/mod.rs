@@ -10,12 +10,13 @@
 //! point. A second recognizer (another way of computing templates) plugs in by implementing
 //! [`Matcher`]; templates of one model version are never compared with another's.
 
+pub mod inspect;
 pub mod pool;
 
 use serde::Serialize;
 
 use crate::core::imaging::Photo;
-use crate::pipeline::{FaceAnalysis, Pipeline, PipelineError};
+use crate::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline, PipelineError};
 use crate::recognize::{OperatingPoint, Recognizer, Template};
 
 pub use pool::{PoolError, WorkPool};
@@ -85,6 +86,12 @@ impl Matcher for Recognizer {
 pub trait FaceEngine: Matcher + Send + Sync + 'static {
     /// Detect, landmark, pose-correct and template the largest face of `photo`.
     fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError>;
+    /// Every face (or the largest) with landmarks, pose and fit residual; no template.
+    fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError>;
+    /// The textured 3D head of the largest face, glTF binary.
+    fn avatar_glb(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError>;
+    /// The frontal rendering of the largest face, PNG.
+    fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError>;
 }
 
 impl Matcher for Pipeline {
@@ -102,6 +109,15 @@ impl Matcher for Pipeline {
 impl FaceEngine for Pipeline {
     fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
         Pipeline::analyze(self, photo)
+    }
+    fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError> {
+        Pipeline::read_faces(self, photo, choice)
+    }
+    fn avatar_glb(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
+        Pipeline::avatar_glb(self, photo)
+    }
+    fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
+        Pipeline::frontal_png(self, photo)
     }
 }
 

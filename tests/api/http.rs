@@ -254,3 +254,102 @@ fn crc32(bytes: &[u8]) -> u32 {
     }
     !crc
 }
+
+#[tokio::test]
+async fn analyze_reports_the_largest_face_or_all_of_them() {
+    let (app, _) = app().await;
+    let wide = pattern_jpeg(640, 240, 5);
+    let r = app.post_form("/analyze", None, &[wide.clone()]).await;
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let a = r.json();
+    assert_eq!((a["faces_found"].as_u64(), a["faces"].as_array().unwrap().len()), (Some(2), 1));
+    let face = &a["faces"][0];
+    assert_eq!(face["landmarks"]["points"].as_array().unwrap().len(), 58);
+    assert_eq!(face["face"]["box"]["width"], 640.0);
+    // The stand-in has no 3D morphable model: no pose, no fit.
+    assert!(face["pose"].is_null() && face["fit_residual_px"].is_null(), "{face}");
+    for stage in ["decode_ms", "detect_ms", "total_ms"] {
+        assert!(a["timings"][stage].as_f64().unwrap() >= 0.0, "{stage}");
+    }
+    let r = app.post_json("/analyze?faces=all", &json!({"image": base64(&wide)})).await;
+    assert_eq!((r.status, r.json()["faces"].as_array().unwrap().len()), (200, 2));
+    let r = app.post_form("/analyze?faces=largest", None, &[pattern_jpeg(320, 240, 1)]).await;
+    assert_eq!((r.status, r.json()["faces_found"].as_u64()), (200, Some(1)));
+    // Nothing is stored.
+    assert_eq!(app.store.counts().await.unwrap(), (0, 0));
+    let flat =
+        encode(&image::DynamicImage::ImageLuma8(image::GrayImage::from_pixel(320, 240, image::Luma([128]))), image::ImageFormat::Png);
+    app.post_form("/analyze", None, &[flat]).await.assert_problem(422, "no-face");
+    app.post_form("/analyze?faces=some", None, &[wide.clone()]).await.assert_problem(400, "malformed-request");
+    app.post_form("/analyze", Some("alice"), &[wide.clone()]).await.assert_problem(400, "malformed-request");
+    app.post_form("/analyze", None, &[wide.clone(), wide]).await.assert_problem(400, "malformed-request");
+    app.post_form("/analyze", None, &[b"plain text".to_vec()]).await.assert_problem(422, "not-an-image");
+}
+
+#[tokio::test]
+async fn avatar_and_frontalize_need_the_3d_model_and_share_the_photo_checks() {
+    let (app, engine) = app().await;
+    let photo = pattern_jpeg(320, 240, 2);
+    for route in ["/avatar", "/frontalize"] {
+        let r = app.post_form(route, None, &[photo.clone()]).await;
+        r.assert_problem(422, "no-face-model");
+        assert!(r.json()["detail"].as_str().unwrap().contains("3D morphable model"), "{}", r.json());
+        app.post_json(route, &json!({"image": base64(&photo)})).await.assert_problem(422, "no-face-model");
+        app.post_form(route, None, &[b"plain text".to_vec()]).await.assert_problem(422, "not-an-image");
+        app.post_form(route, None, &[photo[..64].to_vec()]).await.assert_problem(422, "corrupt-image");
+        app.post_form(route, None, &[vec![0u8; 3 << 20]]).await.assert_problem(413, "too-large");
+        app.post_form(route, None, &[]).await.assert_problem(400, "malformed-request");
+        app.post_form(&format!("{route}?format=obj"), None, &[photo.clone()]).await.assert_problem(400, "malformed-request");
+        let r = app.send(app.client.post(app.url(route)).header("content-type", "text/plain").body("x")).await;
+        r.assert_problem(415, "unsupported-media-type");
+    }
+    // Two photos reached the engine per route (the multipart and the JSON request).
+    assert_eq!(engine.calls.load(Ordering::SeqCst), 4);
+    // The same work pool as /verify: a full queue refuses at once.
+    let slow = ApiConfig { workers: 1, queue_depth: 0, ..config() };
+    let app = TestApp::start(StandInEngine::slow(Duration::from_millis(600)), slow).await;
+    let images = [photo];
+    let (a, b) = tokio::join!(app.post_form("/avatar", None, &images), async {
+        tokio::time::sleep(Duration::from_millis(150)).await;
+        app.post_form("/frontalize", None, &images).await
+    });
+    a.assert_problem(422, "no-face-model");
+    b.assert_problem(503, "overloaded");
+}
+
+#[tokio::test]
+async fn the_console_is_served_at_the_root_and_other_paths_stay_problems() {
+    let keyed = ApiConfig { api_keys: vec!["s3cret".into()], ..config() };
+    let app = TestApp::start(StandInEngine::new("v1"), keyed).await;
+    // Pages need no key (the page asks for one); the API still does.
+    let r = app.get("/").await;
+    assert_eq!(r.status, 200);
+    assert_eq!(r.headers["content-type"], "text/html; charset=utf-8");
+    assert!(r.headers["content-security-policy"].to_str().unwrap().contains("script-src 'self'"));
+    let html = String::from_utf8(r.body).unwrap();
+    assert!(html.contains(r#"<script type="module" src="/console/console.js">"#), "{html}");
+    for (path, media) in [
+        ("/console/console.js", "text/javascript; charset=utf-8"),
+        ("/console/console.css", "text/css; charset=utf-8"),
+        ("/console/vendor/viewer.js", "text/javascript; charset=utf-8"),
+    ] {
+        let r = app.get(path).await;
+        assert_eq!((r.status, r.headers["content-type"].to_str().unwrap()), (200, media), "{path}");
+        assert!(r.body.len() > 1000, "{path}");
+    }
+    // Nothing the page loads comes from elsewhere.
+    for asset in facegate::http::console::ASSETS {
+        let text = String::from_utf8_lossy(asset.body);
+        for pattern in ["src=\"http", "href=\"http", "import(\"http", "from\"http", "from 'http", "url(http"] {
+            assert!(!text.contains(pattern), "{} refers to {pattern}…", asset.path);
+        }
+    }
+    app.post_form("/analyze", None, &[pattern_jpeg(320, 240, 1)]).await.assert_problem(401, "unauthorized");
+    app.get("/console/missing.js").await.assert_problem(404, "not-found");
+    app.get("/index.html").await.assert_problem(404, "not-found");
+    app.send(app.client.post(app.url("/"))).await.assert_problem(405, "method-not-allowed");
+    // With the console switched off, the root is an unknown route like any other.
+    let app = TestApp::start(StandInEngine::new("v1"), ApiConfig { console: false, ..config() }).await;
+    app.get("/").await.assert_problem(404, "not-found");
+    app.get("/console/console.js").await.assert_problem(404, "not-found");
+}

@@ -67,6 +67,11 @@ impl Spec {
             panic!("{method} {template} {status}: media type {essence:?} is not one of {:?}", content.keys().collect::<Vec<_>>())
         });
         let schema = &media["schema"];
+        if schema["format"] == "binary" {
+            // glTF, PNG: the tests decode these bodies themselves.
+            assert!(!body.is_empty(), "{method} {template} {status}: an empty {essence} body");
+            return;
+        }
         let value: Value = if essence.ends_with("json") {
             serde_json::from_slice(body).unwrap_or_else(|e| panic!("{method} {template} {status}: body is not JSON: {e}"))
         } else {
@@ -238,5 +243,5 @@ fn multipart_photo_parts_are_binary_for_generators() {
             }
         }
     }
-    assert_eq!(parts, 3, "the image parts of /enroll, /verify and /identify");
+    assert_eq!(parts, 6, "the image parts of /enroll, /verify, /identify, /analyze, /avatar and /frontalize");
 }

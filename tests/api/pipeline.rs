@@ -152,3 +152,72 @@ async fn both_recognizers_verify_and_never_compare_each_others_templates() {
     let versions = new.get("/subjects/imm-05").await.json();
     assert_eq!(versions["templates"], 3, "{versions}");
 }
+
+/// Run `facegate` (the binary cargo built for these tests) and return its output file.
+fn cli(args: &[&str], out: &std::path::Path) -> Vec<u8> {
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_facegate"))
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .stdout(std::process::Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success(), "facegate {args:?} failed");
+    std::fs::read(out).unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn analyze_avatar_and_frontalize_a_real_photo() {
+    let app = app().await;
+    // A turned face (IMM view 3): the landmarks come from the 3D-ASM, the 3DMM reads the yaw.
+    let name = "01-3m.jpg";
+    let path = facegate::config::shared_dir().join("data/imm").join(name);
+    let r = app.post_form("/analyze?faces=all", None, &[imm(name)]).await;
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let a = r.json();
+    assert_eq!((a["faces_found"].as_u64(), a["faces"].as_array().unwrap().len()), (Some(1), 1), "{a}");
+    let face = &a["faces"][0];
+    assert_eq!(face["landmarks"]["points"].as_array().unwrap().len(), 58);
+    let yaw = face["pose"]["yaw"].as_f64().unwrap();
+    assert!(yaw.abs() > 10.0 && yaw.abs() < 45.0, "a turned face: yaw {yaw}");
+    let residual = face["fit_residual_px"].as_f64().unwrap();
+    assert!(residual > 0.0 && residual < 10.0, "fit residual {residual} px");
+    assert!(face["face"]["score"].as_f64().is_some() && face["timings"]["morph_ms"].as_f64().unwrap() > 0.0);
+    assert_eq!(app.store.counts().await.unwrap(), (0, 0));
+
+    // The avatar: a glTF binary that parses, one textured mesh of the model's vertices, and the
+    // very bytes `facegate reconstruct` writes for the photo.
+    let r = app.post_form("/avatar", None, &[imm(name)]).await;
+    assert_eq!((r.status, r.headers["content-type"].to_str().unwrap()), (200, "model/gltf-binary"));
+    let gltf = gltf::Gltf::from_slice(&r.body).expect("a valid glb");
+    let mesh = gltf.meshes().next().expect("a mesh");
+    let primitive = mesh.primitives().next().unwrap();
+    let positions = primitive.get(&gltf::Semantic::Positions).unwrap();
+    assert_eq!(positions.count(), pipeline().face_model.as_ref().unwrap().vertex_count());
+    assert!(primitive.material().pbr_metallic_roughness().base_color_texture().is_some());
+    let image = gltf.images().next().unwrap();
+    let gltf::image::Source::View { view, mime_type } = image.source() else { panic!("an embedded texture") };
+    assert_eq!(mime_type, "image/png");
+    let blob = gltf.blob.as_ref().unwrap();
+    let texture = image::load_from_memory(&blob[view.offset()..view.offset() + view.length()]).unwrap();
+    assert_eq!((texture.width(), texture.height()), (512, 512));
+    let dir = std::env::temp_dir().join(format!("facegate-avatar-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cli_glb = cli(&["reconstruct", path.to_str().unwrap()], &dir.join("cli.glb"));
+    assert!(cli_glb == r.body, "POST /avatar and facegate reconstruct differ ({} and {} bytes)", r.body.len(), cli_glb.len());
+
+    // The frontal rendering: a 256 × 256 PNG, the bytes `facegate frontalize` writes.
+    let r = app.post_json("/frontalize", &json!({"image": base64(&imm(name))})).await;
+    assert_eq!((r.status, r.headers["content-type"].to_str().unwrap()), (200, "image/png"));
+    let png = image::load_from_memory_with_format(&r.body, image::ImageFormat::Png).unwrap().to_rgb8();
+    assert_eq!(png.dimensions(), (256, 256));
+    let lit = png.pixels().filter(|p| p.0.iter().any(|&c| c > 30)).count();
+    assert!(lit > 256 * 256 / 4, "the face covers the rendering: {lit} lit pixels");
+    let cli_png = cli(&["frontalize", path.to_str().unwrap()], &dir.join("cli.png"));
+    assert!(cli_png == r.body, "POST /frontalize and facegate frontalize differ");
+    let _ = std::fs::remove_dir_all(&dir);
+
+    // No face, and the photo checks of /verify.
+    app.post_form("/avatar", None, &[flat_grey()]).await.assert_problem(422, "no-face");
+    app.post_form("/frontalize", None, &[b"not a photo".to_vec()]).await.assert_problem(422, "not-an-image");
+}

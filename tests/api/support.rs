@@ -14,7 +14,7 @@ use facegate::core::imaging::Photo;
 use facegate::detect::Face;
 use facegate::http::{self, ApiConfig, AppState, FaceEngine};
 use facegate::landmarks::Landmarks;
-use facegate::pipeline::{FaceAnalysis, PipelineError, StageTimings};
+use facegate::pipeline::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, PipelineError, StageTimings};
 use facegate::recognize::{OperatingPoint, Template};
 use facegate::service::Matcher;
 use facegate::store::Store;
@@ -209,6 +209,25 @@ impl FaceEngine for StandInEngine {
             template: Template { model_version: self.version.clone(), vector },
             timings: StageTimings::default(),
         })
+    }
+
+    fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError> {
+        let a = self.analyze(photo)?;
+        let wanted = if choice == FaceChoice::All { a.faces_found } else { 1 };
+        let reading =
+            FaceReading { face: a.face, landmarks: a.landmarks, pose: None, fit_residual_px: None, landmarks_ms: 0.0, morph_ms: 0.0 };
+        Ok(PhotoReading { faces_found: a.faces_found, faces: vec![reading; wanted], detect_ms: 0.0 })
+    }
+
+    /// The stand-in has no 3D morphable model.
+    fn avatar_glb(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
+        self.analyze(photo)?;
+        Err(PipelineError::NoFaceModel)
+    }
+
+    fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
+        self.analyze(photo)?;
+        Err(PipelineError::NoFaceModel)
     }
 }
 

@@ -1,0 +1,527 @@
+// The facegate web console: plain JavaScript over the service's own API (same origin). The API key
+// lives in the key field only (page memory): it is never written to storage or cookies.
+
+// Errors are collected so that a test (and anyone curious) can read them: window.facegateErrors.
+window.facegateErrors = [];
+window.addEventListener('error', (e) => window.facegateErrors.push(String(e.message || e)));
+window.addEventListener('unhandledrejection', (e) => window.facegateErrors.push(String(e.reason)));
+
+const $ = (selector, root = document) => root.querySelector(selector);
+
+function el(tag, attributes = {}, ...children) {
+    const node = document.createElement(tag);
+    for (const [key, value] of Object.entries(attributes)) {
+        if (key === 'class') node.className = value;
+        else if (key === 'text') node.textContent = value;
+        else node.setAttribute(key, value);
+    }
+    for (const child of children) node.append(child);
+    return node;
+}
+
+function headers() {
+    const key = $('#api-key').value.trim();
+    return key ? { Authorization: `Bearer ${key}` } : {};
+}
+
+/// A failed request: the problem+json body when the server sent one.
+class ApiError extends Error {
+    constructor(status, problem) {
+        super(problem?.detail || `HTTP ${status}`);
+        this.status = status;
+        this.problem = problem;
+    }
+}
+
+async function api(method, path, body) {
+    const response = await fetch(path, { method, body, headers: headers() });
+    const type = response.headers.get('content-type') || '';
+    if (!response.ok) {
+        const problem = type.includes('json') ? await response.json() : { title: `HTTP ${response.status}`, detail: await response.text() };
+        throw new ApiError(response.status, problem);
+    }
+    if (type.includes('json')) return response.json();
+    if (response.status === 204) return null;
+    return response.blob();
+}
+
+function showProblem(target, error) {
+    target.replaceChildren();
+    const p = error.problem;
+    const box = el('div', { class: 'problem', role: 'alert' });
+    if (p) {
+        const slug = (p.type || '').split('/').pop();
+        box.append(el('strong', { text: `${p.title || 'Refused'} (${error.status})` }), el('p', { text: p.detail || '' }));
+        if (p.image !== undefined) box.append(el('p', { text: `Photo number ${p.image + 1}` }));
+        if (slug) box.append(el('code', { text: slug }));
+    } else {
+        box.append(el('strong', { text: 'The request failed' }), el('p', { text: String(error.message || error) }));
+    }
+    target.append(box);
+}
+
+const fmt = (x, digits = 3) => (typeof x === 'number' ? x.toFixed(digits) : '–');
+const fmtFmr = (f) => (f >= 1e-2 ? `1 in ${Math.round(1 / f)}` : `1 in ${Math.round(1 / f).toLocaleString('en')}`);
+
+// ---------------------------------------------------------------- photo pickers (file, drop, camera)
+
+const pickers = new Map();
+
+function setupPicker(container) {
+    const multiple = container.dataset.multiple === 'true';
+    container.append($('#picker-template').content.cloneNode(true));
+    const input = $('.file', container);
+    input.multiple = multiple;
+    input.id = `${container.id}-file`;
+    if (multiple) $('legend', container).textContent = 'Photos';
+    const drop = $('.drop', container);
+    const thumbs = $('.thumbs', container);
+    const state = { files: [], multiple };
+    pickers.set(container.id, state);
+
+    const render = () => {
+        thumbs.replaceChildren();
+        state.files.forEach((file, index) => {
+            const url = URL.createObjectURL(file);
+            const img = el('img', { src: url, alt: `Photo ${index + 1}: ${file.name}` });
+            img.addEventListener('load', () => URL.revokeObjectURL(url));
+            const remove = el('button', { type: 'button', text: 'Remove', 'aria-label': `Remove photo ${index + 1}` });
+            remove.addEventListener('click', () => {
+                state.files.splice(index, 1);
+                render();
+            });
+            thumbs.append(el('li', {}, img, remove));
+        });
+    };
+    const add = (files) => {
+        const images = [...files].filter((f) => f.type.startsWith('image/') || f.type === '');
+        state.files = multiple ? state.files.concat(images) : images.slice(0, 1);
+        render();
+    };
+    input.addEventListener('change', () => {
+        add(input.files);
+        input.value = '';
+    });
+    drop.addEventListener('dragover', (e) => {
+        e.preventDefault();
+        drop.classList.add('over');
+    });
+    drop.addEventListener('dragleave', () => drop.classList.remove('over'));
+    drop.addEventListener('drop', (e) => {
+        e.preventDefault();
+        drop.classList.remove('over');
+        add(e.dataTransfer.files);
+    });
+
+    const camera = $('.camera', container);
+    const video = $('.camera-video', container);
+    let stream = null;
+    const stop = () => {
+        stream?.getTracks().forEach((t) => t.stop());
+        stream = null;
+        camera.hidden = true;
+    };
+    $('.camera-start', container).addEventListener('click', async () => {
+        if (!navigator.mediaDevices?.getUserMedia) {
+            showProblem(container.closest('section').querySelector('.result'), new Error('No camera access here (the page needs https or localhost).'));
+            return;
+        }
+        try {
+            stream = await navigator.mediaDevices.getUserMedia({ video: { facingMode: 'user' }, audio: false });
+            video.srcObject = stream;
+            camera.hidden = false;
+            $('.camera-take', container).focus();
+        } catch (e) {
+            showProblem(container.closest('section').querySelector('.result'), new Error(`The camera is unavailable: ${e.message || e}`));
+        }
+    });
+    $('.camera-stop', container).addEventListener('click', stop);
+    $('.camera-take', container).addEventListener('click', () => {
+        const canvas = el('canvas');
+        canvas.width = video.videoWidth;
+        canvas.height = video.videoHeight;
+        canvas.getContext('2d').drawImage(video, 0, 0);
+        canvas.toBlob((blob) => {
+            if (blob) add([new File([blob], `camera-${Date.now()}.jpg`, { type: 'image/jpeg' })]);
+            if (!multiple) stop();
+        }, 'image/jpeg', 0.92);
+    });
+}
+
+function photos(id) {
+    return pickers.get(id).files;
+}
+
+// ---------------------------------------------------------------- what was found: box, landmarks, pose, timings
+
+/// The photo with the face box, the 58 landmarks and the key points drawn over it.
+async function overlay(file, report) {
+    const bitmap = await createImageBitmap(file);
+    const canvas = el('canvas', { class: 'overlay', role: 'img', 'aria-label': 'The photo with the face box and the 58 landmarks' });
+    canvas.width = bitmap.width;
+    canvas.height = bitmap.height;
+    const g = canvas.getContext('2d');
+    g.drawImage(bitmap, 0, 0);
+    const unit = Math.max(1.5, Math.max(bitmap.width, bitmap.height) / 300);
+    const b = report.face.box;
+    g.lineWidth = unit;
+    g.strokeStyle = '#00e5ff';
+    g.strokeRect(b.x, b.y, b.width, b.height);
+    g.fillStyle = '#ffd400';
+    for (const [x, y] of report.landmarks.points) {
+        g.beginPath();
+        g.arc(x, y, unit * 1.2, 0, 2 * Math.PI);
+        g.fill();
+    }
+    g.fillStyle = '#ff3b6b';
+    for (const [x, y] of Object.values(report.landmarks.keypoints)) {
+        g.beginPath();
+        g.arc(x, y, unit * 2, 0, 2 * Math.PI);
+        g.fill();
+    }
+    canvas.dataset.points = String(report.landmarks.points.length);
+    return canvas;
+}
+
+function table(rows, caption) {
+    const t = el('table');
+    if (caption) t.append(el('caption', { class: 'muted', text: caption }));
+    for (const [k, v] of rows) t.append(el('tr', {}, el('th', { scope: 'row', text: k }), el('td', { text: v })));
+    return t;
+}
+
+function faceDetails(report) {
+    const parts = [];
+    const pose = report.pose;
+    parts.push(table([
+        ['Faces found', String(report.faces_found ?? 1)],
+        ['Detector score', fmt(report.face.score, 2)],
+        ['Landmarks', `${report.landmarks.points.length} points`],
+        ['Pose (yaw, pitch, roll)', pose ? `${fmt(pose.yaw, 1)}°, ${fmt(pose.pitch, 1)}°, ${fmt(pose.roll, 1)}°` : 'unknown (no 3D model)'],
+    ], 'The face used'));
+    if (report.timings) {
+        const rows = Object.entries(report.timings).map(([k, v]) => [k.replace(/_ms$/, '').replace('_', ' '), `${fmt(v, 1)} ms`]);
+        parts.push(table(rows, 'Time per stage'));
+    }
+    return parts;
+}
+
+async function reportView(file, report, head) {
+    const side = el('div', {}, ...head, ...faceDetails(report));
+    return el('div', { class: 'report' }, el('div', {}, await overlay(file, report)), side);
+}
+
+function scoreBar(score, threshold) {
+    // Cosine-like scores: show them on [-1, 1] around the threshold.
+    const pos = (x) => `${Math.min(100, Math.max(0, ((x + 1) / 2) * 100))}%`;
+    // Positions through the CSSOM: the page's Content-Security-Policy refuses inline style attributes.
+    const mark = (cls, x) => {
+        const span = el('span', { class: cls });
+        span.style.left = pos(x);
+        return span;
+    };
+    return el('div', { class: 'bar', role: 'img', 'aria-label': `score ${fmt(score)} against threshold ${fmt(threshold)}` },
+        mark('threshold', threshold), mark('score', score));
+}
+
+// ---------------------------------------------------------------- views
+
+function busy(form, on) {
+    for (const b of form.querySelectorAll('button')) b.disabled = on;
+    form.setAttribute('aria-busy', on ? 'true' : 'false');
+}
+
+function needPhoto(target, files) {
+    if (files.length > 0) return false;
+    showProblem(target, new Error('Choose a photo first.'));
+    return true;
+}
+
+$('#enrol-form').addEventListener('submit', async (e) => {
+    e.preventDefault();
+    const form = e.target;
+    const target = $('#enrol-result');
+    const subject = $('#enrol-subject').value.trim();
+    const files = photos('enrol-picker');
+    if (needPhoto(target, files)) return;
+    const body = new FormData();
+    body.append('subject', subject);
+    for (const f of files) body.append('image', f, f.name);
+    busy(form, true);
+    target.replaceChildren(el('p', { class: 'muted', text: 'Enrolling…' }));
+    try {
+        const r = await api('POST', '/enroll', body);
+        const views = [];
+        for (const image of r.images) {
+            views.push(await reportView(files[image.index], image, [el('h3', { text: `Photo ${image.index + 1}` })]));
+        }
+        target.replaceChildren(
+            el('p', { class: 'decision match', id: 'enrol-outcome', text: `Enrolled ${r.subject}: ${r.added} photo(s) added, ${r.templates} in all` }),
+            el('p', { class: 'muted', text: `Model ${r.model_version}` }),
+            ...views,
+        );
+        pickers.get('enrol-picker').files = [];
+        $('#enrol-picker .thumbs').replaceChildren();
+        refreshSubjectIds();
+    } catch (error) {
+        showProblem(target, error);
+    } finally {
+        busy(form, false);
+    }
+});
+
+$('#verify-form').addEventListener('submit', async (e) => {
+    e.preventDefault();
+    const form = e.target;
+    const target = $('#verify-result');
+    const files = photos('verify-picker');
+    if (needPhoto(target, files)) return;
+    const body = new FormData();
+    body.append('subject', $('#verify-subject').value.trim());
+    body.append('image', files[0], files[0].name);
+    busy(form, true);
+    target.replaceChildren(el('p', { class: 'muted', text: 'Verifying…' }));
+    try {
+        const r = await api('POST', `/verify?fmr=${encodeURIComponent($('#verify-fmr').value)}`, body);
+        const decision = el('p', { class: `decision ${r.match ? 'match' : 'nomatch'}`, id: 'verify-decision', text: r.match ? `Match: ${r.subject}` : `No match: not ${r.subject}` });
+        const why = el('p', {
+            text: `Score ${fmt(r.score)} ${r.match ? '≥' : '<'} threshold ${fmt(r.threshold)}, the threshold at false match rate ${fmtFmr(r.fmr)} for a subject with ${r.templates_compared} photo(s).`,
+        });
+        target.replaceChildren(await reportView(files[0], r, [decision, why, scoreBar(r.score, r.threshold), el('p', { class: 'muted', text: `Model ${r.model_version}` })]));
+    } catch (error) {
+        showProblem(target, error);
+    } finally {
+        busy(form, false);
+    }
+});
+
+$('#identify-form').addEventListener('submit', async (e) => {
+    e.preventDefault();
+    const form = e.target;
+    const target = $('#identify-result');
+    const files = photos('identify-picker');
+    if (needPhoto(target, files)) return;
+    const body = new FormData();
+    body.append('image', files[0], files[0].name);
+    busy(form, true);
+    target.replaceChildren(el('p', { class: 'muted', text: 'Searching…' }));
+    try {
+        const r = await api('POST', `/identify?k=${encodeURIComponent($('#identify-k').value || '5')}`, body);
+        const best = r.candidates.find((c) => c.match);
+        const decision = el('p', { class: `decision ${best ? 'match' : 'nomatch'}`, id: 'identify-decision', text: best ? `Match: ${best.subject}` : 'No enrolled subject matches' });
+        const t = el('table', {}, el('tr', {}, ...['Subject', 'Score', 'Threshold', 'Match'].map((h) => el('th', { scope: 'col', text: h }))));
+        for (const c of r.candidates) {
+            t.append(el('tr', {}, el('td', { text: c.subject }), el('td', { text: fmt(c.score) }), el('td', { text: fmt(c.threshold) }), el('td', { text: c.match ? 'yes' : 'no' })));
+        }
+        const note = el('p', { class: 'muted', text: `${r.subjects_searched} subject(s) searched; false match rate ${fmtFmr(r.fmr)} per comparison.` });
+        target.replaceChildren(await reportView(files[0], r, [decision, t, note]));
+    } catch (error) {
+        showProblem(target, error);
+    } finally {
+        busy(form, false);
+    }
+});
+
+// ---------------------------------------------------------------- subjects
+
+let pendingDelete = null;
+
+async function loadSubjects() {
+    const target = $('#subjects-result');
+    try {
+        const all = [];
+        let after = null;
+        do {
+            const page = await api('GET', `/subjects?limit=1000${after ? `&after=${encodeURIComponent(after)}` : ''}`);
+            all.push(...page.subjects);
+            after = page.next_after;
+        } while (after);
+        if (all.length === 0) {
+            target.replaceChildren(el('p', { class: 'muted', id: 'subjects-empty', text: 'No subject is enrolled.' }));
+            return all;
+        }
+        const t = el('table', { id: 'subjects-table' }, el('tr', {}, ...['Subject', 'Photos', 'Updated', ''].map((h) => el('th', { scope: 'col', text: h }))));
+        for (const s of all) {
+            const inspect = el('button', { type: 'button', text: 'Inspect', 'aria-label': `Inspect ${s.id}` });
+            inspect.addEventListener('click', () => showSubject(s.id));
+            const remove = el('button', { type: 'button', class: 'danger', text: 'Delete', 'aria-label': `Delete ${s.id}`, 'data-subject': s.id });
+            remove.addEventListener('click', () => {
+                pendingDelete = s.id;
+                $('#delete-text').textContent = `Delete ${s.id} and all its ${s.templates} template(s)? This cannot be undone.`;
+                $('#delete-dialog').showModal();
+            });
+            t.append(el('tr', { 'data-subject': s.id }, el('td', { text: s.id }), el('td', { text: String(s.templates) }),
+                el('td', { text: new Date(s.updated_at).toLocaleString() }), el('td', {}, el('div', { class: 'row' }, inspect, remove))));
+        }
+        target.replaceChildren(t);
+        return all;
+    } catch (error) {
+        showProblem(target, error);
+        return [];
+    }
+}
+
+async function showSubject(id) {
+    const target = $('#subject-detail');
+    try {
+        const s = await api('GET', `/subjects/${encodeURIComponent(id)}`);
+        const rows = [['Subject', s.id], ['Photos enrolled', String(s.templates)], ['Enrolled', new Date(s.created_at).toLocaleString()]];
+        for (const v of s.model_versions) rows.push([`Model ${v.model_version}`, `${v.templates} template(s)`]);
+        target.replaceChildren(el('h3', { text: s.id }), table(rows));
+    } catch (error) {
+        showProblem(target, error);
+    }
+}
+
+$('#delete-dialog').addEventListener('close', async () => {
+    const id = pendingDelete;
+    pendingDelete = null;
+    if ($('#delete-dialog').returnValue !== 'confirm' || !id) return;
+    try {
+        await api('DELETE', `/subjects/${encodeURIComponent(id)}`);
+        $('#subject-detail').replaceChildren(el('p', { id: 'delete-outcome', text: `${id} was deleted.` }));
+        await loadSubjects();
+        refreshSubjectIds();
+    } catch (error) {
+        showProblem($('#subject-detail'), error);
+    }
+});
+$('#subjects-refresh').addEventListener('click', loadSubjects);
+
+async function refreshSubjectIds() {
+    try {
+        const page = await api('GET', '/subjects?limit=1000');
+        $('#subject-ids').replaceChildren(...page.subjects.map((s) => el('option', { value: s.id })));
+    } catch {
+        // The key may be missing yet: the list is only a convenience.
+    }
+    refreshHealth();
+}
+
+async function refreshHealth() {
+    try {
+        const h = await api('GET', '/health');
+        $('#health').textContent = `Service ${h.status} · model ${h.model_version} · ${h.subjects} subject(s), ${h.templates} template(s)`;
+    } catch (error) {
+        $('#health').textContent = `Service unreachable: ${error.message}`;
+    }
+}
+
+// ---------------------------------------------------------------- avatar
+
+let viewer = null;
+
+async function showAvatar(glb) {
+    const THREE = await import('./vendor/viewer.js');
+    const host = $('#viewer');
+    if (!viewer) {
+        const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+        renderer.outputColorSpace = THREE.SRGBColorSpace;
+        renderer.setPixelRatio(Math.min(2, window.devicePixelRatio || 1));
+        host.append(renderer.domElement);
+        renderer.domElement.id = 'viewer-canvas';
+        const scene = new THREE.Scene();
+        scene.background = new THREE.Color(0x20242a);
+        scene.add(new THREE.AmbientLight(0xffffff, 2.2));
+        const light = new THREE.DirectionalLight(0xffffff, 1.2);
+        light.position.set(0.3, 0.5, 1);
+        scene.add(light);
+        const camera = new THREE.PerspectiveCamera(30, 1, 0.01, 10);
+        const controls = new THREE.OrbitControls(camera, renderer.domElement);
+        controls.enableDamping = true;
+        controls.enablePan = false;
+        viewer = { THREE, renderer, scene, camera, controls, model: null };
+        const resize = () => {
+            const w = host.clientWidth || 320;
+            renderer.setSize(w, w, true);
+            camera.aspect = 1;
+            camera.updateProjectionMatrix();
+        };
+        new ResizeObserver(resize).observe(host);
+        resize();
+        // Keyboard rotation for people who do not drag.
+        host.addEventListener('keydown', (e) => {
+            const step = 0.15;
+            const rotate = { ArrowLeft: [step, 0], ArrowRight: [-step, 0], ArrowUp: [0, step], ArrowDown: [0, -step] }[e.key];
+            if (!rotate || !viewer.model) return;
+            e.preventDefault();
+            viewer.model.rotation.y += rotate[0];
+            viewer.model.rotation.x += rotate[1];
+        });
+        renderer.setAnimationLoop(() => {
+            controls.update();
+            renderer.render(scene, camera);
+            if (viewer.model) renderer.domElement.dataset.rendered = 'true';
+        });
+    }
+    const url = URL.createObjectURL(glb);
+    try {
+        const gltf = await new THREE.GLTFLoader().loadAsync(url);
+        if (viewer.model) viewer.scene.remove(viewer.model);
+        const model = gltf.scene;
+        const box = new THREE.Box3().setFromObject(model);
+        const centre = box.getCenter(new THREE.Vector3());
+        model.position.sub(centre);
+        viewer.scene.add(model);
+        viewer.model = model;
+        const size = box.getSize(new THREE.Vector3()).length();
+        viewer.camera.position.set(0, 0, size * 1.9);
+        viewer.camera.near = size / 100;
+        viewer.camera.far = size * 10;
+        viewer.camera.updateProjectionMatrix();
+        viewer.controls.target.set(0, 0, 0);
+        viewer.controls.update();
+    } finally {
+        URL.revokeObjectURL(url);
+    }
+}
+
+$('#avatar-form').addEventListener('submit', async (e) => {
+    e.preventDefault();
+    const form = e.target;
+    const target = $('#avatar-result');
+    const files = photos('avatar-picker');
+    if (needPhoto(target, files)) return;
+    const make = () => {
+        const body = new FormData();
+        body.append('image', files[0], files[0].name);
+        return body;
+    };
+    busy(form, true);
+    target.replaceChildren(el('p', { class: 'muted', text: 'Fitting the 3D model…' }));
+    try {
+        const [glb, png] = await Promise.all([api('POST', '/avatar', make()), api('POST', '/frontalize', make())]);
+        $('#avatar-views').hidden = false;
+        const old = $('#frontal').src;
+        $('#frontal').src = URL.createObjectURL(png);
+        if (old.startsWith('blob:')) URL.revokeObjectURL(old);
+        const link = $('#avatar-download');
+        if (link.href.startsWith('blob:')) URL.revokeObjectURL(link.href);
+        link.href = URL.createObjectURL(glb);
+        await showAvatar(glb);
+        target.replaceChildren(el('p', { id: 'avatar-outcome', text: `Avatar ready (${Math.round(glb.size / 1024)} kB glTF).` }));
+    } catch (error) {
+        showProblem(target, error);
+    } finally {
+        busy(form, false);
+    }
+});
+
+// ---------------------------------------------------------------- navigation
+
+function show(view) {
+    const name = ['enrol', 'verify', 'identify', 'subjects', 'avatar'].includes(view) ? view : 'enrol';
+    for (const section of document.querySelectorAll('.view')) section.hidden = section.id !== `view-${name}`;
+    for (const link of document.querySelectorAll('nav a')) {
+        if (link.dataset.view === name) link.setAttribute('aria-current', 'page');
+        else link.removeAttribute('aria-current');
+    }
+    if (name === 'subjects') loadSubjects();
+}
+
+window.addEventListener('hashchange', () => show(location.hash.slice(1)));
+for (const container of document.querySelectorAll('.picker')) setupPicker(container);
+$('#api-key').addEventListener('change', refreshSubjectIds);
+show(location.hash.slice(1));
+refreshSubjectIds();
+document.body.dataset.ready = 'true';
