@@ -58,6 +58,7 @@ function showProblem(target, error) {
         box.append(el('strong', { text: 'The request failed' }), el('p', { text: String(error.message || error) }));
     }
     target.append(box);
+    target.scrollIntoView({ block: 'nearest' });
 }
 
 const fmt = (x, digits = 3) => (typeof x === 'number' ? x.toFixed(digits) : '–');
@@ -212,8 +213,9 @@ async function reportView(file, report, head) {
 }
 
 function scoreBar(score, threshold) {
-    // Cosine-like scores: show them on [-1, 1] around the threshold.
-    const pos = (x) => `${Math.min(100, Math.max(0, ((x + 1) / 2) * 100))}%`;
+    // Cosine-like scores (at most 1): from a little below the lower of score and threshold up to 1.
+    const lo = Math.max(-1, Math.min(score, threshold) - 0.2);
+    const pos = (x) => `${Math.min(100, Math.max(0, ((x - lo) / (1 - lo)) * 100))}%`;
     // Positions through the CSSOM: the page's Content-Security-Policy refuses inline style attributes.
     const mark = (cls, x) => {
         const span = el('span', { class: cls });
@@ -260,6 +262,7 @@ $('#enrol-form').addEventListener('submit', async (e) => {
             el('p', { class: 'muted', text: `Model ${r.model_version}` }),
             ...views,
         );
+        target.scrollIntoView({ block: 'start' });
         pickers.get('enrol-picker').files = [];
         $('#enrol-picker .thumbs').replaceChildren();
         refreshSubjectIds();
@@ -288,6 +291,7 @@ $('#verify-form').addEventListener('submit', async (e) => {
             text: `Score ${fmt(r.score)} ${r.match ? '≥' : '<'} threshold ${fmt(r.threshold)}, the threshold at false match rate ${fmtFmr(r.fmr)} for a subject with ${r.templates_compared} photo(s).`,
         });
         target.replaceChildren(await reportView(files[0], r, [decision, why, scoreBar(r.score, r.threshold), el('p', { class: 'muted', text: `Model ${r.model_version}` })]));
+        target.scrollIntoView({ block: 'start' });
     } catch (error) {
         showProblem(target, error);
     } finally {
@@ -315,6 +319,7 @@ $('#identify-form').addEventListener('submit', async (e) => {
         }
         const note = el('p', { class: 'muted', text: `${r.subjects_searched} subject(s) searched; false match rate ${fmtFmr(r.fmr)} per comparison.` });
         target.replaceChildren(await reportView(files[0], r, [decision, t, note]));
+        target.scrollIntoView({ block: 'start' });
     } catch (error) {
         showProblem(target, error);
     } finally {
@@ -500,6 +505,7 @@ $('#avatar-form').addEventListener('submit', async (e) => {
         link.href = URL.createObjectURL(glb);
         await showAvatar(glb);
         target.replaceChildren(el('p', { id: 'avatar-outcome', text: `Avatar ready (${Math.round(glb.size / 1024)} kB glTF).` }));
+        target.scrollIntoView({ block: 'start' });
     } catch (error) {
         showProblem(target, error);
     } finally {

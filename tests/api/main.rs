@@ -4,8 +4,11 @@
 //!   tests is checked against the document.
 //! - `http`: the HTTP layer (formats, every bad-input class, limits, keys, timeouts, overload,
 //!   storage) with a stand-in face engine.
-//! - `pipeline`: enrol and verify real IMM photos through the real `Pipeline` and committed models.
+//! - `pipeline`: enrol and verify real IMM photos through the real `Pipeline` and committed models;
+//!   analyse, avatar and frontal rendering, byte for byte the CLI's.
+//! - `browser`: the web console in headless Chromium over WebDriver, against the real pipeline.
 
+mod browser;
 mod http;
 mod openapi;
 mod pipeline;

@@ -9,7 +9,7 @@ use serde_json::json;
 
 use crate::support::*;
 
-fn pipeline() -> Arc<Pipeline> {
+pub fn pipeline() -> Arc<Pipeline> {
     static PIPELINE: OnceLock<Arc<Pipeline>> = OnceLock::new();
     PIPELINE
         .get_or_init(|| {

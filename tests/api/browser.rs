@@ -1,0 +1,312 @@
+//! The web console in a real browser: headless Chromium (Debian's `chromium` and
+//! `chromium-driver`) driven over WebDriver (fantoccini) against the real app and pipeline.
+//!
+//! Scenario: enrol two photos of one IMM person through the page, verify a third (match shown),
+//! verify another person (no match shown), identify, open the avatar view (the WebGL canvas
+//! renders, no console errors), inspect and delete the subject; the verify view again at phone
+//! width. Screenshots of each view go to `target/tmp/console/`, or to the folder named by
+//! `FACEGATE_CONSOLE_SCREENSHOTS` (the README's images: `FACEGATE_CONSOLE_SCREENSHOTS=docs/img/console
+//! cargo test --test api browser::`).
+//!
+//! Without Chromium the test prints why and passes, except under CI (`CI=true`), where it fails.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use fantoccini::elements::Element;
+use fantoccini::wd::WebDriverCompatibleCommand;
+use fantoccini::{Client, ClientBuilder, Locator};
+use serde_json::{Value, json};
+
+use crate::support::TestApp;
+
+const CHROMIUM: [&str; 2] = ["/usr/lib/chromium/chromium", "/usr/bin/chromium"];
+const CHROMEDRIVER: [&str; 2] = ["/usr/bin/chromedriver", "/usr/lib/chromium/chromedriver"];
+/// The longest wait for one step of the page (a pipeline call in the dev profile takes < 1 s).
+const STEP: Duration = Duration::from_secs(30);
+
+fn first_existing(candidates: &[&str]) -> Option<PathBuf> {
+    candidates.iter().map(PathBuf::from).find(|p| p.is_file())
+}
+
+/// chromedriver on a free port, killed when dropped.
+struct Driver {
+    child: Child,
+    url: String,
+}
+
+impl Driver {
+    fn start(binary: &Path) -> Driver {
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let child = Command::new(binary)
+            .arg(format!("--port={port}"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {}: {e}", binary.display()));
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+            assert!(Instant::now() < deadline, "chromedriver did not listen on port {port}");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        Driver { child, url: format!("http://127.0.0.1:{port}") }
+    }
+}
+
+impl Drop for Driver {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// chromedriver's browser log (console messages, failed loads, CSP refusals).
+#[derive(Debug)]
+struct BrowserLog;
+
+impl WebDriverCompatibleCommand for BrowserLog {
+    fn endpoint(&self, base: &url::Url, session: Option<&str>) -> Result<url::Url, url::ParseError> {
+        base.join(&format!("session/{}/se/log", session.unwrap_or_default()))
+    }
+
+    fn method_and_body(&self, _url: &url::Url) -> (http::Method, Option<String>) {
+        (http::Method::POST, Some(json!({"type": "browser"}).to_string()))
+    }
+}
+
+struct Page {
+    client: Client,
+    shots: PathBuf,
+}
+
+impl Page {
+    async fn find(&self, css: &str) -> Element {
+        self.client.wait().at_most(STEP).for_element(Locator::Css(css)).await.unwrap_or_else(|e| panic!("no {css} on the page: {e}"))
+    }
+
+    /// Wait until `script` (a JavaScript expression) is truthy.
+    async fn until(&self, what: &str, script: &str) {
+        let deadline = Instant::now() + STEP;
+        loop {
+            let value = self.client.execute(&format!("return {script};"), vec![]).await.unwrap();
+            if value.as_bool() == Some(true) || value.as_str().is_some_and(|s| !s.is_empty()) {
+                return;
+            }
+            if Instant::now() > deadline {
+                let errors = self.client.execute("return document.querySelector('.problem')?.textContent || '';", vec![]).await;
+                panic!("timed out waiting for {what} ({script}); problem shown: {errors:?}");
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+
+    async fn text(&self, css: &str) -> String {
+        self.find(css).await.text().await.unwrap()
+    }
+
+    async fn click(&self, css: &str) {
+        self.find(css).await.click().await.unwrap_or_else(|e| panic!("cannot click {css}: {e}"));
+    }
+
+    async fn type_into(&self, css: &str, text: &str) {
+        let input = self.find(css).await;
+        input.clear().await.unwrap();
+        input.send_keys(text).await.unwrap();
+    }
+
+    /// Choose a photo in a picker's file input (what a click on "Choose a photo" leads to).
+    async fn choose(&self, picker: &str, photo: &Path) {
+        self.find(&format!("#{picker}-file")).await.send_keys(photo.to_str().unwrap()).await.unwrap();
+    }
+
+    async fn view(&self, name: &str) {
+        self.click(&format!("nav a[data-view=\"{name}\"]")).await;
+        self.until(&format!("the {name} view"), &format!("!document.querySelector('#view-{name}').hidden")).await;
+    }
+
+    async fn screenshot(&self, name: &str) {
+        let png = self.client.screenshot().await.unwrap();
+        std::fs::write(self.shots.join(name), png).unwrap();
+    }
+
+    /// Errors the page collected and the browser logged at level SEVERE.
+    async fn errors(&self) -> Vec<String> {
+        let page: Vec<String> =
+            serde_json::from_value(self.client.execute("return window.facegateErrors;", vec![]).await.unwrap()).unwrap();
+        let log = self.client.issue_cmd(BrowserLog).await.unwrap();
+        let severe = log.as_array().into_iter().flatten().filter(|e| e["level"] == "SEVERE").map(|e| e["message"].to_string());
+        page.into_iter().chain(severe).collect()
+    }
+}
+
+fn imm_path(name: &str) -> PathBuf {
+    let path = facegate::config::shared_dir().join("data/imm").join(name);
+    assert!(path.is_file(), "{} is missing", path.display());
+    path.canonicalize().unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_console_enrols_verifies_shows_the_avatar_and_deletes_in_chromium() {
+    let ci = std::env::var("CI").is_ok_and(|v| v == "true");
+    let (Some(chromium), Some(chromedriver)) = (first_existing(&CHROMIUM), first_existing(&CHROMEDRIVER)) else {
+        let reason = "Chromium or chromedriver is not installed (apt-get install chromium chromium-driver)";
+        assert!(!ci, "{reason}: the browser test cannot be skipped in CI");
+        println!("browser test skipped: {reason}");
+        return;
+    };
+    let shots = std::env::var_os("FACEGATE_CONSOLE_SCREENSHOTS")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("console"));
+    std::fs::create_dir_all(&shots).unwrap();
+
+    let app = TestApp::start(crate::pipeline::pipeline(), facegate::config::Settings::default().api_config().unwrap()).await;
+    let driver = Driver::start(&chromedriver);
+    let profile = std::env::temp_dir().join(format!("facegate-chromium-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&profile);
+    let capabilities = json!({
+        "browserName": "chrome",
+        "goog:chromeOptions": {
+            "binary": chromium,
+            "args": [
+                "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                "--no-first-run", "--no-default-browser-check", "--disable-extensions",
+                // WebGL on the CPU (SwiftShader): there is no GPU here.
+                "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
+                "--window-size=1280,1100", "--hide-scrollbars",
+                format!("--user-data-dir={}", profile.display()),
+            ],
+        },
+        "goog:loggingPrefs": {"browser": "ALL"},
+    });
+    let Value::Object(capabilities) = capabilities else { unreachable!() };
+    let client = ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
+        .capabilities(capabilities)
+        .connect(&driver.url)
+        .await
+        .expect("a WebDriver session with headless Chromium");
+    let page = Page { client, shots: shots.clone() };
+
+    page.client.goto(&app.url("/#enrol")).await.unwrap();
+    page.until("the page script", "document.body.dataset.ready === 'true'").await;
+    page.until("the health line", "document.querySelector('#health').textContent.includes('model deep-')").await;
+
+    // Enrol two photos of IMM person 02 (held out of training).
+    page.type_into("#enrol-subject", "imm-02").await;
+    page.choose("enrol-picker", &imm_path("02-1m.jpg")).await;
+    page.choose("enrol-picker", &imm_path("02-2m.jpg")).await;
+    page.until("two thumbnails", "document.querySelectorAll('#enrol-picker .thumbs img').length === 2").await;
+    page.click("#enrol-form button[type=submit]").await;
+    page.until("the enrolment", "document.querySelector('#enrol-outcome')?.textContent").await;
+    assert!(page.text("#enrol-outcome").await.contains("2 photo(s) added"));
+    page.until("two overlays", "document.querySelectorAll('#enrol-result canvas.overlay').length === 2").await;
+    page.screenshot("enrol.png").await;
+    assert_eq!(app.store.counts().await.unwrap(), (1, 2));
+
+    // Verify a third photo of the same person: a match, with the 58 points drawn.
+    page.view("verify").await;
+    page.type_into("#verify-subject", "imm-02").await;
+    page.choose("verify-picker", &imm_path("02-4m.jpg")).await;
+    page.click("#verify-form button[type=submit]").await;
+    page.until("a decision", "document.querySelector('#verify-decision')?.textContent").await;
+    let decision = page.text("#verify-decision").await;
+    assert!(decision.starts_with("Match"), "{decision}");
+    page.until("the overlay", "document.querySelector('#verify-result canvas.overlay')?.dataset.points === '58'").await;
+    assert!(page.text("#verify-result").await.contains("threshold"));
+    page.screenshot("verify-match.png").await;
+
+    // Another person: no match.
+    page.choose("verify-picker", &imm_path("03-1m.jpg")).await;
+    page.click("#verify-form button[type=submit]").await;
+    page.until("the second decision", "document.querySelector('#verify-decision')?.textContent.startsWith('No match')").await;
+    page.screenshot("verify-no-match.png").await;
+    let errors = page.errors().await;
+    assert!(errors.is_empty(), "console errors: {errors:?}");
+
+    // A refusal shows the problem's reason.
+    page.choose("verify-picker", &imm_path("03-1m.jpg")).await;
+    page.type_into("#verify-subject", "nobody").await;
+    page.click("#verify-form button[type=submit]").await;
+    page.until("the refusal", "document.querySelector('#verify-result .problem')?.textContent.includes('unknown-subject')").await;
+    // The browser logs the refused request itself, and nothing else.
+    let logged = page.errors().await;
+    assert!(logged.iter().all(|e| e.contains("/verify?fmr=0.001") && e.contains("404")), "console errors: {logged:?}");
+
+    // Identify.
+    page.view("identify").await;
+    page.choose("identify-picker", &imm_path("02-6m.jpg")).await;
+    page.click("#identify-form button[type=submit]").await;
+    page.until("the candidates", "document.querySelector('#identify-decision')?.textContent").await;
+    assert_eq!(page.text("#identify-decision").await, "Match: imm-02");
+    page.screenshot("identify.png").await;
+
+    // The avatar: the WebGL canvas draws the textured head; the frontal rendering is a 256 px PNG.
+    page.view("avatar").await;
+    page.choose("avatar-picker", &imm_path("02-3m.jpg")).await;
+    page.click("#avatar-form button[type=submit]").await;
+    page.until("the avatar", "document.querySelector('#avatar-outcome')?.textContent").await;
+    page.until("a rendered frame", "document.querySelector('#viewer-canvas')?.dataset.rendered === 'true'").await;
+    page.until("the frontal rendering", "document.querySelector('#frontal').naturalWidth === 256").await;
+    // Pixels of the head (not the background colour) in the WebGL canvas.
+    let drawn = page
+        .client
+        .execute(
+            "const c = document.querySelector('#viewer-canvas'); const t = document.createElement('canvas');
+             t.width = c.width; t.height = c.height; const g = t.getContext('2d'); g.drawImage(c, 0, 0);
+             const d = g.getImageData(0, 0, t.width, t.height).data; let n = 0;
+             for (let i = 0; i < d.length; i += 4) { if (Math.abs(d[i] - 0x20) + Math.abs(d[i+1] - 0x24) + Math.abs(d[i+2] - 0x2a) > 30) n++; }
+             return n / (t.width * t.height);",
+            vec![],
+        )
+        .await
+        .unwrap()
+        .as_f64()
+        .unwrap();
+    assert!(drawn > 0.05, "the head covers {:.1}% of the viewer", 100.0 * drawn);
+    // Rotate with the keyboard.
+    page.find("#viewer").await.send_keys("\u{E012}\u{E012}").await.unwrap();
+    page.screenshot("avatar.png").await;
+    let errors = page.errors().await;
+    assert!(errors.is_empty(), "console errors: {errors:?}");
+
+    // Subjects: inspect, then delete with confirmation.
+    page.view("subjects").await;
+    page.find("#subjects-table tr[data-subject=\"imm-02\"]").await;
+    page.click("button[aria-label=\"Inspect imm-02\"]").await;
+    page.until("the detail", "document.querySelector('#subject-detail h3')?.textContent === 'imm-02'").await;
+    assert!(page.text("#subject-detail").await.contains("deep-"));
+    page.screenshot("subjects.png").await;
+    page.click("button[data-subject=\"imm-02\"]").await;
+    page.until("the confirmation", "document.querySelector('#delete-dialog').open").await;
+    page.screenshot("delete-confirm.png").await;
+    page.click("#delete-confirm").await;
+    page.until("the deletion", "document.querySelector('#delete-outcome')?.textContent").await;
+    page.find("#subjects-empty").await;
+    assert_eq!(app.store.counts().await.unwrap(), (0, 0));
+
+    // Phone width: nothing wider than the screen.
+    page.client.set_window_size(390, 844).await.unwrap();
+    page.view("verify").await;
+    let overflow = page.client.execute("return document.documentElement.scrollWidth - window.innerWidth;", vec![]).await.unwrap();
+    if overflow.as_i64().unwrap() > 0 {
+        let wide = page
+            .client
+            .execute(
+                "return [...document.querySelectorAll('body *')].filter(e => e.getBoundingClientRect().right > window.innerWidth + 1)
+                   .slice(0, 5).map(e => e.tagName + '#' + e.id + '.' + e.className + ' ' + Math.round(e.getBoundingClientRect().right));",
+                vec![],
+            )
+            .await
+            .unwrap();
+        panic!("the page is {overflow} px wider than a phone: {wide}");
+    }
+    page.screenshot("phone.png").await;
+    let errors = page.errors().await;
+    assert!(errors.is_empty(), "console errors: {errors:?}");
+
+    page.client.close().await.unwrap();
+    drop(driver);
+    let _ = std::fs::remove_dir_all(&profile);
+    println!("browser test: screenshots in {}", shots.display());
+}
