@@ -37,6 +37,10 @@ pub struct DetectorArgs {
     /// Border added to small images, as a fraction of their size (Haar).
     #[arg(long, default_value_t = DetectOptions::default().small_image_pad)]
     pub small_image_pad: f32,
+    /// On small images, levels above this scale are scanned with step 1, the rest with step 2;
+    /// 0 scans every level with step 1 (Haar).
+    #[arg(long, default_value_t = DetectOptions::default().small_image_fine_above_scale)]
+    pub small_image_fine_above_scale: f32,
 }
 
 impl DetectorArgs {
@@ -51,6 +55,7 @@ impl DetectorArgs {
             fine_rescan: !self.no_fine_rescan,
             small_image_side: self.small_image_side,
             small_image_pad: self.small_image_pad,
+            small_image_fine_above_scale: self.small_image_fine_above_scale,
         }
     }
 

@@ -203,8 +203,11 @@ pub struct ScanOptions {
     pub max_size: f32,
     /// Ratio between successive scales.
     pub scale_step: f32,
-    /// Window step in pixels of the resized image (OpenCV uses 2 below scale 2, then 1).
+    /// Window step in pixels of the resized image.
     pub step: usize,
+    /// Levels scanned at a scale above this use step 1 whatever `step` says (OpenCV's
+    /// `detectMultiScale`: step 2 up to scale 2, then 1). Infinite: `step` on every level.
+    pub fine_above_scale: f32,
     /// Overlapping raw hits needed to keep a group (OpenCV's `minNeighbors`).
     pub min_neighbours: usize,
     /// Grouping tolerance (OpenCV's `eps` in `groupRectangles`).
@@ -213,7 +216,15 @@ pub struct ScanOptions {
 
 impl Default for ScanOptions {
     fn default() -> Self {
-        Self { min_size: 24.0, max_size: f32::INFINITY, scale_step: 1.1, step: 2, min_neighbours: 3, group_eps: 0.2 }
+        Self {
+            min_size: 24.0,
+            max_size: f32::INFINITY,
+            scale_step: 1.1,
+            step: 2,
+            fine_above_scale: f32::INFINITY,
+            min_neighbours: 3,
+            group_eps: 0.2,
+        }
     }
 }
 
@@ -498,7 +509,7 @@ impl Cascade {
             }
             let (lw, lh) = (lw.min(level0.0), lh.min(level0.1));
             fill_integral(base, lw, lh, &mut scratch);
-            let step = opts.step.max(1);
+            let step = if scale > opts.fine_above_scale { 1 } else { opts.step.max(1) };
             let (sum, sqsum, stride) = (&scratch.sum, &scratch.sqsum, scratch.stride);
             let nx = (lw - self.window_width) / step + 1;
             let mut y = 0;

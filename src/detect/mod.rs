@@ -93,6 +93,11 @@ pub struct DetectOptions {
     pub small_image_side: u32,
     /// Border added on each side of a small image, as a fraction of its size.
     pub small_image_pad: f32,
+    /// On small images, pyramid levels at a scale above this are scanned at every pixel and the
+    /// others with step 2 (OpenCV's own rule). Faces filling a small frame are found on the fine
+    /// levels; the coarse ones only hold windows far smaller than the frame. 0 scans every level
+    /// at step 1.
+    pub small_image_fine_above_scale: f32,
 }
 
 impl Default for DetectOptions {
@@ -107,6 +112,7 @@ impl Default for DetectOptions {
             fine_rescan: true,
             small_image_side: 200,
             small_image_pad: 0.1,
+            small_image_fine_above_scale: 1.75,
         }
     }
 }
@@ -206,11 +212,13 @@ impl Detector {
                     min_size,
                     max_size: f32::INFINITY,
                     scale_step: opts.scale_step,
-                    // Small photos are scanned at every pixel: it doubles their detection time
-                    // (ORL 92×112: 6.7 ms CPU against IMM 640×480's 3.6 ms), but a stride of 2
-                    // moves ORL's boxes enough that the classical recognizer, retrained on them,
-                    // lost 2 points of held-out EER (5.74 → 7.83 %; docs/recognition.md).
-                    step: if small { 1 } else { opts.step },
+                    // Small photos are scanned at every pixel on the levels where a face fills
+                    // the frame: a stride of 2 there moves ORL's boxes enough that the classical
+                    // recognizer, retrained on them, lost 2 points of held-out EER (5.74 → 7.83 %;
+                    // docs/recognition.md). The levels of small windows keep step 2, which leaves
+                    // the largest box unchanged (docs/detection.md).
+                    step: if small { 2 } else { opts.step },
+                    fine_above_scale: if small { opts.small_image_fine_above_scale } else { f32::INFINITY },
                     min_neighbours: opts.min_neighbours,
                     group_eps: 0.2,
                 };

@@ -75,6 +75,19 @@ fn finds_small_grey_orl_faces() {
 }
 
 #[test]
+fn small_images_keep_their_step_1_boxes_with_coarse_small_window_levels() {
+    // The levels of small windows at step 2 must not move the face a full step-1 scan finds
+    // (s10/10 moved when step 1 started above scale 2 instead of 1.75).
+    let fine = Detector::load(&models_dir()).unwrap();
+    let mut everywhere = Detector::load(&models_dir()).unwrap();
+    everywhere.options.small_image_fine_above_scale = 0.0;
+    for (subject, view) in [(10, 10), (1, 1), (2, 4), (5, 2), (20, 7), (30, 9)] {
+        let photo = open(&shared_dir().join(format!("data/orl/s{subject}/{view}.pgm"))).unwrap();
+        assert_eq!(fine.detect(&photo.gray), everywhere.detect(&photo.gray), "s{subject}/{view}");
+    }
+}
+
+#[test]
 fn mirrored_cascade_finds_the_mirrored_face() {
     let cascade = Cascade::parse(EMBEDDED_FRONTAL, "alt2").unwrap();
     let gray = open(&imm_dir().join("01-1m.jpg")).unwrap().gray;
