@@ -17,7 +17,7 @@ use crate::core::imaging::{GrayF32, Photo};
 use crate::detect::{Detector, Face};
 use crate::landmarks::asm3d::{Asm3dLandmarker, SERVICE_MIN_YAW};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
-use crate::morph::{AVATAR_TEXTURE_SIZE, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, Pose};
+use crate::morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, Pose};
 use crate::recognize::{AnyRecognizer, DeepRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views};
 
 /// Where the pipeline's models are.
@@ -263,12 +263,13 @@ impl Pipeline {
         self.face_model.as_ref().ok_or(PipelineError::NoFaceModel)
     }
 
-    /// The textured 3D head of the largest face as a glTF binary file: the bytes `facegate
-    /// reconstruct --out X.glb` writes for the same photo ([`reconstruct`]).
-    pub fn avatar_glb(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
+    /// The textured 3D head of the largest face as a glTF binary file, or the OBJ files zipped: the
+    /// bytes `facegate reconstruct --out avatar.glb` (or the files `--out avatar.obj`) writes for
+    /// the same photo ([`reconstruct`]).
+    pub fn avatar(&self, photo: &Photo, format: AvatarFormat) -> Result<Vec<u8>, PipelineError> {
         let model = self.face_model()?;
         let avatar = reconstruct(&self.finder, model, photo, &FitOptions::default(), AVATAR_TEXTURE_SIZE)?;
-        model.avatar_glb(&avatar).map_err(PipelineError::PoseCorrection)
+        model.avatar_file(&avatar, format).map_err(PipelineError::PoseCorrection)
     }
 
     /// The frontal rendering of the largest face as PNG: the bytes `facegate frontalize --out X.png`

@@ -16,7 +16,7 @@ use super::problem::{Problem, ProblemKind};
 use crate::core::elapsed_ms;
 use crate::detect::Face;
 use crate::landmarks::Landmarks;
-use crate::morph::Pose;
+use crate::morph::{AvatarFormat, Pose};
 use crate::pipeline::{FaceChoice, PipelineError};
 use crate::service::inspect::{self, InspectError};
 
@@ -43,6 +43,12 @@ struct AnalyzeParams {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct NoParams {}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct AvatarParams {
+    format: Option<AvatarFormat>,
+}
 
 #[derive(Debug, Serialize)]
 struct FaceTimings {
@@ -108,14 +114,19 @@ pub async fn analyze(State(state): State<AppState>, request: Request) -> Result<
     Ok(Json(AnalyzeResponse { faces_found: reading.faces_found, faces, timings }).into_response())
 }
 
-/// `POST /avatar`: the largest face's textured 3D head, `model/gltf-binary`.
+/// `POST /avatar?format=glb|obj`: the largest face's textured 3D head, `model/gltf-binary` (or
+/// the OBJ files in a zip archive).
 pub async fn avatar(State(state): State<AppState>, request: Request) -> Result<Response, Problem> {
-    let _: NoParams = read_query(&request)?;
+    let params: AvatarParams = read_query(&request)?;
+    let format = params.format.unwrap_or_default();
     let image = single_photo(request).await?;
     let (engine, limits) = (state.0.engine.clone(), state.0.config.decode_limits);
-    let glb = state.0.pool.run(move || inspect::avatar(engine.as_ref(), &image, &limits)).await??;
-    let headers = [(header::CONTENT_TYPE, "model/gltf-binary"), (header::CONTENT_DISPOSITION, "inline; filename=\"avatar.glb\"")];
-    Ok((headers, glb).into_response())
+    let bytes = state.0.pool.run(move || inspect::avatar(engine.as_ref(), &image, &limits, format)).await??;
+    let (media, disposition) = match format {
+        AvatarFormat::Glb => ("model/gltf-binary", "inline; filename=\"avatar.glb\""),
+        AvatarFormat::Obj => ("application/zip", "attachment; filename=\"avatar.zip\""),
+    };
+    Ok(([(header::CONTENT_TYPE, media), (header::CONTENT_DISPOSITION, disposition)], bytes).into_response())
 }
 
 /// `POST /frontalize`: the largest face rendered from the front, PNG.

@@ -122,34 +122,59 @@ pub fn glb_bytes(mesh: &TexturedMesh) -> Result<Vec<u8>, image::ImageError> {
     Ok(out)
 }
 
-/// Write `path` (.obj), `path.mtl` and `path.png` beside it. OBJ texture v runs upwards.
-pub fn write_obj(mesh: &TexturedMesh, path: &Path) -> Result<(), MorphError> {
-    let stem = path.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_else(|| "face".into());
-    let mtl_path = path.with_extension("mtl");
-    let png_path = path.with_extension("png");
-    let png_name = format!("{stem}.png");
-    let mtl_name = format!("{stem}.mtl");
-    let rgb = image::DynamicImage::ImageRgba8(mesh.texture.clone()).to_rgb8();
-    rgb.save(&png_path).map_err(|e| err(&png_path, e))?;
-    std::fs::write(&mtl_path, format!("newmtl face\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {png_name}\n"))
-        .map_err(|e| err(&mtl_path, e))?;
-    let file = std::fs::File::create(path).map_err(|e| err(path, e))?;
-    let mut w = std::io::BufWriter::new(file);
+/// The three files of an OBJ avatar named `stem`: `stem.obj` (millimetres; OBJ texture v runs
+/// upwards), `stem.mtl` and the texture `stem.png`.
+pub struct ObjFiles {
+    pub obj: Vec<u8>,
+    pub mtl: Vec<u8>,
+    pub png: Vec<u8>,
+}
+
+pub fn obj_files(mesh: &TexturedMesh, stem: &str) -> Result<ObjFiles, image::ImageError> {
+    let png = png_bytes(mesh.texture)?;
+    let mtl = format!("newmtl face\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {stem}.png\n").into_bytes();
+    let mut obj = Vec::new();
     let mut write = || -> std::io::Result<()> {
-        writeln!(w, "# facegate morph: fitted Surrey Face Model, millimetres")?;
-        writeln!(w, "mtllib {mtl_name}")?;
+        writeln!(obj, "# facegate morph: fitted Surrey Face Model, millimetres")?;
+        writeln!(obj, "mtllib {stem}.mtl")?;
         for p in mesh.vertices {
-            writeln!(w, "v {} {} {}", p[0], p[1], p[2])?;
+            writeln!(obj, "v {} {} {}", p[0], p[1], p[2])?;
         }
         for t in mesh.texcoords {
-            writeln!(w, "vt {} {}", t[0], 1.0 - t[1])?;
+            writeln!(obj, "vt {} {}", t[0], 1.0 - t[1])?;
         }
-        writeln!(w, "usemtl face")?;
+        writeln!(obj, "usemtl face")?;
         for t in mesh.triangles {
             let (a, b, c) = (t[0] + 1, t[1] + 1, t[2] + 1);
-            writeln!(w, "f {a}/{a} {b}/{b} {c}/{c}")?;
+            writeln!(obj, "f {a}/{a} {b}/{b} {c}/{c}")?;
         }
-        w.flush()
+        Ok(())
     };
-    write().map_err(|e| err(path, e))
+    write().expect("writing to memory");
+    Ok(ObjFiles { obj, mtl, png })
+}
+
+/// Write `path` (.obj), `path.mtl` and `path.png` beside it ([`obj_files`]).
+pub fn write_obj(mesh: &TexturedMesh, path: &Path) -> Result<(), MorphError> {
+    let stem = path.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_else(|| "face".into());
+    let files = obj_files(mesh, &stem).map_err(|e| err(path, e))?;
+    for (extension, bytes) in [("png", &files.png), ("mtl", &files.mtl), ("obj", &files.obj)] {
+        let file = path.with_extension(extension);
+        std::fs::write(&file, bytes).map_err(|e| err(&file, e))?;
+    }
+    Ok(())
+}
+
+/// The [`obj_files`] of `stem` in one zip archive (deflated; no timestamps beyond zip's 1980 epoch,
+/// so equal meshes give equal archives).
+pub fn obj_zip(mesh: &TexturedMesh, stem: &str) -> Result<Vec<u8>, MorphError> {
+    let zip_err = |e: &dyn std::fmt::Display| MorphError::Export { path: format!("{stem}.zip"), message: e.to_string() };
+    let files = obj_files(mesh, stem).map_err(|e| zip_err(&e))?;
+    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let options = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated);
+    for (extension, bytes) in [("obj", &files.obj), ("mtl", &files.mtl), ("png", &files.png)] {
+        zip.start_file(format!("{stem}.{extension}"), options).map_err(|e| zip_err(&e))?;
+        zip.write_all(bytes).map_err(|e| zip_err(&e))?;
+    }
+    Ok(zip.finish().map_err(|e| zip_err(&e))?.into_inner())
 }

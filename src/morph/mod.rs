@@ -75,6 +75,17 @@ pub const AVATAR_TEXTURE_SIZE: usize = 512;
 /// Side of the frontal rendering shown to people (`facegate frontalize`, `POST /frontalize`).
 pub const FRONTAL_VIEW_SIZE: usize = 256;
 
+/// The file an avatar is exported as.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AvatarFormat {
+    /// glTF binary (`model/gltf-binary`), metres, the texture embedded.
+    #[default]
+    Glb,
+    /// `avatar.obj`, `avatar.mtl` and `avatar.png` in one zip archive (`application/zip`).
+    Obj,
+}
+
 /// A textured avatar: the fitted shape and its UV texture, completed by symmetry. Made by
 /// [`FaceModel::avatar`], the one path of `facegate reconstruct` and `POST /avatar`.
 #[derive(Debug, Clone)]
@@ -399,6 +410,14 @@ impl FaceModel {
     /// The avatar as a glTF binary file (`model/gltf-binary`).
     pub fn avatar_glb(&self, avatar: &Avatar) -> Result<Vec<u8>, MorphError> {
         export::glb_bytes(&self.avatar_mesh(avatar)).map_err(|e| MorphError::Export { path: "glb".into(), message: e.to_string() })
+    }
+
+    /// The avatar as the bytes of `format` (the OBJ files named `avatar.*`, zipped).
+    pub fn avatar_file(&self, avatar: &Avatar, format: AvatarFormat) -> Result<Vec<u8>, MorphError> {
+        match format {
+            AvatarFormat::Glb => self.avatar_glb(avatar),
+            AvatarFormat::Obj => export::obj_zip(&self.avatar_mesh(avatar), "avatar"),
+        }
     }
 
     /// The frontal rendering ([`FaceModel::frontalize_sized`] at `size`, texture at least as fine)

@@ -8,6 +8,7 @@ use std::time::Instant;
 use super::FaceEngine;
 use crate::core::elapsed_ms;
 use crate::core::imaging::{self, DecodeError, DecodeLimits};
+use crate::morph::AvatarFormat;
 use crate::pipeline::{FaceChoice, PhotoReading, PipelineError};
 
 /// Why a photo could not be shown.
@@ -34,10 +35,10 @@ pub fn analyze(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits, cho
     Ok(Analysis { reading: engine.read_faces(&photo, choice)?, decode_ms })
 }
 
-/// The textured 3D head of the largest face as a glTF binary file.
-pub fn avatar(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -> Result<Vec<u8>, InspectError> {
+/// The textured 3D head of the largest face as a glTF binary file, or the OBJ files zipped.
+pub fn avatar(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits, format: AvatarFormat) -> Result<Vec<u8>, InspectError> {
     let photo = imaging::decode(bytes, limits)?;
-    Ok(engine.avatar_glb(&photo)?)
+    Ok(engine.avatar(&photo, format)?)
 }
 
 /// The frontal rendering of the largest face as PNG.

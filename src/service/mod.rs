@@ -16,6 +16,7 @@ pub mod pool;
 use serde::Serialize;
 
 use crate::core::imaging::Photo;
+use crate::morph::AvatarFormat;
 use crate::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline, PipelineError};
 use crate::recognize::{OperatingPoint, Recognizer, Template};
 
@@ -88,8 +89,8 @@ pub trait FaceEngine: Matcher + Send + Sync + 'static {
     fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError>;
     /// Every face (or the largest) with landmarks, pose and fit residual; no template.
     fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError>;
-    /// The textured 3D head of the largest face, glTF binary.
-    fn avatar_glb(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError>;
+    /// The textured 3D head of the largest face: glTF binary, or the OBJ files zipped.
+    fn avatar(&self, photo: &Photo, format: AvatarFormat) -> Result<Vec<u8>, PipelineError>;
     /// The frontal rendering of the largest face, PNG.
     fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError>;
 }
@@ -113,8 +114,8 @@ impl FaceEngine for Pipeline {
     fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError> {
         Pipeline::read_faces(self, photo, choice)
     }
-    fn avatar_glb(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
-        Pipeline::avatar_glb(self, photo)
+    fn avatar(&self, photo: &Photo, format: AvatarFormat) -> Result<Vec<u8>, PipelineError> {
+        Pipeline::avatar(self, photo, format)
     }
     fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
         Pipeline::frontal_png(self, photo)

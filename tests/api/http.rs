@@ -299,12 +299,14 @@ async fn avatar_and_frontalize_need_the_3d_model_and_share_the_photo_checks() {
         app.post_form(route, None, &[photo[..64].to_vec()]).await.assert_problem(422, "corrupt-image");
         app.post_form(route, None, &[vec![0u8; 3 << 20]]).await.assert_problem(413, "too-large");
         app.post_form(route, None, &[]).await.assert_problem(400, "malformed-request");
-        app.post_form(&format!("{route}?format=obj"), None, &[photo.clone()]).await.assert_problem(400, "malformed-request");
+        app.post_form(&format!("{route}?format=stl"), None, &[photo.clone()]).await.assert_problem(400, "malformed-request");
         let r = app.send(app.client.post(app.url(route)).header("content-type", "text/plain").body("x")).await;
         r.assert_problem(415, "unsupported-media-type");
     }
-    // Two photos reached the engine per route (the multipart and the JSON request).
-    assert_eq!(engine.calls.load(Ordering::SeqCst), 4);
+    app.post_form("/avatar?format=obj", None, &[photo.clone()]).await.assert_problem(422, "no-face-model");
+    app.post_form("/frontalize?format=obj", None, &[photo.clone()]).await.assert_problem(400, "malformed-request");
+    // Two photos reached the engine per route (the multipart and the JSON request), and the OBJ one.
+    assert_eq!(engine.calls.load(Ordering::SeqCst), 5);
     // The same work pool as /verify: a full queue refuses at once.
     let slow = ApiConfig { workers: 1, queue_depth: 0, ..config() };
     let app = TestApp::start(StandInEngine::slow(Duration::from_millis(600)), slow).await;

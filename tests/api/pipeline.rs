@@ -206,6 +206,19 @@ async fn analyze_avatar_and_frontalize_a_real_photo() {
     let cli_glb = cli(&["reconstruct", path.to_str().unwrap()], &dir.join("cli.glb"));
     assert!(cli_glb == r.body, "POST /avatar and facegate reconstruct differ ({} and {} bytes)", r.body.len(), cli_glb.len());
 
+    // The OBJ avatar: a zip of avatar.obj, avatar.mtl and avatar.png, the files `facegate
+    // reconstruct --out avatar.obj` writes.
+    let r = app.post_form("/avatar?format=obj", None, &[imm(name)]).await;
+    assert_eq!((r.status, r.headers["content-type"].to_str().unwrap()), (200, "application/zip"));
+    let mut archive = zip::ZipArchive::new(std::io::Cursor::new(r.body)).expect("a zip archive");
+    assert_eq!(archive.len(), 3);
+    cli(&["reconstruct", path.to_str().unwrap()], &dir.join("avatar.obj"));
+    for file in ["avatar.obj", "avatar.mtl", "avatar.png"] {
+        let mut zipped = Vec::new();
+        std::io::Read::read_to_end(&mut archive.by_name(file).unwrap(), &mut zipped).unwrap();
+        assert!(zipped == std::fs::read(dir.join(file)).unwrap(), "{file} differs from the CLI's");
+    }
+
     // The frontal rendering: a 256 × 256 PNG, the bytes `facegate frontalize` writes.
     let r = app.post_json("/frontalize", &json!({"image": base64(&imm(name))})).await;
     assert_eq!((r.status, r.headers["content-type"].to_str().unwrap()), (200, "image/png"));

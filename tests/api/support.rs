@@ -14,6 +14,7 @@ use facegate::core::imaging::Photo;
 use facegate::detect::Face;
 use facegate::http::{self, ApiConfig, AppState, FaceEngine};
 use facegate::landmarks::Landmarks;
+use facegate::morph::AvatarFormat;
 use facegate::pipeline::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, PipelineError, StageTimings};
 use facegate::recognize::{OperatingPoint, Template};
 use facegate::service::Matcher;
@@ -220,7 +221,7 @@ impl FaceEngine for StandInEngine {
     }
 
     /// The stand-in has no 3D morphable model.
-    fn avatar_glb(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
+    fn avatar(&self, photo: &Photo, _format: AvatarFormat) -> Result<Vec<u8>, PipelineError> {
         self.analyze(photo)?;
         Err(PipelineError::NoFaceModel)
     }
