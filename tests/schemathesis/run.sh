@@ -40,8 +40,9 @@ done
 [[ -n "$base" ]] || { echo "schemathesis: the server did not start" >&2; cat "$work/server.log" >&2; exit 1; }
 
 set +e
-"$work/venv/bin/schemathesis" --no-color --config-file "$here/schemathesis.toml" run "$root/openapi.yaml" --url "$base" --checks all --max-examples "$max_examples" \
-    --seed 15 --workers 1 --request-timeout 60 </dev/null
+# From the temporary folder: schemathesis keeps its example cache in the working directory.
+(cd "$work" && "$work/venv/bin/schemathesis" --no-color --config-file "$here/schemathesis.toml" run "$root/openapi.yaml" \
+    --url "$base" --checks all --max-examples "$max_examples" --seed 15 --workers 1 --request-timeout 60 </dev/null)
 status=$?
 set -e
 if grep -qiE 'panicked|internal error' "$work/server.log"; then
