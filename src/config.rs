@@ -15,6 +15,7 @@ use std::time::Duration;
 
 use crate::core::imaging::DecodeLimits;
 use crate::http::ApiConfig;
+use crate::http::server::ServerLimits;
 use crate::pipeline::PipelineConfig;
 use crate::recognize::DEFAULT_FMR;
 use crate::recognize::RecognizerKind;
@@ -56,6 +57,24 @@ const DEFAULT_MAX_DECODE_MB: u64 = 256;
 const DEFAULT_MAX_IMAGES: usize = 16;
 const DEFAULT_TIMEOUT_SECS: f64 = 30.0;
 const DEFAULT_CONSOLE: bool = true;
+const DEFAULT_ENROL_QUEUE: usize = 16;
+const DEFAULT_MAX_BUFFERED_MB: usize = 128;
+const DEFAULT_BODY_TIMEOUT_SECS: f64 = 15.0;
+const DEFAULT_HEADER_TIMEOUT_SECS: f64 = 10.0;
+const DEFAULT_MAX_CONNECTIONS: usize = 1024;
+const DEFAULT_SHUTDOWN_GRACE_SECS: f64 = 10.0;
+/// Shortest API key accepted: a shorter one is guessable and refused at start-up.
+pub const MIN_API_KEY_LEN: usize = 16;
+
+/// How the service writes its log.
+#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum LogFormat {
+    /// Human-readable lines.
+    #[default]
+    Text,
+    /// One JSON object per line (fields of audit events as JSON fields).
+    Json,
+}
 
 /// The service's settings: command-line flags, each also read from its `FACEGATE_*` variable.
 #[derive(clap::Args, Debug, Clone, PartialEq)]
@@ -76,15 +95,27 @@ pub struct Settings {
     /// pixels + LBP Direct LDA (`dlda.bin`). Templates of one are never compared with the other's.
     #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = RecognizerKind::default())]
     pub recognizer: RecognizerKind,
-    /// Comma-separated API keys; when none are given the API is open to anyone who can reach it.
+    /// Comma-separated API keys (at least 16 characters each); when none are given (here or in
+    /// `--api-keys-file`) the API is open to anyone who can reach it. Keys given as a flag show
+    /// in `ps`: prefer the file or the variable.
     #[arg(long, env = "FACEGATE_API_KEYS", value_delimiter = ',', hide_env_values = true)]
     pub api_keys: Vec<String>,
+    /// A file of API keys: one per line; blank lines and lines starting with `#` are skipped.
+    #[arg(long, env = "FACEGATE_API_KEYS_FILE")]
+    pub api_keys_file: Option<PathBuf>,
     /// Photos analysed at once (default: the number of cores).
     #[arg(long, env = "FACEGATE_WORKERS")]
     pub workers: Option<usize>,
-    /// Requests that may wait for a worker before the service answers 503.
+    /// Verifications, identifications and inspections that may wait for a worker before the
+    /// service answers 503.
     #[arg(long, env = "FACEGATE_QUEUE", default_value_t = DEFAULT_QUEUE)]
     pub queue: usize,
+    /// Enrolments that may wait for a worker (a queue of their own) before the service answers 503.
+    #[arg(long, env = "FACEGATE_ENROL_QUEUE", default_value_t = DEFAULT_ENROL_QUEUE)]
+    pub enrol_queue: usize,
+    /// Request bodies held in memory at once, in MiB; a request that would exceed it gets 503.
+    #[arg(long, env = "FACEGATE_MAX_BUFFERED_MB", default_value_t = DEFAULT_MAX_BUFFERED_MB)]
+    pub max_buffered_mb: usize,
     /// Largest request body, in MiB.
     #[arg(long, env = "FACEGATE_MAX_BODY_MB", default_value_t = DEFAULT_MAX_BODY_MB)]
     pub max_body_mb: usize,
@@ -100,6 +131,23 @@ pub struct Settings {
     /// Request timeout in seconds (answered with 504).
     #[arg(long, env = "FACEGATE_TIMEOUT_SECS", default_value_t = DEFAULT_TIMEOUT_SECS)]
     pub timeout_secs: f64,
+    /// Seconds from admission for the request body to arrive (answered with 408); at most the
+    /// request timeout.
+    #[arg(long, env = "FACEGATE_BODY_TIMEOUT_SECS", default_value_t = DEFAULT_BODY_TIMEOUT_SECS)]
+    pub body_timeout_secs: f64,
+    /// Seconds for a connection to send a complete request head; also the longest a keep-alive
+    /// connection stays idle. The connection is closed after it.
+    #[arg(long, env = "FACEGATE_HEADER_TIMEOUT_SECS", default_value_t = DEFAULT_HEADER_TIMEOUT_SECS)]
+    pub header_timeout_secs: f64,
+    /// Connections open at once; further ones wait in the listen backlog.
+    #[arg(long, env = "FACEGATE_MAX_CONNECTIONS", default_value_t = DEFAULT_MAX_CONNECTIONS)]
+    pub max_connections: usize,
+    /// Seconds in-flight connections get to finish after SIGTERM or Ctrl-C before they are dropped.
+    #[arg(long, env = "FACEGATE_SHUTDOWN_GRACE_SECS", default_value_t = DEFAULT_SHUTDOWN_GRACE_SECS)]
+    pub shutdown_grace_secs: f64,
+    /// Log format: `text` or `json` (one object per line).
+    #[arg(long, env = "FACEGATE_LOG_FORMAT", value_enum, default_value_t = LogFormat::default())]
+    pub log_format: LogFormat,
     /// Serve the web console at `/` (`--console false` serves the API only).
     #[arg(long, env = "FACEGATE_CONSOLE", default_value_t = DEFAULT_CONSOLE, action = clap::ArgAction::Set)]
     pub console: bool,
@@ -115,22 +163,33 @@ impl Default for Settings {
             sfm: None,
             recognizer: RecognizerKind::default(),
             api_keys: Vec::new(),
+            api_keys_file: None,
             workers: None,
             queue: DEFAULT_QUEUE,
+            enrol_queue: DEFAULT_ENROL_QUEUE,
+            max_buffered_mb: DEFAULT_MAX_BUFFERED_MB,
             max_body_mb: DEFAULT_MAX_BODY_MB,
             max_pixels: DEFAULT_MAX_PIXELS,
             max_decode_mb: DEFAULT_MAX_DECODE_MB,
             max_images: DEFAULT_MAX_IMAGES,
             timeout_secs: DEFAULT_TIMEOUT_SECS,
+            body_timeout_secs: DEFAULT_BODY_TIMEOUT_SECS,
+            header_timeout_secs: DEFAULT_HEADER_TIMEOUT_SECS,
+            max_connections: DEFAULT_MAX_CONNECTIONS,
+            shutdown_grace_secs: DEFAULT_SHUTDOWN_GRACE_SECS,
+            log_format: LogFormat::default(),
             console: DEFAULT_CONSOLE,
         }
     }
 }
 
 impl Settings {
-    /// The HTTP layer's limits; refuses a timeout that is not positive and an enrolment of no photo.
+    /// The HTTP layer's limits; refuses a timeout that is not positive, an enrolment of no photo,
+    /// an unreadable keys file and a key shorter than [`MIN_API_KEY_LEN`].
     pub fn api_config(&self) -> anyhow::Result<ApiConfig> {
-        anyhow::ensure!(self.timeout_secs > 0.0 && self.timeout_secs.is_finite(), "--timeout-secs must be positive");
+        let timeout = seconds("--timeout-secs", self.timeout_secs)?;
+        let body_timeout = seconds("--body-timeout-secs", self.body_timeout_secs)?;
+        anyhow::ensure!(body_timeout <= timeout, "--body-timeout-secs must not exceed --timeout-secs");
         anyhow::ensure!(self.max_images >= 1, "--max-images must be at least 1");
         Ok(ApiConfig {
             max_body_bytes: self.max_body_mb << 20,
@@ -141,13 +200,52 @@ impl Settings {
                 ..DecodeLimits::default()
             },
             max_images: self.max_images,
-            request_timeout: Duration::from_secs_f64(self.timeout_secs),
+            request_timeout: timeout,
+            body_timeout,
             workers: self.workers.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2)).max(1),
             queue_depth: self.queue,
-            api_keys: self.api_keys.iter().map(|k| k.trim().to_string()).filter(|k| !k.is_empty()).collect(),
+            enrol_queue_depth: self.enrol_queue,
+            max_buffered_bytes: self.max_buffered_mb << 20,
+            api_keys: self.api_keys()?,
             default_fmr: DEFAULT_FMR,
             console: self.console,
         })
+    }
+
+    /// The connection loop's limits.
+    pub fn server_limits(&self) -> anyhow::Result<ServerLimits> {
+        anyhow::ensure!(self.max_connections >= 1, "--max-connections must be at least 1");
+        Ok(ServerLimits {
+            max_connections: self.max_connections,
+            header_timeout: seconds("--header-timeout-secs", self.header_timeout_secs)?,
+            shutdown_grace: seconds("--shutdown-grace-secs", self.shutdown_grace_secs)?,
+        })
+    }
+
+    /// The keys of `--api-keys` and of `--api-keys-file`, each at least [`MIN_API_KEY_LEN`]
+    /// characters (the error names the key's place, never the key).
+    fn api_keys(&self) -> anyhow::Result<Vec<String>> {
+        let mut keys: Vec<(String, String)> =
+            self.api_keys.iter().enumerate().map(|(i, k)| (format!("--api-keys entry {}", i + 1), k.trim().to_string())).collect();
+        if let Some(path) = &self.api_keys_file {
+            let text =
+                std::fs::read_to_string(path).map_err(|e| anyhow::anyhow!("cannot read the API keys file {}: {e}", path.display()))?;
+            for (n, line) in text.lines().enumerate() {
+                let line = line.trim();
+                if !line.is_empty() && !line.starts_with('#') {
+                    keys.push((format!("{} line {}", path.display(), n + 1), line.to_string()));
+                }
+            }
+        }
+        keys.retain(|(_, k)| !k.is_empty());
+        for (place, key) in &keys {
+            let len = key.chars().count();
+            anyhow::ensure!(
+                len >= MIN_API_KEY_LEN,
+                "the API key at {place} has {len} characters; keys must have at least {MIN_API_KEY_LEN}"
+            );
+        }
+        Ok(keys.into_iter().map(|(_, k)| k).collect())
     }
 
     /// The pipeline's model folders: the flags' when given, else [`pipeline_config`]'s.
@@ -159,6 +257,11 @@ impl Settings {
             recognizer: self.recognizer,
         }
     }
+}
+
+fn seconds(flag: &str, value: f64) -> anyhow::Result<Duration> {
+    anyhow::ensure!(value > 0.0 && value.is_finite(), "{flag} must be positive");
+    Ok(Duration::from_secs_f64(value))
 }
 
 #[cfg(test)]
@@ -178,7 +281,8 @@ mod tests {
         let env_set = |name: &str| std::env::var_os(name).is_some();
         if !["BIND", "DATABASE_URL", "MODELS", "SFM", "API_KEYS", "WORKERS", "QUEUE", "MAX_BODY_MB", "MAX_PIXELS", "MAX_DECODE_MB"]
             .iter()
-            .chain(&["MAX_IMAGES", "TIMEOUT_SECS", "CONSOLE"])
+            .chain(&["MAX_IMAGES", "TIMEOUT_SECS", "CONSOLE", "API_KEYS_FILE", "ENROL_QUEUE", "MAX_BUFFERED_MB", "BODY_TIMEOUT_SECS"])
+            .chain(&["HEADER_TIMEOUT_SECS", "MAX_CONNECTIONS", "SHUTDOWN_GRACE_SECS", "LOG_FORMAT"])
             .any(|v| env_set(&format!("FACEGATE_{v}")))
         {
             assert_eq!(parsed, Settings::default());
@@ -187,5 +291,32 @@ mod tests {
         assert_eq!((api.max_body_bytes, api.max_images, api.queue_depth, api.default_fmr), (16 << 20, 16, 64, 1e-3));
         assert_eq!(api.decode_limits.max_alloc_bytes, 256 << 20);
         assert!(Settings { timeout_secs: 0.0, ..Settings::default() }.api_config().is_err());
+        assert!(Settings { body_timeout_secs: 60.0, ..Settings::default() }.api_config().is_err());
+        let server = Settings::default().server_limits().unwrap();
+        assert_eq!(
+            (server.max_connections, server.header_timeout, server.shutdown_grace),
+            (1024, Duration::from_secs(10), Duration::from_secs(10))
+        );
+    }
+
+    /// Keys come from the flag and the file (comments and blank lines skipped); a short one stops
+    /// the start-up with its place named and the key itself not shown.
+    #[test]
+    fn api_keys_from_the_flag_and_the_file_at_least_16_characters() {
+        let dir = std::env::temp_dir().join(format!("facegate-keys-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("keys");
+        std::fs::write(&file, "# ops team\n\n  0123456789abcdef-file  \n").unwrap();
+        let settings =
+            Settings { api_keys: vec!["0123456789abcdef-flag".into()], api_keys_file: Some(file.clone()), ..Settings::default() };
+        assert_eq!(settings.api_config().unwrap().api_keys, ["0123456789abcdef-flag", "0123456789abcdef-file"]);
+
+        std::fs::write(&file, "0123456789abcdef-file\nshort-secret\n").unwrap();
+        let error = settings.api_config().unwrap_err().to_string();
+        assert!(error.contains("line 2") && error.contains("at least 16") && !error.contains("short-secret"), "{error}");
+        let error = Settings { api_keys: vec!["tiny".into()], ..Settings::default() }.api_config().unwrap_err().to_string();
+        assert!(error.contains("--api-keys entry 1") && !error.contains("tiny"), "{error}");
+        assert!(Settings { api_keys_file: Some(dir.join("missing")), ..Settings::default() }.api_config().is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -8,7 +8,8 @@ use std::time::Duration;
 
 use anyhow::Context;
 
-use crate::config::Settings;
+use crate::config::{LogFormat, Settings};
+use crate::http::server::{self, ServerLimits, Stopped};
 use crate::http::{self, ApiConfig, AppState};
 use crate::pipeline::Pipeline;
 use crate::store::Store;
@@ -27,16 +28,21 @@ pub fn run(args: ServeArgs) -> anyhow::Result<ExitCode> {
     if args.healthcheck {
         return healthcheck(&args.settings.bind);
     }
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
-        .try_init();
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    let _ = match args.settings.log_format {
+        LogFormat::Text => tracing_subscriber::fmt().with_env_filter(filter).try_init(),
+        LogFormat::Json => tracing_subscriber::fmt().json().with_env_filter(filter).try_init(),
+    };
     let config = args.settings.api_config()?;
+    let limits = args.settings.server_limits()?;
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("cannot start the async runtime")?;
-    runtime.block_on(serve(args.settings, config))?;
+    runtime.block_on(serve(args.settings, config, limits))?;
+    // Pool jobs still running after the grace period are not waited for.
+    runtime.shutdown_timeout(Duration::from_secs(1));
     Ok(ExitCode::SUCCESS)
 }
 
-async fn serve(args: Settings, config: ApiConfig) -> anyhow::Result<()> {
+async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyhow::Result<()> {
     let pipeline_config = args.pipeline_config();
     tracing::info!(models = %pipeline_config.models_dir.display(), "loading the face pipeline");
     let pipeline =
@@ -44,15 +50,28 @@ async fn serve(args: Settings, config: ApiConfig) -> anyhow::Result<()> {
     tracing::info!(model_version = pipeline.recognizer.model_version(), with_3dmm = pipeline.face_model.is_some(), "pipeline loaded");
     let store = Store::connect(&args.database).await.with_context(|| format!("cannot open the database {}", args.database))?;
     if config.api_keys.is_empty() {
-        tracing::warn!("no API keys configured (FACEGATE_API_KEYS): the API is OPEN to anyone who can reach {}", args.bind);
+        tracing::warn!(
+            "no API keys configured (FACEGATE_API_KEYS_FILE, FACEGATE_API_KEYS): the API is OPEN to anyone who can reach {}",
+            args.bind
+        );
     } else {
         tracing::info!("{} API key(s) configured", config.api_keys.len());
     }
-    tracing::info!(workers = config.workers, queue = config.queue_depth, "bounded work pool");
+    tracing::info!(workers = config.workers, queue = config.queue_depth, enrol_queue = config.enrol_queue_depth, "bounded work pool");
     let state = AppState::new(Arc::new(pipeline), store.clone(), config);
     let listener = tokio::net::TcpListener::bind(&args.bind).await.with_context(|| format!("cannot listen on {}", args.bind))?;
-    tracing::info!("listening on http://{}", listener.local_addr()?);
-    axum::serve(listener, http::router(state)).with_graceful_shutdown(shutdown_signal()).await?;
+    tracing::info!(
+        max_connections = limits.max_connections,
+        header_timeout_s = limits.header_timeout.as_secs_f64(),
+        "listening on http://{}",
+        listener.local_addr()?
+    );
+    match server::serve(listener, http::router(state), limits, shutdown_signal()).await {
+        Stopped::Drained => tracing::info!("every connection finished"),
+        Stopped::GraceExpired => {
+            tracing::warn!(grace_s = limits.shutdown_grace.as_secs_f64(), "connections still open after the grace period were dropped")
+        }
+    }
     store.close().await;
     tracing::info!("stopped");
     Ok(())

@@ -9,11 +9,12 @@ use crate::core::elapsed_ms;
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::rejection::PathRejection;
-use axum::extract::{Path, Request, State};
-use axum::http::{HeaderValue, StatusCode, header};
+use axum::extract::{Extension, Path, Request, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
 
+use super::audit::Audit;
 use super::input::{read_query, read_upload, subject_id, validate_fmr};
 use super::problem::{Problem, ProblemKind};
 use super::{AppState, FaceEngine, OPENAPI_YAML};
@@ -123,9 +124,12 @@ struct EnrollResponse {
 /// `POST /enroll`: all photos must each show exactly one face; then all templates are stored in
 /// one transaction. Any bad photo refuses the whole enrolment and names the photo (`image`).
 pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<Response, Problem> {
+    let audit = Audit::of(&request);
+    audit.model_version(state.0.engine.model_version());
     let _: NoParams = read_query(&request)?;
     let upload = read_upload(request).await?;
     let subject = upload.require_subject()?;
+    audit.subject(&subject);
     let max = state.0.config.max_images;
     match upload.images.len() {
         0 => return Err(Problem::malformed("at least one photo is required (field image)")),
@@ -154,6 +158,7 @@ pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<R
     }
     let templates: Vec<_> = analysed.iter().map(|a| a.analysis.template.clone()).collect();
     let count = state.0.store.enroll(&subject, &templates).await?;
+    audit.templates_added(templates.len());
     let body = EnrollResponse {
         subject: subject.to_string(),
         templates: count,
@@ -195,10 +200,13 @@ struct VerifyResponse {
 /// `POST /verify`: is the probe's largest face the enrolled subject?
 pub async fn verify(State(state): State<AppState>, request: Request) -> Result<Response, Problem> {
     let start = Instant::now();
+    let audit = Audit::of(&request);
+    audit.model_version(state.0.engine.model_version());
     let params: MatchParams = read_query(&request)?;
     let fmr = validate_fmr(params.fmr)?.unwrap_or(state.0.config.default_fmr);
     let upload = read_upload(request).await?;
     let subject = upload.require_subject()?;
+    audit.subject(&subject);
     let image = upload.single_image()?;
     // Look the subject up before the expensive work.
     let enrolled = state.0.store.templates(&subject).await?.ok_or_else(|| unknown_subject(&subject))?;
@@ -209,6 +217,7 @@ pub async fn verify(State(state): State<AppState>, request: Request) -> Result<R
     let analysed = analyse_probe(&state, image).await?;
     let t = Instant::now();
     let decision = service::decide(engine.as_ref(), &analysed.analysis.template, &comparable, fmr);
+    audit.decision(decision.score, decision.threshold, decision.is_match);
     let match_ms = elapsed_ms(t);
     let body = VerifyResponse {
         subject: subject.to_string(),
@@ -255,6 +264,8 @@ const MAX_K: usize = 100;
 /// `POST /identify`: the top-k enrolled subjects for the probe's largest face.
 pub async fn identify(State(state): State<AppState>, request: Request) -> Result<Response, Problem> {
     let start = Instant::now();
+    let audit = Audit::of(&request);
+    audit.model_version(state.0.engine.model_version());
     let params: IdentifyParams = read_query(&request)?;
     let fmr = validate_fmr(params.fmr)?.unwrap_or(state.0.config.default_fmr);
     let k = params.k.unwrap_or(5);
@@ -276,6 +287,12 @@ pub async fn identify(State(state): State<AppState>, request: Request) -> Result
     // Scoring the whole gallery is CPU work too: it runs on the pool.
     let found = state.0.pool.run(move || service::identify(matcher.as_ref(), &probe, gallery, fmr, k)).await?;
     let point = engine.operating_point(fmr, 1);
+    // The audit names the best candidate and its decision.
+    audit.candidates(found.len());
+    if let Some(best) = found.first() {
+        audit.subject(&best.subject);
+        audit.decision(best.decision.score, best.decision.threshold, best.decision.is_match);
+    }
     let candidates = found
         .into_iter()
         .map(|c| Candidate { subject: c.subject, score: c.decision.score, is_match: c.decision.is_match, threshold: c.decision.threshold })
@@ -336,8 +353,15 @@ pub async fn get_subject(State(state): State<AppState>, path: Result<Path<String
 }
 
 /// `DELETE /subjects/{id}`: erase the subject and all its templates.
-pub async fn delete_subject(State(state): State<AppState>, path: Result<Path<String>, PathRejection>) -> Result<StatusCode, Problem> {
+pub async fn delete_subject(
+    State(state): State<AppState>,
+    audit: Option<Extension<Audit>>,
+    path: Result<Path<String>, PathRejection>,
+) -> Result<StatusCode, Problem> {
     let id = subject_in_path(path)?;
+    if let Some(Extension(audit)) = audit {
+        audit.subject(&id);
+    }
     state.0.store.delete_subject(&id).await?.map(|_| StatusCode::NO_CONTENT).ok_or_else(|| unknown_subject(&id))
 }
 
@@ -345,13 +369,17 @@ pub async fn delete_subject(State(state): State<AppState>, path: Result<Path<Str
 pub struct Health {
     status: &'static str,
     model_version: String,
-    subjects: u64,
-    templates: u64,
+    /// Only for a request with an accepted key when keys are set (counts are not public).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    subjects: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    templates: Option<u64>,
 }
 
 /// `GET /health`: the database answers and the models are loaded.
-pub async fn health(State(state): State<AppState>) -> Result<Json<Health>, Problem> {
+pub async fn health(State(state): State<AppState>, headers: HeaderMap) -> Result<Json<Health>, Problem> {
     let (subjects, templates) = state.0.store.counts().await?;
+    let (subjects, templates) = if state.0.keys.admits(&headers) { (Some(subjects), Some(templates)) } else { (None, None) };
     Ok(Json(Health { status: "ok", model_version: state.0.engine.model_version().to_string(), subjects, templates }))
 }
 

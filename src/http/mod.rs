@@ -18,18 +18,25 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{MethodRouter, delete, get, post};
 use sha2::{Digest, Sha256};
 
+use self::admission::BodyBudget;
+use self::audit::KeyId;
+
 use crate::core::imaging::DecodeLimits;
-use crate::service::{PoolError, WorkPool};
+use crate::service::{PoolError, WorkClass, WorkPool};
 use crate::store::Store;
 
 pub use crate::service::FaceEngine;
 
+pub mod admission;
+pub mod audit;
 pub mod console;
 mod handlers;
 pub mod input;
 mod inspect;
+pub mod limits;
 pub mod metrics;
 pub mod problem;
+pub mod server;
 
 pub use metrics::Metrics;
 pub use problem::{Problem, ProblemKind};
@@ -46,13 +53,20 @@ pub struct ApiConfig {
     pub decode_limits: DecodeLimits,
     /// Most photos in one enrolment.
     pub max_images: usize,
-    /// Whole-request deadline (reading the body included); exceeded → 504.
+    /// Whole-request deadline (queueing and reading the body included); exceeded → 504.
     pub request_timeout: Duration,
+    /// Time from admission to the end of the body; exceeded → 408 (the client's fault).
+    pub body_timeout: Duration,
     /// Photos analysed at once on the blocking pool.
     pub workers: usize,
-    /// Requests that may wait for a worker; beyond that → 503.
+    /// Probe requests (verify, identify, inspection) that may wait for a worker; beyond → 503.
     pub queue_depth: usize,
-    /// Accepted API keys; empty means the API is open.
+    /// Enrolments that may wait for a worker, a queue of their own; beyond → 503.
+    pub enrol_queue_depth: usize,
+    /// Request bodies held in memory at once, in bytes (each admitted request counts its
+    /// Content-Length, or the body limit without one); beyond → 503.
+    pub max_buffered_bytes: usize,
+    /// Accepted API keys; empty means the API is open (`config` refuses keys under 16 characters).
     pub api_keys: Vec<String>,
     /// The false match rate whose operating point decides a match unless a request asks otherwise.
     pub default_fmr: f64,
@@ -77,17 +91,42 @@ impl ApiKeys {
     }
 
     pub fn accepts(&self, key: &str) -> bool {
+        self.key_id(key).is_some()
+    }
+
+    /// The id of `key` if it is accepted: the first 8 hex digits of its SHA-256, which names the
+    /// key in the audit log without revealing it.
+    pub fn key_id(&self, key: &str) -> Option<KeyId> {
         let presented: [u8; 32] = Sha256::digest(key.as_bytes()).into();
         // Fold over all keys and bytes so timing does not reveal which key or byte differed.
-        self.digests.iter().fold(false, |found, d| found | (d.iter().zip(&presented).fold(0u8, |acc, (a, b)| acc | (a ^ b)) == 0))
+        let found =
+            self.digests.iter().fold(false, |found, d| found | (d.iter().zip(&presented).fold(0u8, |acc, (a, b)| acc | (a ^ b)) == 0));
+        found.then(|| KeyId(presented[..4].iter().map(|b| format!("{b:02x}")).collect()))
     }
+
+    /// Does the request carry an accepted key (always, when the API is open)?
+    pub fn admits(&self, headers: &axum::http::HeaderMap) -> bool {
+        self.is_open() || presented_key(headers).is_some_and(|key| self.accepts(key))
+    }
+}
+
+/// The key a request presents: `Authorization: Bearer KEY` or `X-API-Key: KEY`.
+fn presented_key(headers: &axum::http::HeaderMap) -> Option<&str> {
+    let bearer = headers
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer ").or_else(|| v.strip_prefix("bearer ")))
+        .map(str::trim);
+    bearer.or_else(|| headers.get("x-api-key").and_then(|v| v.to_str().ok()).map(str::trim))
 }
 
 struct Shared {
     engine: Arc<dyn FaceEngine>,
     store: Store,
     config: ApiConfig,
+    keys: ApiKeys,
     pool: WorkPool,
+    body_budget: BodyBudget,
     metrics: Arc<Metrics>,
 }
 
@@ -107,8 +146,16 @@ pub struct AppState(Arc<Shared>);
 impl AppState {
     pub fn new(engine: Arc<dyn FaceEngine>, store: Store, config: ApiConfig) -> AppState {
         let metrics = Arc::new(Metrics::new());
-        let pool = WorkPool::new(config.workers, config.queue_depth, metrics.queue_rejections.clone(), metrics.jobs_in_flight.clone());
-        AppState(Arc::new(Shared { engine, store, config, pool, metrics }))
+        let pool = WorkPool::new(
+            config.workers,
+            config.queue_depth,
+            config.enrol_queue_depth,
+            metrics.queue_rejections.clone(),
+            metrics.jobs_in_flight.clone(),
+        );
+        let keys = ApiKeys::new(&config.api_keys);
+        let body_budget = BodyBudget::new(config.max_buffered_bytes, config.max_body_bytes);
+        AppState(Arc::new(Shared { engine, store, config, keys, pool, body_budget, metrics }))
     }
 
     pub fn store(&self) -> &Store {
@@ -120,47 +167,58 @@ impl AppState {
     }
 }
 
-/// One operation of the API: method, route, whether it needs an API key, and its handler.
+/// One operation of the API: method, route, whether it needs an API key, the admission queue of
+/// the photo work it runs (none for the others), and its handler.
 pub struct Operation {
     pub method: Method,
     pub path: &'static str,
     pub protected: bool,
+    pub work: Option<WorkClass>,
     handler: MethodRouter<AppState>,
 }
 
 /// Every operation served. The router is built from this list alone, and `openapi.yaml` must
 /// list exactly these (the integration tests check it).
 pub fn operations() -> Vec<Operation> {
-    let op = |method: Method, path, protected, handler| Operation { method, path, protected, handler };
+    let op = |method: Method, path, protected, handler| Operation { method, path, protected, work: None, handler };
+    let work = |method: Method, path, class, handler| Operation { method, path, protected: true, work: Some(class), handler };
     vec![
-        op(Method::POST, "/enroll", true, post(handlers::enroll)),
-        op(Method::POST, "/verify", true, post(handlers::verify)),
-        op(Method::POST, "/identify", true, post(handlers::identify)),
-        op(Method::POST, "/analyze", true, post(inspect::analyze)),
-        op(Method::POST, "/avatar", true, post(inspect::avatar)),
-        op(Method::POST, "/frontalize", true, post(inspect::frontalize)),
+        work(Method::POST, "/enroll", WorkClass::Enrol, post(handlers::enroll)),
+        work(Method::POST, "/verify", WorkClass::Probe, post(handlers::verify)),
+        work(Method::POST, "/identify", WorkClass::Probe, post(handlers::identify)),
+        work(Method::POST, "/analyze", WorkClass::Probe, post(inspect::analyze)),
+        work(Method::POST, "/avatar", WorkClass::Probe, post(inspect::avatar)),
+        work(Method::POST, "/frontalize", WorkClass::Probe, post(inspect::frontalize)),
         op(Method::GET, "/subjects", true, get(handlers::list_subjects)),
         op(Method::GET, "/subjects/{id}", true, get(handlers::get_subject)),
         op(Method::DELETE, "/subjects/{id}", true, delete(handlers::delete_subject)),
+        // Without a key, /health answers whether the service is up and nothing more.
         op(Method::GET, "/health", false, get(handlers::health)),
-        op(Method::GET, "/metrics", false, get(handlers::metrics)),
+        op(Method::GET, "/metrics", true, get(handlers::metrics)),
         op(Method::GET, "/openapi.yaml", false, get(handlers::openapi)),
     ]
 }
 
-/// The application: routes, API keys, body limit, request timeout and metrics.
+/// The application: routes, API keys, admission, audit, body limit, request timeout, metrics, and
+/// the head limits, request id and `Cache-Control` of [`limits::edge`]. In request order:
+/// edge → metrics → request timeout → audit → API key → admission → handler.
 pub fn router(state: AppState) -> Router {
-    let keys = ApiKeys::new(&state.0.config.api_keys);
+    let keys = state.0.keys.clone();
     let mut protected = Router::new();
     let mut public = Router::new();
     for operation in operations() {
+        let handler = match operation.work {
+            Some(class) => operation.handler.route_layer(middleware::from_fn_with_state((state.clone(), class), admission::admit)),
+            None => operation.handler,
+        };
         if operation.protected {
-            protected = protected.route(operation.path, operation.handler);
+            protected = protected.route(operation.path, handler);
         } else {
-            public = public.route(operation.path, operation.handler);
+            public = public.route(operation.path, handler);
         }
     }
-    let protected = protected.route_layer(middleware::from_fn_with_state(keys, require_api_key));
+    let protected =
+        protected.route_layer(middleware::from_fn_with_state(keys, require_api_key)).route_layer(middleware::from_fn(audit::record));
     if state.0.config.console {
         public = public.merge(console::routes());
     }
@@ -175,23 +233,22 @@ pub fn router(state: AppState) -> Router {
         .layer(DefaultBodyLimit::max(state.0.config.max_body_bytes))
         .layer(middleware::from_fn_with_state(timeout, request_timeout))
         .layer(middleware::from_fn_with_state(metrics, metrics::track))
+        .layer(middleware::from_fn(limits::edge))
 }
 
-/// API keys are accepted as `Authorization: Bearer KEY` or `X-API-Key: KEY`.
+/// API keys are accepted as `Authorization: Bearer KEY` or `X-API-Key: KEY`. The accepted key's
+/// id goes into the response's extensions for the audit log.
 async fn require_api_key(State(keys): State<ApiKeys>, request: Request, next: Next) -> Response {
     if keys.is_open() {
         return next.run(request).await;
     }
-    let headers = request.headers();
-    let bearer = headers
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer ").or_else(|| v.strip_prefix("bearer ")))
-        .map(str::trim);
-    let key = bearer.or_else(|| headers.get("x-api-key").and_then(|v| v.to_str().ok()).map(str::trim));
-    match key {
-        Some(key) if keys.accepts(key) => next.run(request).await,
-        Some(_) => Problem::new(ProblemKind::Unauthorized, "the API key is not valid").into_response(),
+    match presented_key(request.headers()).map(|key| keys.key_id(key)) {
+        Some(Some(key_id)) => {
+            let mut response = next.run(request).await;
+            response.extensions_mut().insert(key_id);
+            response
+        }
+        Some(None) => Problem::new(ProblemKind::Unauthorized, "the API key is not valid").into_response(),
         None => Problem::new(ProblemKind::Unauthorized, "an API key is required: send Authorization: Bearer KEY or X-API-Key: KEY")
             .into_response(),
     }
@@ -215,5 +272,8 @@ mod tests {
         assert!(keys.accepts("alpha") && keys.accepts("beta"));
         assert!(!keys.accepts("") && !keys.accepts("alph") && !keys.accepts("gamma"));
         assert!(ApiKeys::new(&[]).is_open());
+        let id = keys.key_id("alpha").unwrap().0;
+        assert_eq!(id, "8ed3f6ad", "the first 8 hex digits of SHA-256(alpha)");
+        assert!(keys.key_id("gamma").is_none());
     }
 }

@@ -49,12 +49,18 @@ pub enum ProblemKind {
     Overloaded,
     /// The request took longer than the request timeout.
     Timeout,
+    /// The request body did not arrive within the body timeout (the client's fault).
+    RequestTimeout,
+    /// The request target is longer than the server reads.
+    UriTooLong,
+    /// Too many request headers, or too many bytes of them.
+    HeadersTooLarge,
     /// A fault of the server itself.
     Internal,
 }
 
 impl ProblemKind {
-    pub const ALL: [ProblemKind; 18] = [
+    pub const ALL: [ProblemKind; 21] = [
         ProblemKind::NotAnImage,
         ProblemKind::UnsupportedFormat,
         ProblemKind::UnsupportedMediaType,
@@ -72,6 +78,9 @@ impl ProblemKind {
         ProblemKind::MethodNotAllowed,
         ProblemKind::Overloaded,
         ProblemKind::Timeout,
+        ProblemKind::RequestTimeout,
+        ProblemKind::UriTooLong,
+        ProblemKind::HeadersTooLarge,
         ProblemKind::Internal,
     ];
 
@@ -95,6 +104,9 @@ impl ProblemKind {
             ProblemKind::MethodNotAllowed => "method-not-allowed",
             ProblemKind::Overloaded => "overloaded",
             ProblemKind::Timeout => "timeout",
+            ProblemKind::RequestTimeout => "request-timeout",
+            ProblemKind::UriTooLong => "uri-too-long",
+            ProblemKind::HeadersTooLarge => "headers-too-large",
             ProblemKind::Internal => "internal",
         }
     }
@@ -122,6 +134,9 @@ impl ProblemKind {
             ProblemKind::MethodNotAllowed => "Method not allowed",
             ProblemKind::Overloaded => "Overloaded",
             ProblemKind::Timeout => "Request timeout",
+            ProblemKind::RequestTimeout => "Request body timeout",
+            ProblemKind::UriTooLong => "URI too long",
+            ProblemKind::HeadersTooLarge => "Request headers too large",
             ProblemKind::Internal => "Internal error",
         }
     }
@@ -143,6 +158,9 @@ impl ProblemKind {
             ProblemKind::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             ProblemKind::Overloaded => StatusCode::SERVICE_UNAVAILABLE,
             ProblemKind::Timeout => StatusCode::GATEWAY_TIMEOUT,
+            ProblemKind::RequestTimeout => StatusCode::REQUEST_TIMEOUT,
+            ProblemKind::UriTooLong => StatusCode::URI_TOO_LONG,
+            ProblemKind::HeadersTooLarge => StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE,
             ProblemKind::Internal => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -219,6 +237,8 @@ impl IntoResponse for Problem {
         };
         let json = serde_json::to_vec(&body).expect("problem bodies serialise");
         let mut response = (status, json).into_response();
+        // The audit log reads the outcome of a refused request from here.
+        response.extensions_mut().insert(self.kind);
         let headers = response.headers_mut();
         headers.insert(header::CONTENT_TYPE, HeaderValue::from_static("application/problem+json"));
         match self.kind {
@@ -227,6 +247,10 @@ impl IntoResponse for Problem {
             }
             ProblemKind::Overloaded => {
                 headers.insert(header::RETRY_AFTER, HeaderValue::from_static("1"));
+            }
+            // The body may still be arriving: this connection cannot carry another request.
+            ProblemKind::RequestTimeout => {
+                headers.insert(header::CONNECTION, HeaderValue::from_static("close"));
             }
             _ => {}
         }

@@ -20,20 +20,21 @@ use crate::morph::AvatarFormat;
 use crate::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline, PipelineError};
 use crate::recognize::{OperatingPoint, Recognizer, Template};
 
-pub use pool::{PoolError, WorkPool};
+pub use pool::{Admission, PoolError, WorkClass, WorkPool};
 
 /// Longest subject id accepted.
 pub const MAX_SUBJECT_LEN: usize = 128;
 
-/// A subject id: 1–128 characters of `[A-Za-z0-9._-]` (safe in URLs, logs and file names). Made
-/// only by [`SubjectId::parse`], so a value of this type is valid.
+/// A subject id: 1–128 characters of `[A-Za-z0-9._-]` (safe in URLs, logs and file names), except
+/// `.` and `..`, which URL clients resolve as path segments so `/subjects/{id}` could not reach
+/// them. Made only by [`SubjectId::parse`], so a value of this type is valid.
 #[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize)]
 #[serde(transparent)]
 pub struct SubjectId(String);
 
 /// Why a string is not a [`SubjectId`].
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("subject id {shown:?} is invalid: 1 to {MAX_SUBJECT_LEN} characters from A-Z a-z 0-9 . _ -")]
+#[error("subject id {shown:?} is invalid: 1 to {MAX_SUBJECT_LEN} characters from A-Z a-z 0-9 . _ -, not . or ..")]
 pub struct InvalidSubjectId {
     /// The start of the refused id (40 characters at most).
     pub shown: String,
@@ -42,7 +43,7 @@ pub struct InvalidSubjectId {
 impl SubjectId {
     pub fn parse(id: &str) -> Result<SubjectId, InvalidSubjectId> {
         let ok_char = |c: char| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-');
-        if id.is_empty() || id.len() > MAX_SUBJECT_LEN || !id.chars().all(ok_char) {
+        if id.is_empty() || id.len() > MAX_SUBJECT_LEN || !id.chars().all(ok_char) || id == "." || id == ".." {
             return Err(InvalidSubjectId { shown: id.chars().take(40).collect() });
         }
         Ok(SubjectId(id.to_string()))

@@ -1,4 +1,5 @@
-//! The bounded pool the CPU work runs on (decoding, the face pipeline, gallery scoring).
+//! The bounded pool the CPU work runs on (decoding, the face pipeline, gallery scoring), and the
+//! admission of requests to it.
 
 use std::sync::Arc;
 
@@ -17,34 +18,84 @@ pub enum PoolError {
     Failed(#[from] tokio::task::JoinError),
 }
 
+/// The two admission queues: enrolments have their own, so a flood of verifications cannot
+/// starve them of places (once admitted, both wait for the same workers, first come first served).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WorkClass {
+    /// Verification, identification and the inspection routes.
+    Probe,
+    /// Enrolment.
+    Enrol,
+}
+
+/// A request's place in the pool, taken before its body is read ([`WorkPool::admit`]); its jobs
+/// run on this place instead of taking one each. Cheap to clone.
+#[derive(Debug, Clone)]
+pub struct Admission {
+    _place: Arc<tokio::sync::OwnedSemaphorePermit>,
+}
+
+tokio::task_local! {
+    /// The admission of the request the current task is serving, if it was admitted.
+    static ADMITTED: Admission;
+}
+
+impl Admission {
+    /// Run `future` (the rest of the request) with this admission: [`WorkPool::run`] called inside
+    /// it uses the place already held instead of asking for another one.
+    pub async fn scope<F: std::future::Future>(self, future: F) -> F::Output {
+        ADMITTED.scope(self, future).await
+    }
+}
+
 /// A bounded pool for CPU work: `workers` jobs run at once on tokio's blocking threads, at most
-/// `queue_depth` more wait, and any further job is refused at once with [`PoolError::Overloaded`].
+/// `queue_depth` more probe requests and `enrol_queue_depth` more enrolments wait, and any further
+/// one is refused at once with [`PoolError::Overloaded`]. A request takes its place with
+/// [`WorkPool::admit`] before its body is read, so a refusal costs no body read, parse or query.
 /// Refusals are counted in `rejections`; queued and running jobs in `in_flight`.
 #[derive(Debug, Clone)]
 pub struct WorkPool {
     admitted: Arc<Semaphore>,
+    enrol_admitted: Arc<Semaphore>,
     running: Arc<Semaphore>,
     rejections: Counter,
     in_flight: Gauge,
 }
 
 impl WorkPool {
-    pub fn new(workers: usize, queue_depth: usize, rejections: Counter, in_flight: Gauge) -> WorkPool {
+    pub fn new(workers: usize, queue_depth: usize, enrol_queue_depth: usize, rejections: Counter, in_flight: Gauge) -> WorkPool {
         let workers = workers.max(1);
         WorkPool {
             admitted: Arc::new(Semaphore::new(workers + queue_depth)),
+            enrol_admitted: Arc::new(Semaphore::new(workers + enrol_queue_depth)),
             running: Arc::new(Semaphore::new(workers)),
             rejections,
             in_flight,
         }
     }
 
-    /// Run `job` on the pool. The permits move into the job, so a request that times out while
-    /// its job runs still holds its place until the job ends: the bound holds.
+    /// A place for one request of `class`, or [`PoolError::Overloaded`] at once when its queue is full.
+    pub fn admit(&self, class: WorkClass) -> Result<Admission, PoolError> {
+        let queue = match class {
+            WorkClass::Probe => &self.admitted,
+            WorkClass::Enrol => &self.enrol_admitted,
+        };
+        match queue.clone().try_acquire_owned() {
+            Ok(permit) => Ok(Admission { _place: Arc::new(permit) }),
+            Err(_) => {
+                self.rejections.inc();
+                Err(PoolError::Overloaded)
+            }
+        }
+    }
+
+    /// Run `job` on the pool: on the place of the request being served (see [`Admission::scope`]),
+    /// else on a probe place taken now. The place moves into the job, so a request that times out
+    /// while its job runs still holds it until the job ends: the bound holds.
     pub async fn run<T: Send + 'static>(&self, job: impl FnOnce() -> T + Send + 'static) -> Result<T, PoolError> {
-        let Ok(admitted) = self.admitted.clone().try_acquire_owned() else {
-            self.rejections.inc();
-            return Err(PoolError::Overloaded);
+        let admitted = match ADMITTED.try_with(Admission::clone) {
+            Ok(admission) => admission,
+            Err(_) => self.admit(WorkClass::Probe)?,
         };
         let running = self.running.clone().acquire_owned().await.expect("the pool's semaphores are never closed");
         // Released when the job ends, even by a panic.
@@ -59,7 +110,7 @@ impl WorkPool {
 }
 
 struct InFlight {
-    _permits: (tokio::sync::OwnedSemaphorePermit, tokio::sync::OwnedSemaphorePermit),
+    _permits: (Admission, tokio::sync::OwnedSemaphorePermit),
     gauge: Gauge,
 }
 
@@ -76,7 +127,7 @@ mod tests {
     #[tokio::test]
     async fn the_pool_refuses_work_beyond_its_queue() {
         let rejections = Counter::default();
-        let pool = WorkPool::new(1, 1, rejections.clone(), Gauge::default());
+        let pool = WorkPool::new(1, 1, 1, rejections.clone(), Gauge::default());
         let (release, wait) = std::sync::mpsc::channel::<()>();
         let wait = Arc::new(std::sync::Mutex::new(wait));
         let blocker = {
@@ -96,8 +147,19 @@ mod tests {
         }
         assert!(matches!(pool.run(|| 0).await, Err(PoolError::Overloaded)));
         assert_eq!(rejections.get(), 1);
+        // The enrolment queue is separate: an enrolment is still admitted, and its job runs on
+        // that place (no second one taken) once a worker is free.
+        let enrolment = pool.admit(WorkClass::Enrol).unwrap();
+        assert!(matches!(pool.admit(WorkClass::Probe), Err(PoolError::Overloaded)));
+        let enrolled = {
+            let pool = pool.clone();
+            tokio::spawn(enrolment.scope(async move { pool.run(|| 9).await }))
+        };
+        assert_eq!(rejections.get(), 2);
         release.send(()).unwrap();
         blocker.await.unwrap().unwrap();
         assert_eq!(queued.await.unwrap().unwrap(), 7);
+        assert_eq!(enrolled.await.unwrap().unwrap(), 9);
+        assert!(pool.admit(WorkClass::Enrol).is_ok() && pool.admit(WorkClass::Probe).is_ok());
     }
 }

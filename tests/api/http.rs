@@ -195,7 +195,7 @@ async fn templates_of_another_model_version_are_not_compared() {
 }
 
 #[tokio::test]
-async fn api_keys_guard_everything_but_health_metrics_and_openapi() {
+async fn api_keys_guard_everything_but_health_and_openapi() {
     let keyed = ApiConfig { api_keys: vec!["s3cret".into(), "other".into()], ..config() };
     let app = TestApp::start(StandInEngine::new("v1"), keyed).await;
     app.get("/subjects").await.assert_problem(401, "unauthorized");
@@ -205,9 +205,10 @@ async fn api_keys_guard_everything_but_health_metrics_and_openapi() {
     app.post_form("/verify", Some("x"), &[vec![1, 2, 3]]).await.assert_problem(401, "unauthorized");
     assert_eq!(app.send(app.client.get(app.url("/subjects")).bearer_auth("s3cret")).await.status, 200);
     assert_eq!(app.send(app.client.get(app.url("/subjects")).header("x-api-key", "other")).await.status, 200);
-    for open in ["/health", "/metrics", "/openapi.yaml"] {
+    for open in ["/health", "/openapi.yaml"] {
         assert_eq!(app.get(open).await.status, 200, "{open}");
     }
+    app.get("/metrics").await.assert_problem(401, "unauthorized");
 }
 
 #[tokio::test]

@@ -2,6 +2,8 @@
 //!
 //! - `openapi`: `openapi.yaml` against the served operations; every response received by these
 //!   tests is checked against the document.
+//! - `hostile`: half-open and idle connections, stalled bodies, admission before the body, head
+//!   limits, keys on the operational routes, the audit log (raw TCP where needed).
 //! - `http`: the HTTP layer (formats, every bad-input class, limits, keys, timeouts, overload,
 //!   storage) with a stand-in face engine.
 //! - `pipeline`: enrol and verify real IMM photos through the real `Pipeline` and committed models;
@@ -9,6 +11,7 @@
 //! - `browser`: the web console in headless Chromium over WebDriver, against the real pipeline.
 
 mod browser;
+mod hostile;
 mod http;
 mod openapi;
 mod pipeline;

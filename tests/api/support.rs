@@ -12,6 +12,7 @@ use facegate::core::face::KeyPoints;
 use facegate::core::geometry::Rect;
 use facegate::core::imaging::Photo;
 use facegate::detect::Face;
+use facegate::http::server::ServerLimits;
 use facegate::http::{self, ApiConfig, AppState, FaceEngine};
 use facegate::landmarks::Landmarks;
 use facegate::morph::AvatarFormat;
@@ -61,11 +62,16 @@ impl Reply {
 
 impl TestApp {
     pub async fn start(engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {
+        Self::start_with(engine, config, facegate::config::Settings::default().server_limits().unwrap()).await
+    }
+
+    /// [`TestApp::start`] with the connection loop's limits given.
+    pub async fn start_with(engine: Arc<dyn FaceEngine>, config: ApiConfig, limits: ServerLimits) -> TestApp {
         static N: AtomicUsize = AtomicUsize::new(0);
         let dir = std::env::temp_dir().join(format!("facegate-api-{}-{}", std::process::id(), N.fetch_add(1, Ordering::Relaxed)));
         std::fs::create_dir_all(&dir).unwrap();
         let store = Store::connect(&format!("sqlite://{}", dir.join("facegate.db").display())).await.unwrap();
-        Self::serve(engine, store, config, dir).await
+        Self::serve(engine, store, config, limits, dir).await
     }
 
     /// A second app on this one's database with another engine (a service restarted with another
@@ -73,15 +79,16 @@ impl TestApp {
     pub async fn restarted_with(&self, engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {
         let scratch = self.dir.join(format!("restart-{}", std::process::id()));
         std::fs::create_dir_all(&scratch).unwrap();
-        Self::serve(engine, self.store.clone(), config, scratch).await
+        Self::serve(engine, self.store.clone(), config, facegate::config::Settings::default().server_limits().unwrap(), scratch).await
     }
 
-    async fn serve(engine: Arc<dyn FaceEngine>, store: Store, config: ApiConfig, dir: PathBuf) -> TestApp {
+    /// The app behind the service's own connection loop (`http::server`), as `facegate serve` runs it.
+    async fn serve(engine: Arc<dyn FaceEngine>, store: Store, config: ApiConfig, limits: ServerLimits, dir: PathBuf) -> TestApp {
         let app = http::router(AppState::new(engine, store.clone(), config));
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let base = format!("http://{}", listener.local_addr().unwrap());
         let server = tokio::spawn(async move {
-            axum::serve(listener, app).await.unwrap();
+            http::server::serve(listener, app, limits, std::future::pending()).await;
         });
         TestApp { base, client: reqwest::Client::new(), store, dir, server }
     }

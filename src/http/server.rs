@@ -1,0 +1,91 @@
+//! The connection loop: hyper's HTTP/1.1 server under the axum router, with the limits a hostile
+//! client would otherwise exploit and that `axum::serve` does not expose.
+//!
+//! - A connection cap: a permit is taken before `accept`, so beyond the cap new connections wait
+//!   in the kernel's backlog instead of costing memory here.
+//! - A header-read timeout: a connection that has not sent a complete request head within it is
+//!   closed. Hyper starts this timer whenever it waits for a request head, so it also bounds how
+//!   long an idle keep-alive connection stays open.
+//! - Hyper's own hard limits (head buffer, header count) set above the router's
+//!   (`limits::check_head`), so the client gets problem+json for what the router checks; what
+//!   hyper refuses itself (a head over its buffer, a malformed request line) it answers with an
+//!   empty body, which hyper offers no way to fill.
+//! - Graceful shutdown: on the signal, stop accepting, let in-flight requests finish, and give up
+//!   on connections still open after the grace period (idle keep-alives, stalled uploads).
+
+use std::future::Future;
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::Router;
+use hyper_util::rt::{TokioIo, TokioTimer};
+use hyper_util::server::graceful::GracefulShutdown;
+use hyper_util::service::TowerToHyperService;
+use tokio::net::TcpListener;
+use tokio::sync::Semaphore;
+
+/// Connection-level limits (made from `config::Settings`, where the defaults are).
+#[derive(Debug, Clone, Copy)]
+pub struct ServerLimits {
+    /// Most connections open at once.
+    pub max_connections: usize,
+    /// Time to receive a complete request head, and most time a keep-alive connection stays idle.
+    pub header_timeout: Duration,
+    /// After the shutdown signal, how long in-flight connections may take before they are dropped.
+    pub shutdown_grace: Duration,
+}
+
+/// Hyper's header-count limit: above the router's own (`limits::MAX_HEADERS`), so that the
+/// router, which answers with problem+json, is the one that refuses.
+const HYPER_MAX_HEADERS: usize = 2 * super::limits::MAX_HEADERS;
+/// Hyper's read buffer, which bounds a request head: above the router's URI and header limits.
+const HYPER_MAX_BUF: usize = 4 * (super::limits::MAX_URI_BYTES + super::limits::MAX_HEADER_BYTES);
+
+/// How the server stopped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stopped {
+    /// Every connection finished within the grace period.
+    Drained,
+    /// The grace period ended with connections still open; they were dropped.
+    GraceExpired,
+}
+
+/// Serve `router` on `listener` until `shutdown` completes, then drain within the grace period.
+pub async fn serve(listener: TcpListener, router: Router, limits: ServerLimits, shutdown: impl Future<Output = ()>) -> Stopped {
+    let connections = Arc::new(Semaphore::new(limits.max_connections.max(1)));
+    let graceful = GracefulShutdown::new();
+    let mut builder = hyper::server::conn::http1::Builder::new();
+    builder.timer(TokioTimer::new()).header_read_timeout(limits.header_timeout).max_headers(HYPER_MAX_HEADERS).max_buf_size(HYPER_MAX_BUF);
+    tokio::pin!(shutdown);
+    loop {
+        let permit = tokio::select! {
+            permit = connections.clone().acquire_owned() => permit.expect("the connection semaphore is never closed"),
+            _ = &mut shutdown => break,
+        };
+        let stream = tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => stream,
+                Err(e) => {
+                    // Out of file descriptors and the like: wait a little rather than spin.
+                    tracing::warn!("accept failed: {e}");
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                    continue;
+                }
+            },
+            _ = &mut shutdown => break,
+        };
+        let _ = stream.set_nodelay(true);
+        let service = TowerToHyperService::new(router.clone());
+        let connection = graceful.watch(builder.serve_connection(TokioIo::new(stream), service));
+        tokio::spawn(async move {
+            // Errors here are the client's (reset, timeout, malformed head): nothing to report.
+            let _ = connection.await;
+            drop(permit);
+        });
+    }
+    drop(listener);
+    tokio::select! {
+        _ = graceful.shutdown() => Stopped::Drained,
+        _ = tokio::time::sleep(limits.shutdown_grace) => Stopped::GraceExpired,
+    }
+}

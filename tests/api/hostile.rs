@@ -1,0 +1,258 @@
+//! The service under hostile clients, over raw TCP where a well-behaved client cannot misbehave:
+//! half-open and idle connections, stalled bodies, admission before the body, head limits, keys
+//! on the operational routes, the audit log, and the contract fixes schemathesis found.
+
+use std::io::Write;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use facegate::core::imaging::DecodeLimits;
+use facegate::http::ApiConfig;
+use facegate::http::server::ServerLimits;
+use serde_json::{Value, json};
+use sha2::Digest as _;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+use crate::support::*;
+
+fn config() -> ApiConfig {
+    ApiConfig {
+        max_body_bytes: 2 << 20,
+        decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() },
+        ..facegate::config::Settings::default().api_config().unwrap()
+    }
+}
+
+fn quick_limits() -> ServerLimits {
+    ServerLimits { header_timeout: Duration::from_millis(400), ..facegate::config::Settings::default().server_limits().unwrap() }
+}
+
+async fn connect(app: &TestApp) -> TcpStream {
+    TcpStream::connect(app.base.trim_start_matches("http://")).await.unwrap()
+}
+
+/// Read until the server closes the connection (or `limit` passes); what arrived.
+async fn read_to_close(stream: &mut TcpStream, limit: Duration) -> Option<String> {
+    let mut out = Vec::new();
+    match tokio::time::timeout(limit, stream.read_to_end(&mut out)).await {
+        Ok(_) => Some(String::from_utf8_lossy(&out).into_owned()),
+        Err(_) => None,
+    }
+}
+
+/// The problem type of a raw HTTP response.
+fn raw_problem(response: &str) -> String {
+    let body = response.split("\r\n\r\n").nth(1).unwrap_or("");
+    let json: Value = serde_json::from_str(body).unwrap_or_else(|e| panic!("{e}: {response}"));
+    json["type"].as_str().unwrap().rsplit('/').next().unwrap().to_string()
+}
+
+#[tokio::test]
+async fn half_open_and_idle_connections_are_closed_after_the_header_timeout() {
+    let app = TestApp::start_with(StandInEngine::new("v1"), config(), quick_limits()).await;
+    let start = Instant::now();
+    let mut half_open = Vec::new();
+    for _ in 0..50 {
+        let mut s = connect(&app).await;
+        s.write_all(b"GET /health HTTP/1.1\r\nX: ").await.unwrap();
+        half_open.push(s);
+    }
+    // A keep-alive connection that finished a request and then sends nothing.
+    let mut idle = connect(&app).await;
+    idle.write_all(b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n").await.unwrap();
+    for s in &mut half_open {
+        let seen = read_to_close(s, Duration::from_secs(5)).await.expect("a half-open connection stayed open past the header timeout");
+        assert!(!seen.contains("HTTP/1.1 2"), "{seen}");
+    }
+    let seen = read_to_close(&mut idle, Duration::from_secs(5)).await.expect("an idle connection stayed open past the header timeout");
+    assert!(seen.starts_with("HTTP/1.1 200"), "{seen}");
+    assert!(start.elapsed() < Duration::from_secs(3), "{:?}", start.elapsed());
+}
+
+#[tokio::test]
+async fn a_stalled_body_gets_408_and_a_refused_request_is_answered_before_its_body() {
+    let stalled = ApiConfig { body_timeout: Duration::from_millis(300), ..config() };
+    let app = TestApp::start(StandInEngine::new("v1"), stalled).await;
+    let mut s = connect(&app).await;
+    s.write_all(
+        b"POST /verify HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\nContent-Length: 100000\r\n\r\n--b\r\n",
+    )
+    .await
+    .unwrap();
+    let response = read_to_close(&mut s, Duration::from_secs(5)).await.expect("a stalled body is answered");
+    assert!(response.starts_with("HTTP/1.1 408"), "{response}");
+    assert_eq!(raw_problem(&response), "request-timeout");
+    assert!(response.to_ascii_lowercase().contains("cache-control: no-store"), "{response}");
+
+    // One worker, no queue, a slow engine: while a verification runs, another is refused with
+    // 503 from its head alone (the client has sent none of its body); an enrolment, in its own
+    // queue, is still admitted.
+    let one = ApiConfig { workers: 1, queue_depth: 0, enrol_queue_depth: 1, ..config() };
+    let app = TestApp::start(StandInEngine::slow(Duration::from_millis(800)), one).await;
+    let photo = pattern_jpeg(320, 240, 4);
+    assert_eq!(app.post_form("/enroll", Some("hana"), &[photo.clone()]).await.status, 201);
+    let images = [photo.clone()];
+    let (busy, refused, enrolled) = tokio::join!(
+        app.post_form("/verify", Some("hana"), &images),
+        async {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            let mut s = connect(&app).await;
+            s.write_all(
+                b"POST /verify HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\nContent-Length: 1000000\r\n\r\n",
+            )
+            .await
+            .unwrap();
+            let mut head = vec![0u8; 4096];
+            let n = tokio::time::timeout(Duration::from_millis(500), s.read(&mut head)).await.expect("refused without the body").unwrap();
+            String::from_utf8_lossy(&head[..n]).into_owned()
+        },
+        async {
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            app.post_form("/enroll", Some("hana"), &images).await
+        }
+    );
+    assert_eq!(busy.status, 200);
+    assert!(refused.starts_with("HTTP/1.1 503") && refused.to_ascii_lowercase().contains("retry-after: 1"), "{refused}");
+    assert_eq!(raw_problem(&refused), "overloaded");
+    assert_eq!(enrolled.status, 201, "{}", String::from_utf8_lossy(&enrolled.body));
+}
+
+#[tokio::test]
+async fn heads_over_the_limits_get_problem_json_and_every_answer_has_no_store_and_a_request_id() {
+    let app = TestApp::start(StandInEngine::new("v1"), config()).await;
+    let r = app.get(&format!("/subjects?after={}", "a".repeat(9000))).await;
+    r.assert_problem(414, "uri-too-long");
+    let mut request = app.client.get(app.url("/health"));
+    for i in 0..70 {
+        request = request.header(format!("x-h{i}"), "v");
+    }
+    app.send(request).await.assert_problem(431, "headers-too-large");
+    let r = app.send(app.client.get(app.url("/health")).header("x-big", "v".repeat(20_000))).await;
+    r.assert_problem(431, "headers-too-large");
+
+    let r = app.send(app.client.get(app.url("/health")).header("x-request-id", "trace-42")).await;
+    assert_eq!(
+        (r.status, r.headers["x-request-id"].to_str().unwrap(), r.headers["cache-control"].to_str().unwrap()),
+        (200, "trace-42", "no-store")
+    );
+    let r = app.get("/subjects/nobody").await;
+    r.assert_problem(404, "unknown-subject");
+    let generated = r.headers["x-request-id"].to_str().unwrap();
+    assert!(generated.len() == 32 && generated.chars().all(|c| c.is_ascii_hexdigit()), "{generated}");
+    assert_eq!(r.headers["cache-control"], "no-store");
+}
+
+#[tokio::test]
+async fn with_keys_metrics_need_one_and_health_shows_no_counts_without_one() {
+    let key = "0123456789abcdef-ops";
+    let app = TestApp::start(StandInEngine::new("v1"), ApiConfig { api_keys: vec![key.into()], ..config() }).await;
+    app.get("/metrics").await.assert_problem(401, "unauthorized");
+    assert_eq!(app.send(app.client.get(app.url("/metrics")).bearer_auth(key)).await.status, 200);
+    let open = app.get("/health").await.json();
+    assert_eq!((open["status"].as_str(), open.get("subjects"), open.get("templates")), (Some("ok"), None, None), "{open}");
+    let keyed = app.send(app.client.get(app.url("/health")).bearer_auth(key)).await.json();
+    assert_eq!((keyed["subjects"].as_u64(), keyed["templates"].as_u64()), (Some(0), Some(0)), "{keyed}");
+    let wrong = app.send(app.client.get(app.url("/health")).bearer_auth("0123456789abcdef-bad")).await.json();
+    assert!(wrong.get("subjects").is_none(), "{wrong}");
+    // Without keys, everything stays open, counts included.
+    let app = TestApp::start(StandInEngine::new("v1"), config()).await;
+    assert_eq!(app.get("/metrics").await.status, 200);
+    assert_eq!(app.get("/health").await.json()["subjects"].as_u64(), Some(0));
+}
+
+#[tokio::test]
+async fn subject_ids_clients_cannot_address_are_refused_the_same_way_in_json_and_multipart() {
+    let app = TestApp::start(StandInEngine::new("v1"), config()).await;
+    let photo = pattern_jpeg(320, 240, 1);
+    for bad in [".", "..", " padded", "padded ", "tab\t"] {
+        app.post_form("/enroll", Some(bad), &[photo.clone()]).await.assert_problem(400, "malformed-request");
+        app.post_json("/enroll", &json!({"subject": bad, "image": base64(&photo)})).await.assert_problem(400, "malformed-request");
+    }
+    // A subject and no photo: refused, and the schema says so too (tests/api/openapi.rs).
+    app.post_json("/enroll", &json!({"subject": "x"})).await.assert_problem(400, "malformed-request");
+    app.post_json("/enroll", &json!({"subject": "x", "image": ""})).await.assert_problem(400, "malformed-request");
+    assert_eq!(app.store.counts().await.unwrap(), (0, 0));
+    assert_eq!(app.post_form("/enroll", Some("..."), &[photo]).await.status, 201);
+    assert_eq!(app.get("/subjects/...").await.status, 200);
+}
+
+/// A `MakeWriter` collecting the log in memory.
+#[derive(Clone, Default)]
+struct Captured(Arc<Mutex<Vec<u8>>>);
+
+impl Write for Captured {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0.lock().unwrap().extend_from_slice(buf);
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for Captured {
+    type Writer = Captured;
+    fn make_writer(&'a self) -> Captured {
+        self.clone()
+    }
+}
+
+#[tokio::test]
+async fn the_audit_log_has_one_json_line_per_enrol_verify_identify_delete_with_key_and_request_ids() {
+    let log = Captured::default();
+    let subscriber = tracing_subscriber::fmt().json().with_writer(log.clone()).with_max_level(tracing::Level::INFO).finish();
+    let _guard = tracing::subscriber::set_default(subscriber);
+    let key = "0123456789abcdef-audit";
+    let app = TestApp::start(StandInEngine::new("v1"), ApiConfig { api_keys: vec![key.into()], ..config() }).await;
+    let photo = pattern_jpeg(320, 240, 1);
+    let post = |path: &str, subject: Option<&str>, id: &str| {
+        let mut form = reqwest::multipart::Form::new().part("image", reqwest::multipart::Part::bytes(photo.clone()).file_name("p.jpg"));
+        if let Some(s) = subject {
+            form = form.text("subject", s.to_string());
+        }
+        app.client.post(app.url(path)).bearer_auth(key).header("x-request-id", id).multipart(form)
+    };
+    assert_eq!(app.send(post("/enroll", Some("ivy"), "r-enrol")).await.status, 201);
+    assert_eq!(app.send(post("/verify", Some("ivy"), "r-verify")).await.status, 200);
+    assert_eq!(app.send(post("/verify", Some("nobody"), "r-unknown")).await.status, 404);
+    assert_eq!(app.send(post("/identify", None, "r-identify")).await.status, 200);
+    assert_eq!(app.send(app.client.delete(app.url("/subjects/ivy")).bearer_auth(key).header("x-request-id", "r-delete")).await.status, 204);
+    assert_eq!(app.send(app.client.delete(app.url("/subjects/ivy")).header("x-request-id", "r-nokey")).await.status, 401);
+    assert_eq!(app.get("/subjects").await.status, 401, "not audited: not an enrol/verify/identify/delete");
+
+    let text = String::from_utf8(log.0.lock().unwrap().clone()).unwrap();
+    let audit: Vec<Value> = text
+        .lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+        .filter(|v| v["target"] == "facegate::audit")
+        .map(|v| v["fields"].clone())
+        .collect();
+    let key_id = format!("{:x}", sha2::Sha256::digest(key.as_bytes()))[..8].to_string();
+    let by_id = |id: &str| audit.iter().find(|f| f["request_id"] == id).unwrap_or_else(|| panic!("no audit line for {id}: {text}")).clone();
+    assert_eq!(audit.len(), 6, "{text}");
+    let enrol = by_id("r-enrol");
+    assert_eq!((enrol["op"].as_str(), enrol["outcome"].as_str(), enrol["subject"].as_str()), (Some("enroll"), Some("ok"), Some("ivy")));
+    assert_eq!(
+        (enrol["templates_added"].as_u64(), enrol["model_version"].as_str(), enrol["key_id"].as_str()),
+        (Some(1), Some("v1"), Some(&*key_id))
+    );
+    let verify = by_id("r-verify");
+    assert_eq!((verify["decision"].as_str(), verify["status"].as_u64()), (Some("match"), Some(200)));
+    assert!(verify["score"].as_f64().unwrap() > 0.99 && verify["threshold"].as_f64().is_some(), "{verify}");
+    let unknown = by_id("r-unknown");
+    assert_eq!(
+        (unknown["outcome"].as_str(), unknown["subject"].as_str(), unknown.get("score")),
+        (Some("unknown-subject"), Some("nobody"), None)
+    );
+    let identify = by_id("r-identify");
+    assert_eq!(
+        (identify["op"].as_str(), identify["subject"].as_str(), identify["candidates"].as_u64()),
+        (Some("identify"), Some("ivy"), Some(1))
+    );
+    assert_eq!((by_id("r-delete")["op"].as_str(), by_id("r-delete")["subject"].as_str()), (Some("delete"), Some("ivy")));
+    let refused = by_id("r-nokey");
+    assert_eq!((refused["outcome"].as_str(), refused.get("key_id")), (Some("unauthorized"), None));
+    // No photo bytes: every line is short, whatever the photo's size.
+    assert!(text.lines().all(|l| l.len() < 1000), "{text}");
+}
