@@ -153,7 +153,7 @@ pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<R
         state.0.metrics.observe_stages(a.timings.decode_ms, &a.analysis.timings);
     }
     let templates: Vec<_> = analysed.iter().map(|a| a.analysis.template.clone()).collect();
-    let count = state.0.store.enroll(&subject, &templates).await?;
+    let count = state.0.gallery.enroll(&subject, templates.clone()).await?;
     let body = EnrollResponse {
         subject: subject.to_string(),
         templates: count,
@@ -269,12 +269,13 @@ pub async fn identify(State(state): State<AppState>, request: Request) -> Result
     let analysed = analyse_probe(&state, image).await?;
     let t = Instant::now();
     let engine = state.0.engine.clone();
-    let gallery = state.0.store.gallery(engine.model_version()).await?;
-    let subjects_searched = gallery.len();
+    let gallery = state.0.gallery.clone();
+    gallery.load().await?;
     let probe = analysed.analysis.template.clone();
     let matcher = engine.clone();
     // Scoring the whole gallery is CPU work too: it runs on the pool.
-    let found = state.0.pool.run(move || service::identify(matcher.as_ref(), &probe, gallery, fmr, k)).await?;
+    let (found, subjects_searched) =
+        state.0.pool.run(move || gallery.search(matcher.as_ref(), &probe, fmr, k)).await?.map_err(Problem::internal)?;
     let point = engine.operating_point(fmr, 1);
     let candidates = found
         .into_iter()
@@ -338,7 +339,7 @@ pub async fn get_subject(State(state): State<AppState>, path: Result<Path<String
 /// `DELETE /subjects/{id}`: erase the subject and all its templates.
 pub async fn delete_subject(State(state): State<AppState>, path: Result<Path<String>, PathRejection>) -> Result<StatusCode, Problem> {
     let id = subject_in_path(path)?;
-    state.0.store.delete_subject(&id).await?.map(|_| StatusCode::NO_CONTENT).ok_or_else(|| unknown_subject(&id))
+    state.0.gallery.delete(&id).await?.map(|_| StatusCode::NO_CONTENT).ok_or_else(|| unknown_subject(&id))
 }
 
 #[derive(Debug, Serialize)]
@@ -347,12 +348,15 @@ pub struct Health {
     model_version: String,
     subjects: u64,
     templates: u64,
+    /// Whether template vectors are sealed at rest (a template key is configured).
+    templates_encrypted: bool,
 }
 
 /// `GET /health`: the database answers and the models are loaded.
 pub async fn health(State(state): State<AppState>) -> Result<Json<Health>, Problem> {
     let (subjects, templates) = state.0.store.counts().await?;
-    Ok(Json(Health { status: "ok", model_version: state.0.engine.model_version().to_string(), subjects, templates }))
+    let templates_encrypted = state.0.store.encrypts();
+    Ok(Json(Health { status: "ok", model_version: state.0.engine.model_version().to_string(), subjects, templates, templates_encrypted }))
 }
 
 /// `GET /metrics`: Prometheus (OpenMetrics text) exposition.

@@ -19,6 +19,7 @@ use axum::routing::{MethodRouter, delete, get, post};
 use sha2::{Digest, Sha256};
 
 use crate::core::imaging::DecodeLimits;
+use crate::service::gallery::LiveGallery;
 use crate::service::{PoolError, WorkPool};
 use crate::store::Store;
 
@@ -86,6 +87,9 @@ impl ApiKeys {
 struct Shared {
     engine: Arc<dyn FaceEngine>,
     store: Store,
+    /// The current model's templates in memory for `/identify`; enrolments and deletions go
+    /// through it so that it stays in step with the store.
+    gallery: LiveGallery,
     config: ApiConfig,
     pool: WorkPool,
     metrics: Arc<Metrics>,
@@ -108,7 +112,14 @@ impl AppState {
     pub fn new(engine: Arc<dyn FaceEngine>, store: Store, config: ApiConfig) -> AppState {
         let metrics = Arc::new(Metrics::new());
         let pool = WorkPool::new(config.workers, config.queue_depth, metrics.queue_rejections.clone(), metrics.jobs_in_flight.clone());
-        AppState(Arc::new(Shared { engine, store, config, pool, metrics }))
+        let gallery = LiveGallery::new(store.clone(), engine.model_version());
+        AppState(Arc::new(Shared { engine, store, gallery, config, pool, metrics }))
+    }
+
+    /// Load the identification gallery now (else on first use). Returns the subjects whose
+    /// templates cannot be read, with why: `/identify` refuses to answer while there are any.
+    pub async fn load_gallery(&self) -> Result<Vec<(String, String)>, crate::store::StoreError> {
+        self.0.gallery.load().await
     }
 
     pub fn store(&self) -> &Store {

@@ -18,7 +18,7 @@ use facegate::morph::AvatarFormat;
 use facegate::pipeline::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, PipelineError, StageTimings};
 use facegate::recognize::{OperatingPoint, Template};
 use facegate::service::Matcher;
-use facegate::store::Store;
+use facegate::store::{KeyRing, Store};
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
 
@@ -61,11 +61,21 @@ impl Reply {
 
 impl TestApp {
     pub async fn start(engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {
+        Self::start_with_keys(engine, config, None).await
+    }
+
+    /// An app whose store seals templates under `keys`.
+    pub async fn start_with_keys(engine: Arc<dyn FaceEngine>, config: ApiConfig, keys: Option<KeyRing>) -> TestApp {
         static N: AtomicUsize = AtomicUsize::new(0);
         let dir = std::env::temp_dir().join(format!("facegate-api-{}-{}", std::process::id(), N.fetch_add(1, Ordering::Relaxed)));
         std::fs::create_dir_all(&dir).unwrap();
-        let store = Store::connect(&format!("sqlite://{}", dir.join("facegate.db").display())).await.unwrap();
+        let store = Store::connect(&format!("sqlite://{}", dir.join("facegate.db").display()), keys).await.unwrap();
         Self::serve(engine, store, config, dir).await
+    }
+
+    /// The database file of an app made by `start` (not by `restarted_with`).
+    pub fn database(&self) -> PathBuf {
+        self.dir.join("facegate.db")
     }
 
     /// A second app on this one's database with another engine (a service restarted with another
