@@ -19,6 +19,8 @@ use crate::http::server::ServerLimits;
 use crate::pipeline::PipelineConfig;
 use crate::recognize::DEFAULT_FMR;
 use crate::recognize::RecognizerKind;
+use crate::store::KeyRing;
+use anyhow::Context;
 
 fn env_path(name: &str) -> Option<PathBuf> {
     std::env::var_os(name).filter(|v| !v.is_empty()).map(PathBuf::from)
@@ -49,7 +51,7 @@ pub fn pipeline_config() -> PipelineConfig {
 }
 
 const DEFAULT_BIND: &str = "127.0.0.1:8080";
-const DEFAULT_DATABASE: &str = "sqlite://facegate.db";
+pub(crate) const DEFAULT_DATABASE: &str = "sqlite://facegate.db";
 const DEFAULT_QUEUE: usize = 64;
 const DEFAULT_MAX_BODY_MB: usize = 16;
 const DEFAULT_MAX_PIXELS: u64 = 16_000_000;
@@ -151,6 +153,26 @@ pub struct Settings {
     /// Serve the web console at `/` (`--console false` serves the API only).
     #[arg(long, env = "FACEGATE_CONSOLE", default_value_t = DEFAULT_CONSOLE, action = clap::ArgAction::Set)]
     pub console: bool,
+    #[command(flatten)]
+    pub template_key: TemplateKeyArgs,
+}
+
+/// Where the template key comes from (shared by `serve`, `rekey`, `backup` and `restore`).
+#[derive(clap::Args, Debug, Clone, Default, PartialEq)]
+pub struct TemplateKeyArgs {
+    /// File of template keys, one per line as 64 hex digits (32 bytes), the current key first, then
+    /// older keys still to be read; `#` lines are comments. Without it templates are stored unencrypted.
+    #[arg(long, env = "FACEGATE_TEMPLATE_KEY_FILE")]
+    pub template_key_file: Option<PathBuf>,
+}
+
+impl TemplateKeyArgs {
+    /// The key ring of the key file, if one is given.
+    pub fn key_ring(&self) -> anyhow::Result<Option<KeyRing>> {
+        let Some(path) = &self.template_key_file else { return Ok(None) };
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read the template key file {}", path.display()))?;
+        Ok(Some(KeyRing::parse(&text).with_context(|| format!("template key file {}", path.display()))?))
+    }
 }
 
 impl Default for Settings {
@@ -179,6 +201,7 @@ impl Default for Settings {
             shutdown_grace_secs: DEFAULT_SHUTDOWN_GRACE_SECS,
             log_format: LogFormat::default(),
             console: DEFAULT_CONSOLE,
+            template_key: TemplateKeyArgs::default(),
         }
     }
 }
@@ -282,7 +305,7 @@ mod tests {
         if !["BIND", "DATABASE_URL", "MODELS", "SFM", "API_KEYS", "WORKERS", "QUEUE", "MAX_BODY_MB", "MAX_PIXELS", "MAX_DECODE_MB"]
             .iter()
             .chain(&["MAX_IMAGES", "TIMEOUT_SECS", "CONSOLE", "API_KEYS_FILE", "ENROL_QUEUE", "MAX_BUFFERED_MB", "BODY_TIMEOUT_SECS"])
-            .chain(&["HEADER_TIMEOUT_SECS", "MAX_CONNECTIONS", "SHUTDOWN_GRACE_SECS", "LOG_FORMAT"])
+            .chain(&["HEADER_TIMEOUT_SECS", "MAX_CONNECTIONS", "SHUTDOWN_GRACE_SECS", "LOG_FORMAT", "TEMPLATE_KEY_FILE"])
             .any(|v| env_set(&format!("FACEGATE_{v}")))
         {
             assert_eq!(parsed, Settings::default());
@@ -318,5 +341,20 @@ mod tests {
         assert!(error.contains("--api-keys entry 1") && !error.contains("tiny"), "{error}");
         assert!(Settings { api_keys_file: Some(dir.join("missing")), ..Settings::default() }.api_config().is_err());
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_template_key_file_is_read_into_a_key_ring() {
+        let dir = std::env::temp_dir().join(format!("facegate-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("template.key");
+        std::fs::write(&path, format!("# current\n{}\n", "ab".repeat(32))).unwrap();
+        let args = TemplateKeyArgs { template_key_file: Some(path.clone()) };
+        assert_eq!(args.key_ring().unwrap().unwrap().current_id().len(), 16);
+        assert!(TemplateKeyArgs::default().key_ring().unwrap().is_none());
+        std::fs::write(&path, "not a key").unwrap();
+        assert!(args.key_ring().is_err());
+        assert!(TemplateKeyArgs { template_key_file: Some(dir.join("missing")) }.key_ring().is_err());
+        std::fs::remove_dir_all(dir).unwrap();
     }
 }

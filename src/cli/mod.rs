@@ -11,6 +11,7 @@ pub mod landmarks;
 pub mod morph;
 pub mod recognize;
 pub mod serve;
+pub mod store;
 
 #[derive(Parser, Debug)]
 #[command(name = "facegate", version, about = "Face verification: detection, C-ASM landmarks, 3DMM pose correction, Direct LDA")]
@@ -44,6 +45,12 @@ pub enum Command {
     Convert(ConvertCommand),
     /// Face embeddings (deep network) of photos or aligned chips; one JSON object per image.
     Embed(embed::EmbedArgs),
+    /// Bring every template under the current template key (re-wrap, or encrypt plain ones).
+    Rekey(store::RekeyArgs),
+    /// Copy the template database to a file while the service runs.
+    Backup(store::BackupArgs),
+    /// Replace the template database with a backup.
+    Restore(store::RestoreArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -104,6 +111,9 @@ pub fn main() -> ExitCode {
         Command::Eval(EvalCommand::Identify(args)) => recognize::run_eval_identify(args),
         Command::Convert(ConvertCommand::Embedding(args)) => embed::run_convert(args),
         Command::Embed(args) => embed::run_embed(args),
+        Command::Rekey(args) => store::run_rekey(args),
+        Command::Backup(args) => store::run_backup(args),
+        Command::Restore(args) => store::run_restore(args),
         Command::Train(TrainCommand::Deep(args)) => embed::run_train_deep(args),
         Command::Eval(EvalCommand::Deep(args)) => embed::run_eval_deep(args),
         Command::Eval(EvalCommand::DeepAlign(args)) => embed::run_eval_deep_align(args),

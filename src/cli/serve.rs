@@ -48,7 +48,12 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
     let pipeline =
         tokio::task::spawn_blocking(move || Pipeline::load(&pipeline_config)).await?.context("cannot load the face pipeline models")?;
     tracing::info!(model_version = pipeline.recognizer.model_version(), with_3dmm = pipeline.face_model.is_some(), "pipeline loaded");
-    let store = Store::connect(&args.database).await.with_context(|| format!("cannot open the database {}", args.database))?;
+    let keys = args.template_key.key_ring()?;
+    match &keys {
+        Some(keys) => tracing::info!(key_id = keys.current_id(), "templates are encrypted at rest"),
+        None => tracing::warn!("no template key (FACEGATE_TEMPLATE_KEY_FILE): templates are stored UNENCRYPTED"),
+    }
+    let store = Store::connect(&args.database, keys).await.with_context(|| format!("cannot open the database {}", args.database))?;
     if config.api_keys.is_empty() {
         tracing::warn!(
             "no API keys configured (FACEGATE_API_KEYS_FILE, FACEGATE_API_KEYS): the API is OPEN to anyone who can reach {}",
@@ -59,6 +64,9 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
     }
     tracing::info!(workers = config.workers, queue = config.queue_depth, enrol_queue = config.enrol_queue_depth, "bounded work pool");
     let state = AppState::new(Arc::new(pipeline), store.clone(), config);
+    for (subject, why) in state.load_gallery().await? {
+        tracing::error!(subject, "templates cannot be read; /identify refuses until the subject is erased: {why}");
+    }
     let listener = tokio::net::TcpListener::bind(&args.bind).await.with_context(|| format!("cannot listen on {}", args.bind))?;
     tracing::info!(
         max_connections = limits.max_connections,

@@ -157,7 +157,7 @@ pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<R
         state.0.metrics.observe_stages(a.timings.decode_ms, &a.analysis.timings);
     }
     let templates: Vec<_> = analysed.iter().map(|a| a.analysis.template.clone()).collect();
-    let count = state.0.store.enroll(&subject, &templates).await?;
+    let count = state.0.gallery.enroll(&subject, templates.clone()).await?;
     audit.templates_added(templates.len());
     let body = EnrollResponse {
         subject: subject.to_string(),
@@ -280,12 +280,13 @@ pub async fn identify(State(state): State<AppState>, request: Request) -> Result
     let analysed = analyse_probe(&state, image).await?;
     let t = Instant::now();
     let engine = state.0.engine.clone();
-    let gallery = state.0.store.gallery(engine.model_version()).await?;
-    let subjects_searched = gallery.len();
+    let gallery = state.0.gallery.clone();
+    gallery.load().await?;
     let probe = analysed.analysis.template.clone();
     let matcher = engine.clone();
     // Scoring the whole gallery is CPU work too: it runs on the pool.
-    let found = state.0.pool.run(move || service::identify(matcher.as_ref(), &probe, gallery, fmr, k)).await?;
+    let (found, subjects_searched) =
+        state.0.pool.run(move || gallery.search(matcher.as_ref(), &probe, fmr, k)).await?.map_err(Problem::internal)?;
     let point = engine.operating_point(fmr, 1);
     // The audit names the best candidate and its decision.
     audit.candidates(found.len());
@@ -362,7 +363,7 @@ pub async fn delete_subject(
     if let Some(Extension(audit)) = audit {
         audit.subject(&id);
     }
-    state.0.store.delete_subject(&id).await?.map(|_| StatusCode::NO_CONTENT).ok_or_else(|| unknown_subject(&id))
+    state.0.gallery.delete(&id).await?.map(|_| StatusCode::NO_CONTENT).ok_or_else(|| unknown_subject(&id))
 }
 
 #[derive(Debug, Serialize)]
@@ -374,13 +375,16 @@ pub struct Health {
     subjects: Option<u64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     templates: Option<u64>,
+    /// Whether template vectors are sealed at rest (a template key is configured).
+    templates_encrypted: bool,
 }
 
 /// `GET /health`: the database answers and the models are loaded.
 pub async fn health(State(state): State<AppState>, headers: HeaderMap) -> Result<Json<Health>, Problem> {
     let (subjects, templates) = state.0.store.counts().await?;
     let (subjects, templates) = if state.0.keys.admits(&headers) { (Some(subjects), Some(templates)) } else { (None, None) };
-    Ok(Json(Health { status: "ok", model_version: state.0.engine.model_version().to_string(), subjects, templates }))
+    let templates_encrypted = state.0.store.encrypts();
+    Ok(Json(Health { status: "ok", model_version: state.0.engine.model_version().to_string(), subjects, templates, templates_encrypted }))
 }
 
 /// `GET /metrics`: Prometheus (OpenMetrics text) exposition.

@@ -22,6 +22,7 @@ use self::admission::BodyBudget;
 use self::audit::KeyId;
 
 use crate::core::imaging::DecodeLimits;
+use crate::service::gallery::LiveGallery;
 use crate::service::{PoolError, WorkClass, WorkPool};
 use crate::store::Store;
 
@@ -123,6 +124,9 @@ fn presented_key(headers: &axum::http::HeaderMap) -> Option<&str> {
 struct Shared {
     engine: Arc<dyn FaceEngine>,
     store: Store,
+    /// The current model's templates in memory for `/identify`; enrolments and deletions go
+    /// through it so that it stays in step with the store.
+    gallery: LiveGallery,
     config: ApiConfig,
     keys: ApiKeys,
     pool: WorkPool,
@@ -155,7 +159,14 @@ impl AppState {
         );
         let keys = ApiKeys::new(&config.api_keys);
         let body_budget = BodyBudget::new(config.max_buffered_bytes, config.max_body_bytes);
-        AppState(Arc::new(Shared { engine, store, config, keys, pool, body_budget, metrics }))
+        let gallery = LiveGallery::new(store.clone(), engine.model_version());
+        AppState(Arc::new(Shared { engine, store, gallery, config, keys, pool, body_budget, metrics }))
+    }
+
+    /// Load the identification gallery now (else on first use). Returns the subjects whose
+    /// templates cannot be read, with why: `/identify` refuses to answer while there are any.
+    pub async fn load_gallery(&self) -> Result<Vec<(String, String)>, crate::store::StoreError> {
+        self.0.gallery.load().await
     }
 
     pub fn store(&self) -> &Store {

@@ -10,6 +10,7 @@
 //! point. A second recognizer (another way of computing templates) plugs in by implementing
 //! [`Matcher`]; templates of one model version are never compared with another's.
 
+pub mod gallery;
 pub mod inspect;
 pub mod pool;
 
@@ -18,7 +19,7 @@ use serde::Serialize;
 use crate::core::imaging::Photo;
 use crate::morph::AvatarFormat;
 use crate::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline, PipelineError};
-use crate::recognize::{OperatingPoint, Recognizer, Template};
+use crate::recognize::{AnyRecognizer, OperatingPoint, Recognizer, Template};
 
 pub use pool::{Admission, PoolError, WorkClass, WorkPool};
 
@@ -69,6 +70,11 @@ pub trait Matcher {
     /// The calibrated operating point closest to `fmr` for a subject with `enrolled` templates
     /// (its score is the best of them, so the threshold depends on how many there are).
     fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint;
+    /// Is [`Matcher::score`] the best cosine of the probe with the enrolled templates? Then the
+    /// gallery scores from its matrix ([`gallery::Gallery::search`]); otherwise it calls `score`.
+    fn max_cosine_scoring(&self) -> bool {
+        false
+    }
 }
 
 impl Matcher for Recognizer {
@@ -105,6 +111,11 @@ impl Matcher for Pipeline {
     }
     fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
         self.recognizer.operating_point(fmr, enrolled)
+    }
+    fn max_cosine_scoring(&self) -> bool {
+        // The deep recognizer's score is the best cosine (`DeepRecognizer::score`); the classical
+        // one may S-normalise against a cohort and average, so it keeps its own `score`.
+        matches!(self.recognizer, AnyRecognizer::Deep(_))
     }
 }
 

@@ -5,18 +5,35 @@
 //! transaction: either all of its templates are stored or none. No photo is ever stored, only
 //! templates: each is a little-endian f32 vector with the recognition model version that made it.
 //!
+//! At rest (docs/service.md): with a [`KeyRing`] each subject's vectors are sealed under its own
+//! data key ([`cipher`], backend-neutral); a vector that fails authentication is refused
+//! ([`StoreError::CorruptTemplate`]), never scored. Without a key, vectors are stored plain.
+//! Erasure: `secure_delete` zeroes what a deletion frees, and the WAL is checkpointed and
+//! truncated after each deletion, so a deleted subject leaves no bytes in the files. Durability:
+//! `synchronous = FULL`, so an acknowledged enrolment survives a power loss, not only a crash.
+//!
 //! Queries are checked at run time (`sqlx::query`), not by the `query!` macros, so a clean clone
 //! builds without a database.
 
+pub mod cipher;
+
+use std::path::{Path, PathBuf};
 use std::str::FromStr;
+use std::sync::Arc;
 use std::time::Duration;
 
+use futures_util::TryStreamExt;
 use serde::Serialize;
-use sqlx::Row;
-use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous};
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteConnection, SqliteJournalMode, SqliteLockingMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
+};
+use sqlx::{Connection, Row};
 
 use crate::recognize::Template;
 use crate::service::SubjectId;
+
+use cipher::DataKey;
+pub use cipher::{CipherError, KeyRing};
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -28,6 +45,14 @@ pub enum StoreError {
     Database(#[from] sqlx::Error),
     #[error("stored template {id} is corrupt: {message}")]
     CorruptTemplate { id: i64, message: String },
+    #[error("the data key of subject {subject} cannot be opened: {source}")]
+    DataKey { subject: String, source: CipherError },
+    #[error("subject {subject}'s templates are encrypted, but no template key is configured (FACEGATE_TEMPLATE_KEY_FILE)")]
+    NoKey { subject: String },
+    #[error("{0}")]
+    Refused(String),
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
 }
 
 /// One subject as listed: its id, how many templates it has, and when it was enrolled.
@@ -56,27 +81,62 @@ pub struct SubjectDetail {
     pub updated_at: String,
 }
 
+/// What [`Store::rekey`] did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct RekeyReport {
+    /// Subjects whose data key was re-wrapped by the current key.
+    pub rewrapped: u64,
+    /// Subjects whose plain templates were sealed (with a new data key).
+    pub sealed: u64,
+    /// Templates sealed along with them.
+    pub templates_sealed: u64,
+}
+
+/// How one subject's vectors are stored.
+enum Sealing {
+    Plain,
+    Sealed(DataKey),
+}
+
+/// A subject being read by [`Store::gallery`]: its id, how its vectors are stored (none when its
+/// data key cannot be opened), and its templates so far or why they cannot be read.
+type SubjectReading = (String, Option<Sealing>, Result<Vec<Template>, StoreError>);
+
 /// The template database. Cheap to clone (a connection pool).
 #[derive(Debug, Clone)]
 pub struct Store {
     pool: SqlitePool,
+    keys: Option<Arc<KeyRing>>,
+}
+
+fn connect_options(url: &str) -> Result<SqliteConnectOptions, StoreError> {
+    Ok(SqliteConnectOptions::from_str(url)
+        .map_err(|source| StoreError::Url { url: url.to_string(), source })?
+        .journal_mode(SqliteJournalMode::Wal)
+        // FULL: every commit (an enrolment, a deletion) is fsynced to the WAL before it is
+        // acknowledged, so it survives a power loss too. NORMAL in WAL mode survives application
+        // crashes but may lose the last commits on power loss; an acknowledged enrolment must not.
+        .synchronous(SqliteSynchronous::Full)
+        // Deleted content is overwritten with zeros, so it cannot be read back from free pages.
+        .pragma("secure_delete", "ON")
+        .foreign_keys(true)
+        .busy_timeout(Duration::from_secs(5)))
 }
 
 impl Store {
-    /// Open (creating if missing) the SQLite database at `url` and apply the migrations.
-    pub async fn connect(url: &str) -> Result<Store, StoreError> {
-        let options = SqliteConnectOptions::from_str(url)
-            .map_err(|source| StoreError::Url { url: url.to_string(), source })?
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal)
-            // WAL makes NORMAL durable against application crashes; only a power loss may lose
-            // the last transactions, never corrupt the file.
-            .synchronous(SqliteSynchronous::Normal)
-            .foreign_keys(true)
-            .busy_timeout(Duration::from_secs(5));
+    /// Open (creating if missing) the SQLite database at `url` and apply the migrations. With
+    /// `keys`, new templates are sealed and sealed ones can be read; without, templates are stored
+    /// plain and a subject sealed earlier cannot be read ([`StoreError::NoKey`]).
+    pub async fn connect(url: &str, keys: Option<KeyRing>) -> Result<Store, StoreError> {
+        let options = connect_options(url)?.create_if_missing(true);
         let pool = SqlitePoolOptions::new().max_connections(8).connect_with(options).await?;
         sqlx::migrate!("./migrations").run(&pool).await?;
-        Ok(Store { pool })
+        Ok(Store { pool, keys: keys.map(Arc::new) })
+    }
+
+    /// Are new templates sealed (a template key is configured)?
+    pub fn encrypts(&self) -> bool {
+        self.keys.is_some()
     }
 
     /// Is the database answering?
@@ -85,10 +145,23 @@ impl Store {
         Ok(())
     }
 
+    /// How `subject`'s vectors are stored, from its row's key id and wrapped data key.
+    fn sealing(&self, subject: &str, key_id: Option<String>, wrapped: Option<Vec<u8>>) -> Result<Sealing, StoreError> {
+        let (Some(key_id), Some(wrapped)) = (key_id, wrapped) else {
+            return Ok(Sealing::Plain);
+        };
+        let keys = self.keys.as_ref().ok_or_else(|| StoreError::NoKey { subject: subject.to_string() })?;
+        keys.unwrap(subject, &key_id, &wrapped)
+            .map(Sealing::Sealed)
+            .map_err(|source| StoreError::DataKey { subject: subject.to_string(), source })
+    }
+
     /// Add `templates` to `subject` (created if new), all in one transaction.
-    /// Returns the subject's template count afterwards.
+    /// Returns the subject's template count afterwards. With a key, a subject whose templates are
+    /// still plain (enrolled before the key was set) is sealed in the same transaction.
     pub async fn enroll(&self, subject: &SubjectId, templates: &[Template]) -> Result<u32, StoreError> {
         let mut tx = self.pool.begin().await?;
+        // A write first, so the transaction holds the write lock from its start.
         sqlx::query(
             "INSERT INTO subjects (id) VALUES (?1)
              ON CONFLICT (id) DO UPDATE SET updated_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now')",
@@ -96,12 +169,17 @@ impl Store {
         .bind(subject.as_str())
         .execute(&mut *tx)
         .await?;
+        let row = sqlx::query("SELECT key_id, data_key FROM subjects WHERE id = ?1").bind(subject.as_str()).fetch_one(&mut *tx).await?;
+        let mut sealing = self.sealing(subject.as_str(), row.try_get("key_id")?, row.try_get("data_key")?)?;
+        if let (Sealing::Plain, Some(keys)) = (&sealing, &self.keys) {
+            sealing = Sealing::Sealed(seal_subject(&mut tx, keys, subject.as_str()).await?.0);
+        }
         for template in templates {
             sqlx::query("INSERT INTO templates (subject_id, model_version, dimension, vector) VALUES (?1, ?2, ?3, ?4)")
                 .bind(subject.as_str())
                 .bind(&template.model_version)
                 .bind(template.vector.len() as i64)
-                .bind(vector_to_blob(&template.vector))
+                .bind(encode_vector(&sealing, subject.as_str(), template))
                 .execute(&mut *tx)
                 .await?;
         }
@@ -111,42 +189,62 @@ impl Store {
         Ok(count as u32)
     }
 
-    /// All templates of `subject`, or `None` when the subject is unknown.
+    /// All templates of `subject`, or `None` when the subject is unknown. A template that fails
+    /// authentication fails the whole read.
     pub async fn templates(&self, subject: &SubjectId) -> Result<Option<Vec<Template>>, StoreError> {
         let mut tx = self.pool.begin().await?;
-        let exists: Option<i64> =
-            sqlx::query_scalar("SELECT 1 FROM subjects WHERE id = ?1").bind(subject.as_str()).fetch_optional(&mut *tx).await?;
-        if exists.is_none() {
+        let Some(keys) =
+            sqlx::query("SELECT key_id, data_key FROM subjects WHERE id = ?1").bind(subject.as_str()).fetch_optional(&mut *tx).await?
+        else {
             return Ok(None);
-        }
+        };
         let rows = sqlx::query("SELECT id, model_version, dimension, vector FROM templates WHERE subject_id = ?1 ORDER BY id")
             .bind(subject.as_str())
             .fetch_all(&mut *tx)
             .await?;
         tx.commit().await?;
-        rows.iter().map(template_from_row).collect::<Result<Vec<_>, _>>().map(Some)
+        let sealing = self.sealing(subject.as_str(), keys.try_get("key_id")?, keys.try_get("data_key")?)?;
+        rows.iter().map(|row| template_from_row(&sealing, subject.as_str(), row)).collect::<Result<Vec<_>, _>>().map(Some)
     }
 
-    /// Every subject's templates made by `model_version`, grouped by subject (ordered by id).
-    /// Subjects without such templates are left out.
-    pub async fn gallery(&self, model_version: &str) -> Result<Vec<(String, Vec<Template>)>, StoreError> {
-        let rows = sqlx::query(
-            "SELECT id, subject_id, model_version, dimension, vector FROM templates
-             WHERE model_version = ?1 ORDER BY subject_id, id",
+    /// Every subject's templates made by `model_version`, handed to `each` one subject at a time
+    /// in subject id order (rows are streamed, so the whole gallery is never held twice). A
+    /// subject whose templates cannot be read is handed its error; the scan goes on.
+    pub async fn gallery(
+        &self,
+        model_version: &str,
+        mut each: impl FnMut(&str, Result<Vec<Template>, StoreError>),
+    ) -> Result<(), StoreError> {
+        let mut rows = sqlx::query(
+            "SELECT t.id, t.subject_id, t.model_version, t.dimension, t.vector, s.key_id, s.data_key
+             FROM templates t JOIN subjects s ON s.id = t.subject_id
+             WHERE t.model_version = ?1 ORDER BY t.subject_id, t.id",
         )
         .bind(model_version)
-        .fetch_all(&self.pool)
-        .await?;
-        let mut gallery: Vec<(String, Vec<Template>)> = Vec::new();
-        for row in &rows {
+        .fetch(&self.pool);
+        let mut current: Option<SubjectReading> = None;
+        while let Some(row) = rows.try_next().await? {
             let subject: String = row.try_get("subject_id")?;
-            let template = template_from_row(row)?;
-            match gallery.last_mut() {
-                Some((last, templates)) if *last == subject => templates.push(template),
-                _ => gallery.push((subject, vec![template])),
+            if current.as_ref().is_none_or(|(s, _, _)| *s != subject) {
+                if let Some((done, _, templates)) = current.take() {
+                    each(&done, templates);
+                }
+                current = Some(match self.sealing(&subject, row.try_get("key_id")?, row.try_get("data_key")?) {
+                    Ok(sealing) => (subject, Some(sealing), Ok(Vec::new())),
+                    Err(e) => (subject, None, Err(e)),
+                });
+            }
+            if let Some((subject, Some(sealing), templates @ Ok(_))) = current.as_mut() {
+                match template_from_row(sealing, subject, &row) {
+                    Ok(template) => templates.as_mut().expect("matched Ok").push(template),
+                    Err(e) => *templates = Err(e),
+                }
             }
         }
-        Ok(gallery)
+        if let Some((done, _, templates)) = current.take() {
+            each(&done, templates);
+        }
+        Ok(())
     }
 
     /// Subjects ordered by id, at most `limit` of them, starting after the id `after`.
@@ -200,15 +298,25 @@ impl Store {
         }))
     }
 
-    /// Erase a subject and all its templates. Returns how many templates were erased, or `None`
-    /// when the subject is unknown.
+    /// Erase a subject, its templates and its data key. Returns how many templates were erased,
+    /// or `None` when the subject is unknown. The WAL is then checkpointed and truncated, so the
+    /// erased rows are left neither in the WAL nor (`secure_delete`) in the database's free space.
     pub async fn delete_subject(&self, id: &SubjectId) -> Result<Option<u32>, StoreError> {
         let mut tx = self.pool.begin().await?;
         let templates: i64 =
             sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = ?1").bind(id.as_str()).fetch_one(&mut *tx).await?;
         let deleted = sqlx::query("DELETE FROM subjects WHERE id = ?1").bind(id.as_str()).execute(&mut *tx).await?.rows_affected();
         tx.commit().await?;
+        if deleted > 0 {
+            self.checkpoint().await?;
+        }
         Ok((deleted > 0).then_some(templates as u32))
+    }
+
+    /// Copy the WAL into the database and truncate it (waits for readers, up to the busy timeout).
+    pub async fn checkpoint(&self) -> Result<(), StoreError> {
+        sqlx::query("PRAGMA wal_checkpoint(TRUNCATE)").fetch_all(&self.pool).await?;
+        Ok(())
     }
 
     /// Number of subjects and of templates (for metrics and health).
@@ -218,13 +326,169 @@ impl Store {
         Ok((row.try_get::<i64, _>("s")? as u64, row.try_get::<i64, _>("t")? as u64))
     }
 
+    /// Bring every subject under the current key: data keys wrapped by an older key of the ring
+    /// are re-wrapped (the sealed templates stay as they are), and plain subjects are sealed with
+    /// a new data key. One transaction per subject, so the service may keep running and an
+    /// interrupted run resumes where it stopped (subjects already under the current key are
+    /// skipped). `progress` is called after each subject.
+    pub async fn rekey(&self, mut progress: impl FnMut(&RekeyReport)) -> Result<RekeyReport, StoreError> {
+        let keys = self.keys.clone().ok_or_else(|| StoreError::Refused("rekey needs a template key".into()))?;
+        let current = keys.current_id().to_string();
+        let mut report = RekeyReport::default();
+        let mut after = String::new();
+        loop {
+            let batch: Vec<String> =
+                sqlx::query_scalar("SELECT id FROM subjects WHERE id > ?1 AND (key_id IS NULL OR key_id <> ?2) ORDER BY id LIMIT 256")
+                    .bind(&after)
+                    .bind(&current)
+                    .fetch_all(&self.pool)
+                    .await?;
+            let Some(last) = batch.last() else { break };
+            after = last.clone();
+            for subject in &batch {
+                let mut tx = self.pool.begin().await?;
+                // A write first, so the transaction holds the write lock from its start.
+                sqlx::query("UPDATE subjects SET key_id = key_id WHERE id = ?1").bind(subject).execute(&mut *tx).await?;
+                let Some(row) =
+                    sqlx::query("SELECT key_id, data_key FROM subjects WHERE id = ?1").bind(subject).fetch_optional(&mut *tx).await?
+                else {
+                    continue; // deleted meanwhile
+                };
+                match self.sealing(subject, row.try_get("key_id")?, row.try_get("data_key")?)? {
+                    Sealing::Plain => {
+                        let (_, sealed) = seal_subject(&mut tx, &keys, subject).await?;
+                        report.sealed += 1;
+                        report.templates_sealed += sealed;
+                    }
+                    Sealing::Sealed(data_key) => {
+                        sqlx::query("UPDATE subjects SET key_id = ?2, data_key = ?3 WHERE id = ?1")
+                            .bind(subject)
+                            .bind(&current)
+                            .bind(keys.wrap(&data_key, subject))
+                            .execute(&mut *tx)
+                            .await?;
+                        report.rewrapped += 1;
+                    }
+                }
+                tx.commit().await?;
+                progress(&report);
+            }
+        }
+        Ok(report)
+    }
+
+    /// Write a consistent copy of the database to `path` (which must not exist) while it stays in
+    /// use: `VACUUM INTO`, one read transaction, so writers go on meanwhile. The copy holds no free
+    /// pages (nothing deleted), and is synced to disk before this returns.
+    pub async fn backup(&self, path: &Path) -> Result<(), StoreError> {
+        if path.exists() {
+            return Err(StoreError::Refused(format!("{} exists; a backup never overwrites a file", path.display())));
+        }
+        let target = path.to_str().ok_or_else(|| StoreError::Refused(format!("{} is not UTF-8", path.display())))?;
+        sqlx::query("VACUUM INTO ?1").bind(target).execute(&self.pool).await?;
+        let io = |source| StoreError::Io { path: path.to_path_buf(), source };
+        std::fs::File::open(path).and_then(|f| f.sync_all()).map_err(io)?;
+        Ok(())
+    }
+
     /// Close the pool, checkpointing the WAL.
     pub async fn close(&self) {
         self.pool.close().await;
     }
 }
 
-/// Little-endian f32s, the on-disk form of a template vector.
+/// Replace the database at `url` with the backup file `backup` (made by [`Store::backup`]). The
+/// backup is checked first (SQLite's integrity check, a facegate schema). An existing database is
+/// overwritten only with `overwrite`, and never while another process has it open. Returns the
+/// backup's subject and template counts.
+pub async fn restore(backup: &Path, url: &str, overwrite: bool) -> Result<(u64, u64), StoreError> {
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| StoreError::Io { path, source }
+    };
+    let mut source = SqliteConnection::connect_with(&SqliteConnectOptions::new().filename(backup).read_only(true)).await?;
+    let check: String = sqlx::query_scalar("PRAGMA integrity_check").fetch_one(&mut source).await?;
+    if check != "ok" {
+        return Err(StoreError::Refused(format!("{} fails SQLite's integrity check: {check}", backup.display())));
+    }
+    let counts = sqlx::query("SELECT (SELECT count(*) FROM subjects) AS s, (SELECT count(*) FROM templates) AS t")
+        .fetch_one(&mut source)
+        .await
+        .map_err(|e| StoreError::Refused(format!("{} is not a facegate database: {e}", backup.display())))?;
+    let counts = (counts.try_get::<i64, _>("s")? as u64, counts.try_get::<i64, _>("t")? as u64);
+    source.close().await?;
+
+    let options = connect_options(url)?;
+    let target = options.get_filename().to_path_buf();
+    let sidecar = |suffix: &str| {
+        let mut name = target.clone().into_os_string();
+        name.push(suffix);
+        PathBuf::from(name)
+    };
+    if target.exists() {
+        if !overwrite {
+            return Err(StoreError::Refused(format!("{} exists; restore over it only when told to (--force)", target.display())));
+        }
+        // Exclusive locking fails at once while any other connection has the database open.
+        let exclusive = options.clone().locking_mode(SqliteLockingMode::Exclusive).busy_timeout(Duration::ZERO);
+        let mut live = SqliteConnection::connect_with(&exclusive)
+            .await
+            .map_err(|e| StoreError::Refused(format!("{} is in use ({e}); stop the service first", target.display())))?;
+        let in_use = sqlx::query("PRAGMA wal_checkpoint(TRUNCATE)").fetch_all(&mut live).await;
+        live.close().await?;
+        in_use.map_err(|e| StoreError::Refused(format!("{} is in use ({e}); stop the service first", target.display())))?;
+    }
+    // Copied beside the target, synced, then renamed over it: the target is either the old
+    // database or the whole backup. A WAL left by the old database must not be applied to it.
+    let staged = sidecar(".restoring");
+    std::fs::copy(backup, &staged).map_err(io(&staged))?;
+    std::fs::File::open(&staged).and_then(|f| f.sync_all()).map_err(io(&staged))?;
+    for stale in [sidecar("-wal"), sidecar("-shm")] {
+        match std::fs::remove_file(&stale) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(io(&stale)(e)),
+            _ => {}
+        }
+    }
+    std::fs::rename(&staged, &target).map_err(io(&target))?;
+    if let Some(dir) = target.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::File::open(dir).and_then(|d| d.sync_all()).map_err(io(dir))?;
+    }
+    Ok(counts)
+}
+
+/// Give `subject` a new data key (wrapped by the current key) and seal its plain templates under
+/// it, inside `tx`. Returns the key and how many templates were sealed.
+async fn seal_subject(tx: &mut SqliteConnection, keys: &KeyRing, subject: &str) -> Result<(DataKey, u64), StoreError> {
+    let (data_key, wrapped) = keys.new_data_key(subject);
+    let rows = sqlx::query("SELECT id, model_version, dimension, vector FROM templates WHERE subject_id = ?1")
+        .bind(subject)
+        .fetch_all(&mut *tx)
+        .await?;
+    for row in &rows {
+        let template = template_from_row(&Sealing::Plain, subject, row)?;
+        sqlx::query("UPDATE templates SET vector = ?2 WHERE id = ?1")
+            .bind(row.try_get::<i64, _>("id")?)
+            .bind(data_key.seal_template(subject, &template.model_version, &template.vector))
+            .execute(&mut *tx)
+            .await?;
+    }
+    sqlx::query("UPDATE subjects SET key_id = ?2, data_key = ?3 WHERE id = ?1")
+        .bind(subject)
+        .bind(keys.current_id())
+        .bind(wrapped)
+        .execute(&mut *tx)
+        .await?;
+    Ok((data_key, rows.len() as u64))
+}
+
+fn encode_vector(sealing: &Sealing, subject: &str, template: &Template) -> Vec<u8> {
+    match sealing {
+        Sealing::Plain => vector_to_blob(&template.vector),
+        Sealing::Sealed(key) => key.seal_template(subject, &template.model_version, &template.vector),
+    }
+}
+
+/// Little-endian f32s, the on-disk form of a plain template vector.
 pub fn vector_to_blob(vector: &[f32]) -> Vec<u8> {
     vector.iter().flat_map(|v| v.to_le_bytes()).collect()
 }
@@ -234,15 +498,28 @@ pub fn blob_to_vector(blob: &[u8]) -> Option<Vec<f32>> {
     (blob.len() % 4 == 0).then(|| blob.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
 }
 
-fn template_from_row(row: &sqlx::sqlite::SqliteRow) -> Result<Template, StoreError> {
+/// A template row of `subject` read as its `sealing` says: a sealed vector must authenticate, a
+/// plain one must have exactly its dimension's length (a sealed vector on a plain subject, or the
+/// reverse, is refused: rows were moved or altered).
+fn template_from_row(sealing: &Sealing, subject: &str, row: &sqlx::sqlite::SqliteRow) -> Result<Template, StoreError> {
     let id: i64 = row.try_get("id")?;
     let dimension: i64 = row.try_get("dimension")?;
+    let model_version: String = row.try_get("model_version")?;
     let blob: Vec<u8> = row.try_get("vector")?;
-    let vector = blob_to_vector(&blob).ok_or_else(|| StoreError::CorruptTemplate { id, message: format!("{} bytes", blob.len()) })?;
-    if vector.len() as i64 != dimension {
-        return Err(StoreError::CorruptTemplate { id, message: format!("{} values, {dimension} expected", vector.len()) });
-    }
-    Ok(Template { model_version: row.try_get("model_version")?, vector })
+    let corrupt = |message: String| StoreError::CorruptTemplate { id, message };
+    let vector = match sealing {
+        Sealing::Plain => {
+            let vector = blob_to_vector(&blob).ok_or_else(|| corrupt(format!("{} bytes", blob.len())))?;
+            if vector.len() as i64 != dimension {
+                return Err(corrupt(format!("{} values, {dimension} expected", vector.len())));
+            }
+            vector
+        }
+        Sealing::Sealed(key) => {
+            key.open_template(subject, &model_version, dimension as usize, &blob).map_err(|e| corrupt(format!("subject {subject}: {e}")))?
+        }
+    };
+    Ok(Template { model_version, vector })
 }
 
 #[cfg(test)]
@@ -257,6 +534,13 @@ mod tests {
         Template { model_version: version.into(), vector: v.to_vec() }
     }
 
+    /// The gallery scan collected: each subject with its templates or why they cannot be read.
+    async fn scan(store: &Store, version: &str) -> Vec<(String, Result<Vec<Template>, String>)> {
+        let mut out = Vec::new();
+        store.gallery(version, |s, t| out.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap();
+        out
+    }
+
     async fn temp_store() -> (Store, std::path::PathBuf) {
         static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
         let dir = std::env::temp_dir().join(format!(
@@ -266,7 +550,7 @@ mod tests {
         ));
         std::fs::create_dir_all(&dir).unwrap();
         let url = format!("sqlite://{}", dir.join("t.db").display());
-        (Store::connect(&url).await.unwrap(), dir)
+        (Store::connect(&url, None).await.unwrap(), dir)
     }
 
     #[test]
@@ -290,8 +574,8 @@ mod tests {
         assert_eq!(alice[2], template("m2", &[0.5, 0.5, 0.0]));
         assert!(store.templates(&id("carol")).await.unwrap().is_none());
 
-        let gallery = store.gallery("m1").await.unwrap();
-        assert_eq!(gallery.iter().map(|(s, t)| (s.as_str(), t.len())).collect::<Vec<_>>(), [("alice", 2), ("bob", 1)]);
+        let gallery = scan(&store, "m1").await;
+        assert_eq!(gallery.iter().map(|(s, t)| (s.as_str(), t.as_ref().unwrap().len())).collect::<Vec<_>>(), [("alice", 2), ("bob", 1)]);
 
         let list = store.list_subjects(None, 10).await.unwrap();
         assert_eq!(list.iter().map(|s| (s.id.as_str(), s.templates)).collect::<Vec<_>>(), [("alice", 3), ("bob", 1)]);
@@ -325,5 +609,256 @@ mod tests {
         assert_eq!(mode, "wal");
         store.close().await;
         std::fs::remove_dir_all(dir).unwrap();
+    }
+}
+
+#[cfg(test)]
+mod at_rest {
+    //! Encryption, rotation, erasure, durability settings, backup and restore, on real files.
+
+    use super::*;
+
+    const K1: &str = "000102030405060708090a0b0c0d0e0f101112131415161718191a1b1c1d1e1f";
+    const K2: &str = "ff0102030405060708090a0b0c0d0e0f101112131415161718191a1b1c1d1eff";
+
+    fn ring(text: &str) -> Option<KeyRing> {
+        Some(KeyRing::parse(text).unwrap())
+    }
+
+    fn id(s: &str) -> SubjectId {
+        SubjectId::parse(s).unwrap()
+    }
+
+    /// A vector whose bytes are easy to find in a file, different per `seed`.
+    fn marked(seed: f32) -> Template {
+        Template { model_version: "m1".into(), vector: (0..32).map(|i| 1234.5678 + seed + i as f32 * 0.001).collect() }
+    }
+
+    struct Dir(PathBuf);
+
+    impl Dir {
+        fn new() -> Dir {
+            static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+            let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let dir = std::env::temp_dir().join(format!("facegate-at-rest-{}-{n}", std::process::id()));
+            std::fs::create_dir_all(&dir).unwrap();
+            Dir(dir)
+        }
+        fn url(&self, name: &str) -> String {
+            format!("sqlite://{}", self.0.join(name).display())
+        }
+        /// The database file and its WAL, as bytes.
+        fn raw(&self, name: &str) -> Vec<u8> {
+            let mut bytes = std::fs::read(self.0.join(name)).unwrap();
+            bytes.extend(std::fs::read(self.0.join(format!("{name}-wal"))).unwrap_or_default());
+            bytes
+        }
+    }
+
+    impl Drop for Dir {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+
+    fn contains(haystack: &[u8], needle: &[u8]) -> bool {
+        haystack.windows(needle.len()).any(|w| w == needle)
+    }
+
+    #[tokio::test]
+    async fn sealed_templates_read_back_and_never_show_in_the_file() {
+        let dir = Dir::new();
+        let store = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
+        assert!(store.encrypts());
+        store.enroll(&id("alice"), &[marked(0.0), marked(1.0)]).await.unwrap();
+        store.enroll(&id("alice"), &[marked(2.0)]).await.unwrap();
+        assert_eq!(store.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0), marked(1.0), marked(2.0)]);
+        let lengths: Vec<i64> = sqlx::query_scalar("SELECT length(vector) FROM templates").fetch_all(&store.pool).await.unwrap();
+        assert_eq!(lengths, [4 * 32 + 28; 3]);
+        store.checkpoint().await.unwrap();
+        let raw = dir.raw("t.db");
+        assert!(contains(&raw, b"alice"));
+        assert!(!contains(&raw, &vector_to_blob(&marked(0.0).vector)[..16]), "a plain vector in the file");
+
+        // Another key, or none, cannot read them: a server fault, never a score.
+        store.close().await;
+        let other = Store::connect(&dir.url("t.db"), ring(K2)).await.unwrap();
+        assert!(matches!(other.templates(&id("alice")).await, Err(StoreError::DataKey { .. })));
+        assert!(matches!(other.enroll(&id("alice"), &[marked(3.0)]).await, Err(StoreError::DataKey { .. })));
+        other.close().await;
+        let plain = Store::connect(&dir.url("t.db"), None).await.unwrap();
+        assert!(!plain.encrypts());
+        assert!(matches!(plain.templates(&id("alice")).await, Err(StoreError::NoKey { .. })));
+        assert!(matches!(plain.enroll(&id("alice"), &[marked(3.0)]).await, Err(StoreError::NoKey { .. })));
+        assert_eq!(plain.counts().await.unwrap(), (1, 3), "a refused enrolment stores nothing");
+        plain.close().await;
+    }
+
+    #[tokio::test]
+    async fn tampered_rows_are_refused() {
+        let dir = Dir::new();
+        let store = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
+        for (subject, seed) in [("alice", 0.0), ("bob", 1.0), ("carol", 2.0), ("dave", 3.0)] {
+            store.enroll(&id(subject), &[marked(seed)]).await.unwrap();
+        }
+        let exec = |sql: &'static str| {
+            let pool = store.pool.clone();
+            async move { sqlx::query(sql).execute(&pool).await.unwrap() }
+        };
+        // One bit of alice's vector flipped.
+        let mut vector: Vec<u8> =
+            sqlx::query_scalar("SELECT vector FROM templates WHERE subject_id = 'alice'").fetch_one(&store.pool).await.unwrap();
+        vector[20] ^= 1;
+        sqlx::query("UPDATE templates SET vector = ?1 WHERE subject_id = 'alice'").bind(vector).execute(&store.pool).await.unwrap();
+        // bob's template moved to carol (carol's own data key does not open it either).
+        exec("UPDATE templates SET subject_id = 'carol' WHERE subject_id = 'bob'").await;
+        // dave's model version relabelled.
+        exec("UPDATE templates SET model_version = 'm2' WHERE subject_id = 'dave'").await;
+        for subject in ["alice", "carol", "dave"] {
+            let read = store.templates(&id(subject)).await;
+            assert!(matches!(read, Err(StoreError::CorruptTemplate { .. })), "{subject}: {read:?}");
+        }
+        assert_eq!(store.templates(&id("bob")).await.unwrap().unwrap(), []);
+        // A data key swapped between subjects does not open.
+        exec("UPDATE subjects SET data_key = (SELECT data_key FROM subjects WHERE id = 'alice') WHERE id = 'bob'").await;
+        store.enroll(&id("erin"), &[marked(4.0)]).await.unwrap();
+        exec("UPDATE subjects SET data_key = (SELECT data_key FROM subjects WHERE id = 'alice') WHERE id = 'erin'").await;
+        assert!(matches!(store.templates(&id("erin")).await, Err(StoreError::DataKey { .. })));
+        // The gallery scan hands each unreadable subject its error and goes on.
+        store.enroll(&id("frank"), &[marked(5.0)]).await.unwrap();
+        let scanned = scan_m1(&store).await;
+        let readable: Vec<&str> = scanned.iter().filter(|(_, t)| t.is_ok()).map(|(s, _)| s.as_str()).collect();
+        let refused: Vec<&str> = scanned.iter().filter(|(_, t)| t.is_err()).map(|(s, _)| s.as_str()).collect();
+        assert_eq!((readable, refused), (vec!["frank"], vec!["alice", "carol", "erin"]));
+        store.close().await;
+    }
+
+    async fn scan_m1(store: &Store) -> Vec<(String, Result<Vec<Template>, String>)> {
+        let mut out = Vec::new();
+        store.gallery("m1", |s, t| out.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap();
+        out
+    }
+
+    #[tokio::test]
+    async fn rekey_seals_plain_subjects_then_rotates_resumably() {
+        let dir = Dir::new();
+        let plain = Store::connect(&dir.url("t.db"), None).await.unwrap();
+        plain.enroll(&id("alice"), &[marked(0.0)]).await.unwrap();
+        plain.enroll(&id("bob"), &[marked(1.0), marked(2.0)]).await.unwrap();
+        plain.enroll(&id("carol"), &[marked(3.0)]).await.unwrap();
+        assert!(matches!(plain.rekey(|_| {}).await, Err(StoreError::Refused(_))));
+        plain.close().await;
+
+        // A key set: plain subjects stay readable; an enrolment seals its subject; rekey the rest.
+        let keyed = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
+        assert_eq!(keyed.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0)]);
+        keyed.enroll(&id("carol"), &[marked(4.0)]).await.unwrap();
+        let mut steps = 0;
+        let report = keyed.rekey(|_| steps += 1).await.unwrap();
+        assert_eq!((report, steps), (RekeyReport { rewrapped: 0, sealed: 2, templates_sealed: 3 }, 2));
+        assert_eq!(keyed.rekey(|_| {}).await.unwrap(), RekeyReport::default(), "nothing left to do");
+        let sealed: i64 = sqlx::query_scalar("SELECT count(*) FROM templates WHERE length(vector) = 4 * dimension + 28")
+            .fetch_one(&keyed.pool)
+            .await
+            .unwrap();
+        assert_eq!(sealed, 5);
+        keyed.close().await;
+
+        // Rotation: K2 current, K1 still readable; after rekey, K2 alone reads everything.
+        let rotating = Store::connect(&dir.url("t.db"), ring(&format!("{K2}\n{K1}"))).await.unwrap();
+        assert_eq!(rotating.templates(&id("bob")).await.unwrap().unwrap(), [marked(1.0), marked(2.0)]);
+        assert_eq!(rotating.rekey(|_| {}).await.unwrap(), RekeyReport { rewrapped: 3, sealed: 0, templates_sealed: 0 });
+        rotating.close().await;
+        let rotated = Store::connect(&dir.url("t.db"), ring(K2)).await.unwrap();
+        assert_eq!(rotated.templates(&id("carol")).await.unwrap().unwrap(), [marked(3.0), marked(4.0)]);
+        assert_eq!(rotated.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0)]);
+        rotated.close().await;
+        let old_only = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
+        assert!(matches!(old_only.templates(&id("alice")).await, Err(StoreError::DataKey { source: CipherError::UnknownKey(_), .. })));
+        old_only.close().await;
+    }
+
+    /// Without a key the vectors are plain in the file; after DELETE (which checkpoints and
+    /// truncates the WAL) neither the subject id nor any vector byte is left in the database file
+    /// or its WAL. Without `secure_delete` this fails: the bytes stay in the freed pages.
+    #[tokio::test]
+    async fn a_deleted_subject_leaves_nothing_in_the_files() {
+        let dir = Dir::new();
+        let store = Store::connect(&dir.url("t.db"), None).await.unwrap();
+        let (secure, synchronous): (i64, i64) = (
+            sqlx::query_scalar("PRAGMA secure_delete").fetch_one(&store.pool).await.unwrap(),
+            sqlx::query_scalar("PRAGMA synchronous").fetch_one(&store.pool).await.unwrap(),
+        );
+        assert_eq!((secure, synchronous), (1, 2), "secure_delete on, synchronous FULL");
+        let erased = "erasure-subject-7f3a";
+        let erased_vectors = [marked(10.0), marked(20.0)];
+        store.enroll(&id("keeper"), &[marked(30.0)]).await.unwrap();
+        store.enroll(&id(erased), &erased_vectors).await.unwrap();
+        store.enroll(&id("later"), &[marked(40.0)]).await.unwrap();
+        let needles: Vec<Vec<u8>> = std::iter::once(erased.as_bytes().to_vec())
+            .chain(erased_vectors.iter().flat_map(|t| vector_to_blob(&t.vector).chunks(16).map(<[u8]>::to_vec).collect::<Vec<_>>()))
+            .collect();
+        store.checkpoint().await.unwrap();
+        let before = dir.raw("t.db");
+        assert!(needles.iter().all(|n| contains(&before, n)), "the test must see the plain bytes before the deletion");
+
+        assert_eq!(store.delete_subject(&id(erased)).await.unwrap(), Some(2));
+        let after = dir.raw("t.db");
+        for needle in &needles {
+            assert!(!contains(&after, needle), "{needle:?} is still in the database files");
+        }
+        assert!(contains(&after, &vector_to_blob(&marked(30.0).vector)[..16]), "the others stay");
+        store.close().await;
+        let after_close = dir.raw("t.db");
+        assert!(!needles.iter().any(|n| contains(&after_close, n)));
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn backup_while_in_use_then_restore() {
+        let dir = Dir::new();
+        let store = Store::connect(&dir.url("live.db"), ring(K1)).await.unwrap();
+        for i in 0..40 {
+            store.enroll(&id(&format!("s{i:02}")), &[marked(i as f32), marked(i as f32 + 0.5)]).await.unwrap();
+        }
+        // Enrolments keep coming while the backup runs.
+        let writer = {
+            let store = store.clone();
+            tokio::spawn(async move {
+                for i in 0..200 {
+                    store.enroll(&id(&format!("w{i:03}")), &[marked(100.0 + i as f32)]).await.unwrap();
+                }
+            })
+        };
+        let backup = dir.0.join("backup.db");
+        store.backup(&backup).await.unwrap();
+        assert!(matches!(store.backup(&backup).await, Err(StoreError::Refused(_))), "never overwrites");
+        writer.await.unwrap();
+        let (live_subjects, _) = store.counts().await.unwrap();
+        assert_eq!(live_subjects, 240);
+
+        // Restore to a new place: every subject of the backup reads back the same.
+        let (subjects, templates) = restore(&backup, &dir.url("restored.db"), false).await.unwrap();
+        assert!((40..=240).contains(&subjects) && templates == 80 + (subjects - 40), "{subjects} {templates}");
+        let restored = Store::connect(&dir.url("restored.db"), ring(K1)).await.unwrap();
+        for i in 0..40 {
+            let s = id(&format!("s{i:02}"));
+            assert_eq!(restored.templates(&s).await.unwrap(), store.templates(&s).await.unwrap());
+        }
+        assert_eq!(restored.counts().await.unwrap(), (subjects, templates));
+
+        // Not over an existing database unless told, and never over one in use.
+        assert!(matches!(restore(&backup, &dir.url("live.db"), false).await, Err(StoreError::Refused(_))));
+        let refused = restore(&backup, &dir.url("restored.db"), true).await;
+        assert!(matches!(refused, Err(StoreError::Refused(ref m)) if m.contains("in use")), "{refused:?}");
+        restored.close().await;
+        store.close().await;
+        assert_eq!(restore(&backup, &dir.url("live.db"), true).await.unwrap(), (subjects, templates));
+        let back = Store::connect(&dir.url("live.db"), ring(K1)).await.unwrap();
+        assert_eq!(back.counts().await.unwrap(), (subjects, templates));
+        assert_eq!(back.templates(&id("s07")).await.unwrap().unwrap(), [marked(7.0), marked(7.5)]);
+        back.close().await;
+        // Not a database at all.
+        std::fs::write(dir.0.join("junk.db"), b"not sqlite").unwrap();
+        assert!(restore(&dir.0.join("junk.db"), &dir.url("other.db"), false).await.is_err());
     }
 }

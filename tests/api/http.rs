@@ -8,6 +8,7 @@ use std::time::Duration;
 use facegate::core::imaging::DecodeLimits;
 use facegate::http::ApiConfig;
 use serde_json::json;
+use sqlx::Connection;
 
 use crate::support::*;
 
@@ -242,6 +243,51 @@ async fn health_metrics_and_openapi_are_served() {
     assert!(text.contains("facegate_subjects 1") && text.contains("facegate_templates 1"), "{text}");
     let r = app.get("/openapi.yaml").await;
     assert_eq!(r.body, facegate::http::OPENAPI_YAML.as_bytes());
+}
+
+/// `/identify` answers from the in-memory gallery, which follows enrolments and deletions; with a
+/// template key the templates are sealed, `/health` says so, and a tampered template is refused
+/// with a 500 problem (never scored) by `/verify` and, once loaded, by `/identify`.
+#[tokio::test]
+async fn identify_follows_enrol_and_delete_and_tampered_templates_are_refused() {
+    let plain = TestApp::start(StandInEngine::new("v1"), config()).await;
+    assert_eq!(plain.get("/health").await.json()["templates_encrypted"], false);
+
+    let keys = facegate::store::KeyRing::parse(&"5a".repeat(32)).unwrap();
+    let app = TestApp::start_with_keys(StandInEngine::new("v1"), config(), Some(keys)).await;
+    assert_eq!(app.get("/health").await.json()["templates_encrypted"], true);
+    let (alice, bob, carol) = (pattern_jpeg(320, 240, 1), pattern_jpeg(320, 240, 9), pattern_jpeg(320, 240, 5));
+    let top = |r: Reply| {
+        let i = r.json();
+        (i["candidates"][0]["subject"].as_str().map(String::from), i["candidates"][0]["match"].as_bool(), i["subjects_searched"].as_u64())
+    };
+    let r = app.post_form("/identify", None, &[bob.clone()]).await;
+    assert_eq!((r.status, r.json()["candidates"].as_array().unwrap().len(), r.json()["subjects_searched"].as_u64()), (200, 0, Some(0)));
+    for (subject, photo) in [("alice", &alice), ("bob", &bob), ("carol", &carol)] {
+        assert_eq!(app.post_form("/enroll", Some(subject), &[photo.clone()]).await.status, 201);
+    }
+    assert_eq!(top(app.post_form("/identify", None, &[bob.clone()]).await), (Some("bob".into()), Some(true), Some(3)));
+    assert_eq!(app.delete("/subjects/bob").await.status, 204);
+    let (best, is_match, searched) = top(app.post_form("/identify", None, &[bob.clone()]).await);
+    assert_ne!(best.as_deref(), Some("bob"));
+    assert_eq!((is_match, searched), (Some(false), Some(2)));
+    assert_eq!(app.post_form("/enroll", Some("bob"), &[bob.clone()]).await.status, 201);
+    assert_eq!(top(app.post_form("/identify", None, &[bob.clone()]).await), (Some("bob".into()), Some(true), Some(3)));
+
+    // One bit of alice's sealed template flipped in the database file.
+    let mut db = sqlx::SqliteConnection::connect(&format!("sqlite://{}", app.database().display())).await.unwrap();
+    let mut vector: Vec<u8> =
+        sqlx::query_scalar("SELECT vector FROM templates WHERE subject_id = 'alice'").fetch_one(&mut db).await.unwrap();
+    vector[30] ^= 0x10;
+    sqlx::query("UPDATE templates SET vector = ?1 WHERE subject_id = 'alice'").bind(vector).execute(&mut db).await.unwrap();
+    db.close().await.unwrap();
+    app.post_form("/verify", Some("alice"), &[alice.clone()]).await.assert_problem(500, "internal");
+    assert_eq!(app.post_form("/verify", Some("carol"), &[carol.clone()]).await.json()["match"], true, "others verify");
+    // A service started on this database refuses to identify until alice is erased.
+    let restarted = app.restarted_with(StandInEngine::new("v1"), config()).await;
+    restarted.post_form("/identify", None, &[alice.clone()]).await.assert_problem(500, "internal");
+    assert_eq!(restarted.delete("/subjects/alice").await.status, 204);
+    assert_eq!(top(restarted.post_form("/identify", None, &[carol.clone()]).await), (Some("carol".into()), Some(true), Some(2)));
 }
 
 /// CRC-32 (IEEE) as PNG chunks use it, to forge a consistent header.

@@ -19,7 +19,7 @@ use facegate::morph::AvatarFormat;
 use facegate::pipeline::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, PipelineError, StageTimings};
 use facegate::recognize::{OperatingPoint, Template};
 use facegate::service::Matcher;
-use facegate::store::Store;
+use facegate::store::{KeyRing, Store};
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
 
@@ -60,18 +60,37 @@ impl Reply {
     }
 }
 
+/// The connection loop's limits as `facegate serve` has them by default.
+fn default_limits() -> ServerLimits {
+    facegate::config::Settings::default().server_limits().unwrap()
+}
+
 impl TestApp {
     pub async fn start(engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {
-        Self::start_with(engine, config, facegate::config::Settings::default().server_limits().unwrap()).await
+        Self::start_full(engine, config, default_limits(), None).await
     }
 
     /// [`TestApp::start`] with the connection loop's limits given.
     pub async fn start_with(engine: Arc<dyn FaceEngine>, config: ApiConfig, limits: ServerLimits) -> TestApp {
+        Self::start_full(engine, config, limits, None).await
+    }
+
+    /// An app whose store seals templates under `keys`.
+    pub async fn start_with_keys(engine: Arc<dyn FaceEngine>, config: ApiConfig, keys: Option<KeyRing>) -> TestApp {
+        Self::start_full(engine, config, default_limits(), keys).await
+    }
+
+    async fn start_full(engine: Arc<dyn FaceEngine>, config: ApiConfig, limits: ServerLimits, keys: Option<KeyRing>) -> TestApp {
         static N: AtomicUsize = AtomicUsize::new(0);
         let dir = std::env::temp_dir().join(format!("facegate-api-{}-{}", std::process::id(), N.fetch_add(1, Ordering::Relaxed)));
         std::fs::create_dir_all(&dir).unwrap();
-        let store = Store::connect(&format!("sqlite://{}", dir.join("facegate.db").display())).await.unwrap();
+        let store = Store::connect(&format!("sqlite://{}", dir.join("facegate.db").display()), keys).await.unwrap();
         Self::serve(engine, store, config, limits, dir).await
+    }
+
+    /// The database file of an app made by `start` (not by `restarted_with`).
+    pub fn database(&self) -> PathBuf {
+        self.dir.join("facegate.db")
     }
 
     /// A second app on this one's database with another engine (a service restarted with another
@@ -79,7 +98,7 @@ impl TestApp {
     pub async fn restarted_with(&self, engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {
         let scratch = self.dir.join(format!("restart-{}", std::process::id()));
         std::fs::create_dir_all(&scratch).unwrap();
-        Self::serve(engine, self.store.clone(), config, facegate::config::Settings::default().server_limits().unwrap(), scratch).await
+        Self::serve(engine, self.store.clone(), config, default_limits(), scratch).await
     }
 
     /// The app behind the service's own connection loop (`http::server`), as `facegate serve` runs it.

@@ -1,0 +1,76 @@
+//! `/identify`'s search: the in-memory gallery (`service::gallery::Gallery::search`, one pass of
+//! dot products over a contiguous matrix) against the per-subject `service::identify` it replaces,
+//! in the same run, on synthetic 128-d unit templates (one per subject) at 10k, 100k and 1M. The
+//! matcher scores by the best cosine, as the deep recognizer does. Times are the benchmark
+//! thread's CPU time (`benches/common`): the search is single-threaded. The per-subject path is
+//! timed up to 100k (at 1M its input alone would take gigabytes).
+//!
+//! `cargo bench --bench gallery`; memory per template: `cargo run --release --example gallery_rss`.
+
+use criterion::{BatchSize, BenchmarkId, Criterion, black_box};
+use facegate::recognize::{OperatingPoint, Template};
+use facegate::service::Matcher;
+use facegate::service::gallery::Gallery;
+use rand::{Rng, SeedableRng};
+
+mod common;
+
+const DIMS: usize = 128;
+
+/// The deep recognizer's scoring (the best cosine), with a fixed threshold.
+struct MaxCosine;
+
+impl Matcher for MaxCosine {
+    fn model_version(&self) -> &str {
+        "bench"
+    }
+    fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
+        enrolled.iter().map(|t| probe.cosine(t)).fold(f32::NEG_INFINITY, f32::max)
+    }
+    fn operating_point(&self, fmr: f64, _enrolled: usize) -> OperatingPoint {
+        OperatingPoint { fmr, threshold: 0.6 }
+    }
+    fn max_cosine_scoring(&self) -> bool {
+        true
+    }
+}
+
+fn template(rng: &mut impl Rng) -> Template {
+    Template::new("bench", (0..DIMS).map(|_| rng.random_range(-1.0f32..1.0)).collect())
+}
+
+fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(15);
+    let probe = template(&mut rng);
+    let mut group = c.benchmark_group("identify");
+    for n in [10_000usize, 100_000, 1_000_000] {
+        let subjects: Vec<(String, Vec<Template>)> = (0..n).map(|i| (format!("subject-{i:07}"), vec![template(&mut rng)])).collect();
+        let mut gallery = Gallery::new("bench");
+        for (subject, templates) in &subjects {
+            gallery.add(subject, templates);
+        }
+        let (found, _) = gallery.search(&MaxCosine, &probe, 1e-3, 5).unwrap();
+        group.bench_with_input(BenchmarkId::new("gallery", n), &n, |b, _| {
+            b.iter(|| black_box(gallery.search(&MaxCosine, black_box(&probe), 1e-3, 5).unwrap()))
+        });
+        if n <= 100_000 {
+            let expected = facegate::service::identify(&MaxCosine, &probe, subjects.clone(), 1e-3, 5);
+            let names = |c: &[facegate::service::Candidate]| c.iter().map(|c| c.subject.clone()).collect::<Vec<_>>();
+            assert_eq!(names(&found), names(&expected), "the gallery finds what service::identify finds");
+            group.bench_with_input(BenchmarkId::new("per_subject", n), &n, |b, _| {
+                b.iter_batched(
+                    || subjects.clone(),
+                    |subjects| black_box(facegate::service::identify(&MaxCosine, &probe, subjects, 1e-3, 5)),
+                    BatchSize::PerIteration,
+                )
+            });
+        }
+    }
+    group.finish();
+}
+
+fn main() {
+    let mut c = Criterion::default().with_measurement(common::ThreadCpuTime).sample_size(10).configure_from_args();
+    bench(&mut c);
+    c.final_summary();
+}
