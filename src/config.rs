@@ -16,6 +16,7 @@ use std::time::Duration;
 use crate::core::imaging::DecodeLimits;
 use crate::http::ApiConfig;
 use crate::pipeline::PipelineConfig;
+use crate::quality::QualityPolicy;
 use crate::recognize::DEFAULT_FMR;
 use crate::recognize::RecognizerKind;
 
@@ -56,6 +57,14 @@ const DEFAULT_MAX_DECODE_MB: u64 = 256;
 const DEFAULT_MAX_IMAGES: usize = 16;
 const DEFAULT_TIMEOUT_SECS: f64 = 30.0;
 const DEFAULT_CONSOLE: bool = true;
+// The enrolment quality policy (docs/quality.md: what each refuses of IMM and ORL).
+const DEFAULT_MIN_QUALITY: f32 = 50.0;
+const DEFAULT_MIN_INTER_EYE_PX: f32 = 20.0;
+const DEFAULT_MIN_SHARPNESS: f32 = 3.0;
+const DEFAULT_MIN_BRIGHTNESS: f32 = 40.0;
+const DEFAULT_MAX_BRIGHTNESS: f32 = 220.0;
+const DEFAULT_MAX_YAW_DEG: f32 = 45.0;
+const DEFAULT_MAX_PITCH_DEG: f32 = 30.0;
 
 /// The service's settings: command-line flags, each also read from its `FACEGATE_*` variable.
 #[derive(clap::Args, Debug, Clone, PartialEq)]
@@ -103,6 +112,27 @@ pub struct Settings {
     /// Serve the web console at `/` (`--console false` serves the API only).
     #[arg(long, env = "FACEGATE_CONSOLE", default_value_t = DEFAULT_CONSOLE, action = clap::ArgAction::Set)]
     pub console: bool,
+    /// Enrolment: least unified quality score (0–100) of a photo; 0 accepts any.
+    #[arg(long, env = "FACEGATE_MIN_QUALITY", default_value_t = DEFAULT_MIN_QUALITY)]
+    pub min_quality: f32,
+    /// Enrolment: least distance between the eye centres, photo pixels.
+    #[arg(long, env = "FACEGATE_MIN_INTER_EYE_PX", default_value_t = DEFAULT_MIN_INTER_EYE_PX)]
+    pub min_inter_eye_px: f32,
+    /// Enrolment: least sharpness (RMS Laplacian of the face chip, grey levels).
+    #[arg(long, env = "FACEGATE_MIN_SHARPNESS", default_value_t = DEFAULT_MIN_SHARPNESS)]
+    pub min_sharpness: f32,
+    /// Enrolment: least mean grey level of the face (0–255).
+    #[arg(long, env = "FACEGATE_MIN_BRIGHTNESS", default_value_t = DEFAULT_MIN_BRIGHTNESS)]
+    pub min_brightness: f32,
+    /// Enrolment: largest mean grey level of the face (0–255).
+    #[arg(long, env = "FACEGATE_MAX_BRIGHTNESS", default_value_t = DEFAULT_MAX_BRIGHTNESS)]
+    pub max_brightness: f32,
+    /// Enrolment: largest |yaw| of the head, degrees (3DMM fit; not checked without it).
+    #[arg(long, env = "FACEGATE_MAX_YAW_DEG", default_value_t = DEFAULT_MAX_YAW_DEG)]
+    pub max_yaw_deg: f32,
+    /// Enrolment: largest |pitch| of the head, degrees (3DMM fit; not checked without it).
+    #[arg(long, env = "FACEGATE_MAX_PITCH_DEG", default_value_t = DEFAULT_MAX_PITCH_DEG)]
+    pub max_pitch_deg: f32,
 }
 
 impl Default for Settings {
@@ -123,6 +153,13 @@ impl Default for Settings {
             max_images: DEFAULT_MAX_IMAGES,
             timeout_secs: DEFAULT_TIMEOUT_SECS,
             console: DEFAULT_CONSOLE,
+            min_quality: DEFAULT_MIN_QUALITY,
+            min_inter_eye_px: DEFAULT_MIN_INTER_EYE_PX,
+            min_sharpness: DEFAULT_MIN_SHARPNESS,
+            min_brightness: DEFAULT_MIN_BRIGHTNESS,
+            max_brightness: DEFAULT_MAX_BRIGHTNESS,
+            max_yaw_deg: DEFAULT_MAX_YAW_DEG,
+            max_pitch_deg: DEFAULT_MAX_PITCH_DEG,
         }
     }
 }
@@ -147,7 +184,21 @@ impl Settings {
             api_keys: self.api_keys.iter().map(|k| k.trim().to_string()).filter(|k| !k.is_empty()).collect(),
             default_fmr: DEFAULT_FMR,
             console: self.console,
+            quality_policy: self.quality_policy(),
         })
+    }
+
+    /// The enrolment quality policy.
+    pub fn quality_policy(&self) -> QualityPolicy {
+        QualityPolicy {
+            min_score: Some(self.min_quality),
+            min_inter_eye_px: Some(self.min_inter_eye_px),
+            min_sharpness: Some(self.min_sharpness),
+            min_brightness: Some(self.min_brightness),
+            max_brightness: Some(self.max_brightness),
+            max_yaw_deg: Some(self.max_yaw_deg),
+            max_pitch_deg: Some(self.max_pitch_deg),
+        }
     }
 
     /// The pipeline's model folders: the flags' when given, else [`pipeline_config`]'s.
@@ -179,6 +230,15 @@ mod tests {
         if !["BIND", "DATABASE_URL", "MODELS", "SFM", "API_KEYS", "WORKERS", "QUEUE", "MAX_BODY_MB", "MAX_PIXELS", "MAX_DECODE_MB"]
             .iter()
             .chain(&["MAX_IMAGES", "TIMEOUT_SECS", "CONSOLE"])
+            .chain(&[
+                "MIN_QUALITY",
+                "MIN_INTER_EYE_PX",
+                "MIN_SHARPNESS",
+                "MIN_BRIGHTNESS",
+                "MAX_BRIGHTNESS",
+                "MAX_YAW_DEG",
+                "MAX_PITCH_DEG",
+            ])
             .any(|v| env_set(&format!("FACEGATE_{v}")))
         {
             assert_eq!(parsed, Settings::default());
