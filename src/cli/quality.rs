@@ -42,9 +42,12 @@ pub struct EvalQualityArgs {
     /// The unified score's model (default: `quality.bin` of the models folder).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Folder for the plots (`quality-edc-{imm,orl,lfw}.svg`) and the numbers (`quality-edc.csv`).
-    #[arg(long, default_value = "docs")]
-    pub out: PathBuf,
+    /// Folder for the plots (`quality-edc-{imm,orl,lfw}.svg`).
+    #[arg(long, default_value = "docs/img")]
+    pub plots: PathBuf,
+    /// The curves' numbers: set, measure, share discarded, FNMR, genuine pairs left.
+    #[arg(long, default_value = "docs/quality-edc.csv")]
+    pub csv: PathBuf,
     #[command(flatten)]
     pub data: QualityDataArgs,
     /// The enrolment policy whose refusals are counted (the service's flags, same defaults).
@@ -142,8 +145,8 @@ pub fn run_eval(args: EvalQualityArgs) -> anyhow::Result<ExitCode> {
     let model = QualityModel::load(&args.model.clone().unwrap_or_else(|| models.join(crate::quality::FILE)))?;
     let t = threshold(&deep);
     println!("{} at its FMR 1e-3 threshold {t}; unified score: {}", deep.version, model.trained_on);
-    std::fs::create_dir_all(&args.out)?;
-    let mut csv = std::fs::File::create(args.out.join("quality-edc.csv"))?;
+    std::fs::create_dir_all(&args.plots)?;
+    let mut csv = std::fs::File::create(&args.csv)?;
     writeln!(csv, "set,measure,discarded,fnmr,genuine_pairs")?;
     let shares = discard_shares();
     for (set, name) in [(Set::Imm, "imm"), (Set::Orl, "orl"), (Set::Lfw, "lfw")] {
@@ -179,7 +182,7 @@ pub fn run_eval(args: EvalQualityArgs) -> anyhow::Result<ExitCode> {
             x_scale: Scale::Linear,
             y_scale: Scale::Linear,
         };
-        let path = args.out.join(format!("quality-edc-{name}.svg"));
+        let path = args.plots.join(format!("quality-edc-{name}.svg"));
         line_chart(&path, &chart, &series)?;
         println!("  plot: {}", path.display());
     }
@@ -224,11 +227,11 @@ components, all persons: 1st / 5th / 50th / 95th percentile"
     }
 }
 
-/// How many IMM and ORL photos (all persons, and the held-out ones) the policy refuses, by limit.
+/// How many IMM, ORL and LFW photos (all persons, and the held-out ones) the policy refuses, by limit.
 fn policy_report(samples: &[Sample], measured: &[Option<Measured>], model: &QualityModel, settings: &Settings) {
     let policy = settings.quality_policy();
     println!("\nenrolment policy {policy:?}");
-    for (set, name) in [(Set::Imm, "IMM"), (Set::Orl, "ORL")] {
+    for (set, name) in [(Set::Imm, "IMM"), (Set::Orl, "ORL"), (Set::Lfw, "LFW")] {
         for (scope, held_out_only) in [("all persons", false), ("held-out persons", true)] {
             let assessed: Vec<_> = samples
                 .iter()
