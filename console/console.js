@@ -53,6 +53,10 @@ function showProblem(target, error) {
         const slug = (p.type || '').split('/').pop();
         box.append(el('strong', { text: `${p.title || 'Refused'} (${error.status})` }), el('p', { text: p.detail || '' }));
         if (p.image !== undefined) box.append(el('p', { text: `Photo number ${p.image + 1}` }));
+        if (Array.isArray(p.failures)) {
+            const item = (f) => el('li', { text: `${f.component.replaceAll('_', ' ')}: ${fmt(f.value, 1)} (${f.bound} ${fmt(f.limit, 1)})` });
+            box.append(el('ul', { class: 'failures' }, ...p.failures.map(item)));
+        }
         if (slug) box.append(el('code', { text: slug }));
     } else {
         box.append(el('strong', { text: 'The request failed' }), el('p', { text: String(error.message || error) }));
@@ -200,6 +204,18 @@ function faceDetails(report) {
         ['Landmarks', `${report.landmarks.points.length} points`],
         ['Pose (yaw, pitch, roll)', pose ? `${fmt(pose.yaw, 1)}°, ${fmt(pose.pitch, 1)}°, ${fmt(pose.roll, 1)}°` : 'unknown (no 3D model)'],
     ], 'The face used'));
+    const q = report.quality;
+    if (q) {
+        const deg = (v) => (typeof v === 'number' ? `${fmt(v, 1)}°` : 'unknown');
+        parts.push(table([
+            ['Quality score', `${fmt(q.score, 0)} / 100`],
+            ['Eye distance', `${fmt(q.inter_eye_px, 0)} px`],
+            ['Sharpness', fmt(q.sharpness, 1)],
+            ['Brightness, contrast', `${fmt(q.brightness, 0)}, ${fmt(q.contrast, 0)}`],
+            ['Light evenness', fmt(q.illumination_uniformity, 2)],
+            ['|Yaw|, |pitch|', `${deg(q.yaw_abs_deg)}, ${deg(q.pitch_abs_deg)}`],
+        ], 'Photo quality'));
+    }
     if (report.timings) {
         const rows = Object.entries(report.timings).map(([k, v]) => [k.replace(/_ms$/, '').replace('_', ' '), `${fmt(v, 1)} ms`]);
         parts.push(table(rows, 'Time per stage'));

@@ -17,6 +17,7 @@ use crate::core::imaging::DecodeLimits;
 use crate::http::ApiConfig;
 use crate::http::server::ServerLimits;
 use crate::pipeline::PipelineConfig;
+use crate::quality::QualityPolicy;
 use crate::recognize::DEFAULT_FMR;
 use crate::recognize::RecognizerKind;
 use crate::store::KeyRing;
@@ -77,6 +78,14 @@ pub enum LogFormat {
     /// One JSON object per line (fields of audit events as JSON fields).
     Json,
 }
+// The enrolment quality policy (docs/quality.md: what each refuses of IMM and ORL).
+const DEFAULT_MIN_QUALITY: f32 = 50.0;
+const DEFAULT_MIN_INTER_EYE_PX: f32 = 20.0;
+const DEFAULT_MIN_SHARPNESS: f32 = 3.0;
+const DEFAULT_MIN_BRIGHTNESS: f32 = 40.0;
+const DEFAULT_MAX_BRIGHTNESS: f32 = 220.0;
+const DEFAULT_MAX_YAW_DEG: f32 = 45.0;
+const DEFAULT_MAX_PITCH_DEG: f32 = 30.0;
 
 /// The service's settings: command-line flags, each also read from its `FACEGATE_*` variable.
 #[derive(clap::Args, Debug, Clone, PartialEq)]
@@ -153,6 +162,27 @@ pub struct Settings {
     /// Serve the web console at `/` (`--console false` serves the API only).
     #[arg(long, env = "FACEGATE_CONSOLE", default_value_t = DEFAULT_CONSOLE, action = clap::ArgAction::Set)]
     pub console: bool,
+    /// Enrolment: least unified quality score (0–100) of a photo; 0 accepts any.
+    #[arg(long, env = "FACEGATE_MIN_QUALITY", default_value_t = DEFAULT_MIN_QUALITY)]
+    pub min_quality: f32,
+    /// Enrolment: least distance between the eye centres, photo pixels.
+    #[arg(long, env = "FACEGATE_MIN_INTER_EYE_PX", default_value_t = DEFAULT_MIN_INTER_EYE_PX)]
+    pub min_inter_eye_px: f32,
+    /// Enrolment: least sharpness (RMS Laplacian of the face chip, grey levels).
+    #[arg(long, env = "FACEGATE_MIN_SHARPNESS", default_value_t = DEFAULT_MIN_SHARPNESS)]
+    pub min_sharpness: f32,
+    /// Enrolment: least mean grey level of the face (0–255).
+    #[arg(long, env = "FACEGATE_MIN_BRIGHTNESS", default_value_t = DEFAULT_MIN_BRIGHTNESS)]
+    pub min_brightness: f32,
+    /// Enrolment: largest mean grey level of the face (0–255).
+    #[arg(long, env = "FACEGATE_MAX_BRIGHTNESS", default_value_t = DEFAULT_MAX_BRIGHTNESS)]
+    pub max_brightness: f32,
+    /// Enrolment: largest |yaw| of the head, degrees (3DMM fit; not checked without it).
+    #[arg(long, env = "FACEGATE_MAX_YAW_DEG", default_value_t = DEFAULT_MAX_YAW_DEG)]
+    pub max_yaw_deg: f32,
+    /// Enrolment: largest |pitch| of the head, degrees (3DMM fit; not checked without it).
+    #[arg(long, env = "FACEGATE_MAX_PITCH_DEG", default_value_t = DEFAULT_MAX_PITCH_DEG)]
+    pub max_pitch_deg: f32,
     #[command(flatten)]
     pub template_key: TemplateKeyArgs,
 }
@@ -202,6 +232,13 @@ impl Default for Settings {
             log_format: LogFormat::default(),
             console: DEFAULT_CONSOLE,
             template_key: TemplateKeyArgs::default(),
+            min_quality: DEFAULT_MIN_QUALITY,
+            min_inter_eye_px: DEFAULT_MIN_INTER_EYE_PX,
+            min_sharpness: DEFAULT_MIN_SHARPNESS,
+            min_brightness: DEFAULT_MIN_BRIGHTNESS,
+            max_brightness: DEFAULT_MAX_BRIGHTNESS,
+            max_yaw_deg: DEFAULT_MAX_YAW_DEG,
+            max_pitch_deg: DEFAULT_MAX_PITCH_DEG,
         }
     }
 }
@@ -232,7 +269,21 @@ impl Settings {
             api_keys: self.api_keys()?,
             default_fmr: DEFAULT_FMR,
             console: self.console,
+            quality_policy: self.quality_policy(),
         })
+    }
+
+    /// The enrolment quality policy.
+    pub fn quality_policy(&self) -> QualityPolicy {
+        QualityPolicy {
+            min_score: Some(self.min_quality),
+            min_inter_eye_px: Some(self.min_inter_eye_px),
+            min_sharpness: Some(self.min_sharpness),
+            min_brightness: Some(self.min_brightness),
+            max_brightness: Some(self.max_brightness),
+            max_yaw_deg: Some(self.max_yaw_deg),
+            max_pitch_deg: Some(self.max_pitch_deg),
+        }
     }
 
     /// The connection loop's limits.
@@ -306,6 +357,15 @@ mod tests {
             .iter()
             .chain(&["MAX_IMAGES", "TIMEOUT_SECS", "CONSOLE", "API_KEYS_FILE", "ENROL_QUEUE", "MAX_BUFFERED_MB", "BODY_TIMEOUT_SECS"])
             .chain(&["HEADER_TIMEOUT_SECS", "MAX_CONNECTIONS", "SHUTDOWN_GRACE_SECS", "LOG_FORMAT", "TEMPLATE_KEY_FILE"])
+            .chain(&[
+                "MIN_QUALITY",
+                "MIN_INTER_EYE_PX",
+                "MIN_SHARPNESS",
+                "MIN_BRIGHTNESS",
+                "MAX_BRIGHTNESS",
+                "MAX_YAW_DEG",
+                "MAX_PITCH_DEG",
+            ])
             .any(|v| env_set(&format!("FACEGATE_{v}")))
         {
             assert_eq!(parsed, Settings::default());

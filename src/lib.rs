@@ -2,7 +2,7 @@
 //!
 //! The runtime, a request's path: bytes → [`core::imaging`] (decode with limits) → [`detect`]
 //! (face boxes) → [`landmarks`] (58 IMM points) → [`morph`] (3DMM fit, frontal rendering) →
-//! [`recognize`] (normalise, DLDA, templates), assembled once in [`pipeline`]; [`service`] decides
+//! [`recognize`] (normalise, DLDA, templates), [`quality`] (face image quality), assembled once in [`pipeline`]; [`service`] decides
 //! (verify, identify) and runs the work pool, [`store`] keeps templates (SQLite), [`http`] serves it.
 //!
 //! Offline: [`research`] (data sets, training, evaluation) and [`cli`] (arguments, printing,
@@ -16,6 +16,7 @@ pub mod detect;
 pub mod embed;
 pub mod landmarks;
 pub mod morph;
+pub mod quality;
 pub mod recognize;
 
 pub mod pipeline;

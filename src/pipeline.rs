@@ -15,9 +15,11 @@ use crate::core::face::KeyPoints;
 use crate::core::geometry::Rect;
 use crate::core::imaging::{GrayF32, Photo};
 use crate::detect::{Detector, Face};
+use crate::embed::FaceChip;
 use crate::landmarks::asm3d::{Asm3dLandmarker, SERVICE_MIN_YAW};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
 use crate::morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, Pose};
+use crate::quality::{Components, Quality, QualityModel};
 use crate::recognize::{AnyRecognizer, DeepRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views};
 
 /// Where the pipeline's models are.
@@ -50,6 +52,8 @@ pub enum PipelineError {
     Landmarks(#[from] crate::landmarks::LandmarkError),
     #[error(transparent)]
     Recognize(#[from] crate::recognize::RecognizeError),
+    #[error(transparent)]
+    Quality(#[from] crate::quality::QualityModelError),
 }
 
 /// Milliseconds spent in each stage of one analysis.
@@ -59,6 +63,7 @@ pub struct StageTimings {
     pub landmarks_ms: f64,
     pub morph_ms: f64,
     pub template_ms: f64,
+    pub quality_ms: f64,
 }
 
 /// Everything the pipeline learnt about the face it used.
@@ -72,6 +77,8 @@ pub struct FaceAnalysis {
     /// Head pose from the 3DMM fit, when the model is loaded.
     pub pose: Option<Pose>,
     pub template: Template,
+    /// The face image quality components and unified score.
+    pub quality: Quality,
     pub timings: StageTimings,
 }
 
@@ -95,6 +102,7 @@ pub struct FaceReading {
     pub pose: Option<Pose>,
     /// RMS distance in pixels between the landmarks and the fitted model's points.
     pub fit_residual_px: Option<f32>,
+    pub quality: Quality,
     pub landmarks_ms: f64,
     pub morph_ms: f64,
 }
@@ -180,6 +188,8 @@ pub struct Pipeline {
     /// `None` when the Surrey Face Model is not available: 2D alignment only.
     pub face_model: Option<FaceModel>,
     pub recognizer: AnyRecognizer,
+    /// The unified quality score's model (`quality.bin`).
+    pub quality: QualityModel,
 }
 
 impl Pipeline {
@@ -196,7 +206,8 @@ impl Pipeline {
             RecognizerKind::Deep => AnyRecognizer::Deep(Box::new(DeepRecognizer::load(&config.models_dir)?)),
             RecognizerKind::Classical => AnyRecognizer::Classical(load_classical(config, face_model.is_some())?),
         };
-        Ok(Pipeline { finder, face_model, recognizer })
+        let quality = QualityModel::load(&config.models_dir.join(crate::quality::FILE))?;
+        Ok(Pipeline { finder, face_model, recognizer, quality })
     }
 
     /// Detect, landmark, pose-correct and template the largest face of `photo`.
@@ -211,21 +222,26 @@ impl Pipeline {
         let landmarks = self.finder.landmarks(&photo.gray, &face.rect);
         timings.landmarks_ms = elapsed_ms(t);
 
-        let (template, pose) = match &self.recognizer {
+        let (template, pose, quality) = match &self.recognizer {
             AnyRecognizer::Classical(recognizer) => self.classical_template(recognizer, photo, &landmarks, &mut timings)?,
             AnyRecognizer::Deep(deep) => {
                 // The network sees the photo itself (the 3DMM frontal rendering measured worse as
                 // its input: docs/recognition.md); the fit still reports the head pose.
                 let t = Instant::now();
-                let pose = recognition_input(self.face_model.as_ref(), photo, &landmarks, Normalization::TwoD)?.pose;
+                let input = recognition_input(self.face_model.as_ref(), photo, &landmarks, Normalization::TwoD)?;
                 timings.morph_ms = elapsed_ms(t);
                 let t = Instant::now();
-                let template = deep.template(&photo.rgb, &landmarks.keypoints);
+                let chip = crate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
+                let template = deep.template_of_chip(&chip);
                 timings.template_ms = elapsed_ms(t);
-                (template, pose)
+                let t = Instant::now();
+                let quality =
+                    self.quality.assess(crate::quality::components(&chip, &landmarks.keypoints, input.pose, input.fit_residual_px));
+                timings.quality_ms = elapsed_ms(t);
+                (template, input.pose, quality)
             }
         };
-        Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, template, timings })
+        Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, template, quality, timings })
     }
 
     /// Every face of `photo` (or the largest) with its landmarks and 3DMM fit; no template is made.
@@ -246,14 +262,9 @@ impl Pipeline {
                 let t = Instant::now();
                 let fit = self.face_model.as_ref().and_then(|m| m.fit(&landmarks.points, photo.width(), photo.height()).ok());
                 let morph_ms = elapsed_ms(t);
-                FaceReading {
-                    face,
-                    landmarks,
-                    pose: fit.as_ref().map(|f| f.pose),
-                    fit_residual_px: fit.as_ref().map(|f| f.residual_px),
-                    landmarks_ms,
-                    morph_ms,
-                }
+                let (pose, fit_residual_px) = (fit.as_ref().map(|f| f.pose), fit.as_ref().map(|f| f.residual_px));
+                let quality = self.quality.assess(quality_components(photo, &landmarks, pose, fit_residual_px).1);
+                FaceReading { face, landmarks, pose, fit_residual_px, quality, landmarks_ms, morph_ms }
             })
             .collect();
         Ok(PhotoReading { faces_found: faces.len(), faces: readings, detect_ms })
@@ -289,7 +300,7 @@ impl Pipeline {
         photo: &Photo,
         landmarks: &Landmarks,
         timings: &mut StageTimings,
-    ) -> Result<(Template, Option<Pose>), PipelineError> {
+    ) -> Result<(Template, Option<Pose>, Quality), PipelineError> {
         let t = Instant::now();
         let input = recognition_input(self.face_model.as_ref(), photo, landmarks, recognizer.normalization())?;
         timings.morph_ms = elapsed_ms(t);
@@ -306,7 +317,11 @@ impl Pipeline {
             None => recognizer.template(Views::Single(&crop(&input)))?,
         };
         timings.template_ms = elapsed_ms(t);
-        Ok((template, input.pose))
+        // Quality is measured on the deep recognizer's chip here too (one scale for both paths).
+        let t = Instant::now();
+        let quality = self.quality.assess(quality_components(photo, landmarks, input.pose, input.fit_residual_px).1);
+        timings.quality_ms = elapsed_ms(t);
+        Ok((template, input.pose, quality))
     }
 }
 
@@ -341,12 +356,27 @@ pub fn reconstruct(
     model.avatar(photo, &located.landmarks.points, options, texture_size).map_err(PipelineError::PoseCorrection)
 }
 
+/// The quality components of the face with `landmarks` in `photo`, measured on the deep
+/// recognizer's chip (returned too, for a caller that embeds it). The service and the quality
+/// research both come here.
+pub fn quality_components(
+    photo: &Photo,
+    landmarks: &Landmarks,
+    pose: Option<Pose>,
+    fit_residual_px: Option<f32>,
+) -> (FaceChip, Components) {
+    let chip = crate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
+    let components = crate::quality::components(&chip, &landmarks.keypoints, pose, fit_residual_px);
+    (chip, components)
+}
+
 /// What the recognizer normalises: a grey image, the eye and mouth centres in it, and the head pose
-/// when the 3DMM was fitted.
+/// and fit residual when the 3DMM was fitted.
 pub struct RecognitionInput<'a> {
     pub gray: Cow<'a, GrayF32>,
     pub keypoints: KeyPoints,
     pub pose: Option<Pose>,
+    pub fit_residual_px: Option<f32>,
 }
 
 /// Fit the 3DMM to the landmarks (when the model is loaded) for the head pose and, on the 3DMM path,
@@ -369,12 +399,18 @@ pub fn recognition_input<'a>(
         (None, Normalization::TwoD) => None,
     };
     let pose = fitted.as_ref().map(|f| f.pose);
+    let fit_residual_px = fitted.as_ref().map(|f| f.residual_px);
     match (normalization, face_model.zip(fitted)) {
         (Normalization::Morph, Some((model, fit))) => {
             let frontal = model.frontalize(photo, &fit).map_err(PipelineError::PoseCorrection)?;
-            Ok(RecognitionInput { gray: Cow::Owned(GrayF32::from_rgb(&frontal.image)), keypoints: frontal.keypoints, pose })
+            Ok(RecognitionInput {
+                gray: Cow::Owned(GrayF32::from_rgb(&frontal.image)),
+                keypoints: frontal.keypoints,
+                pose,
+                fit_residual_px,
+            })
         }
-        _ => Ok(RecognitionInput { gray: Cow::Borrowed(&photo.gray), keypoints: landmarks.keypoints, pose }),
+        _ => Ok(RecognitionInput { gray: Cow::Borrowed(&photo.gray), keypoints: landmarks.keypoints, pose, fit_residual_px }),
     }
 }
 

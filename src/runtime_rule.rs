@@ -7,7 +7,8 @@
 use std::path::{Path, PathBuf};
 
 /// The runtime: every file under these folders, and these files.
-const RUNTIME: [&str; 10] = ["core", "detect", "landmarks", "morph", "embed", "recognize", "pipeline.rs", "service", "store", "http"];
+const RUNTIME: [&str; 11] =
+    ["core", "detect", "landmarks", "morph", "embed", "recognize", "quality.rs", "pipeline.rs", "service", "store", "http"];
 
 /// What the runtime must not contain, with the reason shown on failure.
 const FORBIDDEN: [(&str, &str); 9] = [

@@ -9,6 +9,7 @@ pub mod detect;
 pub mod embed;
 pub mod landmarks;
 pub mod morph;
+pub mod quality;
 pub mod recognize;
 pub mod serve;
 pub mod store;
@@ -71,6 +72,8 @@ pub enum TrainCommand {
     Asm3d(landmarks::TrainAsm3dArgs),
     /// Calibrate the deep recognizer (embedding network + optional DLDA) → models/deep.bin.
     Deep(embed::TrainDeepArgs),
+    /// Train the unified face-quality score (logistic model over the components) → models/quality.bin.
+    Quality(quality::TrainQualityArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -89,6 +92,8 @@ pub enum EvalCommand {
     Deep(embed::EvalDeepArgs),
     /// Deep-embedding chip placement variants by cross-validation.
     DeepAlign(embed::EvalDeepAlignArgs),
+    /// Face quality: error-versus-discard (FNMR at FMR 1e-3) on held-out IMM, ORL and LFW persons.
+    Quality(quality::EvalQualityArgs),
 }
 
 pub fn main() -> ExitCode {
@@ -117,6 +122,8 @@ pub fn main() -> ExitCode {
         Command::Train(TrainCommand::Deep(args)) => embed::run_train_deep(args),
         Command::Eval(EvalCommand::Deep(args)) => embed::run_eval_deep(args),
         Command::Eval(EvalCommand::DeepAlign(args)) => embed::run_eval_deep_align(args),
+        Command::Train(TrainCommand::Quality(args)) => quality::run_train(args),
+        Command::Eval(EvalCommand::Quality(args)) => quality::run_eval(args),
     };
     match result {
         Ok(code) => code,

@@ -62,9 +62,13 @@ pub fn face_chip(photo: &image::RgbImage, keypoints: &KeyPoints) -> FaceChip {
 /// cut there, the mean of its and its mirror image's embeddings ([`Embedder::embed_mirrored`]).
 /// The deep recognizer's one way from a photo to an embedding (the service and training alike).
 pub fn face_embedding(network: &Embedder, photo: &image::RgbImage, keypoints: &KeyPoints) -> Embedding {
-    let face = face_chip(photo, keypoints);
+    chip_embedding(network, &face_chip(photo, keypoints))
+}
+
+/// The mirror-averaged embedding of a chip cut by [`face_chip`].
+pub fn chip_embedding(network: &Embedder, chip: &FaceChip) -> Embedding {
     let mut ws = network.take_workspace();
-    let e = network.embed_mirrored(&face, &mut ws);
+    let e = network.embed_mirrored(chip, &mut ws);
     network.give_back(ws);
     e
 }

@@ -23,6 +23,7 @@ use crate::detect::Face;
 use crate::landmarks::Landmarks;
 use crate::morph::Pose;
 use crate::pipeline::{FaceAnalysis, PipelineError};
+use crate::quality::Quality;
 use crate::service::{self, SubjectId, VerifyError};
 use crate::store::{SubjectDetail, SubjectSummary};
 
@@ -34,6 +35,7 @@ struct PhotoTimings {
     landmarks_ms: f64,
     morph_ms: f64,
     template_ms: f64,
+    quality_ms: f64,
 }
 
 /// What the pipeline found in one photo.
@@ -45,6 +47,8 @@ struct FaceReport {
     landmarks: Landmarks,
     /// Head pose in degrees from the 3DMM fit; null when the 3DMM is not loaded.
     pose: Option<Pose>,
+    /// Face image quality: the components and the unified score (0–100).
+    quality: Quality,
 }
 
 struct Analysed {
@@ -55,7 +59,7 @@ struct Analysed {
 impl Analysed {
     fn report(&self) -> FaceReport {
         let a = &self.analysis;
-        FaceReport { faces_found: a.faces_found, face: a.face, landmarks: a.landmarks.clone(), pose: a.pose }
+        FaceReport { faces_found: a.faces_found, face: a.face, landmarks: a.landmarks.clone(), pose: a.pose, quality: a.quality }
     }
 }
 
@@ -71,8 +75,14 @@ fn analyse_photo(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -
         other => Problem::internal(other),
     })?;
     let t = analysis.timings;
-    let timings =
-        PhotoTimings { decode_ms, detect_ms: t.detect_ms, landmarks_ms: t.landmarks_ms, morph_ms: t.morph_ms, template_ms: t.template_ms };
+    let timings = PhotoTimings {
+        decode_ms,
+        detect_ms: t.detect_ms,
+        landmarks_ms: t.landmarks_ms,
+        morph_ms: t.morph_ms,
+        template_ms: t.template_ms,
+        quality_ms: t.quality_ms,
+    };
     Ok(Analysed { analysis, timings })
 }
 
@@ -121,8 +131,10 @@ struct EnrollResponse {
     images: Vec<ImageReport>,
 }
 
-/// `POST /enroll`: all photos must each show exactly one face; then all templates are stored in
-/// one transaction. Any bad photo refuses the whole enrolment and names the photo (`image`).
+/// `POST /enroll`: all photos must each show exactly one face and meet the quality policy; then all
+/// templates are stored in one transaction. Any bad photo refuses the whole enrolment and names the
+/// photo (`image`). There is no `?quality=off`: the policy is the operator's (settings), and a
+/// photo it refuses can be retaken, while a poor template costs every later verification.
 pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<Response, Problem> {
     let audit = Audit::of(&request);
     audit.model_version(state.0.engine.model_version());
@@ -138,6 +150,7 @@ pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<R
     }
     let engine = state.0.engine.clone();
     let limits = state.0.config.decode_limits;
+    let policy = state.0.config.quality_policy;
     let images = upload.images;
     let analysed = state
         .0
@@ -148,6 +161,8 @@ pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<R
                 let analysed = analyse_photo(engine.as_ref(), bytes, &limits).map_err(|p| p.for_image(index))?;
                 service::check_enrolment_photo(analysed.analysis.faces_found)
                     .map_err(|e| Problem::new(ProblemKind::SeveralFaces, e.to_string()).for_image(index))?;
+                service::check_enrolment_quality(&policy, &analysed.analysis.quality)
+                    .map_err(|failures| Problem::low_quality(failures).for_image(index))?;
                 out.push(analysed);
             }
             Ok::<_, Problem>(out)

@@ -63,6 +63,8 @@ struct AnalyzedFace {
     /// Null when the 3DMM is not loaded or could not be fitted.
     pose: Option<Pose>,
     fit_residual_px: Option<f32>,
+    /// Face image quality: the components and the unified score (0–100).
+    quality: crate::quality::Quality,
     timings: FaceTimings,
 }
 
@@ -107,6 +109,7 @@ pub async fn analyze(State(state): State<AppState>, request: Request) -> Result<
             landmarks: f.landmarks,
             pose: f.pose,
             fit_residual_px: f.fit_residual_px,
+            quality: f.quality,
             timings: FaceTimings { landmarks_ms: f.landmarks_ms, morph_ms: f.morph_ms },
         })
         .collect();

@@ -80,6 +80,7 @@ impl Metrics {
             ("landmarks", timings.landmarks_ms),
             ("morph", timings.morph_ms),
             ("template", timings.template_ms),
+            ("quality", timings.quality_ms),
         ] {
             self.stages.get_or_create(&StageLabels { stage }).observe(ms / 1e3);
         }

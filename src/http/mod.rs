@@ -73,6 +73,8 @@ pub struct ApiConfig {
     pub default_fmr: f64,
     /// Serve the web console at `/` (pages only; the API is the same either way).
     pub console: bool,
+    /// The least quality an enrolment photo must have (else `low-quality`, 422).
+    pub quality_policy: crate::quality::QualityPolicy,
 }
 
 /// SHA-256 digests of the accepted API keys, compared in constant time.

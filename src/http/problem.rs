@@ -29,6 +29,8 @@ pub enum ProblemKind {
     NoFace,
     /// Several faces in an enrolment photo (enrolment refuses; verify uses the largest).
     SeveralFaces,
+    /// An enrolment photo below the quality policy.
+    LowQuality,
     /// The 3D morphable model the operation needs is not loaded (avatar, frontal rendering).
     NoFaceModel,
     /// The 3D morphable model could not be fitted to the face's landmarks.
@@ -60,7 +62,7 @@ pub enum ProblemKind {
 }
 
 impl ProblemKind {
-    pub const ALL: [ProblemKind; 21] = [
+    pub const ALL: [ProblemKind; 22] = [
         ProblemKind::NotAnImage,
         ProblemKind::UnsupportedFormat,
         ProblemKind::UnsupportedMediaType,
@@ -68,6 +70,7 @@ impl ProblemKind {
         ProblemKind::CorruptImage,
         ProblemKind::NoFace,
         ProblemKind::SeveralFaces,
+        ProblemKind::LowQuality,
         ProblemKind::NoFaceModel,
         ProblemKind::FitFailed,
         ProblemKind::UnknownSubject,
@@ -94,6 +97,7 @@ impl ProblemKind {
             ProblemKind::CorruptImage => "corrupt-image",
             ProblemKind::NoFace => "no-face",
             ProblemKind::SeveralFaces => "several-faces",
+            ProblemKind::LowQuality => "low-quality",
             ProblemKind::NoFaceModel => "no-face-model",
             ProblemKind::FitFailed => "fit-failed",
             ProblemKind::UnknownSubject => "unknown-subject",
@@ -124,6 +128,7 @@ impl ProblemKind {
             ProblemKind::CorruptImage => "Corrupt image",
             ProblemKind::NoFace => "No face found",
             ProblemKind::SeveralFaces => "Several faces found",
+            ProblemKind::LowQuality => "Photo quality too low",
             ProblemKind::NoFaceModel => "No 3D morphable model",
             ProblemKind::FitFailed => "3D morphable model fit failed",
             ProblemKind::UnknownSubject => "Unknown subject",
@@ -147,6 +152,7 @@ impl ProblemKind {
             | ProblemKind::CorruptImage
             | ProblemKind::NoFace
             | ProblemKind::SeveralFaces
+            | ProblemKind::LowQuality
             | ProblemKind::NoFaceModel
             | ProblemKind::FitFailed => StatusCode::UNPROCESSABLE_ENTITY,
             ProblemKind::UnsupportedFormat | ProblemKind::UnsupportedMediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
@@ -173,6 +179,8 @@ pub struct Problem {
     pub kind: ProblemKind,
     pub detail: String,
     pub image: Option<usize>,
+    /// `low-quality`: the limits the photo breaks (the body's `failures` member).
+    pub failures: Vec<crate::quality::Failure>,
 }
 
 /// The JSON body of a problem response.
@@ -185,11 +193,26 @@ struct ProblemBody<'a> {
     detail: &'a str,
     #[serde(skip_serializing_if = "Option::is_none")]
     image: Option<usize>,
+    #[serde(skip_serializing_if = "<[_]>::is_empty")]
+    failures: &'a [crate::quality::Failure],
 }
 
 impl Problem {
     pub fn new(kind: ProblemKind, detail: impl Into<String>) -> Problem {
-        Problem { kind, detail: detail.into(), image: None }
+        Problem { kind, detail: detail.into(), image: None, failures: Vec::new() }
+    }
+
+    /// `low-quality`: the photo breaks `failures` of the enrolment policy.
+    pub fn low_quality(failures: Vec<crate::quality::Failure>) -> Problem {
+        let list: Vec<String> = failures
+            .iter()
+            .map(|f| {
+                let side = if f.bound == crate::quality::Bound::Min { "below its minimum" } else { "above its maximum" };
+                format!("{} {:.1} is {side} {:.1}", f.component, f.value, f.limit)
+            })
+            .collect();
+        let detail = format!("the photo is below the enrolment quality policy: {}", list.join("; "));
+        Problem { failures, ..Problem::new(ProblemKind::LowQuality, detail) }
     }
 
     /// The same problem, attributed to the image at `index` (0-based, in request order).
@@ -234,6 +257,7 @@ impl IntoResponse for Problem {
             status: status.as_u16(),
             detail: &self.detail,
             image: self.image,
+            failures: &self.failures,
         };
         let json = serde_json::to_vec(&body).expect("problem bodies serialise");
         let mut response = (status, json).into_response();

@@ -126,6 +126,12 @@ impl DeepRecognizer {
         self.model.template(&crate::embed::face_embedding(&self.network, photo, keypoints))
     }
 
+    /// The template of a chip already cut ([`crate::embed::face_chip`]): what [`Self::template`]
+    /// computes, for a caller that also measures the chip.
+    pub fn template_of_chip(&self, chip: &crate::embed::FaceChip) -> Template {
+        self.model.template(&crate::embed::chip_embedding(&self.network, chip))
+    }
+
     /// The best cosine of `probe` against the subject's templates.
     pub fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
         Combine::Max.apply(enrolled.iter().map(|t| probe.cosine(t))).unwrap_or(f32::NEG_INFINITY)

@@ -1,5 +1,6 @@
 //! What the service does, without HTTP: subject ids parsed once ([`SubjectId`]), the face engine
-//! behind it ([`FaceEngine`]), which photos can be enrolled ([`check_enrolment_photo`]), what
+//! behind it ([`FaceEngine`]), which photos can be enrolled ([`check_enrolment_photo`],
+//! [`check_enrolment_quality`]), what
 //! "verify" and "identify" mean ([`verify`], [`identify`]: which
 //! templates count, the threshold for the subject's number of templates, the decision) and the
 //! bounded work pool ([`WorkPool`]). The HTTP layer and the `compare` command both decide through
@@ -19,6 +20,7 @@ use serde::Serialize;
 use crate::core::imaging::Photo;
 use crate::morph::AvatarFormat;
 use crate::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline, PipelineError};
+use crate::quality::{Failure, Quality, QualityPolicy};
 use crate::recognize::{AnyRecognizer, OperatingPoint, Recognizer, Template};
 
 pub use pool::{Admission, PoolError, WorkClass, WorkPool};
@@ -144,6 +146,12 @@ pub enum EnrolError {
 /// An enrolment photo must show exactly one face (a probe may show several: the largest is used).
 pub fn check_enrolment_photo(faces_found: usize) -> Result<(), EnrolError> {
     if faces_found > 1 { Err(EnrolError::SeveralFaces(faces_found)) } else { Ok(()) }
+}
+
+/// An enrolment photo must meet the quality policy: the limits it breaks, none when it passes.
+pub fn check_enrolment_quality(policy: &QualityPolicy, quality: &Quality) -> Result<(), Vec<Failure>> {
+    let failures = policy.failures(quality);
+    if failures.is_empty() { Ok(()) } else { Err(failures) }
 }
 
 /// A match decision: the score, the threshold it was held against, and the outcome.

@@ -214,6 +214,7 @@ async fn the_console_enrols_verifies_shows_the_avatar_and_deletes_in_chromium() 
     assert!(decision.starts_with("Match"), "{decision}");
     page.until("the overlay", "document.querySelector('#verify-result canvas.overlay')?.dataset.points === '58'").await;
     assert!(page.text("#verify-result").await.contains("threshold"));
+    assert!(page.text("#verify-result").await.contains("Quality score"));
     page.screenshot("verify-match.png").await;
 
     // Another person: no match.
@@ -232,6 +233,23 @@ async fn the_console_enrols_verifies_shows_the_avatar_and_deletes_in_chromium() 
     // The browser logs the refused request itself, and nothing else.
     let logged = page.errors().await;
     assert!(logged.iter().all(|e| e.contains("/verify?fmr=0.001") && e.contains("404")), "console errors: {logged:?}");
+
+    // An enrolment photo below the quality policy: the refusal lists the broken limits. The
+    // darkened copy is written to the test's temporary folder, never into the repository.
+    let dark = std::env::temp_dir().join(format!("facegate-console-dark-{}.jpg", std::process::id()));
+    let mut img = image::open(imm_path("03-1m.jpg")).unwrap().to_rgb8();
+    img.pixels_mut().for_each(|p| p.0.iter_mut().for_each(|v| *v /= 8));
+    img.save(&dark).unwrap();
+    page.view("enrol").await;
+    page.type_into("#enrol-subject", "imm-03").await;
+    page.choose("enrol-picker", &dark).await;
+    page.click("#enrol-form button[type=submit]").await;
+    page.until("the quality refusal", "document.querySelector('#enrol-result .problem')?.textContent.includes('low-quality')").await;
+    assert!(page.text("#enrol-result .problem .failures").await.contains("brightness"));
+    std::fs::remove_file(&dark).unwrap();
+    assert_eq!(app.store.counts().await.unwrap(), (1, 2));
+    let logged = page.errors().await;
+    assert!(logged.iter().all(|e| e.contains("/enroll") && e.contains("422")), "console errors: {logged:?}");
 
     // Identify.
     page.view("identify").await;

@@ -140,6 +140,54 @@ async fn faces_policy_no_face_and_several_faces() {
     app.post_form("/identify", None, &[flat]).await.assert_problem(422, "no-face");
 }
 
+/// The pattern photo darkened to a tenth of its grey levels.
+fn dark_pattern_jpeg(seed: u32) -> Vec<u8> {
+    let mut img = pattern(320, 240, seed).to_luma8();
+    img.pixels_mut().for_each(|p| p.0[0] /= 10);
+    encode(&image::DynamicImage::ImageLuma8(img), image::ImageFormat::Jpeg)
+}
+
+#[tokio::test]
+async fn every_analysed_face_has_quality_and_enrolment_refuses_a_photo_below_the_policy() {
+    let (app, _) = app().await;
+    let good = pattern_jpeg(320, 240, 4);
+    let dark = dark_pattern_jpeg(4);
+    // A dark photo among good ones refuses the whole enrolment, names the photo and lists the
+    // broken limit with its value; nothing is stored.
+    let r = app.post_form("/enroll", Some("erin"), &[good.clone(), dark.clone()]).await;
+    r.assert_problem(422, "low-quality");
+    let p = r.json();
+    assert_eq!(p["image"], 1);
+    let failures = p["failures"].as_array().unwrap();
+    let brightness = failures.iter().find(|f| f["component"] == "brightness").unwrap_or_else(|| panic!("{p}"));
+    assert_eq!((brightness["bound"].as_str(), brightness["limit"].as_f64()), (Some("min"), Some(40.0)));
+    assert!(brightness["value"].as_f64().unwrap() < 40.0, "{p}");
+    assert!(p["detail"].as_str().unwrap().contains("brightness"), "{p}");
+    assert_eq!(app.store.counts().await.unwrap(), (0, 0));
+    app.get("/subjects/erin").await.assert_problem(404, "unknown-subject");
+    // There is no opt-out: the policy is the operator's setting.
+    app.post_form("/enroll?quality=off", Some("erin"), &[dark.clone()]).await.assert_problem(400, "malformed-request");
+    // A server configured without a brightness floor enrols it.
+    let lenient =
+        ApiConfig { quality_policy: facegate::quality::QualityPolicy { min_brightness: None, ..config().quality_policy }, ..config() };
+    let relaxed = app.restarted_with(StandInEngine::new("stand-in-1"), lenient).await;
+    assert_eq!(relaxed.post_form("/enroll", Some("erin"), &[dark.clone()]).await.status, 201);
+
+    // The good photo enrols; enrol, verify, identify and analyze report its quality.
+    let r = app.post_form("/enroll", Some("erin"), &[good.clone()]).await;
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let enrolled = &r.json()["images"][0]["quality"];
+    let score = enrolled["score"].as_f64().unwrap();
+    assert!((0.0..=100.0).contains(&score) && enrolled["brightness"].as_f64().unwrap() > 40.0, "{enrolled}");
+    assert_eq!(r.json()["images"][0]["timings"]["quality_ms"], 0.0);
+    for path in ["/verify", "/identify"] {
+        let r = app.post_form(path, (path == "/verify").then_some("erin"), &[good.clone()]).await;
+        assert_eq!(&r.json()["quality"], enrolled, "{path}");
+    }
+    let r = app.post_form("/analyze", None, &[dark]).await;
+    assert!(r.json()["faces"][0]["quality"]["brightness"].as_f64().unwrap() < 40.0);
+}
+
 #[tokio::test]
 async fn malformed_requests_are_400_and_wrong_media_types_415() {
     let (app, engine) = app().await;

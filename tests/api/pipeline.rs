@@ -234,3 +234,40 @@ async fn analyze_avatar_and_frontalize_a_real_photo() {
     app.post_form("/avatar", None, &[flat_grey()]).await.assert_problem(422, "no-face");
     app.post_form("/frontalize", None, &[b"not a photo".to_vec()]).await.assert_problem(422, "not-an-image");
 }
+
+/// `name` from IMM with `f` applied to the decoded photo, as JPEG.
+fn altered_imm(name: &str, f: impl Fn(image::DynamicImage) -> image::DynamicImage) -> Vec<u8> {
+    encode(&f(image::load_from_memory(&imm(name)).unwrap()), image::ImageFormat::Jpeg)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn enrolment_refuses_a_darkened_or_blurred_photo_and_accepts_its_original() {
+    let app = app().await;
+    let darkened = altered_imm("03-1m.jpg", |img| {
+        let mut rgb = img.to_rgb8();
+        rgb.pixels_mut().for_each(|p| p.0.iter_mut().for_each(|v| *v /= 8));
+        image::DynamicImage::ImageRgb8(rgb)
+    });
+    let blurred = altered_imm("03-1m.jpg", |img| img.blur(4.0));
+    for (photo, what, component) in [(darkened, "darkened", "brightness"), (blurred, "blurred", "sharpness")] {
+        let r = app.post_form("/enroll", Some("imm-03"), &[photo.clone()]).await;
+        r.assert_problem(422, "low-quality");
+        let failures = r.json()["failures"].as_array().unwrap().clone();
+        assert!(failures.iter().any(|f| f["component"] == component), "{what}: {failures:?}");
+        // What /analyze reports is what the policy saw.
+        let r = app.post_form("/analyze", None, &[photo]).await;
+        let quality = &r.json()["faces"][0]["quality"];
+        let f = failures.iter().find(|f| f["component"] == component).unwrap();
+        assert_eq!(quality[component].as_f64(), f["value"].as_f64(), "{what}: {quality}");
+    }
+    assert_eq!(app.store.counts().await.unwrap(), (0, 0));
+    let r = app.post_form("/enroll", Some("imm-03"), &[imm("03-1m.jpg")]).await;
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let quality = &r.json()["images"][0]["quality"];
+    let policy = facegate::config::Settings::default();
+    assert!(quality["score"].as_f64().unwrap() >= policy.min_quality as f64, "{quality}");
+    assert!(quality["yaw_abs_deg"].as_f64().unwrap() < 10.0 && quality["fit_residual"].as_f64().is_some(), "{quality}");
+    // The same photo as a probe carries the same measurements.
+    let r = app.post_form("/verify", Some("imm-03"), &[imm("03-1m.jpg")]).await;
+    assert_eq!(&r.json()["quality"], quality);
+}

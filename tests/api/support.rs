@@ -17,6 +17,7 @@ use facegate::http::{self, ApiConfig, AppState, FaceEngine};
 use facegate::landmarks::Landmarks;
 use facegate::morph::AvatarFormat;
 use facegate::pipeline::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, PipelineError, StageTimings};
+use facegate::quality::Quality;
 use facegate::recognize::{OperatingPoint, Template};
 use facegate::service::Matcher;
 use facegate::store::{KeyRing, Store};
@@ -193,7 +194,9 @@ pub fn imm(name: &str) -> Vec<u8> {
 
 /// A stand-in for the face pipeline, so the HTTP layer can be tested on its own: a uniform photo
 /// has no face, a photo at least twice as wide as high has two, any other one face. Its template
-/// is the photo's 8×8 thumbnail, centred and normalised; the score is the best cosine.
+/// is the photo's 8×8 thumbnail, centred and normalised; the score is the best cosine. Its quality
+/// components are the real ones of a chip cut at fixed key points (no pose); its unified score is
+/// `min(100, 10 · sharpness)`, so a dark or flat photo is refused as the real one would be.
 pub struct StandInEngine {
     pub version: String,
     /// Simulated work per photo, for timeout and overload tests.
@@ -228,12 +231,16 @@ impl FaceEngine for StandInEngine {
         let (w, h) = (g.width as f32, g.height as f32);
         let faces_found = if w >= 2.0 * h { 2 } else { 1 };
         let keypoints = KeyPoints { left_eye: [0.35 * w, 0.4 * h], right_eye: [0.65 * w, 0.4 * h], mouth: [0.5 * w, 0.75 * h] };
+        let landmarks = Landmarks { points: vec![[0.5 * w, 0.5 * h]; 58], keypoints };
+        let components = facegate::pipeline::quality_components(photo, &landmarks, None, None).1;
+        let quality = Quality { score: (10.0 * components.sharpness).min(100.0), components };
         Ok(FaceAnalysis {
             face: Face { rect: Rect::new(0.0, 0.0, w, h), score: 1.0 },
             faces_found,
-            landmarks: Landmarks { points: vec![[0.5 * w, 0.5 * h]; 58], keypoints },
+            landmarks,
             pose: None,
             template: Template { model_version: self.version.clone(), vector },
+            quality,
             timings: StageTimings::default(),
         })
     }
@@ -241,8 +248,15 @@ impl FaceEngine for StandInEngine {
     fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError> {
         let a = self.analyze(photo)?;
         let wanted = if choice == FaceChoice::All { a.faces_found } else { 1 };
-        let reading =
-            FaceReading { face: a.face, landmarks: a.landmarks, pose: None, fit_residual_px: None, landmarks_ms: 0.0, morph_ms: 0.0 };
+        let reading = FaceReading {
+            face: a.face,
+            landmarks: a.landmarks,
+            pose: None,
+            fit_residual_px: None,
+            quality: a.quality,
+            landmarks_ms: 0.0,
+            morph_ms: 0.0,
+        };
         Ok(PhotoReading { faces_found: a.faces_found, faces: vec![reading; wanted], detect_ms: 0.0 })
     }
 

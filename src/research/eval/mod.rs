@@ -7,6 +7,7 @@ pub mod landmarks;
 pub mod pairs;
 pub mod plot;
 pub mod protocol;
+pub mod quality;
 pub mod verification;
 
 /// Nanoseconds the calling thread has run on a CPU (Linux `schedstat`), so that timings taken on a

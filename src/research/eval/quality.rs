@@ -1,0 +1,356 @@
+//! Face image quality research: every photo of IMM, ORL and LFW measured through the service's
+//! own front end (the deep recognizer's landmarks, 3DMM fit, chip and embedding, then
+//! [`crate::quality::components`]), cached; the unified score's logistic model trained on the
+//! training persons; and the error-versus-discard characteristic (FNMR at the recognizer's fixed
+//! FMR-1e-3 threshold against the share of lowest-quality photos discarded) on the held-out persons.
+
+use std::path::Path;
+
+use nalgebra::{DMatrix, DVector};
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use serde::{Deserialize, Serialize};
+
+use super::protocol::photos_by_person;
+use crate::embed::Embedder;
+use crate::morph::FaceModel;
+use crate::pipeline::FaceFinder;
+use crate::quality::{Components, FEATURES, QualityModel, features};
+use crate::research::Progress;
+use crate::research::dataset::Split;
+use crate::research::train_deep::{Sample, Set};
+
+/// One photo as the service sees it: its mirror-averaged embedding and its quality components.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Measured {
+    pub embedding: Vec<f32>,
+    pub components: Components,
+}
+
+/// The service's front end, for measuring photos.
+pub struct QualityFrontEnd<'a> {
+    pub finder: &'a FaceFinder,
+    pub face_model: Option<&'a FaceModel>,
+    pub network: &'a Embedder,
+}
+
+impl QualityFrontEnd<'_> {
+    /// The largest face's embedding and quality components, as `Pipeline::analyze` computes them on
+    /// the deep path; `None`: no face.
+    pub fn measure(&self, photo: &crate::core::imaging::Photo) -> Option<Measured> {
+        let located = self.finder.locate(&photo.gray).ok()?;
+        let fit = self.face_model.and_then(|m| m.fit(&located.landmarks.points, photo.width(), photo.height()).ok());
+        let (chip, components) = crate::pipeline::quality_components(
+            photo,
+            &located.landmarks,
+            fit.as_ref().map(|f| f.pose),
+            fit.as_ref().map(|f| f.residual_px),
+        );
+        Some(Measured { embedding: crate::embed::chip_embedding(self.network, &chip).0.to_vec(), components })
+    }
+}
+
+/// [`QualityFrontEnd::measure`] of every sample, on `threads` threads.
+pub fn measure_samples(front: &QualityFrontEnd, samples: &[Sample], threads: usize, progress: &dyn Progress) -> Vec<Option<Measured>> {
+    progress.begin(samples.len() as u64, "measure");
+    let out = crate::research::par_map(samples, threads, |s| {
+        let m = match crate::core::imaging::open(&s.image) {
+            Ok(photo) => front.measure(&photo),
+            Err(e) => {
+                progress.note(&format!("{}: {e}", s.image.display()));
+                None
+            }
+        };
+        progress.step();
+        m
+    });
+    progress.end();
+    out
+}
+
+/// What a cache of [`measure_samples`] is keyed by: the front end's models and this version of
+/// the components' definitions.
+pub fn cache_key(models_key: &str) -> String {
+    format!("{models_key}-quality-components-1")
+}
+
+#[derive(Serialize, Deserialize)]
+struct Cache {
+    key: String,
+    entries: Vec<(String, Option<Measured>)>,
+}
+
+pub fn read_cache(path: &Path, key: &str, samples: &[Sample]) -> Option<Vec<Option<Measured>>> {
+    let cache: Cache = postcard::from_bytes(&std::fs::read(path).ok()?).ok()?;
+    if cache.key != key {
+        return None;
+    }
+    let map: std::collections::HashMap<String, Option<Measured>> = cache.entries.into_iter().collect();
+    samples.iter().map(|s| map.get(&s.image.display().to_string()).cloned()).collect()
+}
+
+pub fn write_cache(path: &Path, key: &str, samples: &[Sample], measured: &[Option<Measured>]) -> std::io::Result<()> {
+    let entries = samples.iter().zip(measured).map(|(s, m)| (s.image.display().to_string(), m.clone())).collect();
+    let bytes = postcard::to_stdvec(&Cache { key: key.to_string(), entries }).map_err(std::io::Error::other)?;
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(path, bytes)
+}
+
+/// A photo with a face, ready for scoring: its person, unit template and components.
+pub struct Scored<'a> {
+    pub label: &'a str,
+    pub template: Vec<f32>,
+    pub components: Components,
+}
+
+/// The photos of `samples` that `keep` selects and where a face was found, each with the deep
+/// model's template of its embedding.
+pub fn scored<'a>(
+    samples: &'a [Sample],
+    measured: &[Option<Measured>],
+    model: &crate::recognize::deep::DeepModel,
+    keep: &dyn Fn(&Sample) -> bool,
+) -> Vec<Scored<'a>> {
+    samples
+        .iter()
+        .zip(measured)
+        .filter(|(s, _)| keep(s))
+        .filter_map(|(s, m)| {
+            let m = m.as_ref()?;
+            let embedding = crate::embed::Embedding(m.embedding.as_slice().try_into().ok()?);
+            Some(Scored { label: s.label.as_str(), template: model.template(&embedding).vector, components: m.components })
+        })
+        .collect()
+}
+
+fn cosine(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// Each photo's share of genuine comparisons (against the person's other photos) that clear
+/// `threshold`, and how many there are; photos of persons with one photo get (0, 0).
+pub fn genuine_match_rates(photos: &[Scored], threshold: f32) -> Vec<(f64, usize)> {
+    let labels: Vec<&str> = photos.iter().map(|p| p.label).collect();
+    let mut out = vec![(0.0, 0); photos.len()];
+    for indices in photos_by_person(&labels).values() {
+        for &i in indices {
+            let others = indices.iter().filter(|&&j| j != i);
+            let (matched, n) = others.fold((0usize, 0usize), |(m, n), &j| {
+                (m + usize::from(cosine(&photos[i].template, &photos[j].template) >= threshold), n + 1)
+            });
+            if n > 0 {
+                out[i] = (matched as f64 / n as f64, n);
+            }
+        }
+    }
+    out
+}
+
+/// The unified score's model: logistic regression (Newton's method, a small ridge penalty) of
+/// each training photo's genuine match rate at `threshold` on its standardised
+/// [`features`]; photos without a genuine partner are left out.
+pub fn train_model(photos: &[Scored], threshold: f32, trained_on: String) -> QualityModel {
+    let rates = genuine_match_rates(photos, threshold);
+    let rows: Vec<([f64; FEATURES], f64)> =
+        photos.iter().zip(&rates).filter(|(_, (_, n))| *n > 0).map(|(p, (rate, _))| (features(&p.components), *rate)).collect();
+    let n = rows.len().max(1) as f64;
+    let mean: Vec<f64> = (0..FEATURES).map(|k| rows.iter().map(|r| r.0[k]).sum::<f64>() / n).collect();
+    let scale: Vec<f64> = (0..FEATURES)
+        .map(|k| (rows.iter().map(|r| (r.0[k] - mean[k]).powi(2)).sum::<f64>() / n).sqrt())
+        .map(|s| if s > 1e-9 { s } else { 1.0 })
+        .collect();
+    let x = DMatrix::from_fn(rows.len(), FEATURES + 1, |i, k| if k == 0 { 1.0 } else { (rows[i].0[k - 1] - mean[k - 1]) / scale[k - 1] });
+    let y = DVector::from_iterator(rows.len(), rows.iter().map(|r| r.1));
+    let ridge = 1e-3 * n;
+    let mut w = DVector::zeros(FEATURES + 1);
+    for _ in 0..50 {
+        let z = &x * &w;
+        let p = z.map(|z| 1.0 / (1.0 + (-z).exp()));
+        let mut penalty = DVector::zeros(FEATURES + 1);
+        let mut hessian = DMatrix::zeros(FEATURES + 1, FEATURES + 1);
+        for k in 1..=FEATURES {
+            penalty[k] = ridge * w[k];
+            hessian[(k, k)] = ridge;
+        }
+        let gradient = x.transpose() * (&y - &p) - penalty;
+        let weights = p.map(|p| (p * (1.0 - p)).max(1e-9));
+        let weighted = DMatrix::from_fn(rows.len(), FEATURES + 1, |i, k| x[(i, k)] * weights[i]);
+        hessian += x.transpose() * weighted;
+        let Some(step) = hessian.lu().solve(&gradient) else { break };
+        w += &step;
+        if step.norm() < 1e-9 {
+            break;
+        }
+    }
+    QualityModel { format: crate::quality::FORMAT, mean, scale, weights: w.iter().skip(1).copied().collect(), bias: w[0], trained_on }
+}
+
+/// A quality measure under evaluation: a name and, per photo, a value where higher is better.
+pub struct Measure {
+    pub name: String,
+    pub values: Vec<f64>,
+}
+
+/// The measures the evaluation compares: the unified score, then each component oriented so that
+/// higher is better (a missing pose counts as the worst).
+pub fn measures(photos: &[Scored], model: &QualityModel) -> Vec<Measure> {
+    type Pick = fn(&Components) -> f64;
+    let components: [(&str, Pick); 8] = [
+        ("inter-eye distance", |c| c.inter_eye_px as f64),
+        ("sharpness", |c| c.sharpness as f64),
+        ("exposure (−|brightness − 128|)", |c| -(c.brightness as f64 - 128.0).abs()),
+        ("contrast", |c| c.contrast as f64),
+        ("illumination uniformity", |c| c.illumination_uniformity as f64),
+        ("−|yaw|", |c| -(c.yaw_abs_deg.unwrap_or(90.0) as f64)),
+        ("−|pitch|", |c| -(c.pitch_abs_deg.unwrap_or(90.0) as f64)),
+        ("−fit residual", |c| -(c.fit_residual.unwrap_or(f32::MAX) as f64)),
+    ];
+    let mut out =
+        vec![Measure { name: "unified score".into(), values: photos.iter().map(|p| model.score(&p.components) as f64).collect() }];
+    out.extend(
+        components
+            .iter()
+            .map(|(name, pick)| Measure { name: name.to_string(), values: photos.iter().map(|p| pick(&p.components)).collect() }),
+    );
+    out
+}
+
+/// The genuine comparisons (all pairs of a person's photos) of `photos`: indices and whether the
+/// pair clears `threshold`.
+pub fn genuine_pairs(photos: &[Scored], threshold: f32) -> Vec<(usize, usize, bool)> {
+    let labels: Vec<&str> = photos.iter().map(|p| p.label).collect();
+    let mut out = Vec::new();
+    for indices in photos_by_person(&labels).values() {
+        for (a, &i) in indices.iter().enumerate() {
+            for &j in &indices[a + 1..] {
+                out.push((i, j, cosine(&photos[i].template, &photos[j].template) >= threshold));
+            }
+        }
+    }
+    out
+}
+
+/// One point of an error-versus-discard curve.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct EdcPoint {
+    /// Share of the photos discarded (the lowest-quality ones).
+    pub discarded: f64,
+    /// FNMR of the genuine pairs left (both photos kept).
+    pub fnmr: f64,
+    pub genuine_pairs: usize,
+}
+
+/// The error-versus-discard characteristic of `order` (photo indices, lowest quality first): for
+/// each share in `discard`, the FNMR of the genuine pairs whose photos are both kept.
+pub fn edc(pairs: &[(usize, usize, bool)], order: &[usize], discard: &[f64]) -> Vec<EdcPoint> {
+    let mut rank = vec![0usize; order.len()];
+    for (r, &i) in order.iter().enumerate() {
+        rank[i] = r;
+    }
+    discard
+        .iter()
+        .map(|&share| {
+            let cut = (share * order.len() as f64).round() as usize;
+            let kept: Vec<bool> = pairs.iter().filter(|(i, j, _)| rank[*i] >= cut && rank[*j] >= cut).map(|p| p.2).collect();
+            let misses = kept.iter().filter(|m| !**m).count();
+            EdcPoint { discarded: share, fnmr: misses as f64 / kept.len().max(1) as f64, genuine_pairs: kept.len() }
+        })
+        .collect()
+}
+
+/// Photo indices by `values`, lowest first (ties by index).
+pub fn lowest_first(values: &[f64]) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..values.len()).collect();
+    order.sort_by(|&a, &b| values[a].total_cmp(&values[b]).then(a.cmp(&b)));
+    order
+}
+
+/// The error-versus-discard curve of random discarding: the mean over `runs` shuffles.
+pub fn random_edc(pairs: &[(usize, usize, bool)], photos: usize, discard: &[f64], runs: usize) -> Vec<EdcPoint> {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(18);
+    let mut sum = vec![EdcPoint { discarded: 0.0, fnmr: 0.0, genuine_pairs: 0 }; discard.len()];
+    for _ in 0..runs {
+        let mut order: Vec<usize> = (0..photos).collect();
+        order.shuffle(&mut rng);
+        for (s, p) in sum.iter_mut().zip(edc(pairs, &order, discard)) {
+            s.discarded = p.discarded;
+            s.fnmr += p.fnmr / runs as f64;
+            s.genuine_pairs += p.genuine_pairs;
+        }
+    }
+    sum.iter_mut().for_each(|s| s.genuine_pairs /= runs.max(1));
+    sum
+}
+
+/// Which held-out photos of `set` the evaluation uses: LFW's test persons, IMM's and ORL's
+/// held-out persons.
+pub fn is_held_out(s: &Sample, set: Set) -> bool {
+    s.set == set && s.split == Split::Test
+}
+
+/// Which photos train the unified score: the training persons of all three sets.
+pub fn is_training(s: &Sample) -> bool {
+    s.split == Split::Train
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn photo(label: &'static str, template: Vec<f32>, sharpness: f32) -> Scored<'static> {
+        let components = Components {
+            inter_eye_px: 60.0,
+            sharpness,
+            brightness: 120.0,
+            contrast: 40.0,
+            illumination_uniformity: 0.9,
+            yaw_abs_deg: Some(5.0),
+            pitch_abs_deg: Some(3.0),
+            fit_residual: Some(0.05),
+        };
+        Scored { label, template, components }
+    }
+
+    #[test]
+    fn discarding_the_photo_that_fails_removes_its_pairs_misses() {
+        // Person a: photos 0, 1 match; photo 2 is unlike both. Person b: 3, 4 match.
+        let photos = vec![
+            photo("a", vec![1.0, 0.0], 10.0),
+            photo("a", vec![1.0, 0.0], 9.0),
+            photo("a", vec![0.0, 1.0], 1.0),
+            photo("b", vec![0.6, 0.8], 8.0),
+            photo("b", vec![0.6, 0.8], 7.0),
+        ];
+        let pairs = genuine_pairs(&photos, 0.5);
+        assert_eq!(pairs.len(), 4);
+        let order = lowest_first(&[10.0, 9.0, 1.0, 8.0, 7.0]);
+        let curve = edc(&pairs, &order, &[0.0, 0.2]);
+        assert!((curve[0].fnmr - 0.5).abs() < 1e-12 && curve[0].genuine_pairs == 4);
+        assert_eq!((curve[1].fnmr, curve[1].genuine_pairs), (0.0, 2));
+        let rates = genuine_match_rates(&photos, 0.5);
+        assert_eq!(rates[0], (0.5, 2));
+        assert_eq!(rates[2], (0.0, 2));
+    }
+
+    #[test]
+    fn the_trained_score_ranks_the_failing_photos_lowest() {
+        // Sharp photos of each person match; blurred ones (one per person) do not.
+        let mut photos = Vec::new();
+        let labels = ["p0", "p1", "p2", "p3", "p4", "p5", "p6", "p7"];
+        for (k, label) in labels.iter().enumerate() {
+            let angle = k as f32;
+            let good = vec![angle.cos(), angle.sin(), 0.0];
+            for s in [8.0, 9.0, 10.0, 11.0] {
+                photos.push(photo(label, good.clone(), s + k as f32 * 0.1));
+            }
+            photos.push(photo(label, vec![0.0, 0.0, 1.0], 1.0 + k as f32 * 0.1));
+        }
+        let model = train_model(&photos, 0.9, "test".into());
+        let blurred = photos.iter().filter(|p| p.components.sharpness < 2.0).map(|p| model.score(&p.components)).fold(0.0, f32::max);
+        let sharp = photos.iter().filter(|p| p.components.sharpness > 7.0).map(|p| model.score(&p.components)).fold(100.0, f32::min);
+        assert!(blurred < sharp, "blurred ≤ {blurred}, sharp ≥ {sharp}");
+        assert!(model.weights[1] > 0.0, "{:?}", model.weights);
+    }
+}
