@@ -429,8 +429,9 @@ pub async fn restore(backup: &Path, url: &str, overwrite: bool) -> Result<(u64, 
         if !overwrite {
             return Err(StoreError::Refused(format!("{} exists; restore over it only when told to (--force)", target.display())));
         }
-        // Exclusive locking fails at once while any other connection has the database open.
-        let exclusive = options.clone().locking_mode(SqliteLockingMode::Exclusive).busy_timeout(Duration::ZERO);
+        // Exclusive locking fails while any other connection has the database open (after a
+        // short wait: a connection being closed lets go within it, a running service does not).
+        let exclusive = options.clone().locking_mode(SqliteLockingMode::Exclusive).busy_timeout(Duration::from_secs(2));
         let mut live = SqliteConnection::connect_with(&exclusive)
             .await
             .map_err(|e| StoreError::Refused(format!("{} is in use ({e}); stop the service first", target.display())))?;
