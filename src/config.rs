@@ -61,6 +61,7 @@ const DEFAULT_MAX_IMAGES: usize = 16;
 const DEFAULT_TIMEOUT_SECS: f64 = 30.0;
 const DEFAULT_CONSOLE: bool = true;
 const DEFAULT_ENROL_QUEUE: usize = 16;
+const DEFAULT_ADMISSION_WAIT_MS: u64 = 1000;
 const DEFAULT_MAX_BUFFERED_MB: usize = 128;
 const DEFAULT_BODY_TIMEOUT_SECS: f64 = 15.0;
 const DEFAULT_HEADER_TIMEOUT_SECS: f64 = 10.0;
@@ -124,6 +125,10 @@ pub struct Settings {
     /// Enrolments that may wait for a worker (a queue of their own) before the service answers 503.
     #[arg(long, env = "FACEGATE_ENROL_QUEUE", default_value_t = DEFAULT_ENROL_QUEUE)]
     pub enrol_queue: usize,
+    /// Milliseconds a request waits (its body unread, in arrival order) for a place in a full
+    /// queue before the 503; 0 refuses at once.
+    #[arg(long, env = "FACEGATE_ADMISSION_WAIT_MS", default_value_t = DEFAULT_ADMISSION_WAIT_MS)]
+    pub admission_wait_ms: u64,
     /// Request bodies held in memory at once, in MiB; a request that would exceed it gets 503.
     #[arg(long, env = "FACEGATE_MAX_BUFFERED_MB", default_value_t = DEFAULT_MAX_BUFFERED_MB)]
     pub max_buffered_mb: usize,
@@ -219,6 +224,7 @@ impl Default for Settings {
             workers: None,
             queue: DEFAULT_QUEUE,
             enrol_queue: DEFAULT_ENROL_QUEUE,
+            admission_wait_ms: DEFAULT_ADMISSION_WAIT_MS,
             max_buffered_mb: DEFAULT_MAX_BUFFERED_MB,
             max_body_mb: DEFAULT_MAX_BODY_MB,
             max_pixels: DEFAULT_MAX_PIXELS,
@@ -265,6 +271,7 @@ impl Settings {
             workers: self.workers.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2)).max(1),
             queue_depth: self.queue,
             enrol_queue_depth: self.enrol_queue,
+            admission_wait: Duration::from_millis(self.admission_wait_ms),
             max_buffered_bytes: self.max_buffered_mb << 20,
             api_keys: self.api_keys()?,
             default_fmr: DEFAULT_FMR,
@@ -356,6 +363,7 @@ mod tests {
         if !["BIND", "DATABASE_URL", "MODELS", "SFM", "API_KEYS", "WORKERS", "QUEUE", "MAX_BODY_MB", "MAX_PIXELS", "MAX_DECODE_MB"]
             .iter()
             .chain(&["MAX_IMAGES", "TIMEOUT_SECS", "CONSOLE", "API_KEYS_FILE", "ENROL_QUEUE", "MAX_BUFFERED_MB", "BODY_TIMEOUT_SECS"])
+            .chain(&["ADMISSION_WAIT_MS"])
             .chain(&["HEADER_TIMEOUT_SECS", "MAX_CONNECTIONS", "SHUTDOWN_GRACE_SECS", "LOG_FORMAT", "TEMPLATE_KEY_FILE"])
             .chain(&[
                 "MIN_QUALITY",

@@ -60,7 +60,7 @@ const DISCARD_TIME: Duration = Duration::from_secs(1);
 
 /// The admission layer of one route: `class` says which queue it waits in.
 pub async fn admit(State((state, class)): State<(AppState, WorkClass)>, mut request: Request, next: Next) -> Response {
-    let admission = match state.0.pool.admit(class) {
+    let admission = match state.0.pool.admit_within(class, state.0.config.admission_wait).await {
         Ok(admission) => admission,
         Err(e) => return refuse(request, Problem::from(e)),
     };

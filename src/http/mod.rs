@@ -64,6 +64,9 @@ pub struct ApiConfig {
     pub queue_depth: usize,
     /// Enrolments that may wait for a worker, a queue of their own; beyond → 503.
     pub enrol_queue_depth: usize,
+    /// How long a request waits for a place when its queue is full, before the 503 (its body
+    /// still unread). Zero refuses at once.
+    pub admission_wait: Duration,
     /// Request bodies held in memory at once, in bytes (each admitted request counts its
     /// Content-Length, or the body limit without one); beyond → 503.
     pub max_buffered_bytes: usize,

@@ -76,17 +76,36 @@ impl WorkPool {
 
     /// A place for one request of `class`, or [`PoolError::Overloaded`] at once when its queue is full.
     pub fn admit(&self, class: WorkClass) -> Result<Admission, PoolError> {
-        let queue = match class {
+        match self.queue(class).clone().try_acquire_owned() {
+            Ok(permit) => Ok(Admission { _place: Arc::new(permit) }),
+            Err(_) => Err(self.refused()),
+        }
+    }
+
+    /// [`WorkPool::admit`], waiting up to `wait` for a place when the queue is full. Waiting
+    /// requests get places in arrival order (tokio's semaphore is fair), and a client that retries
+    /// at once after a 503 cannot come back sooner than `wait`: under a flood, refusals stay few
+    /// and cheap, and the workers' throughput stays at its peak.
+    pub async fn admit_within(&self, class: WorkClass, wait: std::time::Duration) -> Result<Admission, PoolError> {
+        if wait.is_zero() {
+            return self.admit(class);
+        }
+        match tokio::time::timeout(wait, self.queue(class).clone().acquire_owned()).await {
+            Ok(permit) => Ok(Admission { _place: Arc::new(permit.expect("the pool's semaphores are never closed")) }),
+            Err(_) => Err(self.refused()),
+        }
+    }
+
+    fn queue(&self, class: WorkClass) -> &Arc<Semaphore> {
+        match class {
             WorkClass::Probe => &self.admitted,
             WorkClass::Enrol => &self.enrol_admitted,
-        };
-        match queue.clone().try_acquire_owned() {
-            Ok(permit) => Ok(Admission { _place: Arc::new(permit) }),
-            Err(_) => {
-                self.rejections.inc();
-                Err(PoolError::Overloaded)
-            }
         }
+    }
+
+    fn refused(&self) -> PoolError {
+        self.rejections.inc();
+        PoolError::Overloaded
     }
 
     /// Run `job` on the pool: on the place of the request being served (see [`Admission::scope`]),
@@ -161,5 +180,20 @@ mod tests {
         assert_eq!(queued.await.unwrap().unwrap(), 7);
         assert_eq!(enrolled.await.unwrap().unwrap(), 9);
         assert!(pool.admit(WorkClass::Enrol).is_ok() && pool.admit(WorkClass::Probe).is_ok());
+    }
+
+    #[tokio::test]
+    async fn admission_waits_in_order_for_a_place_then_refuses() {
+        let pool = WorkPool::new(1, 0, 0, Counter::default(), Gauge::default());
+        let held = pool.admit(WorkClass::Probe).unwrap();
+        let wait = std::time::Duration::from_millis(50);
+        assert!(matches!(pool.admit_within(WorkClass::Probe, wait).await, Err(PoolError::Overloaded)));
+        let waiting = {
+            let pool = pool.clone();
+            tokio::spawn(async move { pool.admit_within(WorkClass::Probe, std::time::Duration::from_secs(5)).await })
+        };
+        tokio::task::yield_now().await;
+        drop(held);
+        assert!(waiting.await.unwrap().is_ok());
     }
 }

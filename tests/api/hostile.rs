@@ -20,6 +20,7 @@ fn config() -> ApiConfig {
     ApiConfig {
         max_body_bytes: 2 << 20,
         decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() },
+        admission_wait: Duration::ZERO,
         ..facegate::config::Settings::default().api_config().unwrap()
     }
 }
@@ -91,7 +92,7 @@ async fn a_stalled_body_gets_408_and_a_refused_request_is_answered_before_its_bo
     let one = ApiConfig { workers: 1, queue_depth: 0, enrol_queue_depth: 1, ..config() };
     let app = TestApp::start(StandInEngine::slow(Duration::from_millis(800)), one).await;
     let photo = pattern_jpeg(320, 240, 4);
-    assert_eq!(app.post_form("/enroll", Some("hana"), &[photo.clone()]).await.status, 201);
+    assert_eq!(app.post_form("/enroll", Some("hana"), std::slice::from_ref(&photo)).await.status, 201);
     let images = [photo.clone()];
     let (busy, refused, enrolled) = tokio::join!(
         app.post_form("/verify", Some("hana"), &images),

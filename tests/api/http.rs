@@ -17,6 +17,8 @@ fn config() -> ApiConfig {
         max_body_bytes: 2 << 20,
         decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() },
         max_images: 4,
+        // Overload tests expect a full queue to refuse at once.
+        admission_wait: Duration::ZERO,
         ..facegate::config::Settings::default().api_config().unwrap()
     }
 }
