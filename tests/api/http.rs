@@ -168,22 +168,22 @@ async fn every_analysed_face_has_quality_and_enrolment_refuses_a_photo_below_the
     assert_eq!(app.store.counts().await.unwrap(), (0, 0));
     app.get("/subjects/erin").await.assert_problem(404, "unknown-subject");
     // There is no opt-out: the policy is the operator's setting.
-    app.post_form("/enroll?quality=off", Some("erin"), &[dark.clone()]).await.assert_problem(400, "malformed-request");
+    app.post_form("/enroll?quality=off", Some("erin"), std::slice::from_ref(&dark)).await.assert_problem(400, "malformed-request");
     // A server configured without a brightness floor enrols it.
     let lenient =
         ApiConfig { quality_policy: facegate::quality::QualityPolicy { min_brightness: None, ..config().quality_policy }, ..config() };
     let relaxed = app.restarted_with(StandInEngine::new("stand-in-1"), lenient).await;
-    assert_eq!(relaxed.post_form("/enroll", Some("erin"), &[dark.clone()]).await.status, 201);
+    assert_eq!(relaxed.post_form("/enroll", Some("erin"), std::slice::from_ref(&dark)).await.status, 201);
 
     // The good photo enrols; enrol, verify, identify and analyze report its quality.
-    let r = app.post_form("/enroll", Some("erin"), &[good.clone()]).await;
+    let r = app.post_form("/enroll", Some("erin"), std::slice::from_ref(&good)).await;
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
     let enrolled = &r.json()["images"][0]["quality"];
     let score = enrolled["score"].as_f64().unwrap();
     assert!((0.0..=100.0).contains(&score) && enrolled["brightness"].as_f64().unwrap() > 40.0, "{enrolled}");
     assert_eq!(r.json()["images"][0]["timings"]["quality_ms"], 0.0);
     for path in ["/verify", "/identify"] {
-        let r = app.post_form(path, (path == "/verify").then_some("erin"), &[good.clone()]).await;
+        let r = app.post_form(path, (path == "/verify").then_some("erin"), std::slice::from_ref(&good)).await;
         assert_eq!(&r.json()["quality"], enrolled, "{path}");
     }
     let r = app.post_form("/analyze", None, &[dark]).await;

@@ -250,7 +250,7 @@ async fn enrolment_refuses_a_darkened_or_blurred_photo_and_accepts_its_original(
     });
     let blurred = altered_imm("03-1m.jpg", |img| img.blur(4.0));
     for (photo, what, component) in [(darkened, "darkened", "brightness"), (blurred, "blurred", "sharpness")] {
-        let r = app.post_form("/enroll", Some("imm-03"), &[photo.clone()]).await;
+        let r = app.post_form("/enroll", Some("imm-03"), std::slice::from_ref(&photo)).await;
         r.assert_problem(422, "low-quality");
         let failures = r.json()["failures"].as_array().unwrap().clone();
         assert!(failures.iter().any(|f| f["component"] == component), "{what}: {failures:?}");
