@@ -20,6 +20,7 @@ checks the issue's target and prints one result line; the script exits non-zero 
 
   scripts/reliability/reliability.py                      # slowloris slow-body kill9 sigterm
   scripts/reliability/reliability.py overload --bin target/release/facegate
+  scripts/reliability/reliability.py overload --bin target/release/facegate --serve-flag=--admission-wait-ms=0
 Needs the IMM photos at $FACEGATE_SHARED/data/imm (default ../shared); `overload` needs hey.
 """
 
@@ -288,7 +289,7 @@ def hey(url, clients, seconds, body_path, ctype):
 def overload(args, work):
     if shutil.which("hey") is None:
         return False, "hey is missing"
-    server = Server(args.bin, work)
+    server = Server(args.bin, work, *args.serve_flag)
     try:
         body, ctype = multipart([("subject", None, b"loadtest"), ("image", "p.jpg", photo("01-1m.jpg"))])
         status, _ = server.request("POST", "/enroll", body, {"Content-Type": ctype})
@@ -322,6 +323,7 @@ def main():
     parser.add_argument("--storm-secs", type=float, default=4.0)
     parser.add_argument("--peak-secs", type=int, default=20)
     parser.add_argument("--overload-secs", type=int, default=60)
+    parser.add_argument("--serve-flag", action="append", default=[], help="a flag for the overload scenario's server (repeat)")
     args = parser.parse_args()
     unknown = [s for s in args.scenarios if s not in SCENARIOS]
     if unknown:

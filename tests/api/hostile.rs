@@ -167,7 +167,7 @@ async fn subject_ids_clients_cannot_address_are_refused_the_same_way_in_json_and
     let app = TestApp::start(StandInEngine::new("v1"), config()).await;
     let photo = pattern_jpeg(320, 240, 1);
     for bad in [".", "..", " padded", "padded ", "tab\t"] {
-        app.post_form("/enroll", Some(bad), &[photo.clone()]).await.assert_problem(400, "malformed-request");
+        app.post_form("/enroll", Some(bad), std::slice::from_ref(&photo)).await.assert_problem(400, "malformed-request");
         app.post_json("/enroll", &json!({"subject": bad, "image": base64(&photo)})).await.assert_problem(400, "malformed-request");
     }
     // A subject and no photo: refused, and the schema says so too (tests/api/openapi.rs).
