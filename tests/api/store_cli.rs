@@ -9,9 +9,15 @@ use serde_json::Value;
 
 /// Run `facegate` with `args`; its exit status and stdout's JSON line (null when none).
 fn facegate(args: &[&str]) -> (bool, Value) {
+    let (ok, json, _) = facegate_with_stderr(args);
+    (ok, json)
+}
+
+/// [`facegate`], with what it wrote to stderr (for the message of a failed assertion).
+fn facegate_with_stderr(args: &[&str]) -> (bool, Value, String) {
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_facegate")).args(args).output().unwrap();
     let json = String::from_utf8_lossy(&out.stdout).lines().last().map_or(Value::Null, |l| serde_json::from_str(l).unwrap());
-    (out.status.success(), json)
+    (out.status.success(), json, String::from_utf8_lossy(&out.stderr).into_owned())
 }
 
 fn template(seed: f32) -> Template {
@@ -58,7 +64,8 @@ async fn rekey_backup_and_restore_from_the_command_line() {
     }
     restored.close().await;
     live.close().await;
-    assert!(facegate(&["restore", &path("backup.db"), "--database", &url("live.db"), "--force"]).0);
+    let (ok, _, stderr) = facegate_with_stderr(&["restore", &path("backup.db"), "--database", &url("live.db"), "--force"]);
+    assert!(ok, "restore over the closed database: {stderr}");
     assert!(Path::new(&path("live.db")).exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }
