@@ -149,8 +149,9 @@ pub fn genuine_match_rates(photos: &[Scored], threshold: f32) -> Vec<(f64, usize
 }
 
 /// The unified score's model: [`UNIFIED`] (logistic regression of each training photo's genuine
-/// match rate at `threshold` on its standardised [`features`]) trained on `photos`; photos
-/// without a genuine partner are left out.
+/// match rate at `threshold` on its standardised [`features`], each photo weighted by its number
+/// of genuine comparisons, the intercept then refitted to the photos' mean rate) trained on
+/// `photos`; photos without a genuine partner are left out.
 pub fn train_model(photos: &[Scored], threshold: f32, trained_on: String) -> QualityModel {
     let rates = genuine_match_rates(photos, threshold);
     let cosines = genuine_cosine_stats(photos);
@@ -304,13 +305,13 @@ pub struct Variant {
     pub weighting: Weighting,
 }
 
-/// The variant `models/quality.bin` is trained as: the ten [`features`], the match share, every
-/// photo alike.
+/// The variant `models/quality.bin` is trained as (chosen by `facegate eval quality-cv`): the
+/// ten [`features`], the match share, each photo weighted by its number of genuine comparisons.
 pub const UNIFIED: Variant = Variant {
-    name: "plain (match share, 10 features, equal weights)",
+    name: "weighted by comparisons",
     features: FeatureSet::Committed,
     target: Target::MatchShare,
-    weighting: Weighting::Equal,
+    weighting: Weighting::ByComparisons,
 };
 
 /// The candidates the cross-validation compares ([`UNIFIED`] among them).
