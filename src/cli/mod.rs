@@ -94,6 +94,9 @@ pub enum EvalCommand {
     DeepAlign(embed::EvalDeepAlignArgs),
     /// Face quality: error-versus-discard (FNMR at FMR 1e-3) on held-out IMM, ORL and LFW persons.
     Quality(quality::EvalQualityArgs),
+    /// Face quality: the unified score's candidate models by person-disjoint cross-validation on
+    /// the training persons (error-versus-discard on LFW's), beside each component.
+    QualityCv(quality::EvalQualityCvArgs),
 }
 
 pub fn main() -> ExitCode {
@@ -124,6 +127,7 @@ pub fn main() -> ExitCode {
         Command::Eval(EvalCommand::DeepAlign(args)) => embed::run_eval_deep_align(args),
         Command::Train(TrainCommand::Quality(args)) => quality::run_train(args),
         Command::Eval(EvalCommand::Quality(args)) => quality::run_eval(args),
+        Command::Eval(EvalCommand::QualityCv(args)) => quality::run_eval_cv(args),
     };
     match result {
         Ok(code) => code,

@@ -11,8 +11,8 @@ use crate::quality::{FEATURE_NAMES, QualityModel};
 use crate::recognize::deep::DeepModel;
 use crate::research::eval::plot::{Chart, Scale, Series, line_chart};
 use crate::research::eval::quality::{
-    self as research, EdcPoint, Measured, QualityFrontEnd, edc, genuine_pairs, is_held_out, is_training, lowest_first, measures,
-    random_edc, scored,
+    self as research, EdcPoint, Measured, QualityFrontEnd, UNIFIED, VARIANTS, edc, genuine_cosine_stats, genuine_match_rates,
+    genuine_pairs, is_held_out, is_training, lowest_first, measures, out_of_fold_logits, partial_area, person_folds, random_edc, scored,
 };
 use crate::research::train_deep::{self, Sample, Set};
 
@@ -33,6 +33,18 @@ pub struct TrainQualityArgs {
     /// Where to write the model.
     #[arg(long, default_value = "models/quality.bin")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub data: QualityDataArgs,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct EvalQualityCvArgs {
+    /// Person-disjoint folds of the training persons.
+    #[arg(long, default_value_t = 5)]
+    pub folds: usize,
+    /// Repetitions with differently shuffled folds (the table is their mean).
+    #[arg(long, default_value_t = 20)]
+    pub repeats: usize,
     #[command(flatten)]
     pub data: QualityDataArgs,
 }
@@ -188,6 +200,73 @@ pub fn run_eval(args: EvalQualityArgs) -> anyhow::Result<ExitCode> {
     }
     component_percentiles(&samples, &measured, &model);
     policy_report(&samples, &measured, &model, &args.policy.settings());
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Model selection for the unified score on the training persons only: each candidate of
+/// [`VARIANTS`] scored by person-disjoint k-fold cross-validation (every training photo scored by
+/// the model fitted on the other folds), then the error-versus-discard characteristic of those
+/// out-of-fold scores on LFW's training persons, beside each single component's on the same photos.
+pub fn run_eval_cv(args: EvalQualityCvArgs) -> anyhow::Result<ExitCode> {
+    let (samples, measured) = samples_and_measurements(&args.data)?;
+    let deep = DeepModel::load(&crate::config::models_dir().join(crate::recognize::deep::FILE))?;
+    let t = threshold(&deep);
+    // IMM's and ORL's training persons first, then LFW's: the characteristic is read on LFW's.
+    let mut photos = scored(&samples, &measured, &deep, &|s| is_training(s) && s.set != Set::Lfw);
+    let lfw_start = photos.len();
+    photos.extend(scored(&samples, &measured, &deep, &|s| is_training(s) && s.set == Set::Lfw));
+    let lfw = &photos[lfw_start..];
+    let pairs = genuine_pairs(lfw, t);
+    let rates = genuine_match_rates(&photos, t);
+    let cosines = genuine_cosine_stats(&photos);
+    let shares = discard_shares();
+    println!(
+        "{} training photos ({} of LFW's training persons, {} genuine pairs there); {}-fold person-disjoint cross-validation, {} \
+         repeats; FNMR at {t} ({}'s FMR 1e-3 threshold) of LFW's training persons, discarding",
+        photos.len(),
+        lfw.len(),
+        pairs.len(),
+        args.folds,
+        args.repeats,
+        deep.version
+    );
+    // Per measure: partial areas over 0–10 % and 0–30 %, FNMR at 0, 5, 10, 20 and 30 %.
+    let summary = |curve: &[EdcPoint]| {
+        [partial_area(curve, 0.1), partial_area(curve, 0.3), curve[0].fnmr, curve[5].fnmr, curve[10].fnmr, curve[20].fnmr, curve[30].fnmr]
+    };
+    let mut rows: Vec<(String, [f64; 7])> = Vec::new();
+    for variant in VARIANTS {
+        let mut mean = [0.0; 7];
+        for repeat in 0..args.repeats {
+            let fold = person_folds(&photos, args.folds, repeat as u64);
+            let logits = out_of_fold_logits(variant, &photos, &fold, args.folds, &rates, &cosines);
+            let curve = edc(&pairs, &lowest_first(&logits[lfw_start..]), &shares);
+            summary(&curve).iter().zip(&mut mean).for_each(|(v, m)| *m += v / args.repeats as f64);
+        }
+        let adopted = if *variant == UNIFIED { " (models/quality.bin)" } else { "" };
+        rows.push((format!("unified: {}{adopted}", variant.name), mean));
+    }
+    let committed = crate::quality::QualityModel {
+        format: crate::quality::FORMAT,
+        mean: vec![0.0; crate::quality::FEATURES],
+        scale: vec![1.0; crate::quality::FEATURES],
+        weights: vec![0.0; crate::quality::FEATURES],
+        bias: 0.0,
+        trained_on: String::new(),
+    };
+    // The components need no training: one characteristic each, on the same photos.
+    for m in measures(lfw, &committed).into_iter().skip(1) {
+        rows.push((m.name, summary(&edc(&pairs, &lowest_first(&m.values), &shares))));
+    }
+    rows.push(("random (mean of 100)".into(), summary(&random_edc(&pairs, lfw.len(), &shares, 100))));
+    println!("  {:<72} {:>8} {:>8} {:>7} {:>7} {:>7} {:>7} {:>7}", "measure", "pA 0-10", "pA 0-30", "0%", "5%", "10%", "20%", "30%");
+    for (name, v) in &rows {
+        let pct = v.map(|x| 100.0 * x);
+        println!(
+            "  {name:<72} {:>7.2}% {:>7.2}% {:>6.2}% {:>6.2}% {:>6.2}% {:>6.2}% {:>6.2}%",
+            pct[0], pct[1], pct[2], pct[3], pct[4], pct[5], pct[6]
+        );
+    }
     Ok(ExitCode::SUCCESS)
 }
 
