@@ -202,14 +202,7 @@ impl Gallery {
             .into_iter()
             .map(|s| {
                 let (score, templates) = (scores[s as usize], self.slots[s as usize].rows.len());
-                let point = matcher.operating_point(fmr, templates);
-                let decision = Decision {
-                    score,
-                    threshold: point.threshold,
-                    fmr: point.fmr,
-                    is_match: score >= point.threshold,
-                    templates_compared: templates,
-                };
+                let decision = Decision::at(matcher, score, templates, fmr);
                 Candidate { subject: self.slots[s as usize].id.to_string(), decision }
             })
             .collect();

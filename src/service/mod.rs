@@ -188,9 +188,16 @@ pub fn comparable_templates(matcher: &dyn Matcher, subject: &SubjectId, enrolled
 /// Is `probe` the subject of the `comparable` templates (see [`comparable_templates`])? The score is
 /// held against the threshold at `fmr` for a subject with that many templates.
 pub fn decide(matcher: &dyn Matcher, probe: &Template, comparable: &[Template], fmr: f64) -> Decision {
-    let score = matcher.score(probe, comparable);
-    let point = matcher.operating_point(fmr, comparable.len());
-    Decision { score, threshold: point.threshold, fmr: point.fmr, is_match: score >= point.threshold, templates_compared: comparable.len() }
+    Decision::at(matcher, matcher.score(probe, comparable), comparable.len(), fmr)
+}
+
+impl Decision {
+    /// `score` of a subject with `templates` templates, held against the threshold at `fmr` for
+    /// that many templates: the one rule verify, identify and the gallery decide by.
+    pub fn at(matcher: &dyn Matcher, score: f32, templates: usize, fmr: f64) -> Decision {
+        let point = matcher.operating_point(fmr, templates);
+        Decision { score, threshold: point.threshold, fmr: point.fmr, is_match: score >= point.threshold, templates_compared: templates }
+    }
 }
 
 /// Verification of a probe against a subject's enrolled templates: [`comparable_templates`], then
@@ -222,17 +229,7 @@ pub fn identify(matcher: &dyn Matcher, probe: &Template, gallery: Vec<(String, V
     scored.truncate(k);
     scored
         .into_iter()
-        .map(|(subject, score, templates)| {
-            let point = matcher.operating_point(fmr, templates);
-            let decision = Decision {
-                score,
-                threshold: point.threshold,
-                fmr: point.fmr,
-                is_match: score >= point.threshold,
-                templates_compared: templates,
-            };
-            Candidate { subject, decision }
-        })
+        .map(|(subject, score, templates)| Candidate { subject, decision: Decision::at(matcher, score, templates, fmr) })
         .collect()
 }
 
