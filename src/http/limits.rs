@@ -1,5 +1,6 @@
 //! What every request and response goes through first and last: the request head's limits
-//! (answered with problem+json, below hyper's own limits, which answer with empty bodies), the
+//! (answered with problem+json, below hyper's own limits: what hyper refuses itself gets its
+//! problem+json body from `head_errors`), the
 //! request id, and `Cache-Control: no-store` (answers carry biometric decisions and subject ids,
 //! which no cache on the way should keep).
 

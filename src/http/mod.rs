@@ -32,6 +32,7 @@ pub mod admission;
 pub mod audit;
 pub mod console;
 mod handlers;
+mod head_errors;
 pub mod input;
 mod inspect;
 pub mod limits;

@@ -240,6 +240,19 @@ impl Problem {
         };
         Problem::new(kind, error.to_string())
     }
+
+    /// The problem+json body.
+    pub fn json(&self) -> Vec<u8> {
+        let body = ProblemBody {
+            type_uri: self.kind.type_uri(),
+            title: self.kind.title(),
+            status: self.kind.status().as_u16(),
+            detail: &self.detail,
+            image: self.image,
+            failures: &self.failures,
+        };
+        serde_json::to_vec(&body).expect("problem bodies serialise")
+    }
 }
 
 impl From<crate::store::StoreError> for Problem {
@@ -251,16 +264,7 @@ impl From<crate::store::StoreError> for Problem {
 impl IntoResponse for Problem {
     fn into_response(self) -> Response {
         let status = self.kind.status();
-        let body = ProblemBody {
-            type_uri: self.kind.type_uri(),
-            title: self.kind.title(),
-            status: status.as_u16(),
-            detail: &self.detail,
-            image: self.image,
-            failures: &self.failures,
-        };
-        let json = serde_json::to_vec(&body).expect("problem bodies serialise");
-        let mut response = (status, json).into_response();
+        let mut response = (status, self.json()).into_response();
         // The audit log reads the outcome of a refused request from here.
         response.extensions_mut().insert(self.kind);
         let headers = response.headers_mut();

@@ -9,7 +9,8 @@
 //! - Hyper's own hard limits (head buffer, header count) set above the router's
 //!   (`limits::check_head`), so the client gets problem+json for what the router checks; what
 //!   hyper refuses itself (a head over its buffer, a malformed request line) it answers with an
-//!   empty body, which hyper offers no way to fill.
+//!   empty body, which hyper offers no way to fill: `head_errors::ProblemHeads` replaces that
+//!   answer with problem+json on its way out.
 //! - Graceful shutdown: on the signal, stop accepting, let in-flight requests finish, and give up
 //!   on connections still open after the grace period (idle keep-alives, stalled uploads).
 
@@ -23,6 +24,8 @@ use hyper_util::server::graceful::GracefulShutdown;
 use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
+
+use super::head_errors::ProblemHeads;
 
 /// Connection-level limits (made from `config::Settings`, where the defaults are).
 #[derive(Debug, Clone, Copy)]
@@ -76,7 +79,7 @@ pub async fn serve(listener: TcpListener, router: Router, limits: ServerLimits, 
         };
         let _ = stream.set_nodelay(true);
         let service = TowerToHyperService::new(router.clone());
-        let connection = graceful.watch(builder.serve_connection(TokioIo::new(stream), service));
+        let connection = graceful.watch(builder.serve_connection(TokioIo::new(ProblemHeads::new(stream)), service));
         tokio::spawn(async move {
             // Errors here are the client's (reset, timeout, malformed head): nothing to report.
             let _ = connection.await;

@@ -3,7 +3,7 @@
 //! on the operational routes, the audit log, and the contract fixes schemathesis found.
 
 use std::io::Write;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use facegate::core::imaging::DecodeLimits;
@@ -144,6 +144,26 @@ async fn heads_over_the_limits_get_problem_json_and_every_answer_has_no_store_an
     assert_eq!(r.headers["cache-control"], "no-store");
 }
 
+/// Heads hyper refuses before the router sees them (a malformed request line, a target over its
+/// 64 KiB limit, more headers than it parses) are answered with problem+json too.
+#[tokio::test]
+async fn heads_hyper_refuses_itself_are_answered_with_problem_json() {
+    let app = TestApp::start(StandInEngine::new("v1"), config()).await;
+    let too_many_headers: String = (0..300).map(|i| format!("x-h{i}: v\r\n")).collect();
+    for (head, status, slug) in [
+        ("GARBAGE LINE\r\n\r\n".to_string(), 400, "malformed-request"),
+        (format!("GET /{} HTTP/1.1\r\nhost: x\r\n\r\n", "a".repeat(70_000)), 414, "uri-too-long"),
+        (format!("GET /health HTTP/1.1\r\nhost: x\r\n{too_many_headers}\r\n"), 431, "headers-too-large"),
+    ] {
+        let mut stream = connect(&app).await;
+        stream.write_all(head.as_bytes()).await.unwrap();
+        let response = read_to_close(&mut stream, Duration::from_secs(5)).await.expect("the server answers and closes");
+        assert!(response.starts_with(&format!("HTTP/1.1 {status} ")), "{response}");
+        assert!(response.contains("content-type: application/problem+json"), "{response}");
+        assert_eq!(raw_problem(&response), slug);
+    }
+}
+
 #[tokio::test]
 async fn with_keys_metrics_need_one_and_health_shows_no_counts_without_one() {
     let key = "0123456789abcdef-ops";
@@ -199,11 +219,21 @@ impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for Captured {
     }
 }
 
+/// The test binary's log, as JSON lines in memory. A global subscriber, set once: a thread-local
+/// one (`set_default`) misses events when another test thread registers the same callsites first.
+fn captured_log() -> &'static Captured {
+    static LOG: OnceLock<Captured> = OnceLock::new();
+    LOG.get_or_init(|| {
+        let log = Captured::default();
+        let subscriber = tracing_subscriber::fmt().json().with_writer(log.clone()).with_max_level(tracing::Level::INFO).finish();
+        tracing::subscriber::set_global_default(subscriber).expect("no other test sets a global subscriber");
+        log
+    })
+}
+
 #[tokio::test]
 async fn the_audit_log_has_one_json_line_per_enrol_verify_identify_delete_with_key_and_request_ids() {
-    let log = Captured::default();
-    let subscriber = tracing_subscriber::fmt().json().with_writer(log.clone()).with_max_level(tracing::Level::INFO).finish();
-    let _guard = tracing::subscriber::set_default(subscriber);
+    let log = captured_log();
     let key = "0123456789abcdef-audit";
     let app = TestApp::start(StandInEngine::new("v1"), ApiConfig { api_keys: vec![key.into()], ..config() }).await;
     let photo = pattern_jpeg(320, 240, 1);
@@ -214,12 +244,15 @@ async fn the_audit_log_has_one_json_line_per_enrol_verify_identify_delete_with_k
         }
         app.client.post(app.url(path)).bearer_auth(key).header("x-request-id", id).multipart(form)
     };
-    assert_eq!(app.send(post("/enroll", Some("ivy"), "r-enrol")).await.status, 201);
-    assert_eq!(app.send(post("/verify", Some("ivy"), "r-verify")).await.status, 200);
-    assert_eq!(app.send(post("/verify", Some("nobody"), "r-unknown")).await.status, 404);
-    assert_eq!(app.send(post("/identify", None, "r-identify")).await.status, 200);
-    assert_eq!(app.send(app.client.delete(app.url("/subjects/ivy")).bearer_auth(key).header("x-request-id", "r-delete")).await.status, 204);
-    assert_eq!(app.send(app.client.delete(app.url("/subjects/ivy")).header("x-request-id", "r-nokey")).await.status, 401);
+    assert_eq!(app.send(post("/enroll", Some("ivy"), "audit-enrol")).await.status, 201);
+    assert_eq!(app.send(post("/verify", Some("ivy"), "audit-verify")).await.status, 200);
+    assert_eq!(app.send(post("/verify", Some("nobody"), "audit-unknown")).await.status, 404);
+    assert_eq!(app.send(post("/identify", None, "audit-identify")).await.status, 200);
+    assert_eq!(
+        app.send(app.client.delete(app.url("/subjects/ivy")).bearer_auth(key).header("x-request-id", "audit-delete")).await.status,
+        204
+    );
+    assert_eq!(app.send(app.client.delete(app.url("/subjects/ivy")).header("x-request-id", "audit-nokey")).await.status, 401);
     assert_eq!(app.get("/subjects").await.status, 401, "not audited: not an enrol/verify/identify/delete");
 
     let text = String::from_utf8(log.0.lock().unwrap().clone()).unwrap();
@@ -228,31 +261,33 @@ async fn the_audit_log_has_one_json_line_per_enrol_verify_identify_delete_with_k
         .map(|l| serde_json::from_str::<Value>(l).unwrap_or_else(|e| panic!("{e}: {l}")))
         .filter(|v| v["target"] == "facegate::audit")
         .map(|v| v["fields"].clone())
+        // The log is the whole test binary's: this test's requests are the `audit-` ids.
+        .filter(|f| f["request_id"].as_str().is_some_and(|id| id.starts_with("audit-")))
         .collect();
     let key_id = format!("{:x}", sha2::Sha256::digest(key.as_bytes()))[..8].to_string();
     let by_id = |id: &str| audit.iter().find(|f| f["request_id"] == id).unwrap_or_else(|| panic!("no audit line for {id}: {text}")).clone();
     assert_eq!(audit.len(), 6, "{text}");
-    let enrol = by_id("r-enrol");
+    let enrol = by_id("audit-enrol");
     assert_eq!((enrol["op"].as_str(), enrol["outcome"].as_str(), enrol["subject"].as_str()), (Some("enroll"), Some("ok"), Some("ivy")));
     assert_eq!(
         (enrol["templates_added"].as_u64(), enrol["model_version"].as_str(), enrol["key_id"].as_str()),
         (Some(1), Some("v1"), Some(&*key_id))
     );
-    let verify = by_id("r-verify");
+    let verify = by_id("audit-verify");
     assert_eq!((verify["decision"].as_str(), verify["status"].as_u64()), (Some("match"), Some(200)));
     assert!(verify["score"].as_f64().unwrap() > 0.99 && verify["threshold"].as_f64().is_some(), "{verify}");
-    let unknown = by_id("r-unknown");
+    let unknown = by_id("audit-unknown");
     assert_eq!(
         (unknown["outcome"].as_str(), unknown["subject"].as_str(), unknown.get("score")),
         (Some("unknown-subject"), Some("nobody"), None)
     );
-    let identify = by_id("r-identify");
+    let identify = by_id("audit-identify");
     assert_eq!(
         (identify["op"].as_str(), identify["subject"].as_str(), identify["candidates"].as_u64()),
         (Some("identify"), Some("ivy"), Some(1))
     );
-    assert_eq!((by_id("r-delete")["op"].as_str(), by_id("r-delete")["subject"].as_str()), (Some("delete"), Some("ivy")));
-    let refused = by_id("r-nokey");
+    assert_eq!((by_id("audit-delete")["op"].as_str(), by_id("audit-delete")["subject"].as_str()), (Some("delete"), Some("ivy")));
+    let refused = by_id("audit-nokey");
     assert_eq!((refused["outcome"].as_str(), refused.get("key_id")), (Some("unauthorized"), None));
     // No photo bytes: every line is short, whatever the photo's size.
     assert!(text.lines().all(|l| l.len() < 1000), "{text}");
