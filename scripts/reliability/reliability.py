@@ -16,7 +16,8 @@ checks the issue's target and prints one result line; the script exits non-zero 
   overload    (not in the default set: long, and its figures want a release build) hey with
               8 clients for 20 s (the peak), then 200 clients for 60 s: 0 responses other than
               200/503, successful verifications/s at 200 clients >= 90% of the rate at 8, peak
-              RSS <= 300 MB
+              RSS <= 300 MB; meanwhile 4 clients enrol new subjects one after another, and
+              every enrolment is accepted (none refused by the flood)
 
   scripts/reliability/reliability.py                      # slowloris slow-body kill9 sigterm
   scripts/reliability/reliability.py overload --bin target/release/facegate
@@ -286,6 +287,10 @@ def hey(url, clients, seconds, body_path, ctype):
     return codes, (errors.group(1).strip() if errors else "")
 
 
+# Clients enrolling during the overload scenario's verification flood.
+ENROL_CLIENTS = 4
+
+
 def overload(args, work):
     if shutil.which("hey") is None:
         return False, "hey is missing"
@@ -301,14 +306,48 @@ def overload(args, work):
         url = f"http://127.0.0.1:{server.port}/verify"
         peak_codes, _ = hey(url, 8, args.peak_secs, body_path, ctype)
         peak = peak_codes.get(200, 0) / args.peak_secs
+        # Enrolments during the verification flood: ENROL_CLIENTS clients enrol one new subject
+        # after another; each must be accepted (201), not starved by the flood (503).
+        enrolments = {"201": 0, "503": 0, "other": 0}
+        latencies = []
+        lock = threading.Lock()
+        flooding = threading.Event()
+        flooding.set()
+        enrol_photo = photo("01-1m.jpg")
+
+        def enrol(client):
+            i = 0
+            while flooding.is_set():
+                body, ctype = multipart([("subject", None, f"flood-{client}-{i}".encode()), ("image", "p.jpg", enrol_photo)])
+                start = time.monotonic()
+                try:
+                    status, _ = server.request("POST", "/enroll", body, {"Content-Type": ctype}, timeout=60)
+                except OSError:
+                    status = None
+                with lock:
+                    enrolments[str(status) if status in (201, 503) else "other"] += 1
+                    if status == 201:
+                        latencies.append(time.monotonic() - start)
+                i += 1
+
+        enrollers = [threading.Thread(target=enrol, args=(c,)) for c in range(ENROL_CLIENTS)]
+        for t in enrollers:
+            t.start()
         codes, errors = hey(url, 200, args.overload_secs, body_path, ctype)
+        flooding.clear()
+        for t in enrollers:
+            t.join()
         rate = codes.get(200, 0) / args.overload_secs
         others = sum(n for c, n in codes.items() if c not in (200, 503))
         rss = server.peak_rss_mb()
-        ok = others == 0 and not errors and rate >= 0.9 * peak and rss <= 300
+        latencies.sort()
+        enrol_p50 = latencies[len(latencies) // 2] if latencies else float("nan")
+        enrol_ok = enrolments["201"] > 0 and enrolments["503"] == 0 and enrolments["other"] == 0
+        ok = others == 0 and not errors and rate >= 0.9 * peak and rss <= 300 and enrol_ok
         return ok, (f"8 clients {args.peak_secs} s: {peak:.1f} verifications/s ({peak_codes}); 200 clients {args.overload_secs} s: "
                     f"{rate:.1f}/s = {rate / peak if peak else 0:.2f} of the peak, responses {codes}, other statuses {others}, "
-                    f"client errors {errors or 'none'}; peak RSS {rss:.0f} MB")
+                    f"client errors {errors or 'none'}; peak RSS {rss:.0f} MB; meanwhile {ENROL_CLIENTS} enrolling clients: "
+                    f"{enrolments['201']} enrolled, {enrolments['503']} refused, {enrolments['other']} other, p50 {enrol_p50:.2f} s")
     finally:
         server.stop()
 
