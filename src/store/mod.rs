@@ -441,7 +441,7 @@ pub async fn restore(backup: &Path, url: &str, overwrite: bool) -> Result<(u64, 
         }
         // Exclusive locking fails while any other connection has the database open (after a
         // short wait: a connection being closed lets go within it, a running service does not).
-        let exclusive = options.clone().locking_mode(SqliteLockingMode::Exclusive).busy_timeout(Duration::from_secs(2));
+        let exclusive = options.clone().locking_mode(SqliteLockingMode::Exclusive).busy_timeout(Duration::from_secs(5));
         let mut live = SqliteConnection::connect_with(&exclusive)
             .await
             .map_err(|e| StoreError::Refused(format!("{} is in use ({e}); stop the service first", target.display())))?;
