@@ -22,20 +22,17 @@ use crate::core::imaging::{self, DecodeLimits};
 use crate::detect::Face;
 use crate::landmarks::Landmarks;
 use crate::morph::Pose;
-use crate::pipeline::{FaceAnalysis, PipelineError};
+use crate::pipeline::{FaceAnalysis, PipelineError, StageTimings};
 use crate::quality::Quality;
 use crate::service::{self, SubjectId, VerifyError};
 use crate::store::{SubjectDetail, SubjectSummary};
 
-/// Milliseconds spent on one photo, stage by stage.
+/// Milliseconds spent on one photo, stage by stage: decoding, then the pipeline's stages.
 #[derive(Debug, Clone, Copy, Serialize)]
 struct PhotoTimings {
     decode_ms: f64,
-    detect_ms: f64,
-    landmarks_ms: f64,
-    morph_ms: f64,
-    template_ms: f64,
-    quality_ms: f64,
+    #[serde(flatten)]
+    stages: StageTimings,
 }
 
 /// What the pipeline found in one photo.
@@ -74,15 +71,7 @@ fn analyse_photo(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -
         PipelineError::PoseCorrection(e) => Problem::new(ProblemKind::NoFace, format!("the face found could not be pose-corrected: {e}")),
         other => Problem::internal(other),
     })?;
-    let t = analysis.timings;
-    let timings = PhotoTimings {
-        decode_ms,
-        detect_ms: t.detect_ms,
-        landmarks_ms: t.landmarks_ms,
-        morph_ms: t.morph_ms,
-        template_ms: t.template_ms,
-        quality_ms: t.quality_ms,
-    };
+    let timings = PhotoTimings { decode_ms, stages: analysis.timings };
     Ok(Analysed { analysis, timings })
 }
 
@@ -91,7 +80,7 @@ async fn analyse_probe(state: &AppState, image: Bytes) -> Result<Analysed, Probl
     let engine = state.0.engine.clone();
     let limits = state.0.config.decode_limits;
     let analysed = state.0.pool.run(move || analyse_photo(engine.as_ref(), &image, &limits)).await??;
-    state.0.metrics.observe_stages(analysed.timings.decode_ms, &analysed.analysis.timings);
+    state.0.metrics.observe_stages(analysed.timings.decode_ms, &analysed.timings.stages);
     Ok(analysed)
 }
 
@@ -169,7 +158,7 @@ pub async fn enroll(State(state): State<AppState>, request: Request) -> Result<R
         })
         .await??;
     for a in &analysed {
-        state.0.metrics.observe_stages(a.timings.decode_ms, &a.analysis.timings);
+        state.0.metrics.observe_stages(a.timings.decode_ms, &a.timings.stages);
     }
     let templates: Vec<_> = analysed.iter().map(|a| a.analysis.template.clone()).collect();
     let count = state.0.gallery.enroll(&subject, templates.clone()).await?;
