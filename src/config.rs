@@ -79,6 +79,7 @@ pub enum LogFormat {
     /// One JSON object per line (fields of audit events as JSON fields).
     Json,
 }
+
 // The enrolment quality policy (docs/quality.md: what each refuses of IMM and ORL).
 const DEFAULT_MIN_QUALITY: f32 = 50.0;
 const DEFAULT_MIN_INTER_EYE_PX: f32 = 20.0;
