@@ -8,6 +8,7 @@
 //!   storage) with a stand-in face engine.
 //! - `pipeline`: enrol and verify real IMM photos through the real `Pipeline` and committed models;
 //!   analyse, avatar and frontal rendering, byte for byte the CLI's.
+//! - `postgres`: a real PostgreSQL server (a throwaway cluster, or `FACEGATE_TEST_POSTGRES`).
 //! - `store_cli`: `facegate rekey`, `backup` and `restore`, the real binary on a real database.
 //! - `browser`: the web console in headless Chromium over WebDriver, against the real pipeline.
 
@@ -16,5 +17,6 @@ mod hostile;
 mod http;
 mod openapi;
 mod pipeline;
+mod postgres;
 mod store_cli;
 mod support;
