@@ -1,5 +1,6 @@
 //! Face image quality per face against the whole analysis, in one run: the components from the
-//! chip the deep recognizer already cut (its path in the service), the chip cut and measured (the
+//! chip the deep recognizer already cut, then with the mirror agreement of the two embeddings it
+//! already made and the score (its path in the service), the chip cut and measured (the
 //! classical path, and `/analyze`), the unified score, and `Pipeline::analyze` of the same photo
 //! (decoding included), on a large photo (IMM 640×480) and a small one (ORL 92×112). Thread CPU
 //! time (`benches/common`).
@@ -31,6 +32,16 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
         let chip = facegate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
         group.bench_function(format!("components_of_chip/{name}"), |b| {
             b.iter(|| black_box(facegate::quality::components(black_box(&chip), &landmarks.keypoints, pose, residual)))
+        });
+        // The deep path's whole quality stage: the components, the agreement of the two
+        // embeddings the recognizer made anyway, the score.
+        let network = facegate::embed::load(&models_dir()).expect("models/embedding.bin");
+        let mirror = facegate::embed::chip_mirror_pair(&network, &chip);
+        group.bench_function(format!("chip_components_mirror_score/{name}"), |b| {
+            b.iter(|| {
+                let components = facegate::quality::components(black_box(&chip), &landmarks.keypoints, pose, residual);
+                black_box(pipeline.quality.assess(components.with_mirror(black_box(&mirror))))
+            })
         });
         group.bench_function(format!("chip_components_score/{name}"), |b| {
             b.iter(|| black_box(pipeline.quality.assess(quality_components(black_box(&photo), landmarks, pose, residual).1)))

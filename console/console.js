@@ -214,6 +214,7 @@ function faceDetails(report) {
             ['Brightness, contrast', `${fmt(q.brightness, 0)}, ${fmt(q.contrast, 0)}`],
             ['Light evenness', fmt(q.illumination_uniformity, 2)],
             ['|Yaw|, |pitch|', `${deg(q.yaw_abs_deg)}, ${deg(q.pitch_abs_deg)}`],
+            ['Mirror agreement', typeof q.mirror_agreement === 'number' ? fmt(q.mirror_agreement, 3) : 'not measured (no embedding)'],
         ], 'Photo quality'));
     }
     if (report.timings) {

@@ -232,11 +232,11 @@ impl Pipeline {
                 timings.morph_ms = elapsed_ms(t);
                 let t = Instant::now();
                 let chip = crate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
-                let template = deep.template_of_chip(&chip);
+                let (template, mirror) = deep.template_and_mirror_pair(&chip);
                 timings.template_ms = elapsed_ms(t);
                 let t = Instant::now();
-                let quality =
-                    self.quality.assess(crate::quality::components(&chip, &landmarks.keypoints, input.pose, input.fit_residual_px));
+                let components = crate::quality::components(&chip, &landmarks.keypoints, input.pose, input.fit_residual_px);
+                let quality = self.quality.assess(components.with_mirror(&mirror));
                 timings.quality_ms = elapsed_ms(t);
                 (template, input.pose, quality)
             }
@@ -447,6 +447,12 @@ mod tests {
         assert!(a.template.model_version.starts_with("deep-") && b.template.model_version.starts_with("dlda-"));
         assert_eq!(a.template.vector.len(), crate::embed::EMBEDDING_DIMS);
         assert_eq!((a.face, &a.landmarks), (b.face, &b.landmarks), "one front end for both");
+        // The mirror agreement exists where the chip is embedded (deep), not on the classical path,
+        // whose other components are the same (one chip for both).
+        let (qa, qb) = (a.quality.components, b.quality.components);
+        assert!(qa.mirror_agreement.is_some_and(|m| m > 0.5 && m <= 1.0) && qa.embedding_norm.is_some_and(|n| n > 0.0), "{qa:?}");
+        assert_eq!((qb.mirror_agreement, qb.embedding_norm), (None, None));
+        assert_eq!((qa.sharpness, qa.fit_residual), (qb.sharpness, qb.fit_residual));
         // Without the 3DMM the deep recognizer is unchanged (it never needed the rendering); the
         // pose is then unknown.
         let flat = Pipeline::load(&PipelineConfig { sfm_dir: None, ..crate::config::pipeline_config() }).unwrap();

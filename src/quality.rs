@@ -1,6 +1,7 @@
 //! Face image quality: how likely a photo is to make a template that matches. Plain data in (the
 //! recognizer's 150×150 chip, the eye centres, the 3DMM pose and fit residual), plain data out: a
-//! few measured [`Components`] and a unified score in 0–100 from a small logistic model
+//! few measured [`Components`] (on the deep path also how well the chip's and its mirror image's
+//! embeddings agree) and a unified score in 0–100 from a small logistic model
 //! ([`QualityModel`], `models/quality.bin`, trained by `facegate train quality`).
 //!
 //! Every image component is measured on the chip the deep recognizer sees (cut at the eye and
@@ -14,7 +15,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::core::face::KeyPoints;
-use crate::embed::FaceChip;
+use crate::embed::{FaceChip, MirrorPair};
 use crate::morph::Pose;
 
 /// The inner face of the 150-pixel chip (eyebrows to chin, cheek to cheek), where the image
@@ -45,6 +46,24 @@ pub struct Components {
     /// distance (a landmark-fit confidence: small when the points form a plausible face); `None`
     /// as for yaw.
     pub fit_residual: Option<f32>,
+    /// Cosine between the network's embeddings of the chip and of its mirror image (−1 to 1; in
+    /// practice 0.8–1): a face and its mirror are the same person, so a well-aligned, sharp,
+    /// frontal, unoccluded face embeds nearly alike both ways. `None` where no embedding is made
+    /// (the classical recognizer, `/analyze`).
+    pub mirror_agreement: Option<f32>,
+    /// Euclidean norm of the mean of those two embeddings (the recognizer's embedding before its
+    /// model normalises it): two embeddings that disagree average to a shorter one. `None` as for
+    /// the mirror agreement.
+    pub embedding_norm: Option<f32>,
+}
+
+impl Components {
+    /// These components with the agreement of the chip's and its mirror image's embeddings.
+    pub fn with_mirror(self, pair: &MirrorPair) -> Components {
+        let mean = pair.mean();
+        let norm = mean.0.iter().map(|v| v * v).sum::<f32>().sqrt();
+        Components { mirror_agreement: Some(pair.agreement()), embedding_norm: Some(norm), ..self }
+    }
 }
 
 /// A face's quality: the components and the unified score.
@@ -102,11 +121,18 @@ pub fn components(chip: &FaceChip, keypoints: &KeyPoints, pose: Option<Pose>, fi
         yaw_abs_deg: pose.map(|p| p.yaw.abs()),
         pitch_abs_deg: pose.map(|p| p.pitch.abs()),
         fit_residual: fit_residual_px.map(|r| r / inter_eye_px.max(1.0)),
+        mirror_agreement: None,
+        embedding_norm: None,
     }
 }
 
 /// How many features [`features`] makes of the components.
-pub const FEATURES: usize = 10;
+pub const FEATURES: usize = 13;
+
+/// The features that exist only where the chip was embedded (mirror agreement, embedding norm):
+/// without an embedding they count at the model's training mean (they add nothing to the score),
+/// and the indicator after them says so.
+pub const MIRROR_FEATURES: std::ops::Range<usize> = 10..12;
 
 /// The names of [`features`], in order (for the model note and the evaluation).
 pub const FEATURE_NAMES: [&str; FEATURES] = [
@@ -120,10 +146,15 @@ pub const FEATURE_NAMES: [&str; FEATURES] = [
     "|pitch|",
     "fit residual",
     "pose unknown",
+    "mirror agreement",
+    "ln embedding norm",
+    "embedding unknown",
 ];
 
 /// The logistic model's inputs: the components on roughly unit scales, the two-sided exposure as a
-/// squared distance from mid-grey, a missing pose as zero angles plus an indicator.
+/// squared distance from mid-grey, a missing pose as zero angles plus an indicator, a missing
+/// embedding as zero mirror agreement and norm plus an indicator ([`QualityModel::score`] leaves
+/// those zeros out).
 pub fn features(c: &Components) -> [f64; FEATURES] {
     let b = c.brightness as f64 / 255.0;
     [
@@ -137,13 +168,16 @@ pub fn features(c: &Components) -> [f64; FEATURES] {
         c.pitch_abs_deg.unwrap_or(0.0) as f64 / 30.0,
         c.fit_residual.unwrap_or(0.0) as f64,
         if c.yaw_abs_deg.is_none() { 1.0 } else { 0.0 },
+        c.mirror_agreement.unwrap_or(0.0) as f64,
+        c.embedding_norm.map_or(0.0, |n| (n.max(1e-3) as f64).ln()),
+        if c.mirror_agreement.is_none() { 1.0 } else { 0.0 },
     ]
 }
 
 /// The unified score's model file.
 pub const FILE: &str = "quality.bin";
 /// The layout of [`QualityModel`].
-pub const FORMAT: u32 = 1;
+pub const FORMAT: u32 = 2;
 
 /// Logistic regression of "a genuine comparison clears the threshold" on the standardised
 /// [`features`]: `score = 100 · σ(bias + Σ weight · (feature − mean) / scale)`.
@@ -177,11 +211,17 @@ impl QualityModel {
         Ok(model)
     }
 
-    /// The unified score (0–100) of `components`.
+    /// The unified score (0–100) of `components`. Without an embedding the mirror features count
+    /// at the training photos' mean (every training photo has one): the score of a photo whose
+    /// mirror agreement is typical.
     pub fn score(&self, components: &Components) -> f32 {
         let x = features(components);
-        let z =
-            self.bias + x.iter().zip(&self.mean).zip(&self.scale).zip(&self.weights).map(|(((x, m), s), w)| w * (x - m) / s).sum::<f64>();
+        let unknown = components.mirror_agreement.is_none();
+        let z = self.bias
+            + (0..FEATURES)
+                .filter(|k| !(unknown && MIRROR_FEATURES.contains(k)))
+                .map(|k| self.weights[k] * (x[k] - self.mean[k]) / self.scale[k])
+                .sum::<f64>();
         (100.0 / (1.0 + (-z).exp())) as f32
     }
 
@@ -325,6 +365,73 @@ mod tests {
         assert_eq!((failures[0].component, failures[0].limit, failures[0].bound), ("brightness", 40.0, Bound::Min));
         assert_eq!((failures[1].component, failures[1].value, failures[1].bound), ("yaw_abs_deg", 50.0, Bound::Max));
         assert!(QualityPolicy::NONE.failures(&dark).is_empty());
+    }
+
+    fn mirror_pair(direct: [f32; 2], mirrored: [f32; 2]) -> MirrorPair {
+        let embed = |v: [f32; 2]| {
+            let mut e = [0.0; crate::embed::EMBEDDING_DIMS];
+            e[..2].copy_from_slice(&v);
+            crate::embed::Embedding(e)
+        };
+        MirrorPair { direct: embed(direct), mirrored: embed(mirrored) }
+    }
+
+    #[test]
+    fn the_mirror_components_are_the_agreement_and_the_mean_norm_and_null_without_an_embedding() {
+        let plain = components(&chip_of(|_, _| 100), &keypoints(60.0), None, None);
+        assert_eq!((plain.mirror_agreement, plain.embedding_norm), (None, None), "the classical path embeds nothing");
+        let same = plain.with_mirror(&mirror_pair([0.6, 0.8], [0.6, 0.8]));
+        assert_eq!(same.mirror_agreement, Some(1.0));
+        assert!((same.embedding_norm.unwrap() - 1.0).abs() < 1e-6);
+        // Orthogonal unit embeddings: cosine 0, their mean has norm √½.
+        let apart = plain.with_mirror(&mirror_pair([1.0, 0.0], [0.0, 1.0]));
+        assert!(apart.mirror_agreement.unwrap().abs() < 1e-6);
+        assert!((apart.embedding_norm.unwrap() - 0.5f32.sqrt()).abs() < 1e-6);
+        assert_eq!((apart.sharpness, apart.inter_eye_px), (plain.sharpness, plain.inter_eye_px));
+        let x = features(&apart);
+        assert_eq!((x[10], x[12]), (0.0, 0.0), "the cosine and the indicator");
+        assert_eq!(features(&plain)[12], 1.0);
+    }
+
+    #[test]
+    fn without_an_embedding_the_mirror_features_count_at_the_training_mean() {
+        let mut weights = vec![0.0; FEATURES];
+        weights[10] = 5.0; // mirror agreement
+        weights[11] = 1.0; // ln embedding norm
+        let mut mean = vec![0.0; FEATURES];
+        mean[10] = 0.9;
+        mean[11] = 0.5f64.ln();
+        let model = QualityModel { format: FORMAT, mean, scale: vec![1.0; FEATURES], weights, bias: 0.0, trained_on: String::new() };
+        let plain = components(&chip_of(|_, _| 100), &keypoints(60.0), None, None);
+        assert_eq!(model.score(&plain), 50.0, "unknown: the mean's score");
+        let typical = plain.with_mirror(&mirror_pair([1.0, 0.0], [0.9, 0.19f32.sqrt()]));
+        assert!((typical.mirror_agreement.unwrap() - 0.9).abs() < 1e-5);
+        let agreeing = plain.with_mirror(&mirror_pair([0.6, 0.8], [0.6, 0.8]));
+        let disagreeing = plain.with_mirror(&mirror_pair([1.0, 0.0], [0.0, 1.0]));
+        assert!(model.score(&agreeing) > model.score(&typical) && model.score(&typical) > model.score(&disagreeing));
+    }
+
+    #[test]
+    fn the_model_file_round_trips_and_a_wrong_feature_count_is_refused() {
+        let dir = std::env::temp_dir().join(format!("facegate-quality-model-{}", std::process::id()));
+        let model = QualityModel {
+            format: FORMAT,
+            mean: (0..FEATURES).map(|k| k as f64).collect(),
+            scale: vec![2.0; FEATURES],
+            weights: (0..FEATURES).map(|k| 0.1 * k as f64 - 0.5).collect(),
+            bias: 1.5,
+            trained_on: "test".into(),
+        };
+        let path = dir.join(FILE);
+        crate::core::model_file::write_model(&path, &model).unwrap();
+        assert_eq!(QualityModel::load(&path).unwrap(), model);
+        let short = QualityModel { weights: vec![0.0; FEATURES - 3], ..model.clone() };
+        crate::core::model_file::write_model(&path, &short).unwrap();
+        assert!(QualityModel::load(&path).unwrap_err().message.contains("features"));
+        let old = QualityModel { format: FORMAT - 1, ..model };
+        crate::core::model_file::write_model(&path, &old).unwrap();
+        assert!(QualityModel::load(&path).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

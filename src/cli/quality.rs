@@ -274,7 +274,7 @@ pub fn run_eval_cv(args: EvalQualityCvArgs) -> anyhow::Result<ExitCode> {
 /// practice, from which the policy's limits are chosen.
 fn component_percentiles(samples: &[Sample], measured: &[Option<Measured>], model: &QualityModel) {
     type Pick = fn(&crate::quality::Quality) -> Option<f32>;
-    let columns: [(&str, Pick); 9] = [
+    let columns: [(&str, Pick); 11] = [
         ("score", |q| Some(q.score)),
         ("inter_eye_px", |q| Some(q.components.inter_eye_px)),
         ("sharpness", |q| Some(q.components.sharpness)),
@@ -284,6 +284,8 @@ fn component_percentiles(samples: &[Sample], measured: &[Option<Measured>], mode
         ("yaw_abs_deg", |q| q.components.yaw_abs_deg),
         ("pitch_abs_deg", |q| q.components.pitch_abs_deg),
         ("fit_residual", |q| q.components.fit_residual),
+        ("mirror_agreement", |q| q.components.mirror_agreement),
+        ("embedding_norm", |q| q.components.embedding_norm),
     ];
     println!(
         "

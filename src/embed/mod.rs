@@ -16,7 +16,7 @@ use std::path::Path;
 use crate::core::face::KeyPoints;
 
 pub use chip::FaceChip;
-pub use net::{EMBEDDING_DIMS, Embedder, Embedding, Workspace};
+pub use net::{EMBEDDING_DIMS, Embedder, Embedding, MirrorPair, Workspace};
 pub use weights::NetworkFile;
 
 /// Side of the chips the network takes.
@@ -67,10 +67,16 @@ pub fn face_embedding(network: &Embedder, photo: &image::RgbImage, keypoints: &K
 
 /// The mirror-averaged embedding of a chip cut by [`face_chip`].
 pub fn chip_embedding(network: &Embedder, chip: &FaceChip) -> Embedding {
+    chip_mirror_pair(network, chip).mean()
+}
+
+/// The embeddings of a chip cut by [`face_chip`] and of its mirror image, kept apart (their mean
+/// is [`chip_embedding`]).
+pub fn chip_mirror_pair(network: &Embedder, chip: &FaceChip) -> MirrorPair {
     let mut ws = network.take_workspace();
-    let e = network.embed_mirrored(chip, &mut ws);
+    let pair = network.embed_mirror_pair(chip, &mut ws);
     network.give_back(ws);
-    e
+    pair
 }
 
 /// Converts dlib's serialised network into the project's weight file.
@@ -108,6 +114,35 @@ mod tests {
             out.push((format!("lfw/{name}"), chip::extract(&photo.rgb, &centre, CHIP_SIZE)));
         }
         out
+    }
+
+    #[test]
+    fn a_symmetric_chip_agrees_with_its_mirror_image_and_a_lopsided_one_less() {
+        let embedder = load(&crate::config::models_dir()).unwrap();
+        let (_, chip) = reference_chips().swap_remove(0);
+        // The chip's left half mirrored onto its right: the chip equals its own mirror image.
+        let mut symmetric = chip.clone();
+        let n = symmetric.size;
+        for y in 0..n {
+            for x in n / 2..n {
+                for k in 0..3 {
+                    symmetric.rgb[(y * n + x) * 3 + k] = chip.rgb[(y * n + n - 1 - x) * 3 + k];
+                }
+            }
+        }
+        assert_eq!(symmetric.mirrored(), symmetric);
+        let pair = chip_mirror_pair(&embedder, &symmetric);
+        assert!((pair.agreement() - 1.0).abs() < 1e-5, "{}", pair.agreement());
+        assert_eq!(pair.mean(), chip_embedding(&embedder, &symmetric));
+        // Half the face blacked out: the two ways disagree.
+        let mut occluded = chip.clone();
+        for y in 0..n {
+            for x in 0..n / 2 {
+                occluded.rgb[(y * n + x) * 3..(y * n + x) * 3 + 3].fill(0);
+            }
+        }
+        let (whole, half) = (chip_mirror_pair(&embedder, &chip).agreement(), chip_mirror_pair(&embedder, &occluded).agreement());
+        assert!(half < whole && whole < 1.0, "whole face {whole}, half {half}");
     }
 
     #[test]

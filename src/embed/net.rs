@@ -32,6 +32,32 @@ impl Embedding {
     }
 }
 
+/// The embeddings of a chip and of its mirror image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MirrorPair {
+    pub direct: Embedding,
+    pub mirrored: Embedding,
+}
+
+impl MirrorPair {
+    /// Their mean: the embedding the deep recognizer uses.
+    pub fn mean(&self) -> Embedding {
+        let mut out = [0.0f32; EMBEDDING_DIMS];
+        for ((o, x), y) in out.iter_mut().zip(self.direct.0).zip(self.mirrored.0) {
+            *o = 0.5 * (x + y);
+        }
+        Embedding(out)
+    }
+
+    /// Cosine between the two (−1 to 1): a face and its mirror are the same person, so a
+    /// well-aligned, sharp, frontal, unoccluded face gives nearly the same embedding both ways;
+    /// a badly fitted, turned, blurred or occluded one does not (a two-sample form of SER-FIQ's
+    /// embedding robustness, Terhörst et al. 2020).
+    pub fn agreement(&self) -> f32 {
+        self.direct.cosine(&self.mirrored)
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum NetworkError {
     #[error("the network file does not have the expected ResNet layout: {0}")]
@@ -235,13 +261,13 @@ impl Embedder {
     /// the same person, and averaging the two halves the noise of what the network sees on one
     /// side only (held-out LFW EER 2.38% → 2.00%, docs/recognition.md), for twice the work.
     pub fn embed_mirrored(&self, chip: &FaceChip, ws: &mut Workspace) -> Embedding {
-        let a = self.forward(chip, ws);
-        let b = self.forward(&chip.mirrored(), ws);
-        let mut out = [0.0f32; EMBEDDING_DIMS];
-        for ((o, x), y) in out.iter_mut().zip(a.0).zip(b.0) {
-            *o = 0.5 * (x + y);
-        }
-        Embedding(out)
+        self.embed_mirror_pair(chip, ws).mean()
+    }
+
+    /// The embeddings of the chip and of its mirror image, kept apart: their mean is
+    /// [`Embedder::embed_mirrored`], their agreement a quality signal ([`MirrorPair::agreement`]).
+    pub fn embed_mirror_pair(&self, chip: &FaceChip, ws: &mut Workspace) -> MirrorPair {
+        MirrorPair { direct: self.forward(chip, ws), mirrored: self.forward(&chip.mirrored(), ws) }
     }
 
     /// A workspace from the pool (or a new one), to hand back with [`Embedder::give_back`].

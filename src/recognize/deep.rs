@@ -129,7 +129,14 @@ impl DeepRecognizer {
     /// The template of a chip already cut ([`crate::embed::face_chip`]): what [`Self::template`]
     /// computes, for a caller that also measures the chip.
     pub fn template_of_chip(&self, chip: &crate::embed::FaceChip) -> Template {
-        self.model.template(&crate::embed::chip_embedding(&self.network, chip))
+        self.template_and_mirror_pair(chip).0
+    }
+
+    /// [`Self::template_of_chip`] and the two embeddings its mean was made of (the chip's and its
+    /// mirror image's), for the quality components that compare them.
+    pub fn template_and_mirror_pair(&self, chip: &crate::embed::FaceChip) -> (Template, crate::embed::MirrorPair) {
+        let pair = crate::embed::chip_mirror_pair(&self.network, chip);
+        (self.model.template(&pair.mean()), pair)
     }
 
     /// The best cosine of `probe` against the subject's templates.

@@ -46,7 +46,8 @@ impl QualityFrontEnd<'_> {
             fit.as_ref().map(|f| f.pose),
             fit.as_ref().map(|f| f.residual_px),
         );
-        Some(Measured { embedding: crate::embed::chip_embedding(self.network, &chip).0.to_vec(), components })
+        let mirror = crate::embed::chip_mirror_pair(self.network, &chip);
+        Some(Measured { embedding: mirror.mean().0.to_vec(), components: components.with_mirror(&mirror) })
     }
 }
 
@@ -71,7 +72,7 @@ pub fn measure_samples(front: &QualityFrontEnd, samples: &[Sample], threads: usi
 /// What a cache of [`measure_samples`] is keyed by: the front end's models and this version of
 /// the components' definitions.
 pub fn cache_key(models_key: &str) -> String {
-    format!("{models_key}-quality-components-1")
+    format!("{models_key}-quality-components-2")
 }
 
 #[derive(Serialize, Deserialize)]
@@ -149,14 +150,16 @@ pub fn genuine_match_rates(photos: &[Scored], threshold: f32) -> Vec<(f64, usize
 }
 
 /// The unified score's model: [`UNIFIED`] (logistic regression of each training photo's genuine
-/// match rate at `threshold` on its standardised [`features`], each photo weighted by its number
-/// of genuine comparisons, the intercept then refitted to the photos' mean rate) trained on
-/// `photos`; photos without a genuine partner are left out.
+/// match rate at `threshold` on its standardised [`features`], the embedding norm held out, the
+/// intercept then refitted to the photos' mean rate) trained on `photos`; photos without a
+/// genuine partner are left out.
 pub fn train_model(photos: &[Scored], threshold: f32, trained_on: String) -> QualityModel {
     let rates = genuine_match_rates(photos, threshold);
     let cosines = genuine_cosine_stats(photos);
     let all: Vec<usize> = (0..photos.len()).collect();
     let fit = train_variant(&UNIFIED, photos, &all, &rates, &cosines);
+    // The runtime scores the [`features`] as they are: only a variant over them can be the model.
+    assert_eq!(fit.weights.len(), crate::quality::FEATURES, "UNIFIED must use the runtime's features");
     QualityModel { format: crate::quality::FORMAT, mean: fit.mean, scale: fit.scale, weights: fit.weights, bias: fit.bias, trained_on }
 }
 
@@ -259,11 +262,21 @@ pub enum Weighting {
     BalancedByComparisons,
 }
 
-/// The feature sets the candidates draw on.
+/// The feature sets the candidates draw on. Each starts from the runtime's [`features`] (so that
+/// one over them alone can be `models/quality.bin`); a feature a set leaves out is held at zero, a
+/// constant the fit gives no weight.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum FeatureSet {
-    /// [`features`]: the runtime model's ten.
+    /// The ten features of the components alone (no mirror agreement, no embedding norm).
     Committed,
+    /// The ten and the mirror agreement as ln(1 − agreement) (it crowds just below 1).
+    MirrorAgreement,
+    /// The ten and the mirror agreement as the cosine itself (the runtime's feature).
+    MirrorAgreementRaw,
+    /// The ten and ln embedding norm.
+    EmbeddingNorm,
+    /// The ten, ln(1 − mirror agreement) and ln embedding norm.
+    Mirror,
     /// The fit residual replaced by its logarithm.
     LnFitResidual,
     /// The ten plus fit residual × |yaw|.
@@ -278,12 +291,31 @@ pub enum FeatureSet {
 impl FeatureSet {
     pub fn features(self, c: &Components) -> Vec<f64> {
         let mut x = features(c).to_vec();
+        let (agreement, norm) = (crate::quality::MIRROR_FEATURES.start, crate::quality::MIRROR_FEATURES.start + 1);
+        let disagreement = (1.0 - c.mirror_agreement.unwrap_or(0.0) as f64).max(1e-4).ln();
+        match self {
+            FeatureSet::Mirror => x[agreement] = disagreement,
+            FeatureSet::MirrorAgreement => {
+                x[agreement] = disagreement;
+                x[norm] = 0.0;
+            }
+            FeatureSet::MirrorAgreementRaw => x[norm] = 0.0,
+            FeatureSet::EmbeddingNorm => x[agreement] = 0.0,
+            _ => {
+                x[agreement] = 0.0;
+                x[norm] = 0.0;
+            }
+        }
         // A missing fit (no 3DMM) is already the pose-unknown indicator; its residual sits at a
         // typical value so that the logarithm stays finite.
         let ln_fit = (c.fit_residual.unwrap_or(0.05).max(1e-3) as f64).ln();
         let yaw = c.yaw_abs_deg.unwrap_or(0.0) as f64 / 30.0;
         match self {
-            FeatureSet::Committed => {}
+            FeatureSet::Committed
+            | FeatureSet::MirrorAgreement
+            | FeatureSet::MirrorAgreementRaw
+            | FeatureSet::EmbeddingNorm
+            | FeatureSet::Mirror => {}
             FeatureSet::LnFitResidual => x[8] = ln_fit,
             FeatureSet::FitYawInteraction => x.push(x[8] * yaw),
             FeatureSet::LnFitResidualYawInteraction => {
@@ -306,12 +338,13 @@ pub struct Variant {
 }
 
 /// The variant `models/quality.bin` is trained as (chosen by `facegate eval quality-cv`): the
-/// ten [`features`], the match share, each photo weighted by its number of genuine comparisons.
+/// ten features of the components and the mirror agreement (the embedding norm left out), the
+/// match share, every photo weighted alike.
 pub const UNIFIED: Variant = Variant {
-    name: "weighted by comparisons",
-    features: FeatureSet::Committed,
+    name: "+ mirror agreement (raw cosine)",
+    features: FeatureSet::MirrorAgreementRaw,
     target: Target::MatchShare,
-    weighting: Weighting::ByComparisons,
+    weighting: Weighting::Equal,
 };
 
 /// The candidates the cross-validation compares ([`UNIFIED`] among them).
@@ -376,6 +409,49 @@ pub const VARIANTS: &[Variant] = &[
     Variant {
         name: "weighted and class-balanced",
         features: FeatureSet::Committed,
+        target: Target::MatchShare,
+        weighting: Weighting::BalancedByComparisons,
+    },
+    Variant { name: "+ mirror agreement", features: FeatureSet::MirrorAgreement, target: Target::MatchShare, weighting: Weighting::Equal },
+    Variant {
+        name: "+ mirror agreement, weighted",
+        features: FeatureSet::MirrorAgreement,
+        target: Target::MatchShare,
+        weighting: Weighting::ByComparisons,
+    },
+    Variant {
+        name: "+ mirror agreement (raw cosine), weighted",
+        features: FeatureSet::MirrorAgreementRaw,
+        target: Target::MatchShare,
+        weighting: Weighting::ByComparisons,
+    },
+    Variant {
+        name: "+ mirror agreement (raw cosine)",
+        features: FeatureSet::MirrorAgreementRaw,
+        target: Target::MatchShare,
+        weighting: Weighting::Equal,
+    },
+    Variant {
+        name: "+ ln embedding norm, weighted",
+        features: FeatureSet::EmbeddingNorm,
+        target: Target::MatchShare,
+        weighting: Weighting::ByComparisons,
+    },
+    Variant {
+        name: "+ mirror agreement + ln embedding norm",
+        features: FeatureSet::Mirror,
+        target: Target::MatchShare,
+        weighting: Weighting::Equal,
+    },
+    Variant {
+        name: "+ mirror agreement + ln embedding norm, weighted",
+        features: FeatureSet::Mirror,
+        target: Target::MatchShare,
+        weighting: Weighting::ByComparisons,
+    },
+    Variant {
+        name: "+ mirror agreement + ln embedding norm, weighted and class-balanced",
+        features: FeatureSet::Mirror,
         target: Target::MatchShare,
         weighting: Weighting::BalancedByComparisons,
     },
@@ -481,10 +557,10 @@ pub struct Measure {
 }
 
 /// The measures the evaluation compares: the unified score, then each component oriented so that
-/// higher is better (a missing pose counts as the worst).
+/// higher is better (a missing pose or embedding counts as the worst).
 pub fn measures(photos: &[Scored], model: &QualityModel) -> Vec<Measure> {
     type Pick = fn(&Components) -> f64;
-    let components: [(&str, Pick); 8] = [
+    let components: [(&str, Pick); 10] = [
         ("inter-eye distance", |c| c.inter_eye_px as f64),
         ("sharpness", |c| c.sharpness as f64),
         ("exposure (−|brightness − 128|)", |c| -(c.brightness as f64 - 128.0).abs()),
@@ -493,6 +569,8 @@ pub fn measures(photos: &[Scored], model: &QualityModel) -> Vec<Measure> {
         ("−|yaw|", |c| -(c.yaw_abs_deg.unwrap_or(90.0) as f64)),
         ("−|pitch|", |c| -(c.pitch_abs_deg.unwrap_or(90.0) as f64)),
         ("−fit residual", |c| -(c.fit_residual.unwrap_or(f32::MAX) as f64)),
+        ("mirror agreement", |c| c.mirror_agreement.unwrap_or(-1.0) as f64),
+        ("embedding norm", |c| c.embedding_norm.unwrap_or(0.0) as f64),
     ];
     let mut out =
         vec![Measure { name: "unified score".into(), values: photos.iter().map(|p| model.score(&p.components) as f64).collect() }];
@@ -596,8 +674,35 @@ mod tests {
             yaw_abs_deg: Some(5.0),
             pitch_abs_deg: Some(3.0),
             fit_residual: Some(0.05),
+            mirror_agreement: Some(0.95),
+            embedding_norm: Some(1.0),
         };
         Scored { label, template, components }
+    }
+
+    #[test]
+    fn the_measurement_cache_is_read_back_only_under_its_own_key() {
+        let dir = std::env::temp_dir().join(format!("facegate-quality-cache-{}", std::process::id()));
+        let path = dir.join("m.bin");
+        let sample = |name: &str| Sample {
+            label: "p".into(),
+            image: std::path::PathBuf::from(name),
+            set: Set::Lfw,
+            view: None,
+            split: Split::Train,
+        };
+        let samples = vec![sample("a.jpg"), sample("b.jpg")];
+        let measured = vec![Some(Measured { embedding: vec![0.5; 4], components: photo("p", vec![], 7.0).components }), None];
+        let key = cache_key("models-x");
+        write_cache(&path, &key, &samples, &measured).unwrap();
+        assert_eq!(read_cache(&path, &key, &samples), Some(measured));
+        // Another components' version or other models: measured again, never read stale.
+        assert!(key.ends_with("-quality-components-2"));
+        assert_eq!(read_cache(&path, "models-x-quality-components-1", &samples), None);
+        assert_eq!(read_cache(&path, &cache_key("models-y"), &samples), None);
+        // A photo the cache does not hold: measured again.
+        assert_eq!(read_cache(&path, &key, &[sample("c.jpg")]), None);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
