@@ -2,6 +2,7 @@
 //!
 //! - `openapi`: `openapi.yaml` against the served operations; every response received by these
 //!   tests is checked against the document.
+//! - `deploy`: `compose.yaml` and the load balancer's config (and `docker compose config` where installed).
 //! - `hostile`: half-open and idle connections, stalled bodies, admission before the body, head
 //!   limits, keys on the operational routes, the audit log (raw TCP where needed).
 //! - `http`: the HTTP layer (formats, every bad-input class, limits, keys, timeouts, overload,
@@ -13,6 +14,7 @@
 //! - `browser`: the web console in headless Chromium over WebDriver, against the real pipeline.
 
 mod browser;
+mod deploy;
 mod hostile;
 mod http;
 mod openapi;
