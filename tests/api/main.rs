@@ -10,6 +10,8 @@
 //! - `pipeline`: enrol and verify real IMM photos through the real `Pipeline` and committed models;
 //!   analyse, avatar and frontal rendering, byte for byte the CLI's.
 //! - `postgres`: a real PostgreSQL server (a throwaway cluster, or `FACEGATE_TEST_POSTGRES`).
+//! - `store_backends`: the template store on SQLite and PostgreSQL through one test body each; concurrent
+//!   migration and the change feed on PostgreSQL.
 //! - `store_cli`: `facegate rekey`, `backup` and `restore`, the real binary on a real database.
 //! - `browser`: the web console in headless Chromium over WebDriver, against the real pipeline.
 
@@ -20,5 +22,6 @@ mod http;
 mod openapi;
 mod pipeline;
 mod postgres;
+mod store_backends;
 mod store_cli;
 mod support;
