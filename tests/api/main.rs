@@ -9,6 +9,7 @@
 //!   storage) with a stand-in face engine.
 //! - `pipeline`: enrol and verify real IMM photos through the real `Pipeline` and committed models;
 //!   analyse, avatar and frontal rendering, byte for byte the CLI's.
+//! - `replicas`: two `facegate serve` processes on one PostgreSQL database agree at once.
 //! - `postgres`: a real PostgreSQL server (a throwaway cluster, or `FACEGATE_TEST_POSTGRES`).
 //! - `store_backends`: the template store on SQLite and PostgreSQL through one test body each; concurrent
 //!   migration and the change feed on PostgreSQL.
@@ -22,6 +23,7 @@ mod http;
 mod openapi;
 mod pipeline;
 mod postgres;
+mod replicas;
 mod store_backends;
 mod store_cli;
 mod support;
