@@ -755,33 +755,6 @@ fn template_from_row(sealing: &Sealing, subject: &str, row: &AnyRow) -> Result<T
 mod tests {
     use super::*;
 
-    fn id(s: &str) -> SubjectId {
-        SubjectId::parse(s).unwrap()
-    }
-
-    fn template(version: &str, v: &[f32]) -> Template {
-        Template { model_version: version.into(), vector: v.to_vec() }
-    }
-
-    /// The gallery scan collected: each subject with its templates or why they cannot be read.
-    async fn scan(store: &Store, version: &str) -> Vec<(String, Result<Vec<Template>, String>)> {
-        let mut out = Vec::new();
-        store.gallery(version, |s, t| out.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap();
-        out
-    }
-
-    async fn temp_store() -> (Store, std::path::PathBuf) {
-        static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-        let dir = std::env::temp_dir().join(format!(
-            "facegate-store-{}-{}",
-            std::process::id(),
-            N.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
-        ));
-        std::fs::create_dir_all(&dir).unwrap();
-        let url = format!("sqlite://{}", dir.join("t.db").display());
-        (Store::connect(&url, None).await.unwrap(), dir)
-    }
-
     #[test]
     fn blobs_round_trip_little_endian() {
         let v = [1.0f32, -0.5, 3.25e-7, f32::MAX];
@@ -790,65 +763,15 @@ mod tests {
         assert_eq!(blob_to_vector(&blob).unwrap(), v);
         assert!(blob_to_vector(&blob[..5]).is_none());
     }
-
-    #[tokio::test]
-    async fn enrol_list_read_and_delete() {
-        let (store, dir) = temp_store().await;
-        assert_eq!(store.enroll(&id("alice"), &[template("m1", &[1.0, 0.0]), template("m1", &[0.0, 1.0])]).await.unwrap(), 2);
-        assert_eq!(store.enroll(&id("alice"), &[template("m2", &[0.5, 0.5, 0.0])]).await.unwrap(), 3);
-        assert_eq!(store.enroll(&id("bob"), &[template("m1", &[0.6, 0.8])]).await.unwrap(), 1);
-
-        let alice = store.templates(&id("alice")).await.unwrap().unwrap();
-        assert_eq!(alice.len(), 3);
-        assert_eq!(alice[2], template("m2", &[0.5, 0.5, 0.0]));
-        assert!(store.templates(&id("carol")).await.unwrap().is_none());
-
-        let gallery = scan(&store, "m1").await;
-        assert_eq!(gallery.iter().map(|(s, t)| (s.as_str(), t.as_ref().unwrap().len())).collect::<Vec<_>>(), [("alice", 2), ("bob", 1)]);
-
-        let list = store.list_subjects(None, 10).await.unwrap();
-        assert_eq!(list.iter().map(|s| (s.id.as_str(), s.templates)).collect::<Vec<_>>(), [("alice", 3), ("bob", 1)]);
-        assert_eq!(store.list_subjects(Some(&id("alice")), 10).await.unwrap().len(), 1);
-        assert_eq!(store.list_subjects(None, 1).await.unwrap().len(), 1);
-
-        let detail = store.subject(&id("alice")).await.unwrap().unwrap();
-        assert_eq!(detail.templates, 3);
-        assert_eq!(
-            detail.model_versions,
-            [VersionCount { model_version: "m1".into(), templates: 2 }, VersionCount { model_version: "m2".into(), templates: 1 }]
-        );
-
-        assert_eq!(store.delete_subject(&id("alice")).await.unwrap(), Some(3));
-        assert_eq!(store.delete_subject(&id("alice")).await.unwrap(), None);
-        // Foreign keys cascade: no orphan template is left.
-        assert_eq!(store.counts().await.unwrap(), (1, 1));
-        store.close().await;
-        std::fs::remove_dir_all(dir).unwrap();
-    }
-
-    #[tokio::test]
-    async fn a_failed_enrolment_stores_nothing() {
-        let (store, dir) = temp_store().await;
-        // The second template violates the schema (empty vector): the whole enrolment rolls back.
-        let err = store.enroll(&id("alice"), &[template("m1", &[1.0]), template("m1", &[])]).await;
-        assert!(err.is_err());
-        assert!(store.templates(&id("alice")).await.unwrap().is_none());
-        assert_eq!(store.counts().await.unwrap(), (0, 0));
-        let mode: String = sqlx::query_scalar("PRAGMA journal_mode").fetch_one(&store.pool).await.unwrap();
-        assert_eq!(mode, "wal");
-        store.close().await;
-        std::fs::remove_dir_all(dir).unwrap();
-    }
 }
 
 #[cfg(test)]
 mod at_rest {
-    //! Encryption, rotation, erasure, durability settings, backup and restore, on real files.
+    //! SQLite's files: sealed bytes in the file, erasure, durability settings, backup and restore.
 
     use super::*;
 
     const K1: &str = "000102030405060708090a0b0c0d0e0f101112131415161718191a1b1c1d1e1f";
-    const K2: &str = "ff0102030405060708090a0b0c0d0e0f101112131415161718191a1b1c1d1eff";
 
     fn ring(text: &str) -> Option<KeyRing> {
         Some(KeyRing::parse(text).unwrap())
@@ -894,122 +817,23 @@ mod at_rest {
         haystack.windows(needle.len()).any(|w| w == needle)
     }
 
+    /// Sealed vectors never reach the file (their round trip, wrong keys and tampered rows are
+    /// tested on both backends in tests/api/store_backends.rs).
     #[tokio::test]
-    async fn sealed_templates_read_back_and_never_show_in_the_file() {
+    async fn sealed_templates_never_show_in_the_file() {
         let dir = Dir::new();
         let store = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
-        assert!(store.encrypts());
         store.enroll(&id("alice"), &[marked(0.0), marked(1.0)]).await.unwrap();
-        store.enroll(&id("alice"), &[marked(2.0)]).await.unwrap();
-        assert_eq!(store.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0), marked(1.0), marked(2.0)]);
-        let lengths: Vec<i64> = sqlx::query_scalar("SELECT length(vector) FROM templates").fetch_all(&store.pool).await.unwrap();
-        assert_eq!(lengths, [4 * 32 + 28; 3]);
+        assert_eq!(store.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0), marked(1.0)]);
         assert!(store.checkpoint().await.unwrap());
         let raw = dir.raw("t.db");
         assert!(contains(&raw, b"alice"));
-        assert!(!contains(&raw, &vector_to_blob(&marked(0.0).vector)[..16]), "a plain vector in the file");
-
-        // Another key, or none, cannot read them: a server fault, never a score.
-        store.close().await;
-        let other = Store::connect(&dir.url("t.db"), ring(K2)).await.unwrap();
-        assert!(matches!(other.templates(&id("alice")).await, Err(StoreError::DataKey { .. })));
-        assert!(matches!(other.enroll(&id("alice"), &[marked(3.0)]).await, Err(StoreError::DataKey { .. })));
-        other.close().await;
-        let plain = Store::connect(&dir.url("t.db"), None).await.unwrap();
-        assert!(!plain.encrypts());
-        assert!(matches!(plain.templates(&id("alice")).await, Err(StoreError::NoKey { .. })));
-        assert!(matches!(plain.enroll(&id("alice"), &[marked(3.0)]).await, Err(StoreError::NoKey { .. })));
-        assert_eq!(plain.counts().await.unwrap(), (1, 3), "a refused enrolment stores nothing");
-        plain.close().await;
-    }
-
-    #[tokio::test]
-    async fn tampered_rows_are_refused() {
-        let dir = Dir::new();
-        let store = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
-        for (subject, seed) in [("alice", 0.0), ("bob", 1.0), ("carol", 2.0), ("dave", 3.0)] {
-            store.enroll(&id(subject), &[marked(seed)]).await.unwrap();
+        for template in [marked(0.0), marked(1.0)] {
+            assert!(!contains(&raw, &vector_to_blob(&template.vector)[..16]), "a plain vector in the file");
         }
-        let exec = |sql: &'static str| {
-            let pool = store.pool.clone();
-            async move { sqlx::query(sql).execute(&pool).await.unwrap() }
-        };
-        // One bit of alice's vector flipped.
-        let mut vector: Vec<u8> =
-            sqlx::query_scalar("SELECT vector FROM templates WHERE subject_id = 'alice'").fetch_one(&store.pool).await.unwrap();
-        vector[20] ^= 1;
-        sqlx::query("UPDATE templates SET vector = ?1 WHERE subject_id = 'alice'").bind(vector).execute(&store.pool).await.unwrap();
-        // bob's template moved to carol (carol's own data key does not open it either).
-        exec("UPDATE templates SET subject_id = 'carol' WHERE subject_id = 'bob'").await;
-        // dave's model version relabelled.
-        exec("UPDATE templates SET model_version = 'm2' WHERE subject_id = 'dave'").await;
-        for subject in ["alice", "carol", "dave"] {
-            let read = store.templates(&id(subject)).await;
-            assert!(matches!(read, Err(StoreError::CorruptTemplate { .. })), "{subject}: {read:?}");
-        }
-        assert_eq!(store.templates(&id("bob")).await.unwrap().unwrap(), []);
-        // A data key swapped between subjects does not open.
-        exec("UPDATE subjects SET data_key = (SELECT data_key FROM subjects WHERE id = 'alice') WHERE id = 'bob'").await;
-        store.enroll(&id("erin"), &[marked(4.0)]).await.unwrap();
-        exec("UPDATE subjects SET data_key = (SELECT data_key FROM subjects WHERE id = 'alice') WHERE id = 'erin'").await;
-        assert!(matches!(store.templates(&id("erin")).await, Err(StoreError::DataKey { .. })));
-        // The gallery scan hands each unreadable subject its error and goes on.
-        store.enroll(&id("frank"), &[marked(5.0)]).await.unwrap();
-        let scanned = scan_m1(&store).await;
-        let readable: Vec<&str> = scanned.iter().filter(|(_, t)| t.is_ok()).map(|(s, _)| s.as_str()).collect();
-        let refused: Vec<&str> = scanned.iter().filter(|(_, t)| t.is_err()).map(|(s, _)| s.as_str()).collect();
-        assert_eq!((readable, refused), (vec!["frank"], vec!["alice", "carol", "erin"]));
         store.close().await;
     }
 
-    async fn scan_m1(store: &Store) -> Vec<(String, Result<Vec<Template>, String>)> {
-        let mut out = Vec::new();
-        store.gallery("m1", |s, t| out.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap();
-        out
-    }
-
-    #[tokio::test]
-    async fn rekey_seals_plain_subjects_then_rotates_resumably() {
-        let dir = Dir::new();
-        let plain = Store::connect(&dir.url("t.db"), None).await.unwrap();
-        plain.enroll(&id("alice"), &[marked(0.0)]).await.unwrap();
-        plain.enroll(&id("bob"), &[marked(1.0), marked(2.0)]).await.unwrap();
-        plain.enroll(&id("carol"), &[marked(3.0)]).await.unwrap();
-        assert!(matches!(plain.rekey(|_| {}).await, Err(StoreError::Refused(_))));
-        plain.close().await;
-
-        // A key set: plain subjects stay readable; an enrolment seals its subject; rekey the rest.
-        let keyed = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
-        assert_eq!(keyed.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0)]);
-        keyed.enroll(&id("carol"), &[marked(4.0)]).await.unwrap();
-        let mut steps = 0;
-        let report = keyed.rekey(|_| steps += 1).await.unwrap();
-        assert_eq!((report, steps), (RekeyReport { rewrapped: 0, sealed: 2, templates_sealed: 3 }, 2));
-        assert_eq!(keyed.rekey(|_| {}).await.unwrap(), RekeyReport::default(), "nothing left to do");
-        let sealed: i64 = sqlx::query_scalar("SELECT count(*) FROM templates WHERE length(vector) = 4 * dimension + 28")
-            .fetch_one(&keyed.pool)
-            .await
-            .unwrap();
-        assert_eq!(sealed, 5);
-        keyed.close().await;
-
-        // Rotation: K2 current, K1 still readable; after rekey, K2 alone reads everything.
-        let rotating = Store::connect(&dir.url("t.db"), ring(&format!("{K2}\n{K1}"))).await.unwrap();
-        assert_eq!(rotating.templates(&id("bob")).await.unwrap().unwrap(), [marked(1.0), marked(2.0)]);
-        assert_eq!(rotating.rekey(|_| {}).await.unwrap(), RekeyReport { rewrapped: 3, sealed: 0, templates_sealed: 0 });
-        rotating.close().await;
-        let rotated = Store::connect(&dir.url("t.db"), ring(K2)).await.unwrap();
-        assert_eq!(rotated.templates(&id("carol")).await.unwrap().unwrap(), [marked(3.0), marked(4.0)]);
-        assert_eq!(rotated.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0)]);
-        rotated.close().await;
-        let old_only = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
-        assert!(matches!(old_only.templates(&id("alice")).await, Err(StoreError::DataKey { source: CipherError::UnknownKey(_), .. })));
-        old_only.close().await;
-    }
-
-    /// Without a key the vectors are plain in the file; after DELETE (which checkpoints and
-    /// truncates the WAL) neither the subject id nor any vector byte is left in the database file
-    /// or its WAL. Without `secure_delete` this fails: the bytes stay in the freed pages.
     #[tokio::test]
     async fn a_deleted_subject_leaves_nothing_in_the_files() {
         let dir = Dir::new();
@@ -1019,6 +843,8 @@ mod at_rest {
             sqlx::query_scalar("PRAGMA synchronous").fetch_one(&store.pool).await.unwrap(),
         );
         assert_eq!((secure, synchronous), (1, 2), "secure_delete on, synchronous FULL");
+        let mode: String = sqlx::query_scalar("PRAGMA journal_mode").fetch_one(&store.pool).await.unwrap();
+        assert_eq!(mode, "wal");
         let erased = "erasure-subject-7f3a";
         let erased_vectors = [marked(10.0), marked(20.0)];
         store.enroll(&id("keeper"), &[marked(30.0)]).await.unwrap();

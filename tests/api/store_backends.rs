@@ -386,3 +386,140 @@ async fn backup_and_restore_refuse_postgres() {
     assert!(matches!(refused, Err(StoreError::Refused(ref m)) if m.contains("pg_restore")), "{refused:?}");
     store.close().await;
 }
+
+/// The bytes of `relations`' files (main fork, every segment) under the server's data directory,
+/// after a CHECKPOINT has written every dirty page; `None` when the files cannot be read here
+/// (a server of `FACEGATE_TEST_POSTGRES` on another machine or under another user).
+async fn relation_files(db: &AnyPool, relations: &[&str]) -> Option<Vec<u8>> {
+    sqlx::query("CHECKPOINT").execute(db).await.unwrap();
+    let data: String = sqlx::query_scalar("SELECT current_setting('data_directory')").fetch_one(db).await.unwrap();
+    let mut bytes = Vec::new();
+    for relation in relations {
+        let path: String = sqlx::query_scalar("SELECT pg_relation_filepath($1)").bind(relation).fetch_one(db).await.unwrap();
+        let main = std::path::Path::new(&data).join(path);
+        bytes.extend(std::fs::read(&main).ok()?);
+        for segment in 1.. {
+            match std::fs::read(format!("{}.{segment}", main.display())) {
+                Ok(more) => bytes.extend(more),
+                Err(_) => break,
+            }
+        }
+    }
+    Some(bytes)
+}
+
+fn contains(haystack: &[u8], needle: &[u8]) -> bool {
+    haystack.windows(needle.len()).any(|w| w == needle)
+}
+
+const RELATIONS: [&str; 5] = ["subjects", "subjects_pkey", "templates", "templates_by_subject", "templates_by_model"];
+
+/// The WAL segments' bytes (pg_wal under the data directory).
+fn wal_files(data: &str) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    for entry in std::fs::read_dir(std::path::Path::new(data).join("pg_wal")).unwrap().flatten() {
+        if entry.file_type().unwrap().is_file() {
+            bytes.extend(std::fs::read(entry.path()).unwrap());
+        }
+    }
+    bytes
+}
+
+/// PostgreSQL does not erase in place: a deleted subject's id and plain template bytes stay
+/// readable in the tables' files after DELETE, some of them after VACUUM (which frees the space
+/// without zeroing it), and in the WAL; VACUUM FULL rewrites the tables into new files without
+/// them. With a template key the files never hold a plain vector; what a deletion leaves is
+/// sealed bytes and the subject's data key wrapped by the master key. (docs/service.md.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn postgres_erasure_leaves_what_the_docs_say() {
+    let test = "store_backends::postgres_erasure_leaves_what_the_docs_say";
+    let plain_url = crate::postgres_or_skip!(test);
+    let keyed_url = crate::postgres_or_skip!(test);
+    let erased = "erasure-subject-7f3a";
+    let erased_vectors = [marked(10.0), marked(20.0)];
+    let vector_bytes = |t: &Template| t.vector.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>();
+    let needles: Vec<Vec<u8>> = erased_vectors.iter().map(|t| vector_bytes(t)[..16].to_vec()).collect();
+    let vectors_in = |files: &[u8]| needles.iter().filter(|v| contains(files, v)).count();
+
+    // No key: plain vectors.
+    let store = Store::connect(&plain_url, None).await.unwrap();
+    let db = raw(&plain_url).await;
+    store.enroll(&id("keeper"), &[marked(30.0)]).await.unwrap();
+    store.enroll(&id(erased), &erased_vectors).await.unwrap();
+    store.enroll(&id("later"), &[marked(40.0)]).await.unwrap();
+    let Some(before) = relation_files(&db, &RELATIONS).await else {
+        eprintln!("SKIPPED {test}: the server's files are not readable here");
+        return;
+    };
+    assert!(contains(&before, erased.as_bytes()) && vectors_in(&before) == 2, "the test must see the plain bytes first");
+    store.delete_subject(&id(erased)).await.unwrap();
+    let after_delete = relation_files(&db, &RELATIONS).await.unwrap();
+    assert!(contains(&after_delete, erased.as_bytes()) && vectors_in(&after_delete) == 2, "DELETE leaves the rows in the files");
+    let data: String = sqlx::query_scalar("SELECT current_setting('data_directory')").fetch_one(&db).await.unwrap();
+    assert_eq!(vectors_in(&wal_files(&data)), 2, "the WAL holds the inserted rows");
+    sqlx::query("VACUUM subjects, templates").execute(&db).await.unwrap();
+    let after_vacuum = relation_files(&db, &RELATIONS).await.unwrap();
+    assert!(contains(&after_vacuum, erased.as_bytes()) || vectors_in(&after_vacuum) > 0, "VACUUM does not zero the freed space");
+    sqlx::query("VACUUM FULL subjects, templates").execute(&db).await.unwrap();
+    let after_full = relation_files(&db, &RELATIONS).await.unwrap();
+    assert!(!contains(&after_full, erased.as_bytes()) && vectors_in(&after_full) == 0, "VACUUM FULL rewrites the tables without them");
+    assert!(contains(&after_full, &vector_bytes(&marked(30.0))[..16]), "the others stay");
+    db.close().await;
+    store.close().await;
+
+    // With a key: never a plain vector, in the tables or the WAL; a deletion leaves sealed bytes
+    // and the wrapped data key.
+    let store = Store::connect(&keyed_url, ring(K1)).await.unwrap();
+    let db = raw(&keyed_url).await;
+    let sealed_vectors = [marked(50.0), marked(60.0)];
+    let needles: Vec<Vec<u8>> = sealed_vectors.iter().map(|t| vector_bytes(t)[..16].to_vec()).collect();
+    let vectors_in = |files: &[u8]| needles.iter().filter(|v| contains(files, v)).count();
+    store.enroll(&id(erased), &sealed_vectors).await.unwrap();
+    let wrapped: Vec<u8> = sqlx::query_scalar("SELECT data_key FROM subjects WHERE id = $1").bind(erased).fetch_one(&db).await.unwrap();
+    let sealed: Vec<Vec<u8>> = sqlx::query_scalar("SELECT vector FROM templates").fetch_all(&db).await.unwrap();
+    store.delete_subject(&id(erased)).await.unwrap();
+    let files = relation_files(&db, &RELATIONS).await.unwrap();
+    assert_eq!(vectors_in(&files), 0);
+    assert_eq!(vectors_in(&wal_files(&data)), 0);
+    assert!(contains(&files, &wrapped) && sealed.iter().all(|s| contains(&files, s)), "what a deletion leaves: sealed bytes, wrapped key");
+    db.close().await;
+    store.close().await;
+}
+
+/// Two stores (replicas) enrolling into and deleting the same subjects at once: every
+/// transaction takes the subject's row first and the change counter last, so none deadlocks (a
+/// deadlock would be an error here) and each enrolment is all or nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replicas_writing_the_same_subjects_do_not_deadlock() {
+    let url = crate::postgres_or_skip!("store_backends::replicas_writing_the_same_subjects_do_not_deadlock");
+    let a = Store::connect(&url, ring(K1)).await.unwrap();
+    let b = Store::connect(&url, ring(K1)).await.unwrap();
+    let writers: Vec<_> = [a.clone(), b.clone(), a.clone(), b.clone()]
+        .into_iter()
+        .enumerate()
+        .map(|(w, store)| {
+            tokio::spawn(async move {
+                for i in 0..30 {
+                    let subject = id(["shared-1", "shared-2"][i % 2]);
+                    if (i + w) % 7 == 6 {
+                        store.delete_subject(&subject).await.unwrap();
+                    } else {
+                        store.enroll(&subject, &[marked(w as f32), marked(i as f32)]).await.unwrap();
+                    }
+                }
+            })
+        })
+        .collect();
+    for writer in writers {
+        writer.await.unwrap();
+    }
+    for subject in ["shared-1", "shared-2"] {
+        if let Some(templates) = a.templates(&id(subject)).await.unwrap() {
+            assert!(!templates.is_empty() && templates.len() % 2 == 0, "{subject}: {}", templates.len());
+        }
+    }
+    let (_, stored) = a.counts().await.unwrap();
+    assert_eq!(stored % 2, 0);
+    a.close().await;
+    b.close().await;
+}
