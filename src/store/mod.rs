@@ -38,11 +38,11 @@ use std::time::{Duration, Instant};
 
 use futures_util::TryStreamExt;
 use serde::{Deserialize, Serialize};
-use sqlx::any::{AnyConnectOptions, AnyPoolOptions, AnyRow};
+use sqlx::any::{AnyPoolOptions, AnyRow};
 use sqlx::migrate::Migrator;
 use sqlx::postgres::{PgConnectOptions, PgListener, PgPoolOptions};
 use sqlx::sqlite::{SqliteConnectOptions, SqliteConnection, SqliteJournalMode, SqliteLockingMode, SqliteSynchronous};
-use sqlx::{AnyConnection, AnyPool, ConnectOptions, Connection, Executor, Row};
+use sqlx::{AnyConnection, AnyPool, Connection, Executor, Row};
 
 use crate::recognize::Template;
 use crate::service::SubjectId;
@@ -198,7 +198,7 @@ fn sqlite_options(url: &str) -> Result<SqliteConnectOptions, StoreError> {
 }
 
 /// The settings of [`sqlite_options`] for each connection of the pool (the generic pool takes a
-/// URL, which carries the file and its open mode but not these).
+/// URL, which names the file but carries none of these).
 const SQLITE_SESSION: &str = "PRAGMA journal_mode = WAL; PRAGMA synchronous = FULL; PRAGMA secure_delete = ON; PRAGMA foreign_keys = ON; PRAGMA busy_timeout = 5000;";
 
 impl Store {
@@ -212,12 +212,13 @@ impl Store {
         let backend = Backend::of(url)?;
         let (pool, listen) = match backend {
             Backend::Sqlite => {
-                let file = sqlite_options(url)?.create_if_missing(true).to_url_lossy();
-                let options = AnyConnectOptions::from_url(&file).map_err(bad_url)?;
+                // The file is created (and put in WAL mode) through SQLite's own options; the
+                // pool then opens the URL as given, parsed by the same code, so the same file.
+                SqliteConnection::connect_with(&sqlite_options(url)?.create_if_missing(true)).await?.close().await?;
                 let pool = AnyPoolOptions::new()
                     .max_connections(8)
                     .after_connect(|connection, _| Box::pin(async move { connection.execute(SQLITE_SESSION).await.map(drop) }))
-                    .connect_with(options)
+                    .connect(url)
                     .await?;
                 SQLITE_MIGRATIONS.run(&pool).await?;
                 (pool, None)
@@ -559,8 +560,15 @@ impl Store {
         Ok(())
     }
 
-    /// Close the pool (on SQLite, checkpointing the WAL).
+    /// Close the pool. On SQLite the WAL is checkpointed and truncated first, so the database
+    /// file alone holds everything (the pool's connections close side by side, and SQLite
+    /// removes the WAL only when the last one finds itself alone).
     pub async fn close(&self) {
+        if self.backend == Backend::Sqlite {
+            if let Err(e) = self.checkpoint().await {
+                tracing::warn!("WAL checkpoint on close failed: {e}");
+            }
+        }
         self.pool.close().await;
     }
 }
@@ -866,6 +874,30 @@ mod at_rest {
         store.close().await;
         let after_close = dir.raw("t.db");
         assert!(!needles.iter().any(|n| contains(&after_close, n)));
+    }
+
+    /// The pool opens the file the URL names, also with characters a URL escapes (`%25` is `%`),
+    /// and after `close` that file holds everything (no WAL content is left beside it).
+    #[tokio::test]
+    async fn the_file_named_is_the_file_opened() {
+        let dir = Dir::new();
+        for (name, file) in [("with space.db", "with space.db"), ("per%25cent #1.db", "per%cent #1.db"), ("ünï.db", "ünï.db")] {
+            let store = Store::connect(&dir.url(name), None).await.unwrap();
+            store.enroll(&id("alice"), &[marked(0.0)]).await.unwrap();
+            store.close().await;
+            let mut files: Vec<String> =
+                std::fs::read_dir(&dir.0).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
+            files.sort();
+            assert_eq!(files[0], file, "{files:?}");
+            assert!(files[1..].iter().all(|f| *f == format!("{file}-shm") || *f == format!("{file}-wal")), "{files:?}");
+            assert_eq!(std::fs::metadata(dir.0.join(format!("{file}-wal"))).map_or(0, |m| m.len()), 0, "the WAL is empty");
+            let reopened = Store::connect(&dir.url(name), None).await.unwrap();
+            assert_eq!(reopened.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0)]);
+            reopened.close().await;
+            for entry in std::fs::read_dir(&dir.0).unwrap() {
+                std::fs::remove_file(entry.unwrap().path()).unwrap();
+            }
+        }
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
