@@ -273,7 +273,7 @@ impl Store {
             .await?;
         let mut listener = PgListener::connect_with(&pool).await?;
         listener.listen(CHANGE_CHANNEL).await?;
-        Ok(Some(ChangeFeed { listener, pending: None }))
+        Ok(Some(ChangeFeed { listener, pending: None, give_up_after: RECONNECT_FOR }))
     }
 
     /// Bump the change counter inside `tx` (PostgreSQL) and notify its new value with `subject`;
@@ -573,7 +573,8 @@ impl Store {
     }
 }
 
-/// How long a [`ChangeFeed`] keeps trying to reconnect before it reports the database gone.
+/// How long a [`ChangeFeed`] keeps trying to reconnect before it reports the database gone,
+/// unless told otherwise ([`ChangeFeed::give_up_after`]).
 const RECONNECT_FOR: Duration = Duration::from_secs(60);
 
 /// The changes committed on a PostgreSQL database by any process ([`Store::watch`]): a `LISTEN`ing
@@ -582,12 +583,18 @@ pub struct ChangeFeed {
     listener: PgListener,
     /// A change received right after a reconnect, handed out after the [`StoreChange::Resync`].
     pending: Option<StoreChange>,
+    give_up_after: Duration,
 }
 
 impl ChangeFeed {
+    /// How long [`next`](Self::next) keeps trying to reconnect before it fails (60 s unless set).
+    pub fn give_up_after(&mut self, limit: Duration) {
+        self.give_up_after = limit;
+    }
+
     /// The next change. A lost connection is re-made (with `LISTEN` again) and reported as
     /// [`StoreChange::Resync`]: what was notified meanwhile is gone. Errors only when the
-    /// database cannot be reached for [`RECONNECT_FOR`].
+    /// database cannot be reached for [`give_up_after`](Self::give_up_after).
     pub async fn next(&mut self) -> Result<StoreChange, StoreError> {
         if let Some(change) = self.pending.take() {
             return Ok(change);
@@ -604,7 +611,7 @@ impl ChangeFeed {
                 Ok(None) => return Ok(StoreChange::Resync),
                 Err(e) => {
                     let since = *failing_since.get_or_insert_with(Instant::now);
-                    if since.elapsed() > RECONNECT_FOR {
+                    if since.elapsed() > self.give_up_after {
                         return Err(e.into());
                     }
                     tokio::time::sleep(Duration::from_millis(250)).await;
@@ -762,6 +769,25 @@ fn template_from_row(sealing: &Sealing, subject: &str, row: &AnyRow) -> Result<T
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Each backend's migrator has exactly the files of its own folder: sqlx does not descend
+    /// from `migrations/` into `migrations/postgres/`.
+    #[test]
+    fn each_backend_migrates_from_its_own_folder() {
+        let versions = |migrator: &Migrator| migrator.iter().map(|m| m.version).collect::<Vec<i64>>();
+        let files = |folder: &str| {
+            let mut versions: Vec<i64> = std::fs::read_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(folder))
+                .unwrap()
+                .map(|e| e.unwrap().path())
+                .filter(|p| p.is_file())
+                .map(|p| p.file_name().unwrap().to_str().unwrap().split('_').next().unwrap().parse().unwrap())
+                .collect();
+            versions.sort();
+            versions
+        };
+        assert_eq!(versions(&SQLITE_MIGRATIONS), files("migrations"));
+        assert_eq!(versions(&POSTGRES_MIGRATIONS), files("migrations/postgres"));
+    }
 
     #[test]
     fn blobs_round_trip_little_endian() {
