@@ -332,21 +332,27 @@ impl Store {
     }
 
     /// All templates of `subject`, or `None` when the subject is unknown. A template that fails
-    /// authentication fails the whole read.
+    /// authentication fails the whole read. One statement, so one snapshot on both backends (a
+    /// subject sealed by a concurrent `rekey` is read either before or after, never half).
     pub async fn templates(&self, subject: &SubjectId) -> Result<Option<Vec<Template>>, StoreError> {
-        let mut tx = self.pool.begin().await?;
-        let Some(keys) =
-            sqlx::query("SELECT key_id, data_key FROM subjects WHERE id = $1").bind(subject.as_str()).fetch_optional(&mut *tx).await?
-        else {
-            return Ok(None);
-        };
-        let rows = sqlx::query("SELECT id, model_version, dimension, vector FROM templates WHERE subject_id = $1 ORDER BY id")
-            .bind(subject.as_str())
-            .fetch_all(&mut *tx)
-            .await?;
-        tx.commit().await?;
-        let sealing = self.sealing(subject.as_str(), keys.try_get("key_id")?, keys.try_get("data_key")?)?;
-        rows.iter().map(|row| template_from_row(&sealing, subject.as_str(), row)).collect::<Result<Vec<_>, _>>().map(Some)
+        let rows = sqlx::query(
+            "SELECT s.key_id, s.data_key, t.id, t.model_version, t.dimension, t.vector
+             FROM subjects s LEFT JOIN templates t ON t.subject_id = s.id
+             WHERE s.id = $1 ORDER BY t.id",
+        )
+        .bind(subject.as_str())
+        .fetch_all(&self.pool)
+        .await?;
+        let Some(first) = rows.first() else { return Ok(None) };
+        let sealing = self.sealing(subject.as_str(), first.try_get("key_id")?, first.try_get("data_key")?)?;
+        let mut templates = Vec::with_capacity(rows.len());
+        for row in &rows {
+            // A subject without templates is one row with no template.
+            if row.try_get::<Option<i64>, _>("id")?.is_some() {
+                templates.push(template_from_row(&sealing, subject.as_str(), row)?);
+            }
+        }
+        Ok(Some(templates))
     }
 
     /// Every subject's templates made by `model_version`, handed to `each` one subject at a time
@@ -446,12 +452,18 @@ impl Store {
     /// database's free space.
     pub async fn delete_subject(&self, id: &SubjectId) -> Result<Option<u32>, StoreError> {
         let mut tx = self.pool.begin().await?;
+        // The subject's row is locked first (as an enrolment does), so no enrolment adds
+        // templates between the count and the deletion.
+        let found =
+            sqlx::query("UPDATE subjects SET key_id = key_id WHERE id = $1").bind(id.as_str()).execute(&mut *tx).await?.rows_affected();
+        if found == 0 {
+            tx.rollback().await?;
+            return Ok(None);
+        }
         let templates: i64 =
             sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = $1").bind(id.as_str()).fetch_one(&mut *tx).await?;
         let deleted = sqlx::query("DELETE FROM subjects WHERE id = $1").bind(id.as_str()).execute(&mut *tx).await?.rows_affected();
-        if deleted > 0 {
-            self.record_change(&mut tx, id.as_str()).await?;
-        }
+        self.record_change(&mut tx, id.as_str()).await?;
         tx.commit().await?;
         if deleted > 0 && self.backend == Backend::Sqlite {
             // The deletion is committed whatever happens here: a checkpoint that cannot finish is
