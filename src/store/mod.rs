@@ -38,11 +38,11 @@ use std::time::{Duration, Instant};
 
 use futures_util::TryStreamExt;
 use serde::{Deserialize, Serialize};
-use sqlx::any::{AnyConnectOptions, AnyPoolOptions, AnyRow};
+use sqlx::any::{AnyPoolOptions, AnyRow};
 use sqlx::migrate::Migrator;
 use sqlx::postgres::{PgConnectOptions, PgListener, PgPoolOptions};
 use sqlx::sqlite::{SqliteConnectOptions, SqliteConnection, SqliteJournalMode, SqliteLockingMode, SqliteSynchronous};
-use sqlx::{AnyConnection, AnyPool, ConnectOptions, Connection, Executor, Row};
+use sqlx::{AnyConnection, AnyPool, Connection, Executor, Row};
 
 use crate::recognize::Template;
 use crate::service::SubjectId;
@@ -198,7 +198,7 @@ fn sqlite_options(url: &str) -> Result<SqliteConnectOptions, StoreError> {
 }
 
 /// The settings of [`sqlite_options`] for each connection of the pool (the generic pool takes a
-/// URL, which carries the file and its open mode but not these).
+/// URL, which names the file but carries none of these).
 const SQLITE_SESSION: &str = "PRAGMA journal_mode = WAL; PRAGMA synchronous = FULL; PRAGMA secure_delete = ON; PRAGMA foreign_keys = ON; PRAGMA busy_timeout = 5000;";
 
 impl Store {
@@ -212,12 +212,13 @@ impl Store {
         let backend = Backend::of(url)?;
         let (pool, listen) = match backend {
             Backend::Sqlite => {
-                let file = sqlite_options(url)?.create_if_missing(true).to_url_lossy();
-                let options = AnyConnectOptions::from_url(&file).map_err(bad_url)?;
+                // The file is created (and put in WAL mode) through SQLite's own options; the
+                // pool then opens the URL as given, parsed by the same code, so the same file.
+                SqliteConnection::connect_with(&sqlite_options(url)?.create_if_missing(true)).await?.close().await?;
                 let pool = AnyPoolOptions::new()
                     .max_connections(8)
                     .after_connect(|connection, _| Box::pin(async move { connection.execute(SQLITE_SESSION).await.map(drop) }))
-                    .connect_with(options)
+                    .connect(url)
                     .await?;
                 SQLITE_MIGRATIONS.run(&pool).await?;
                 (pool, None)
@@ -272,7 +273,7 @@ impl Store {
             .await?;
         let mut listener = PgListener::connect_with(&pool).await?;
         listener.listen(CHANGE_CHANNEL).await?;
-        Ok(Some(ChangeFeed { listener, pending: None }))
+        Ok(Some(ChangeFeed { listener, pending: None, give_up_after: RECONNECT_FOR }))
     }
 
     /// Bump the change counter inside `tx` (PostgreSQL) and notify its new value with `subject`;
@@ -331,21 +332,27 @@ impl Store {
     }
 
     /// All templates of `subject`, or `None` when the subject is unknown. A template that fails
-    /// authentication fails the whole read.
+    /// authentication fails the whole read. One statement, so one snapshot on both backends (a
+    /// subject sealed by a concurrent `rekey` is read either before or after, never half).
     pub async fn templates(&self, subject: &SubjectId) -> Result<Option<Vec<Template>>, StoreError> {
-        let mut tx = self.pool.begin().await?;
-        let Some(keys) =
-            sqlx::query("SELECT key_id, data_key FROM subjects WHERE id = $1").bind(subject.as_str()).fetch_optional(&mut *tx).await?
-        else {
-            return Ok(None);
-        };
-        let rows = sqlx::query("SELECT id, model_version, dimension, vector FROM templates WHERE subject_id = $1 ORDER BY id")
-            .bind(subject.as_str())
-            .fetch_all(&mut *tx)
-            .await?;
-        tx.commit().await?;
-        let sealing = self.sealing(subject.as_str(), keys.try_get("key_id")?, keys.try_get("data_key")?)?;
-        rows.iter().map(|row| template_from_row(&sealing, subject.as_str(), row)).collect::<Result<Vec<_>, _>>().map(Some)
+        let rows = sqlx::query(
+            "SELECT s.key_id, s.data_key, t.id, t.model_version, t.dimension, t.vector
+             FROM subjects s LEFT JOIN templates t ON t.subject_id = s.id
+             WHERE s.id = $1 ORDER BY t.id",
+        )
+        .bind(subject.as_str())
+        .fetch_all(&self.pool)
+        .await?;
+        let Some(first) = rows.first() else { return Ok(None) };
+        let sealing = self.sealing(subject.as_str(), first.try_get("key_id")?, first.try_get("data_key")?)?;
+        let mut templates = Vec::with_capacity(rows.len());
+        for row in &rows {
+            // A subject without templates is one row with no template.
+            if row.try_get::<Option<i64>, _>("id")?.is_some() {
+                templates.push(template_from_row(&sealing, subject.as_str(), row)?);
+            }
+        }
+        Ok(Some(templates))
     }
 
     /// Every subject's templates made by `model_version`, handed to `each` one subject at a time
@@ -445,12 +452,18 @@ impl Store {
     /// database's free space.
     pub async fn delete_subject(&self, id: &SubjectId) -> Result<Option<u32>, StoreError> {
         let mut tx = self.pool.begin().await?;
+        // The subject's row is locked first (as an enrolment does), so no enrolment adds
+        // templates between the count and the deletion.
+        let found =
+            sqlx::query("UPDATE subjects SET key_id = key_id WHERE id = $1").bind(id.as_str()).execute(&mut *tx).await?.rows_affected();
+        if found == 0 {
+            tx.rollback().await?;
+            return Ok(None);
+        }
         let templates: i64 =
             sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = $1").bind(id.as_str()).fetch_one(&mut *tx).await?;
         let deleted = sqlx::query("DELETE FROM subjects WHERE id = $1").bind(id.as_str()).execute(&mut *tx).await?.rows_affected();
-        if deleted > 0 {
-            self.record_change(&mut tx, id.as_str()).await?;
-        }
+        self.record_change(&mut tx, id.as_str()).await?;
         tx.commit().await?;
         if deleted > 0 && self.backend == Backend::Sqlite {
             // The deletion is committed whatever happens here: a checkpoint that cannot finish is
@@ -559,13 +572,21 @@ impl Store {
         Ok(())
     }
 
-    /// Close the pool (on SQLite, checkpointing the WAL).
+    /// Close the pool. On SQLite the WAL is checkpointed and truncated first, so the database
+    /// file alone holds everything (the pool's connections close side by side, and SQLite
+    /// removes the WAL only when the last one finds itself alone).
     pub async fn close(&self) {
+        if self.backend == Backend::Sqlite {
+            if let Err(e) = self.checkpoint().await {
+                tracing::warn!("WAL checkpoint on close failed: {e}");
+            }
+        }
         self.pool.close().await;
     }
 }
 
-/// How long a [`ChangeFeed`] keeps trying to reconnect before it reports the database gone.
+/// How long a [`ChangeFeed`] keeps trying to reconnect before it reports the database gone,
+/// unless told otherwise ([`ChangeFeed::give_up_after`]).
 const RECONNECT_FOR: Duration = Duration::from_secs(60);
 
 /// The changes committed on a PostgreSQL database by any process ([`Store::watch`]): a `LISTEN`ing
@@ -574,12 +595,18 @@ pub struct ChangeFeed {
     listener: PgListener,
     /// A change received right after a reconnect, handed out after the [`StoreChange::Resync`].
     pending: Option<StoreChange>,
+    give_up_after: Duration,
 }
 
 impl ChangeFeed {
+    /// How long [`next`](Self::next) keeps trying to reconnect before it fails (60 s unless set).
+    pub fn give_up_after(&mut self, limit: Duration) {
+        self.give_up_after = limit;
+    }
+
     /// The next change. A lost connection is re-made (with `LISTEN` again) and reported as
     /// [`StoreChange::Resync`]: what was notified meanwhile is gone. Errors only when the
-    /// database cannot be reached for [`RECONNECT_FOR`].
+    /// database cannot be reached for [`give_up_after`](Self::give_up_after).
     pub async fn next(&mut self) -> Result<StoreChange, StoreError> {
         if let Some(change) = self.pending.take() {
             return Ok(change);
@@ -596,7 +623,7 @@ impl ChangeFeed {
                 Ok(None) => return Ok(StoreChange::Resync),
                 Err(e) => {
                     let since = *failing_since.get_or_insert_with(Instant::now);
-                    if since.elapsed() > RECONNECT_FOR {
+                    if since.elapsed() > self.give_up_after {
                         return Err(e.into());
                     }
                     tokio::time::sleep(Duration::from_millis(250)).await;
@@ -755,6 +782,25 @@ fn template_from_row(sealing: &Sealing, subject: &str, row: &AnyRow) -> Result<T
 mod tests {
     use super::*;
 
+    /// Each backend's migrator has exactly the files of its own folder: sqlx does not descend
+    /// from `migrations/` into `migrations/postgres/`.
+    #[test]
+    fn each_backend_migrates_from_its_own_folder() {
+        let versions = |migrator: &Migrator| migrator.iter().map(|m| m.version).collect::<Vec<i64>>();
+        let files = |folder: &str| {
+            let mut versions: Vec<i64> = std::fs::read_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(folder))
+                .unwrap()
+                .map(|e| e.unwrap().path())
+                .filter(|p| p.is_file())
+                .map(|p| p.file_name().unwrap().to_str().unwrap().split('_').next().unwrap().parse().unwrap())
+                .collect();
+            versions.sort();
+            versions
+        };
+        assert_eq!(versions(&SQLITE_MIGRATIONS), files("migrations"));
+        assert_eq!(versions(&POSTGRES_MIGRATIONS), files("migrations/postgres"));
+    }
+
     #[test]
     fn blobs_round_trip_little_endian() {
         let v = [1.0f32, -0.5, 3.25e-7, f32::MAX];
@@ -866,6 +912,30 @@ mod at_rest {
         store.close().await;
         let after_close = dir.raw("t.db");
         assert!(!needles.iter().any(|n| contains(&after_close, n)));
+    }
+
+    /// The pool opens the file the URL names, also with characters a URL escapes (`%25` is `%`),
+    /// and after `close` that file holds everything (no WAL content is left beside it).
+    #[tokio::test]
+    async fn the_file_named_is_the_file_opened() {
+        let dir = Dir::new();
+        for (name, file) in [("with space.db", "with space.db"), ("per%25cent #1.db", "per%cent #1.db"), ("ünï.db", "ünï.db")] {
+            let store = Store::connect(&dir.url(name), None).await.unwrap();
+            store.enroll(&id("alice"), &[marked(0.0)]).await.unwrap();
+            store.close().await;
+            let mut files: Vec<String> =
+                std::fs::read_dir(&dir.0).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
+            files.sort();
+            assert_eq!(files[0], file, "{files:?}");
+            assert!(files[1..].iter().all(|f| *f == format!("{file}-shm") || *f == format!("{file}-wal")), "{files:?}");
+            assert_eq!(std::fs::metadata(dir.0.join(format!("{file}-wal"))).map_or(0, |m| m.len()), 0, "the WAL is empty");
+            let reopened = Store::connect(&dir.url(name), None).await.unwrap();
+            assert_eq!(reopened.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0)]);
+            reopened.close().await;
+            for entry in std::fs::read_dir(&dir.0).unwrap() {
+                std::fs::remove_file(entry.unwrap().path()).unwrap();
+            }
+        }
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

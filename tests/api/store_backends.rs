@@ -523,3 +523,22 @@ async fn replicas_writing_the_same_subjects_do_not_deadlock() {
     a.close().await;
     b.close().await;
 }
+
+/// A feed whose database is gone for good (dropped, so every reconnection is refused) fails once
+/// its reconnection limit has passed, rather than waiting forever.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_feed_fails_when_its_database_is_gone() {
+    let url = crate::postgres_or_skip!("store_backends::a_feed_fails_when_its_database_is_gone");
+    let store = Store::connect(&url, None).await.unwrap();
+    let mut feed = store.watch().await.unwrap().unwrap();
+    feed.give_up_after(Duration::from_secs(1));
+    store.close().await;
+    let (server, name) = url.rsplit_once('/').unwrap();
+    let admin = raw(&format!("{server}/postgres")).await;
+    sqlx::query(&format!("DROP DATABASE {name} WITH (FORCE)")).execute(&admin).await.unwrap();
+    admin.close().await;
+    let started = std::time::Instant::now();
+    let outcome = tokio::time::timeout(Duration::from_secs(30), feed.next()).await.expect("gives up within 30 s");
+    assert!(outcome.is_err(), "{outcome:?}");
+    assert!(started.elapsed() >= Duration::from_secs(1), "{:?}", started.elapsed());
+}
