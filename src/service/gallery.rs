@@ -368,15 +368,33 @@ impl Live {
     }
 }
 
-/// Apply `changes` to the gallery until the feed ends for good or the gallery is dropped. A
-/// change that cannot be applied (the database unreachable) is retried as a full reload.
+/// Apply `changes` to the gallery until the gallery is dropped (or a test's script ends). A
+/// change that cannot be applied (the database unreachable) is retried as a full reload; a feed
+/// that gave up (the database gone for longer than it waits) is opened again, then everything
+/// is reloaded.
 async fn follow(live: Weak<Live>, mut changes: Changes, applied: watch::Sender<i64>) {
     loop {
         let mut change = match changes.next().await {
             Ok(change) => change,
             Err(e) => {
-                tracing::error!("the identify gallery no longer follows changes made by other replicas: {e}");
-                return;
+                #[cfg(test)]
+                if let Changes::Script(_) = changes {
+                    return;
+                }
+                tracing::error!("the identify gallery's change feed failed; opening it again: {e}");
+                loop {
+                    tokio::time::sleep(RETRY_PAUSE).await;
+                    let Some(live) = live.upgrade() else { return };
+                    match live.store.watch().await {
+                        Ok(Some(feed)) => {
+                            changes = Changes::Feed(feed);
+                            break;
+                        }
+                        Ok(None) => return,
+                        Err(e) => tracing::warn!("cannot open the change feed again: {e}"),
+                    }
+                }
+                StoreChange::Resync
             }
         };
         let version = loop {

@@ -124,3 +124,51 @@ async fn two_replicas_on_one_database_agree_at_once() {
     drop((a, b));
     std::fs::remove_dir_all(dir).unwrap();
 }
+
+/// The gallery's listening connection is cut while another replica enrols: the notification is
+/// lost, the feed reconnects and says so, and the gallery reloads everything, so an identification
+/// still sees the enrolment.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_gallery_reloads_after_its_listening_connection_is_cut() {
+    use facegate::recognize::Template;
+    use facegate::service::SubjectId;
+    use facegate::service::gallery::LiveGallery;
+    use facegate::store::Store;
+    use sqlx::Connection;
+
+    let url = postgres_or_skip!("replicas::the_gallery_reloads_after_its_listening_connection_is_cut");
+    let here = Store::connect(&url, None).await.unwrap();
+    let other = Store::connect(&url, None).await.unwrap();
+    let live = LiveGallery::new(here.clone(), "v1");
+    live.load().await.unwrap();
+    let template = |seed: f32| Template::new("v1", (0..16).map(|i| (i as f32 + seed).sin()).collect());
+    let id = |s: &str| SubjectId::parse(s).unwrap();
+
+    other.enroll(&id("first"), &[template(1.0)]).await.unwrap();
+    live.wait_until_applied(live.change_version().await.unwrap()).await;
+    assert_eq!(live.size(), (1, 1));
+
+    let mut admin = sqlx::PgConnection::connect(&url).await.unwrap();
+    let cut: Vec<i32> = sqlx::query_scalar(
+        "SELECT pid FROM pg_stat_activity WHERE datname = current_database() AND query LIKE 'LISTEN%' AND pid <> pg_backend_pid()",
+    )
+    .fetch_all(&mut admin)
+    .await
+    .unwrap();
+    assert_eq!(cut.len(), 1, "one listening connection: the gallery's");
+    sqlx::query("SELECT pg_terminate_backend($1)").bind(cut[0]).execute(&mut admin).await.unwrap();
+    // Committed while nobody listens: its notification is lost.
+    other.enroll(&id("second"), &[template(2.0)]).await.unwrap();
+    let version = live.change_version().await.unwrap();
+    assert!(version.is_some());
+    let started = Instant::now();
+    while live.size() != (2, 2) && started.elapsed() < Duration::from_secs(10) {
+        live.wait_until_applied(version).await;
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert_eq!(live.size(), (2, 2), "reloaded after the reconnect");
+    admin.close().await.unwrap();
+    live.stop_following();
+    here.close().await;
+    other.close().await;
+}
