@@ -95,7 +95,7 @@ pub struct Settings {
     /// Address to listen on.
     #[arg(long, env = "FACEGATE_BIND", default_value = DEFAULT_BIND)]
     pub bind: String,
-    /// Database URL (SQLite; the file is created if missing).
+    /// Database URL: `sqlite://FILE` (created if missing) or `postgres://USER:PASSWORD@HOST/DB`.
     #[arg(long, env = "FACEGATE_DATABASE_URL", default_value = DEFAULT_DATABASE)]
     pub database: String,
     /// The project's trained models (default: `models/` in the working directory or the crate's).

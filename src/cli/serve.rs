@@ -64,9 +64,12 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
     }
     tracing::info!(workers = config.workers, queue = config.queue_depth, enrol_queue = config.enrol_queue_depth, "bounded work pool");
     let state = AppState::new(Arc::new(pipeline), store.clone(), config);
+    let loading = std::time::Instant::now();
     for (subject, why) in state.load_gallery().await? {
         tracing::error!(subject, "templates cannot be read; /identify refuses until the subject is erased: {why}");
     }
+    let (subjects, templates) = state.gallery_size();
+    tracing::info!(subjects, templates, load_ms = loading.elapsed().as_millis() as u64, backend = ?store.backend(), "identify gallery loaded");
     let listener = tokio::net::TcpListener::bind(&args.bind).await.with_context(|| format!("cannot listen on {}", args.bind))?;
     tracing::info!(
         max_connections = limits.max_connections,
@@ -74,12 +77,13 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
         "listening on http://{}",
         listener.local_addr()?
     );
-    match server::serve(listener, http::router(state), limits, shutdown_signal()).await {
+    match server::serve(listener, http::router(state.clone()), limits, shutdown_signal()).await {
         Stopped::Drained => tracing::info!("every connection finished"),
         Stopped::GraceExpired => {
             tracing::warn!(grace_s = limits.shutdown_grace.as_secs_f64(), "connections still open after the grace period were dropped")
         }
     }
+    state.stop_following();
     store.close().await;
     tracing::info!("stopped");
     Ok(())

@@ -12,7 +12,7 @@ use crate::store::{self, Store};
 /// The database the command works on.
 #[derive(clap::Args, Debug)]
 pub struct DatabaseArgs {
-    /// Database URL (SQLite), as `facegate serve --database`.
+    /// Database URL (`sqlite://...` or `postgres://...`), as `facegate serve --database`.
     #[arg(long, env = "FACEGATE_DATABASE_URL", default_value = DEFAULT_DATABASE)]
     pub database: String,
 }
@@ -75,7 +75,7 @@ pub fn run_rekey(args: RekeyArgs) -> anyhow::Result<ExitCode> {
     })
 }
 
-/// A consistent copy of the database while the service keeps running.
+/// A consistent copy of the database while the service keeps running (SQLite; PostgreSQL has pg_dump).
 pub fn run_backup(args: BackupArgs) -> anyhow::Result<ExitCode> {
     runtime()?.block_on(async {
         let store =
@@ -95,7 +95,7 @@ pub fn run_backup(args: BackupArgs) -> anyhow::Result<ExitCode> {
     })
 }
 
-/// Replace the database with a backup (the service stopped).
+/// Replace the database with a backup (the service stopped; SQLite; PostgreSQL has pg_restore).
 pub fn run_restore(args: RestoreArgs) -> anyhow::Result<ExitCode> {
     runtime()?.block_on(async {
         let (subjects, templates) = store::restore(&args.backup, &args.database.database, args.force).await?;

@@ -25,7 +25,7 @@ use crate::morph::Pose;
 use crate::pipeline::{FaceAnalysis, PipelineError, StageTimings};
 use crate::quality::Quality;
 use crate::service::{self, SubjectId, VerifyError};
-use crate::store::{SubjectDetail, SubjectSummary};
+use crate::store::{Backend, SubjectDetail, SubjectSummary};
 
 /// Milliseconds spent on one photo, stage by stage: decoding, then the pipeline's stages.
 #[derive(Debug, Clone, Copy, Serialize)]
@@ -281,11 +281,15 @@ pub async fn identify(State(state): State<AppState>, request: Request) -> Result
         return Err(Problem::malformed("identify takes no subject; use /verify to check one subject"));
     }
     let image = upload.single_image()?;
+    let gallery = state.0.gallery.clone();
+    // What the store holds as the request comes in (other replicas' enrolments and deletions
+    // included) is what the search must see; the gallery catches up while the probe is analysed.
+    let store_version = gallery.change_version().await?;
     let analysed = analyse_probe(&state, image).await?;
     let t = Instant::now();
     let engine = state.0.engine.clone();
-    let gallery = state.0.gallery.clone();
     gallery.load().await?;
+    gallery.wait_until_applied(store_version).await;
     let probe = analysed.analysis.template.clone();
     let matcher = engine.clone();
     // Scoring the whole gallery is CPU work too: it runs on the pool.
@@ -381,6 +385,8 @@ pub struct Health {
     templates: Option<u64>,
     /// Whether template vectors are sealed at rest (a template key is configured).
     templates_encrypted: bool,
+    /// The database behind the store.
+    store_backend: Backend,
 }
 
 /// `GET /health`: the database answers and the models are loaded.
@@ -388,7 +394,9 @@ pub async fn health(State(state): State<AppState>, headers: HeaderMap) -> Result
     let (subjects, templates) = state.0.store.counts().await?;
     let (subjects, templates) = if state.0.keys.admits(&headers) { (Some(subjects), Some(templates)) } else { (None, None) };
     let templates_encrypted = state.0.store.encrypts();
-    Ok(Json(Health { status: "ok", model_version: state.0.engine.model_version().to_string(), subjects, templates, templates_encrypted }))
+    let store_backend = state.0.store.backend();
+    let model_version = state.0.engine.model_version().to_string();
+    Ok(Json(Health { status: "ok", model_version, subjects, templates, templates_encrypted, store_backend }))
 }
 
 /// `GET /metrics`: Prometheus (OpenMetrics text) exposition.

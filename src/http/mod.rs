@@ -171,8 +171,20 @@ impl AppState {
 
     /// Load the identification gallery now (else on first use). Returns the subjects whose
     /// templates cannot be read, with why: `/identify` refuses to answer while there are any.
+    /// Where other replicas write to the same database, the gallery follows their changes from
+    /// then on, until [`AppState::stop_following`].
     pub async fn load_gallery(&self) -> Result<Vec<(String, String)>, crate::store::StoreError> {
         self.0.gallery.load().await
+    }
+
+    /// Subjects and templates in the identify gallery.
+    pub fn gallery_size(&self) -> (usize, usize) {
+        self.0.gallery.size()
+    }
+
+    /// Stop following the other replicas' changes (before closing the store).
+    pub fn stop_following(&self) {
+        self.0.gallery.stop_following();
     }
 
     pub fn store(&self) -> &Store {

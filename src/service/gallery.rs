@@ -5,17 +5,33 @@
 //! [`Gallery`] is the data and the search; [`LiveGallery`] keeps it in step with the [`Store`]:
 //! loaded once, then every enrolment and deletion goes through it, store first, gallery second,
 //! one at a time and to the end even when the request that asked is cancelled, so the gallery
-//! always holds exactly what the store has committed (this process being the only writer).
+//! always holds what this process has committed. Where other processes write to the same database
+//! (PostgreSQL, several replicas), the store has a change feed ([`Store::watch`]): a background
+//! task re-reads each subject another process (or this one) changed, or everything after a lost
+//! connection, and records the highest store version applied; an identification first waits until
+//! the gallery has applied the version the store had when the request came in
+//! ([`LiveGallery::change_version`], [`LiveGallery::wait_until_applied`]).
 //!
 //! Memory: per template, its vector (4 bytes × dimension), its inverse norm and its subject slot
 //! (4 + 4 bytes); per subject, its id and row list (docs/service.md has the measured figure).
 
 use std::collections::{BTreeMap, HashMap};
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, OnceLock, RwLock, Weak};
+use std::time::Duration;
+
+use tokio::sync::watch;
 
 use super::{Candidate, Decision, Matcher, SubjectId};
 use crate::recognize::Template;
-use crate::store::{Store, StoreError};
+use crate::store::{ChangeFeed, Store, StoreChange, StoreError};
+
+/// Longest an identification waits for the gallery to apply the store's latest change before it
+/// searches the gallery as it is (and logs a warning).
+const CATCH_UP_WAIT: Duration = Duration::from_secs(2);
+
+/// Pause before a change that failed to apply (the database unreachable) is tried again, as a
+/// full reload.
+const RETRY_PAUSE: Duration = Duration::from_secs(1);
 
 /// Why the gallery cannot answer: some stored templates of the current model could not be read
 /// (they failed authentication, or their data key cannot be opened). Leaving their subjects out
@@ -250,8 +266,157 @@ struct Live {
     store: Store,
     gallery: RwLock<Gallery>,
     loaded: tokio::sync::OnceCell<()>,
-    /// Enrolments and deletions, one at a time: store commit, then gallery update.
+    /// Enrolments and deletions, one at a time: store commit, then gallery update. Changes from
+    /// the feed are applied under it too (store read, then gallery update), so that a local
+    /// enrolment's append and a re-read's replacement never interleave.
     writes: tokio::sync::Mutex<()>,
+    /// The highest store version the gallery has applied; set when it follows a change feed.
+    applied: OnceLock<watch::Receiver<i64>>,
+    /// The task applying the change feed.
+    follower: std::sync::Mutex<Option<tokio::task::AbortHandle>>,
+}
+
+impl Drop for Live {
+    fn drop(&mut self) {
+        if let Some(task) = self.follower.lock().expect("follower lock").take() {
+            task.abort();
+        }
+    }
+}
+
+/// Where the changes made by other processes come from.
+enum Changes {
+    Feed(ChangeFeed),
+    /// A hand-made sequence, for the tests.
+    #[cfg(test)]
+    Script(tokio::sync::mpsc::UnboundedReceiver<StoreChange>),
+}
+
+impl Changes {
+    async fn next(&mut self) -> Result<StoreChange, StoreError> {
+        match self {
+            Changes::Feed(feed) => feed.next().await,
+            #[cfg(test)]
+            Changes::Script(changes) => changes.recv().await.ok_or_else(|| StoreError::Refused("the script ended".into())),
+        }
+    }
+}
+
+/// Is `error` about the subject's stored data (it stays unreadable until erased), rather than
+/// about reaching the database (worth trying again)?
+fn unreadable(error: &StoreError) -> bool {
+    matches!(error, StoreError::CorruptTemplate { .. } | StoreError::DataKey { .. } | StoreError::NoKey { .. })
+}
+
+impl Live {
+    /// The store's templates of the gallery's model version, read afresh; the subjects whose
+    /// templates cannot be read are noted in it and returned as `(subject, why)`.
+    async fn read_gallery(&self) -> Result<(Gallery, Vec<(String, String)>), StoreError> {
+        let version = self.gallery.read().expect("gallery lock").model_version.clone();
+        let mut gallery = Gallery::new(&version);
+        let mut unreadable = Vec::new();
+        self.store
+            .gallery(&version, |subject, templates| match templates {
+                Ok(templates) => gallery.add(subject, &templates),
+                Err(e) => {
+                    unreadable.push((subject.to_string(), e.to_string()));
+                    gallery.mark_unreadable(subject, e.to_string());
+                }
+            })
+            .await?;
+        Ok((gallery, unreadable))
+    }
+
+    /// Apply one change from the feed; returns the store version the gallery now reflects.
+    async fn apply(&self, change: &StoreChange) -> Result<i64, StoreError> {
+        let _writes = self.writes.lock().await;
+        match change {
+            StoreChange::Subject { subject, version } => {
+                let Ok(id) = SubjectId::parse(subject) else {
+                    tracing::warn!(subject, "a change notification names an invalid subject id; ignored");
+                    return Ok(*version);
+                };
+                // Read first: a failed read leaves the gallery as it was.
+                let templates = match self.store.templates(&id).await {
+                    Err(e) if !unreadable(&e) => return Err(e),
+                    read => read,
+                };
+                let mut gallery = self.gallery.write().expect("gallery lock");
+                // Replaced, not appended: the store holds all of the subject's templates.
+                gallery.remove(subject);
+                match templates {
+                    Ok(Some(templates)) => gallery.add(subject, &templates),
+                    Ok(None) => {}
+                    Err(e) => {
+                        tracing::error!(subject, "templates cannot be read; /identify refuses until the subject is erased: {e}");
+                        gallery.mark_unreadable(subject, e.to_string());
+                    }
+                }
+                Ok(*version)
+            }
+            StoreChange::Resync => {
+                // Read before the reload, so the reload holds at least this version.
+                let version = self.store.change_version().await?.unwrap_or(0);
+                let (gallery, unreadable) = self.read_gallery().await?;
+                for (subject, why) in unreadable {
+                    tracing::error!(subject, "templates cannot be read; /identify refuses until the subject is erased: {why}");
+                }
+                *self.gallery.write().expect("gallery lock") = gallery;
+                Ok(version)
+            }
+        }
+    }
+}
+
+/// Apply `changes` to the gallery until the gallery is dropped (or a test's script ends). A
+/// change that cannot be applied (the database unreachable) is retried as a full reload; a feed
+/// that gave up (the database gone for longer than it waits) is opened again, then everything
+/// is reloaded.
+async fn follow(live: Weak<Live>, mut changes: Changes, applied: watch::Sender<i64>) {
+    loop {
+        let mut change = match changes.next().await {
+            Ok(change) => change,
+            Err(e) => {
+                #[cfg(test)]
+                if let Changes::Script(_) = changes {
+                    return;
+                }
+                tracing::error!("the identify gallery's change feed failed; opening it again: {e}");
+                loop {
+                    tokio::time::sleep(RETRY_PAUSE).await;
+                    let Some(live) = live.upgrade() else { return };
+                    match live.store.watch().await {
+                        Ok(Some(feed)) => {
+                            changes = Changes::Feed(feed);
+                            break;
+                        }
+                        Ok(None) => return,
+                        Err(e) => tracing::warn!("cannot open the change feed again: {e}"),
+                    }
+                }
+                StoreChange::Resync
+            }
+        };
+        let version = loop {
+            let Some(live) = live.upgrade() else { return };
+            match live.apply(&change).await {
+                Ok(version) => break version,
+                Err(e) => {
+                    tracing::warn!("cannot apply a store change to the identify gallery, reloading it in {RETRY_PAUSE:?}: {e}");
+                    change = StoreChange::Resync;
+                }
+            }
+            drop(live);
+            tokio::time::sleep(RETRY_PAUSE).await;
+        };
+        applied.send_if_modified(|highest| {
+            let newer = version > *highest;
+            if newer {
+                *highest = version;
+            }
+            newer
+        });
+    }
 }
 
 impl LiveGallery {
@@ -263,33 +428,76 @@ impl LiveGallery {
             gallery: RwLock::new(Gallery::new(model_version)),
             loaded: tokio::sync::OnceCell::new(),
             writes: tokio::sync::Mutex::new(()),
+            applied: OnceLock::new(),
+            follower: std::sync::Mutex::new(None),
         }))
     }
 
-    /// Read the store's templates of the model version (once). Subjects whose templates cannot
-    /// be read are noted (see [`UnreadableTemplates`]) and returned as `(subject, why)`.
+    /// Read the store's templates of the model version (once), and from then on follow the
+    /// store's change feed where it has one. Subjects whose templates cannot be read are noted
+    /// (see [`UnreadableTemplates`]) and returned as `(subject, why)`.
     pub async fn load(&self) -> Result<Vec<(String, String)>, StoreError> {
         let mut unreadable = Vec::new();
         let live = &self.0;
         live.loaded
             .get_or_try_init(|| async {
+                // Listening starts before the version and the snapshot are read, so no change
+                // committed after them is missed (one committed before is re-read: harmless).
+                let feed = live.store.watch().await?;
                 let _writes = live.writes.lock().await;
-                let version = live.gallery.read().expect("gallery lock").model_version.clone();
-                let mut gallery = Gallery::new(&version);
-                live.store
-                    .gallery(&version, |subject, templates| match templates {
-                        Ok(templates) => gallery.add(subject, &templates),
-                        Err(e) => {
-                            unreadable.push((subject.to_string(), e.to_string()));
-                            gallery.mark_unreadable(subject, e.to_string());
-                        }
-                    })
-                    .await?;
+                let version = live.store.change_version().await?;
+                let (gallery, cannot_read) = live.read_gallery().await?;
                 *live.gallery.write().expect("gallery lock") = gallery;
+                unreadable = cannot_read;
+                if let (Some(feed), Some(version)) = (feed, version) {
+                    self.follow(Changes::Feed(feed), version);
+                }
                 Ok::<(), StoreError>(())
             })
             .await?;
         Ok(unreadable)
+    }
+
+    /// Start applying `changes`, the gallery holding the store's `version`.
+    fn follow(&self, changes: Changes, version: i64) {
+        let (applied, receiver) = watch::channel(version);
+        let task = tokio::spawn(follow(Arc::downgrade(&self.0), changes, applied));
+        let _ = self.0.applied.set(receiver);
+        *self.0.follower.lock().expect("follower lock") = Some(task.abort_handle());
+    }
+
+    /// Stop following the change feed (before the store is closed: the feed holds a connection).
+    pub fn stop_following(&self) {
+        if let Some(task) = self.0.follower.lock().expect("follower lock").take() {
+            task.abort();
+        }
+    }
+
+    /// The store's version now, where the gallery follows a change feed (one round trip); `None`
+    /// when there is nothing to wait for (SQLite: this process is the only writer).
+    pub async fn change_version(&self) -> Result<Option<i64>, StoreError> {
+        if self.0.applied.get().is_none() {
+            return Ok(None);
+        }
+        self.0.store.change_version().await
+    }
+
+    /// Wait until the gallery has applied the store's `version` (from
+    /// [`LiveGallery::change_version`]), at most [`CATCH_UP_WAIT`]; after that, or when the feed
+    /// has ended, the search goes on with the gallery as it is, and a warning is logged.
+    pub async fn wait_until_applied(&self, version: Option<i64>) {
+        let (Some(version), Some(applied)) = (version, self.0.applied.get()) else { return };
+        let mut applied = applied.clone();
+        let waited = tokio::time::timeout(CATCH_UP_WAIT, applied.wait_for(|&v| v >= version)).await.map(|reached| reached.is_ok());
+        match waited {
+            Ok(true) => {}
+            Ok(false) => tracing::warn!(version, "the identify gallery no longer follows the store; searching it as it is"),
+            Err(_) => tracing::warn!(
+                version,
+                applied = *applied.borrow(),
+                "the identify gallery has not applied the store's latest change after {CATCH_UP_WAIT:?}; searching it as it is"
+            ),
+        }
     }
 
     /// [`Store::enroll`], then the same templates into the gallery.
@@ -507,6 +715,107 @@ mod tests {
             let matcher = Cosine { general: false };
             assert_eq!(live.search(&matcher, &probe, 1e-3, 20).unwrap(), fresh.search(&matcher, &probe, 1e-3, 20).unwrap());
         }
+        store.close().await;
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    /// The store version the gallery has applied, when it follows a feed.
+    fn applied(live: &LiveGallery) -> Option<i64> {
+        live.0.applied.get().map(|applied| *applied.borrow())
+    }
+
+    /// Another writer changes the store and a hand-made feed tells of it: each subject is re-read
+    /// (replaced, not appended; removed when gone; unreadable noted until erased), a resync reads
+    /// everything, the highest version is tracked, and the end of the feed ends the waits.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_live_gallery_follows_a_change_feed() {
+        let dir = std::env::temp_dir().join(format!("facegate-gallery-feed-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let url = format!("sqlite://{}", dir.join("g.db").display());
+        let keys = crate::store::KeyRing::parse(&"5a".repeat(32)).unwrap();
+        // The other replica has the template key; this one's store is opened without it, so a
+        // subject the other seals is unreadable here.
+        let other = Store::connect(&url, Some(keys)).await.unwrap();
+        let store = Store::connect(&url, None).await.unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let id = |s: &str| SubjectId::parse(s).unwrap();
+        let live = LiveGallery::new(store.clone(), "v1");
+        assert!(live.load().await.unwrap().is_empty());
+        assert_eq!((applied(&live), live.change_version().await.unwrap()), (None, None), "SQLite: no feed, nothing to wait for");
+        let (changes, script) = tokio::sync::mpsc::unbounded_channel();
+        live.follow(Changes::Script(script), 0);
+        let notify = |subject: &str, version: i64| changes.send(StoreChange::Subject { subject: subject.into(), version }).unwrap();
+        let matcher = Cosine { general: false };
+
+        let alice = random_template(&mut rng, "v1", 16);
+        store.enroll(&id("alice"), &[alice.clone(), random_template(&mut rng, "v0", 16)]).await.unwrap();
+        notify("alice", 1);
+        live.wait_until_applied(Some(1)).await;
+        assert_eq!((applied(&live), live.size()), (Some(1), (1, 1)), "only the gallery's model version");
+        assert_eq!(live.search(&matcher, &alice, 1e-3, 1).unwrap().0[0].subject, "alice");
+        store.enroll(&id("alice"), &[random_template(&mut rng, "v1", 16)]).await.unwrap();
+        notify("alice", 2);
+        // The notification of a write already applied (this replica's own) changes nothing.
+        notify("alice", 2);
+        notify("alice", 1);
+        live.wait_until_applied(Some(2)).await;
+        assert_eq!((applied(&live), live.size()), (Some(2), (1, 2)), "re-read, not appended");
+        store.delete_subject(&id("alice")).await.unwrap();
+        notify("alice", 3);
+        live.wait_until_applied(Some(3)).await;
+        assert_eq!(live.size(), (0, 0));
+
+        other.enroll(&id("dave"), &[random_template(&mut rng, "v1", 16)]).await.unwrap();
+        notify("dave", 4);
+        live.wait_until_applied(Some(4)).await;
+        let err = live.search(&matcher, &alice, 1e-3, 1).unwrap_err();
+        assert_eq!(err, UnreadableTemplates { count: 1, first: "dave".into() });
+        other.delete_subject(&id("dave")).await.unwrap();
+        notify("dave", 5);
+        live.wait_until_applied(Some(5)).await;
+        assert!(live.search(&matcher, &alice, 1e-3, 1).unwrap().0.is_empty());
+
+        // Changes whose notifications were lost: a resync reads them all.
+        for name in ["bob", "carol"] {
+            store.enroll(&id(name), &[random_template(&mut rng, "v1", 16)]).await.unwrap();
+        }
+        changes.send(StoreChange::Resync).unwrap();
+        notify("nobody", 6);
+        live.wait_until_applied(Some(6)).await;
+        assert_eq!((applied(&live), live.size()), (Some(6), (2, 2)));
+        let fresh = LiveGallery::new(store.clone(), "v1");
+        fresh.load().await.unwrap();
+        let probe = random_template(&mut rng, "v1", 16);
+        assert_eq!(live.search(&matcher, &probe, 1e-3, 5).unwrap(), fresh.search(&matcher, &probe, 1e-3, 5).unwrap());
+
+        // The feed ends: waiting for a version never applied returns at once.
+        drop(changes);
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let start = std::time::Instant::now();
+        live.wait_until_applied(Some(100)).await;
+        assert!(start.elapsed() < Duration::from_secs(1), "{:?}", start.elapsed());
+        live.stop_following();
+        other.close().await;
+        store.close().await;
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    /// A version the gallery never applies is waited for at most [`CATCH_UP_WAIT`].
+    #[tokio::test]
+    async fn waiting_for_the_gallery_is_bounded() {
+        let dir = std::env::temp_dir().join(format!("facegate-gallery-wait-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let store = Store::connect(&format!("sqlite://{}", dir.join("g.db").display()), None).await.unwrap();
+        let live = LiveGallery::new(store.clone(), "v1");
+        let (_changes, script) = tokio::sync::mpsc::unbounded_channel();
+        live.follow(Changes::Script(script), 7);
+        let start = std::time::Instant::now();
+        live.wait_until_applied(Some(7)).await;
+        assert!(start.elapsed() < Duration::from_millis(100));
+        live.wait_until_applied(Some(8)).await;
+        let waited = start.elapsed();
+        assert!(waited >= CATCH_UP_WAIT && waited < CATCH_UP_WAIT + Duration::from_secs(1), "{waited:?}");
+        live.stop_following();
         store.close().await;
         std::fs::remove_dir_all(dir).unwrap();
     }

@@ -1,16 +1,30 @@
-//! Subjects and their face templates in SQLite, through sqlx.
+//! Subjects and their face templates in SQLite (the embedded default) or PostgreSQL, through
+//! sqlx.
 //!
-//! The schema lives in `migrations/` and is applied on connect. The database runs in WAL mode
-//! with foreign keys on, so deleting a subject erases its templates. An enrolment is one
+//! One implementation serves both backends: the queries are written once in the SQL both accept
+//! (`$n` parameters, `ON CONFLICT`, text timestamps) and run on an [`sqlx::AnyPool`]; only what
+//! has no common form is per backend: the connection settings, the migrations (`migrations/` for
+//! SQLite, `migrations/postgres/`), the change counter and its notifications (PostgreSQL), and
+//! the WAL checkpoint, backup and restore (SQLite files).
+//!
+//! Deleting a subject erases its templates (foreign keys cascade). An enrolment is one
 //! transaction: either all of its templates are stored or none. No photo is ever stored, only
 //! templates: each is a little-endian f32 vector with the recognition model version that made it.
 //!
 //! At rest (docs/service.md): with a [`KeyRing`] each subject's vectors are sealed under its own
 //! data key ([`cipher`], backend-neutral); a vector that fails authentication is refused
 //! ([`StoreError::CorruptTemplate`]), never scored. Without a key, vectors are stored plain.
-//! Erasure: `secure_delete` zeroes what a deletion frees, and the WAL is checkpointed and
-//! truncated after each deletion, so a deleted subject leaves no bytes in the files. Durability:
+//!
+//! SQLite: WAL mode; `secure_delete` zeroes what a deletion frees and the WAL is checkpointed and
+//! truncated after each deletion, so a deleted subject leaves no bytes in the files;
 //! `synchronous = FULL`, so an acknowledged enrolment survives a power loss, not only a crash.
+//!
+//! PostgreSQL: several processes (replicas) may share the database. Every enrolment and deletion
+//! bumps a one-row change counter in its own transaction and notifies the new version with the
+//! subject id (`LISTEN`/`NOTIFY`), so the others can follow ([`Store::watch`]). The migrator holds
+//! an advisory lock while migrating, so replicas starting together migrate once. A deleted row
+//! stays in the table's heap file until its page is reused (VACUUM does not zero it): see
+//! docs/service.md for what that means for erasure.
 //!
 //! Queries are checked at run time (`sqlx::query`), not by the `query!` macros, so a clean clone
 //! builds without a database.
@@ -20,14 +34,15 @@ pub mod cipher;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use futures_util::TryStreamExt;
-use serde::Serialize;
-use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteConnection, SqliteJournalMode, SqliteLockingMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
-};
-use sqlx::{Connection, Row};
+use serde::{Deserialize, Serialize};
+use sqlx::any::{AnyPoolOptions, AnyRow};
+use sqlx::migrate::Migrator;
+use sqlx::postgres::{PgConnectOptions, PgListener, PgPoolOptions};
+use sqlx::sqlite::{SqliteConnectOptions, SqliteConnection, SqliteJournalMode, SqliteLockingMode, SqliteSynchronous};
+use sqlx::{AnyConnection, AnyPool, Connection, Executor, Row};
 
 use crate::recognize::Template;
 use crate::service::SubjectId;
@@ -54,6 +69,37 @@ pub enum StoreError {
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
 }
+
+/// Which database a [`Store`] is on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    Sqlite,
+    Postgres,
+}
+
+impl Backend {
+    /// The backend a database URL names by its scheme.
+    pub fn of(url: &str) -> Result<Backend, StoreError> {
+        let scheme = url.split_once(':').map_or("", |(scheme, _)| scheme);
+        match scheme {
+            "sqlite" => Ok(Backend::Sqlite),
+            "postgres" | "postgresql" => Ok(Backend::Postgres),
+            _ => Err(StoreError::Url {
+                url: url.to_string(),
+                source: sqlx::Error::Configuration("the scheme must be sqlite:, postgres: or postgresql:".into()),
+            }),
+        }
+    }
+}
+
+/// SQLite's schema; it does not descend into `migrations/postgres/` (sqlx reads the files of the
+/// folder only), whose files are PostgreSQL's.
+static SQLITE_MIGRATIONS: Migrator = sqlx::migrate!("./migrations");
+static POSTGRES_MIGRATIONS: Migrator = sqlx::migrate!("./migrations/postgres");
+
+/// The PostgreSQL channel every enrolment and deletion notifies (payload: [`Notice`]).
+const CHANGE_CHANNEL: &str = "facegate_changes";
 
 /// One subject as listed: its id, how many templates it has, and when it was enrolled.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -92,6 +138,24 @@ pub struct RekeyReport {
     pub templates_sealed: u64,
 }
 
+/// A change seen on the database, from [`ChangeFeed::next`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum StoreChange {
+    /// `subject` was enrolled into or deleted in the transaction that set the change counter to
+    /// `version`: re-read it ([`Store::templates`]).
+    Subject { subject: String, version: i64 },
+    /// Notifications may have been missed (the listening connection was lost and re-made):
+    /// re-read everything.
+    Resync,
+}
+
+/// A notification's payload.
+#[derive(Serialize, Deserialize)]
+struct Notice {
+    subject: String,
+    version: i64,
+}
+
 /// How one subject's vectors are stored.
 enum Sealing {
     Plain,
@@ -103,13 +167,23 @@ enum Sealing {
 type SubjectReading = (String, Option<Sealing>, Result<Vec<Template>, StoreError>);
 
 /// The template database. Cheap to clone (a connection pool).
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct Store {
-    pool: SqlitePool,
+    pool: AnyPool,
+    backend: Backend,
+    /// Where a [`ChangeFeed`] connects (PostgreSQL only).
+    listen: Option<PgConnectOptions>,
     keys: Option<Arc<KeyRing>>,
 }
 
-fn connect_options(url: &str) -> Result<SqliteConnectOptions, StoreError> {
+impl std::fmt::Debug for Store {
+    /// Not the connection options: they may hold a password.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Store").field("backend", &self.backend).field("keys", &self.keys).finish_non_exhaustive()
+    }
+}
+
+fn sqlite_options(url: &str) -> Result<SqliteConnectOptions, StoreError> {
     Ok(SqliteConnectOptions::from_str(url)
         .map_err(|source| StoreError::Url { url: url.to_string(), source })?
         .journal_mode(SqliteJournalMode::Wal)
@@ -123,15 +197,45 @@ fn connect_options(url: &str) -> Result<SqliteConnectOptions, StoreError> {
         .busy_timeout(Duration::from_secs(5)))
 }
 
+/// The settings of [`sqlite_options`] for each connection of the pool (the generic pool takes a
+/// URL, which names the file but carries none of these).
+const SQLITE_SESSION: &str = "PRAGMA journal_mode = WAL; PRAGMA synchronous = FULL; PRAGMA secure_delete = ON; PRAGMA foreign_keys = ON; PRAGMA busy_timeout = 5000;";
+
 impl Store {
-    /// Open (creating if missing) the SQLite database at `url` and apply the migrations. With
-    /// `keys`, new templates are sealed and sealed ones can be read; without, templates are stored
-    /// plain and a subject sealed earlier cannot be read ([`StoreError::NoKey`]).
+    /// Open the database at `url` and apply the migrations: `sqlite://...` (created if missing)
+    /// or `postgres://...` / `postgresql://...` (the database must exist). With `keys`, new
+    /// templates are sealed and sealed ones can be read; without, templates are stored plain and a
+    /// subject sealed earlier cannot be read ([`StoreError::NoKey`]).
     pub async fn connect(url: &str, keys: Option<KeyRing>) -> Result<Store, StoreError> {
-        let options = connect_options(url)?.create_if_missing(true);
-        let pool = SqlitePoolOptions::new().max_connections(8).connect_with(options).await?;
-        sqlx::migrate!("./migrations").run(&pool).await?;
-        Ok(Store { pool, keys: keys.map(Arc::new) })
+        sqlx::any::install_default_drivers();
+        let bad_url = |source| StoreError::Url { url: url.to_string(), source };
+        let backend = Backend::of(url)?;
+        let (pool, listen) = match backend {
+            Backend::Sqlite => {
+                // The file is created (and put in WAL mode) through SQLite's own options; the
+                // pool then opens the URL as given, parsed by the same code, so the same file.
+                SqliteConnection::connect_with(&sqlite_options(url)?.create_if_missing(true)).await?.close().await?;
+                let pool = AnyPoolOptions::new()
+                    .max_connections(8)
+                    .after_connect(|connection, _| Box::pin(async move { connection.execute(SQLITE_SESSION).await.map(drop) }))
+                    .connect(url)
+                    .await?;
+                SQLITE_MIGRATIONS.run(&pool).await?;
+                (pool, None)
+            }
+            Backend::Postgres => {
+                let listen = PgConnectOptions::from_str(url).map_err(bad_url)?;
+                let pool = AnyPoolOptions::new().max_connections(8).connect(url).await?;
+                POSTGRES_MIGRATIONS.run(&pool).await?;
+                (pool, Some(listen))
+            }
+        };
+        Ok(Store { pool, backend, listen, keys: keys.map(Arc::new) })
+    }
+
+    /// Which database this is.
+    pub fn backend(&self) -> Backend {
+        self.backend
     }
 
     /// Are new templates sealed (a template key is configured)?
@@ -142,6 +246,45 @@ impl Store {
     /// Is the database answering?
     pub async fn ping(&self) -> Result<(), StoreError> {
         sqlx::query("SELECT 1").execute(&self.pool).await?;
+        Ok(())
+    }
+
+    /// The change counter: bumped in the same transaction as every enrolment and deletion, so its
+    /// order is the commit order. `None` on SQLite (one process owns the file).
+    pub async fn change_version(&self) -> Result<Option<i64>, StoreError> {
+        match self.backend {
+            Backend::Sqlite => Ok(None),
+            Backend::Postgres => Ok(Some(sqlx::query_scalar("SELECT n FROM change_counter").fetch_one(&self.pool).await?)),
+        }
+    }
+
+    /// A feed of the changes committed by any process on this database, from now on. `None` on
+    /// SQLite.
+    pub async fn watch(&self) -> Result<Option<ChangeFeed>, StoreError> {
+        let Some(options) = &self.listen else { return Ok(None) };
+        // A pool of one, for PgListener to reconnect through; no lifetime or idle limit, since the
+        // connection idles between notifications by design.
+        let pool = PgPoolOptions::new()
+            .max_connections(1)
+            .max_lifetime(None)
+            .idle_timeout(None)
+            .acquire_timeout(Duration::from_secs(5))
+            .connect_with(options.clone())
+            .await?;
+        let mut listener = PgListener::connect_with(&pool).await?;
+        listener.listen(CHANGE_CHANNEL).await?;
+        Ok(Some(ChangeFeed { listener, pending: None, give_up_after: RECONNECT_FOR }))
+    }
+
+    /// Bump the change counter inside `tx` (PostgreSQL) and notify its new value with `subject`;
+    /// both take effect at commit. The counter row is locked last in every writing transaction,
+    /// after the subject's row, so two writers never wait on each other in opposite orders.
+    async fn record_change(&self, tx: &mut AnyConnection, subject: &str) -> Result<(), StoreError> {
+        if self.backend == Backend::Postgres {
+            let version: i64 = sqlx::query_scalar("UPDATE change_counter SET n = n + 1 RETURNING n").fetch_one(&mut *tx).await?;
+            let notice = serde_json::to_string(&Notice { subject: subject.to_string(), version }).expect("a notice serialises");
+            sqlx::query("SELECT pg_notify($1, $2)").bind(CHANGE_CHANNEL).bind(notice).execute(&mut *tx).await?;
+        }
         Ok(())
     }
 
@@ -161,21 +304,19 @@ impl Store {
     /// still plain (enrolled before the key was set) is sealed in the same transaction.
     pub async fn enroll(&self, subject: &SubjectId, templates: &[Template]) -> Result<u32, StoreError> {
         let mut tx = self.pool.begin().await?;
-        // A write first, so the transaction holds the write lock from its start.
-        sqlx::query(
-            "INSERT INTO subjects (id) VALUES (?1)
-             ON CONFLICT (id) DO UPDATE SET updated_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now')",
-        )
-        .bind(subject.as_str())
-        .execute(&mut *tx)
-        .await?;
-        let row = sqlx::query("SELECT key_id, data_key FROM subjects WHERE id = ?1").bind(subject.as_str()).fetch_one(&mut *tx).await?;
+        // A write first, so the transaction holds the write lock (SQLite) or the subject's row
+        // lock (PostgreSQL) from its start.
+        sqlx::query("INSERT INTO subjects (id) VALUES ($1) ON CONFLICT (id) DO UPDATE SET updated_at = excluded.updated_at")
+            .bind(subject.as_str())
+            .execute(&mut *tx)
+            .await?;
+        let row = sqlx::query("SELECT key_id, data_key FROM subjects WHERE id = $1").bind(subject.as_str()).fetch_one(&mut *tx).await?;
         let mut sealing = self.sealing(subject.as_str(), row.try_get("key_id")?, row.try_get("data_key")?)?;
         if let (Sealing::Plain, Some(keys)) = (&sealing, &self.keys) {
             sealing = Sealing::Sealed(seal_subject(&mut tx, keys, subject.as_str()).await?.0);
         }
         for template in templates {
-            sqlx::query("INSERT INTO templates (subject_id, model_version, dimension, vector) VALUES (?1, ?2, ?3, ?4)")
+            sqlx::query("INSERT INTO templates (subject_id, model_version, dimension, vector) VALUES ($1, $2, $3, $4)")
                 .bind(subject.as_str())
                 .bind(&template.model_version)
                 .bind(template.vector.len() as i64)
@@ -184,27 +325,34 @@ impl Store {
                 .await?;
         }
         let count: i64 =
-            sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = ?1").bind(subject.as_str()).fetch_one(&mut *tx).await?;
+            sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = $1").bind(subject.as_str()).fetch_one(&mut *tx).await?;
+        self.record_change(&mut tx, subject.as_str()).await?;
         tx.commit().await?;
         Ok(count as u32)
     }
 
     /// All templates of `subject`, or `None` when the subject is unknown. A template that fails
-    /// authentication fails the whole read.
+    /// authentication fails the whole read. One statement, so one snapshot on both backends (a
+    /// subject sealed by a concurrent `rekey` is read either before or after, never half).
     pub async fn templates(&self, subject: &SubjectId) -> Result<Option<Vec<Template>>, StoreError> {
-        let mut tx = self.pool.begin().await?;
-        let Some(keys) =
-            sqlx::query("SELECT key_id, data_key FROM subjects WHERE id = ?1").bind(subject.as_str()).fetch_optional(&mut *tx).await?
-        else {
-            return Ok(None);
-        };
-        let rows = sqlx::query("SELECT id, model_version, dimension, vector FROM templates WHERE subject_id = ?1 ORDER BY id")
-            .bind(subject.as_str())
-            .fetch_all(&mut *tx)
-            .await?;
-        tx.commit().await?;
-        let sealing = self.sealing(subject.as_str(), keys.try_get("key_id")?, keys.try_get("data_key")?)?;
-        rows.iter().map(|row| template_from_row(&sealing, subject.as_str(), row)).collect::<Result<Vec<_>, _>>().map(Some)
+        let rows = sqlx::query(
+            "SELECT s.key_id, s.data_key, t.id, t.model_version, t.dimension, t.vector
+             FROM subjects s LEFT JOIN templates t ON t.subject_id = s.id
+             WHERE s.id = $1 ORDER BY t.id",
+        )
+        .bind(subject.as_str())
+        .fetch_all(&self.pool)
+        .await?;
+        let Some(first) = rows.first() else { return Ok(None) };
+        let sealing = self.sealing(subject.as_str(), first.try_get("key_id")?, first.try_get("data_key")?)?;
+        let mut templates = Vec::with_capacity(rows.len());
+        for row in &rows {
+            // A subject without templates is one row with no template.
+            if row.try_get::<Option<i64>, _>("id")?.is_some() {
+                templates.push(template_from_row(&sealing, subject.as_str(), row)?);
+            }
+        }
+        Ok(Some(templates))
     }
 
     /// Every subject's templates made by `model_version`, handed to `each` one subject at a time
@@ -218,7 +366,7 @@ impl Store {
         let mut rows = sqlx::query(
             "SELECT t.id, t.subject_id, t.model_version, t.dimension, t.vector, s.key_id, s.data_key
              FROM templates t JOIN subjects s ON s.id = t.subject_id
-             WHERE t.model_version = ?1 ORDER BY t.subject_id, t.id",
+             WHERE t.model_version = $1 ORDER BY t.subject_id, t.id",
         )
         .bind(model_version)
         .fetch(&self.pool);
@@ -252,7 +400,7 @@ impl Store {
         let rows = sqlx::query(
             "SELECT s.id, s.created_at, s.updated_at, count(t.id) AS templates
              FROM subjects s LEFT JOIN templates t ON t.subject_id = s.id
-             WHERE s.id > ?1 GROUP BY s.id ORDER BY s.id LIMIT ?2",
+             WHERE s.id > $1 GROUP BY s.id ORDER BY s.id LIMIT $2",
         )
         .bind(after.map_or("", SubjectId::as_str))
         .bind(limit as i64)
@@ -274,12 +422,12 @@ impl Store {
     pub async fn subject(&self, id: &SubjectId) -> Result<Option<SubjectDetail>, StoreError> {
         let mut tx = self.pool.begin().await?;
         let Some(row) =
-            sqlx::query("SELECT id, created_at, updated_at FROM subjects WHERE id = ?1").bind(id.as_str()).fetch_optional(&mut *tx).await?
+            sqlx::query("SELECT id, created_at, updated_at FROM subjects WHERE id = $1").bind(id.as_str()).fetch_optional(&mut *tx).await?
         else {
             return Ok(None);
         };
         let versions = sqlx::query(
-            "SELECT model_version, count(*) AS n FROM templates WHERE subject_id = ?1 GROUP BY model_version ORDER BY model_version",
+            "SELECT model_version, count(*) AS n FROM templates WHERE subject_id = $1 GROUP BY model_version ORDER BY model_version",
         )
         .bind(id.as_str())
         .fetch_all(&mut *tx)
@@ -299,15 +447,25 @@ impl Store {
     }
 
     /// Erase a subject, its templates and its data key. Returns how many templates were erased,
-    /// or `None` when the subject is unknown. The WAL is then checkpointed and truncated, so the
-    /// erased rows are left neither in the WAL nor (`secure_delete`) in the database's free space.
+    /// or `None` when the subject is unknown. On SQLite the WAL is then checkpointed and
+    /// truncated, so the erased rows are left neither in the WAL nor (`secure_delete`) in the
+    /// database's free space.
     pub async fn delete_subject(&self, id: &SubjectId) -> Result<Option<u32>, StoreError> {
         let mut tx = self.pool.begin().await?;
+        // The subject's row is locked first (as an enrolment does), so no enrolment adds
+        // templates between the count and the deletion.
+        let found =
+            sqlx::query("UPDATE subjects SET key_id = key_id WHERE id = $1").bind(id.as_str()).execute(&mut *tx).await?.rows_affected();
+        if found == 0 {
+            tx.rollback().await?;
+            return Ok(None);
+        }
         let templates: i64 =
-            sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = ?1").bind(id.as_str()).fetch_one(&mut *tx).await?;
-        let deleted = sqlx::query("DELETE FROM subjects WHERE id = ?1").bind(id.as_str()).execute(&mut *tx).await?.rows_affected();
+            sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = $1").bind(id.as_str()).fetch_one(&mut *tx).await?;
+        let deleted = sqlx::query("DELETE FROM subjects WHERE id = $1").bind(id.as_str()).execute(&mut *tx).await?.rows_affected();
+        self.record_change(&mut tx, id.as_str()).await?;
         tx.commit().await?;
-        if deleted > 0 {
+        if deleted > 0 && self.backend == Backend::Sqlite {
             // The deletion is committed whatever happens here: a checkpoint that cannot finish is
             // logged (the erased rows may then stay in the WAL until it is overwritten or the next
             // deletion's checkpoint truncates it).
@@ -323,10 +481,20 @@ impl Store {
     }
 
     /// Copy the WAL into the database and truncate it (waits for readers, up to the busy
-    /// timeout). Whether it completed.
+    /// timeout). Whether it completed. SQLite only.
     pub async fn checkpoint(&self) -> Result<bool, StoreError> {
+        self.sqlite_only("a WAL checkpoint")?;
         let busy: i64 = sqlx::query_scalar("PRAGMA wal_checkpoint(TRUNCATE)").fetch_one(&self.pool).await?;
         Ok(busy == 0)
+    }
+
+    fn sqlite_only(&self, what: &str) -> Result<(), StoreError> {
+        match self.backend {
+            Backend::Sqlite => Ok(()),
+            Backend::Postgres => Err(StoreError::Refused(format!(
+                "{what} is a SQLite file operation; back up and restore a PostgreSQL database with pg_dump and pg_restore"
+            ))),
+        }
     }
 
     /// Number of subjects and of templates (for metrics and health).
@@ -340,7 +508,8 @@ impl Store {
     /// are re-wrapped (the sealed templates stay as they are), and plain subjects are sealed with
     /// a new data key. One transaction per subject, so the service may keep running and an
     /// interrupted run resumes where it stopped (subjects already under the current key are
-    /// skipped). `progress` is called after each subject.
+    /// skipped). `progress` is called after each subject. The templates read back the same, so
+    /// no change is recorded.
     pub async fn rekey(&self, mut progress: impl FnMut(&RekeyReport)) -> Result<RekeyReport, StoreError> {
         let keys = self.keys.clone().ok_or_else(|| StoreError::Refused("rekey needs a template key".into()))?;
         let current = keys.current_id().to_string();
@@ -348,7 +517,7 @@ impl Store {
         let mut after = String::new();
         loop {
             let batch: Vec<String> =
-                sqlx::query_scalar("SELECT id FROM subjects WHERE id > ?1 AND (key_id IS NULL OR key_id <> ?2) ORDER BY id LIMIT 256")
+                sqlx::query_scalar("SELECT id FROM subjects WHERE id > $1 AND (key_id IS NULL OR key_id <> $2) ORDER BY id LIMIT 256")
                     .bind(&after)
                     .bind(&current)
                     .fetch_all(&self.pool)
@@ -358,9 +527,9 @@ impl Store {
             for subject in &batch {
                 let mut tx = self.pool.begin().await?;
                 // A write first, so the transaction holds the write lock from its start.
-                sqlx::query("UPDATE subjects SET key_id = key_id WHERE id = ?1").bind(subject).execute(&mut *tx).await?;
+                sqlx::query("UPDATE subjects SET key_id = key_id WHERE id = $1").bind(subject).execute(&mut *tx).await?;
                 let Some(row) =
-                    sqlx::query("SELECT key_id, data_key FROM subjects WHERE id = ?1").bind(subject).fetch_optional(&mut *tx).await?
+                    sqlx::query("SELECT key_id, data_key FROM subjects WHERE id = $1").bind(subject).fetch_optional(&mut *tx).await?
                 else {
                     continue; // deleted meanwhile
                 };
@@ -371,7 +540,7 @@ impl Store {
                         report.templates_sealed += sealed;
                     }
                     Sealing::Sealed(data_key) => {
-                        sqlx::query("UPDATE subjects SET key_id = ?2, data_key = ?3 WHERE id = ?1")
+                        sqlx::query("UPDATE subjects SET key_id = $2, data_key = $3 WHERE id = $1")
                             .bind(subject)
                             .bind(&current)
                             .bind(keys.wrap(&data_key, subject))
@@ -389,29 +558,105 @@ impl Store {
 
     /// Write a consistent copy of the database to `path` (which must not exist) while it stays in
     /// use: `VACUUM INTO`, one read transaction, so writers go on meanwhile. The copy holds no free
-    /// pages (nothing deleted), and is synced to disk before this returns.
+    /// pages (nothing deleted), and is synced to disk before this returns. SQLite only (refused on
+    /// PostgreSQL, which has pg_dump).
     pub async fn backup(&self, path: &Path) -> Result<(), StoreError> {
+        self.sqlite_only("facegate backup")?;
         if path.exists() {
             return Err(StoreError::Refused(format!("{} exists; a backup never overwrites a file", path.display())));
         }
         let target = path.to_str().ok_or_else(|| StoreError::Refused(format!("{} is not UTF-8", path.display())))?;
-        sqlx::query("VACUUM INTO ?1").bind(target).execute(&self.pool).await?;
+        sqlx::query("VACUUM INTO $1").bind(target).execute(&self.pool).await?;
         let io = |source| StoreError::Io { path: path.to_path_buf(), source };
         std::fs::File::open(path).and_then(|f| f.sync_all()).map_err(io)?;
         Ok(())
     }
 
-    /// Close the pool, checkpointing the WAL.
+    /// Close the pool. On SQLite the WAL is checkpointed and truncated first, so the database
+    /// file alone holds everything (the pool's connections close side by side, and SQLite
+    /// removes the WAL only when the last one finds itself alone).
     pub async fn close(&self) {
+        if self.backend == Backend::Sqlite {
+            if let Err(e) = self.checkpoint().await {
+                tracing::warn!("WAL checkpoint on close failed: {e}");
+            }
+        }
         self.pool.close().await;
     }
 }
 
-/// Replace the database at `url` with the backup file `backup` (made by [`Store::backup`]). The
-/// backup is checked first (SQLite's integrity check, a facegate schema). An existing database is
-/// overwritten only with `overwrite`, and never while another process has it open. Returns the
-/// backup's subject and template counts.
+/// How long a [`ChangeFeed`] keeps trying to reconnect before it reports the database gone,
+/// unless told otherwise ([`ChangeFeed::give_up_after`]).
+const RECONNECT_FOR: Duration = Duration::from_secs(60);
+
+/// The changes committed on a PostgreSQL database by any process ([`Store::watch`]): a `LISTEN`ing
+/// connection of its own.
+pub struct ChangeFeed {
+    listener: PgListener,
+    /// A change received right after a reconnect, handed out after the [`StoreChange::Resync`].
+    pending: Option<StoreChange>,
+    give_up_after: Duration,
+}
+
+impl ChangeFeed {
+    /// How long [`next`](Self::next) keeps trying to reconnect before it fails (60 s unless set).
+    pub fn give_up_after(&mut self, limit: Duration) {
+        self.give_up_after = limit;
+    }
+
+    /// The next change. A lost connection is re-made (with `LISTEN` again) and reported as
+    /// [`StoreChange::Resync`]: what was notified meanwhile is gone. Errors only when the
+    /// database cannot be reached for [`give_up_after`](Self::give_up_after).
+    pub async fn next(&mut self) -> Result<StoreChange, StoreError> {
+        if let Some(change) = self.pending.take() {
+            return Ok(change);
+        }
+        let mut failing_since: Option<Instant> = None;
+        loop {
+            match self.listener.try_recv().await {
+                Ok(Some(notification)) if failing_since.is_none() => return Ok(change_from(notification.payload())),
+                Ok(Some(notification)) => {
+                    self.pending = Some(change_from(notification.payload()));
+                    return Ok(StoreChange::Resync);
+                }
+                // The connection was lost and has been re-made, listening again.
+                Ok(None) => return Ok(StoreChange::Resync),
+                Err(e) => {
+                    let since = *failing_since.get_or_insert_with(Instant::now);
+                    if since.elapsed() > self.give_up_after {
+                        return Err(e.into());
+                    }
+                    tokio::time::sleep(Duration::from_millis(250)).await;
+                    // Reconnect (PgListener re-issues LISTEN) before waiting for notifications
+                    // again, so that the resync is reported as soon as it can be done.
+                    if sqlx::query("SELECT 1").execute(&mut self.listener).await.is_ok() {
+                        return Ok(StoreChange::Resync);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A notification read as a change; one that cannot be read (not ours) calls for a resync.
+fn change_from(payload: &str) -> StoreChange {
+    match serde_json::from_str::<Notice>(payload) {
+        Ok(Notice { subject, version }) => StoreChange::Subject { subject, version },
+        Err(_) => StoreChange::Resync,
+    }
+}
+
+/// Replace the SQLite database at `url` with the backup file `backup` (made by
+/// [`Store::backup`]). The backup is checked first (SQLite's integrity check, a facegate schema).
+/// An existing database is overwritten only with `overwrite`, and never while another process
+/// has it open. Returns the backup's subject and template counts. Refused for a PostgreSQL URL
+/// (pg_restore restores what pg_dump made).
 pub async fn restore(backup: &Path, url: &str, overwrite: bool) -> Result<(u64, u64), StoreError> {
+    if Backend::of(url)? == Backend::Postgres {
+        return Err(StoreError::Refused(
+            "facegate restore writes SQLite files; restore a PostgreSQL database from pg_dump's output with pg_restore (or psql)".into(),
+        ));
+    }
     let io = |path: &Path| {
         let path = path.to_path_buf();
         move |source| StoreError::Io { path, source }
@@ -428,7 +673,7 @@ pub async fn restore(backup: &Path, url: &str, overwrite: bool) -> Result<(u64, 
     let counts = (counts.try_get::<i64, _>("s")? as u64, counts.try_get::<i64, _>("t")? as u64);
     source.close().await?;
 
-    let options = connect_options(url)?;
+    let options = sqlite_options(url)?;
     let target = options.get_filename().to_path_buf();
     let sidecar = |suffix: &str| {
         let mut name = target.clone().into_os_string();
@@ -469,21 +714,21 @@ pub async fn restore(backup: &Path, url: &str, overwrite: bool) -> Result<(u64, 
 
 /// Give `subject` a new data key (wrapped by the current key) and seal its plain templates under
 /// it, inside `tx`. Returns the key and how many templates were sealed.
-async fn seal_subject(tx: &mut SqliteConnection, keys: &KeyRing, subject: &str) -> Result<(DataKey, u64), StoreError> {
+async fn seal_subject(tx: &mut AnyConnection, keys: &KeyRing, subject: &str) -> Result<(DataKey, u64), StoreError> {
     let (data_key, wrapped) = keys.new_data_key(subject);
-    let rows = sqlx::query("SELECT id, model_version, dimension, vector FROM templates WHERE subject_id = ?1")
+    let rows = sqlx::query("SELECT id, model_version, dimension, vector FROM templates WHERE subject_id = $1")
         .bind(subject)
         .fetch_all(&mut *tx)
         .await?;
     for row in &rows {
         let template = template_from_row(&Sealing::Plain, subject, row)?;
-        sqlx::query("UPDATE templates SET vector = ?2 WHERE id = ?1")
+        sqlx::query("UPDATE templates SET vector = $2 WHERE id = $1")
             .bind(row.try_get::<i64, _>("id")?)
             .bind(data_key.seal_template(subject, &template.model_version, &template.vector))
             .execute(&mut *tx)
             .await?;
     }
-    sqlx::query("UPDATE subjects SET key_id = ?2, data_key = ?3 WHERE id = ?1")
+    sqlx::query("UPDATE subjects SET key_id = $2, data_key = $3 WHERE id = $1")
         .bind(subject)
         .bind(keys.current_id())
         .bind(wrapped)
@@ -512,7 +757,7 @@ pub fn blob_to_vector(blob: &[u8]) -> Option<Vec<f32>> {
 /// A template row of `subject` read as its `sealing` says: a sealed vector must authenticate, a
 /// plain one must have exactly its dimension's length (a sealed vector on a plain subject, or the
 /// reverse, is refused: rows were moved or altered).
-fn template_from_row(sealing: &Sealing, subject: &str, row: &sqlx::sqlite::SqliteRow) -> Result<Template, StoreError> {
+fn template_from_row(sealing: &Sealing, subject: &str, row: &AnyRow) -> Result<Template, StoreError> {
     let id: i64 = row.try_get("id")?;
     let dimension: i64 = row.try_get("dimension")?;
     let model_version: String = row.try_get("model_version")?;
@@ -537,31 +782,23 @@ fn template_from_row(sealing: &Sealing, subject: &str, row: &sqlx::sqlite::Sqlit
 mod tests {
     use super::*;
 
-    fn id(s: &str) -> SubjectId {
-        SubjectId::parse(s).unwrap()
-    }
-
-    fn template(version: &str, v: &[f32]) -> Template {
-        Template { model_version: version.into(), vector: v.to_vec() }
-    }
-
-    /// The gallery scan collected: each subject with its templates or why they cannot be read.
-    async fn scan(store: &Store, version: &str) -> Vec<(String, Result<Vec<Template>, String>)> {
-        let mut out = Vec::new();
-        store.gallery(version, |s, t| out.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap();
-        out
-    }
-
-    async fn temp_store() -> (Store, std::path::PathBuf) {
-        static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-        let dir = std::env::temp_dir().join(format!(
-            "facegate-store-{}-{}",
-            std::process::id(),
-            N.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
-        ));
-        std::fs::create_dir_all(&dir).unwrap();
-        let url = format!("sqlite://{}", dir.join("t.db").display());
-        (Store::connect(&url, None).await.unwrap(), dir)
+    /// Each backend's migrator has exactly the files of its own folder: sqlx does not descend
+    /// from `migrations/` into `migrations/postgres/`.
+    #[test]
+    fn each_backend_migrates_from_its_own_folder() {
+        let versions = |migrator: &Migrator| migrator.iter().map(|m| m.version).collect::<Vec<i64>>();
+        let files = |folder: &str| {
+            let mut versions: Vec<i64> = std::fs::read_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(folder))
+                .unwrap()
+                .map(|e| e.unwrap().path())
+                .filter(|p| p.is_file())
+                .map(|p| p.file_name().unwrap().to_str().unwrap().split('_').next().unwrap().parse().unwrap())
+                .collect();
+            versions.sort();
+            versions
+        };
+        assert_eq!(versions(&SQLITE_MIGRATIONS), files("migrations"));
+        assert_eq!(versions(&POSTGRES_MIGRATIONS), files("migrations/postgres"));
     }
 
     #[test]
@@ -572,65 +809,15 @@ mod tests {
         assert_eq!(blob_to_vector(&blob).unwrap(), v);
         assert!(blob_to_vector(&blob[..5]).is_none());
     }
-
-    #[tokio::test]
-    async fn enrol_list_read_and_delete() {
-        let (store, dir) = temp_store().await;
-        assert_eq!(store.enroll(&id("alice"), &[template("m1", &[1.0, 0.0]), template("m1", &[0.0, 1.0])]).await.unwrap(), 2);
-        assert_eq!(store.enroll(&id("alice"), &[template("m2", &[0.5, 0.5, 0.0])]).await.unwrap(), 3);
-        assert_eq!(store.enroll(&id("bob"), &[template("m1", &[0.6, 0.8])]).await.unwrap(), 1);
-
-        let alice = store.templates(&id("alice")).await.unwrap().unwrap();
-        assert_eq!(alice.len(), 3);
-        assert_eq!(alice[2], template("m2", &[0.5, 0.5, 0.0]));
-        assert!(store.templates(&id("carol")).await.unwrap().is_none());
-
-        let gallery = scan(&store, "m1").await;
-        assert_eq!(gallery.iter().map(|(s, t)| (s.as_str(), t.as_ref().unwrap().len())).collect::<Vec<_>>(), [("alice", 2), ("bob", 1)]);
-
-        let list = store.list_subjects(None, 10).await.unwrap();
-        assert_eq!(list.iter().map(|s| (s.id.as_str(), s.templates)).collect::<Vec<_>>(), [("alice", 3), ("bob", 1)]);
-        assert_eq!(store.list_subjects(Some(&id("alice")), 10).await.unwrap().len(), 1);
-        assert_eq!(store.list_subjects(None, 1).await.unwrap().len(), 1);
-
-        let detail = store.subject(&id("alice")).await.unwrap().unwrap();
-        assert_eq!(detail.templates, 3);
-        assert_eq!(
-            detail.model_versions,
-            [VersionCount { model_version: "m1".into(), templates: 2 }, VersionCount { model_version: "m2".into(), templates: 1 }]
-        );
-
-        assert_eq!(store.delete_subject(&id("alice")).await.unwrap(), Some(3));
-        assert_eq!(store.delete_subject(&id("alice")).await.unwrap(), None);
-        // Foreign keys cascade: no orphan template is left.
-        assert_eq!(store.counts().await.unwrap(), (1, 1));
-        store.close().await;
-        std::fs::remove_dir_all(dir).unwrap();
-    }
-
-    #[tokio::test]
-    async fn a_failed_enrolment_stores_nothing() {
-        let (store, dir) = temp_store().await;
-        // The second template violates the schema (empty vector): the whole enrolment rolls back.
-        let err = store.enroll(&id("alice"), &[template("m1", &[1.0]), template("m1", &[])]).await;
-        assert!(err.is_err());
-        assert!(store.templates(&id("alice")).await.unwrap().is_none());
-        assert_eq!(store.counts().await.unwrap(), (0, 0));
-        let mode: String = sqlx::query_scalar("PRAGMA journal_mode").fetch_one(&store.pool).await.unwrap();
-        assert_eq!(mode, "wal");
-        store.close().await;
-        std::fs::remove_dir_all(dir).unwrap();
-    }
 }
 
 #[cfg(test)]
 mod at_rest {
-    //! Encryption, rotation, erasure, durability settings, backup and restore, on real files.
+    //! SQLite's files: sealed bytes in the file, erasure, durability settings, backup and restore.
 
     use super::*;
 
     const K1: &str = "000102030405060708090a0b0c0d0e0f101112131415161718191a1b1c1d1e1f";
-    const K2: &str = "ff0102030405060708090a0b0c0d0e0f101112131415161718191a1b1c1d1eff";
 
     fn ring(text: &str) -> Option<KeyRing> {
         Some(KeyRing::parse(text).unwrap())
@@ -676,122 +863,23 @@ mod at_rest {
         haystack.windows(needle.len()).any(|w| w == needle)
     }
 
+    /// Sealed vectors never reach the file (their round trip, wrong keys and tampered rows are
+    /// tested on both backends in tests/api/store_backends.rs).
     #[tokio::test]
-    async fn sealed_templates_read_back_and_never_show_in_the_file() {
+    async fn sealed_templates_never_show_in_the_file() {
         let dir = Dir::new();
         let store = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
-        assert!(store.encrypts());
         store.enroll(&id("alice"), &[marked(0.0), marked(1.0)]).await.unwrap();
-        store.enroll(&id("alice"), &[marked(2.0)]).await.unwrap();
-        assert_eq!(store.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0), marked(1.0), marked(2.0)]);
-        let lengths: Vec<i64> = sqlx::query_scalar("SELECT length(vector) FROM templates").fetch_all(&store.pool).await.unwrap();
-        assert_eq!(lengths, [4 * 32 + 28; 3]);
+        assert_eq!(store.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0), marked(1.0)]);
         assert!(store.checkpoint().await.unwrap());
         let raw = dir.raw("t.db");
         assert!(contains(&raw, b"alice"));
-        assert!(!contains(&raw, &vector_to_blob(&marked(0.0).vector)[..16]), "a plain vector in the file");
-
-        // Another key, or none, cannot read them: a server fault, never a score.
-        store.close().await;
-        let other = Store::connect(&dir.url("t.db"), ring(K2)).await.unwrap();
-        assert!(matches!(other.templates(&id("alice")).await, Err(StoreError::DataKey { .. })));
-        assert!(matches!(other.enroll(&id("alice"), &[marked(3.0)]).await, Err(StoreError::DataKey { .. })));
-        other.close().await;
-        let plain = Store::connect(&dir.url("t.db"), None).await.unwrap();
-        assert!(!plain.encrypts());
-        assert!(matches!(plain.templates(&id("alice")).await, Err(StoreError::NoKey { .. })));
-        assert!(matches!(plain.enroll(&id("alice"), &[marked(3.0)]).await, Err(StoreError::NoKey { .. })));
-        assert_eq!(plain.counts().await.unwrap(), (1, 3), "a refused enrolment stores nothing");
-        plain.close().await;
-    }
-
-    #[tokio::test]
-    async fn tampered_rows_are_refused() {
-        let dir = Dir::new();
-        let store = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
-        for (subject, seed) in [("alice", 0.0), ("bob", 1.0), ("carol", 2.0), ("dave", 3.0)] {
-            store.enroll(&id(subject), &[marked(seed)]).await.unwrap();
+        for template in [marked(0.0), marked(1.0)] {
+            assert!(!contains(&raw, &vector_to_blob(&template.vector)[..16]), "a plain vector in the file");
         }
-        let exec = |sql: &'static str| {
-            let pool = store.pool.clone();
-            async move { sqlx::query(sql).execute(&pool).await.unwrap() }
-        };
-        // One bit of alice's vector flipped.
-        let mut vector: Vec<u8> =
-            sqlx::query_scalar("SELECT vector FROM templates WHERE subject_id = 'alice'").fetch_one(&store.pool).await.unwrap();
-        vector[20] ^= 1;
-        sqlx::query("UPDATE templates SET vector = ?1 WHERE subject_id = 'alice'").bind(vector).execute(&store.pool).await.unwrap();
-        // bob's template moved to carol (carol's own data key does not open it either).
-        exec("UPDATE templates SET subject_id = 'carol' WHERE subject_id = 'bob'").await;
-        // dave's model version relabelled.
-        exec("UPDATE templates SET model_version = 'm2' WHERE subject_id = 'dave'").await;
-        for subject in ["alice", "carol", "dave"] {
-            let read = store.templates(&id(subject)).await;
-            assert!(matches!(read, Err(StoreError::CorruptTemplate { .. })), "{subject}: {read:?}");
-        }
-        assert_eq!(store.templates(&id("bob")).await.unwrap().unwrap(), []);
-        // A data key swapped between subjects does not open.
-        exec("UPDATE subjects SET data_key = (SELECT data_key FROM subjects WHERE id = 'alice') WHERE id = 'bob'").await;
-        store.enroll(&id("erin"), &[marked(4.0)]).await.unwrap();
-        exec("UPDATE subjects SET data_key = (SELECT data_key FROM subjects WHERE id = 'alice') WHERE id = 'erin'").await;
-        assert!(matches!(store.templates(&id("erin")).await, Err(StoreError::DataKey { .. })));
-        // The gallery scan hands each unreadable subject its error and goes on.
-        store.enroll(&id("frank"), &[marked(5.0)]).await.unwrap();
-        let scanned = scan_m1(&store).await;
-        let readable: Vec<&str> = scanned.iter().filter(|(_, t)| t.is_ok()).map(|(s, _)| s.as_str()).collect();
-        let refused: Vec<&str> = scanned.iter().filter(|(_, t)| t.is_err()).map(|(s, _)| s.as_str()).collect();
-        assert_eq!((readable, refused), (vec!["frank"], vec!["alice", "carol", "erin"]));
         store.close().await;
     }
 
-    async fn scan_m1(store: &Store) -> Vec<(String, Result<Vec<Template>, String>)> {
-        let mut out = Vec::new();
-        store.gallery("m1", |s, t| out.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap();
-        out
-    }
-
-    #[tokio::test]
-    async fn rekey_seals_plain_subjects_then_rotates_resumably() {
-        let dir = Dir::new();
-        let plain = Store::connect(&dir.url("t.db"), None).await.unwrap();
-        plain.enroll(&id("alice"), &[marked(0.0)]).await.unwrap();
-        plain.enroll(&id("bob"), &[marked(1.0), marked(2.0)]).await.unwrap();
-        plain.enroll(&id("carol"), &[marked(3.0)]).await.unwrap();
-        assert!(matches!(plain.rekey(|_| {}).await, Err(StoreError::Refused(_))));
-        plain.close().await;
-
-        // A key set: plain subjects stay readable; an enrolment seals its subject; rekey the rest.
-        let keyed = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
-        assert_eq!(keyed.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0)]);
-        keyed.enroll(&id("carol"), &[marked(4.0)]).await.unwrap();
-        let mut steps = 0;
-        let report = keyed.rekey(|_| steps += 1).await.unwrap();
-        assert_eq!((report, steps), (RekeyReport { rewrapped: 0, sealed: 2, templates_sealed: 3 }, 2));
-        assert_eq!(keyed.rekey(|_| {}).await.unwrap(), RekeyReport::default(), "nothing left to do");
-        let sealed: i64 = sqlx::query_scalar("SELECT count(*) FROM templates WHERE length(vector) = 4 * dimension + 28")
-            .fetch_one(&keyed.pool)
-            .await
-            .unwrap();
-        assert_eq!(sealed, 5);
-        keyed.close().await;
-
-        // Rotation: K2 current, K1 still readable; after rekey, K2 alone reads everything.
-        let rotating = Store::connect(&dir.url("t.db"), ring(&format!("{K2}\n{K1}"))).await.unwrap();
-        assert_eq!(rotating.templates(&id("bob")).await.unwrap().unwrap(), [marked(1.0), marked(2.0)]);
-        assert_eq!(rotating.rekey(|_| {}).await.unwrap(), RekeyReport { rewrapped: 3, sealed: 0, templates_sealed: 0 });
-        rotating.close().await;
-        let rotated = Store::connect(&dir.url("t.db"), ring(K2)).await.unwrap();
-        assert_eq!(rotated.templates(&id("carol")).await.unwrap().unwrap(), [marked(3.0), marked(4.0)]);
-        assert_eq!(rotated.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0)]);
-        rotated.close().await;
-        let old_only = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
-        assert!(matches!(old_only.templates(&id("alice")).await, Err(StoreError::DataKey { source: CipherError::UnknownKey(_), .. })));
-        old_only.close().await;
-    }
-
-    /// Without a key the vectors are plain in the file; after DELETE (which checkpoints and
-    /// truncates the WAL) neither the subject id nor any vector byte is left in the database file
-    /// or its WAL. Without `secure_delete` this fails: the bytes stay in the freed pages.
     #[tokio::test]
     async fn a_deleted_subject_leaves_nothing_in_the_files() {
         let dir = Dir::new();
@@ -801,6 +889,8 @@ mod at_rest {
             sqlx::query_scalar("PRAGMA synchronous").fetch_one(&store.pool).await.unwrap(),
         );
         assert_eq!((secure, synchronous), (1, 2), "secure_delete on, synchronous FULL");
+        let mode: String = sqlx::query_scalar("PRAGMA journal_mode").fetch_one(&store.pool).await.unwrap();
+        assert_eq!(mode, "wal");
         let erased = "erasure-subject-7f3a";
         let erased_vectors = [marked(10.0), marked(20.0)];
         store.enroll(&id("keeper"), &[marked(30.0)]).await.unwrap();
@@ -822,6 +912,30 @@ mod at_rest {
         store.close().await;
         let after_close = dir.raw("t.db");
         assert!(!needles.iter().any(|n| contains(&after_close, n)));
+    }
+
+    /// The pool opens the file the URL names, also with characters a URL escapes (`%25` is `%`),
+    /// and after `close` that file holds everything (no WAL content is left beside it).
+    #[tokio::test]
+    async fn the_file_named_is_the_file_opened() {
+        let dir = Dir::new();
+        for (name, file) in [("with space.db", "with space.db"), ("per%25cent #1.db", "per%cent #1.db"), ("ünï.db", "ünï.db")] {
+            let store = Store::connect(&dir.url(name), None).await.unwrap();
+            store.enroll(&id("alice"), &[marked(0.0)]).await.unwrap();
+            store.close().await;
+            let mut files: Vec<String> =
+                std::fs::read_dir(&dir.0).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
+            files.sort();
+            assert_eq!(files[0], file, "{files:?}");
+            assert!(files[1..].iter().all(|f| *f == format!("{file}-shm") || *f == format!("{file}-wal")), "{files:?}");
+            assert_eq!(std::fs::metadata(dir.0.join(format!("{file}-wal"))).map_or(0, |m| m.len()), 0, "the WAL is empty");
+            let reopened = Store::connect(&dir.url(name), None).await.unwrap();
+            assert_eq!(reopened.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0)]);
+            reopened.close().await;
+            for entry in std::fs::read_dir(&dir.0).unwrap() {
+                std::fs::remove_file(entry.unwrap().path()).unwrap();
+            }
+        }
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -10,6 +10,7 @@ use facegate::http::ApiConfig;
 use serde_json::json;
 use sqlx::Connection;
 
+use crate::on_both_backends;
 use crate::support::*;
 
 fn config() -> ApiConfig {
@@ -24,13 +25,17 @@ fn config() -> ApiConfig {
 }
 
 async fn app() -> (TestApp, Arc<StandInEngine>) {
-    let engine = StandInEngine::new("stand-in-1");
-    (TestApp::start(engine.clone(), config()).await, engine)
+    app_on(Db::Sqlite).await
 }
 
-#[tokio::test]
-async fn enrol_verify_identify_and_subjects_round_trip() {
-    let (app, _) = app().await;
+async fn app_on(db: Db) -> (TestApp, Arc<StandInEngine>) {
+    let engine = StandInEngine::new("stand-in-1");
+    (TestApp::start_on(db, engine.clone(), config()).await, engine)
+}
+
+on_both_backends!(enrol_verify_identify_and_subjects_round_trip);
+async fn enrol_verify_identify_and_subjects_round_trip(db: Db) {
+    let (app, _) = app_on(db).await;
     let alice = pattern_jpeg(320, 240, 1);
     let bob = pattern_jpeg(320, 240, 9);
 
@@ -84,9 +89,9 @@ async fn enrol_verify_identify_and_subjects_round_trip() {
     assert_eq!(app.store.counts().await.unwrap(), (1, 1));
 }
 
-#[tokio::test]
-async fn bad_images_are_refused_with_their_problem_types() {
-    let (app, engine) = app().await;
+on_both_backends!(bad_images_are_refused_with_their_problem_types);
+async fn bad_images_are_refused_with_their_problem_types(db: Db) {
+    let (app, engine) = app_on(db).await;
     let post = |bytes: Vec<u8>| {
         let app = &app;
         async move { app.post_form("/enroll", Some("carol"), &[bytes]).await }
@@ -120,9 +125,9 @@ async fn bad_images_are_refused_with_their_problem_types() {
     assert_eq!(app.store.counts().await.unwrap(), (0, 0));
 }
 
-#[tokio::test]
-async fn faces_policy_no_face_and_several_faces() {
-    let (app, _) = app().await;
+on_both_backends!(faces_policy_no_face_and_several_faces);
+async fn faces_policy_no_face_and_several_faces(db: Db) {
+    let (app, _) = app_on(db).await;
     let flat =
         encode(&image::DynamicImage::ImageLuma8(image::GrayImage::from_pixel(320, 240, image::Luma([128]))), image::ImageFormat::Png);
     let wide = pattern_jpeg(640, 240, 5);
@@ -149,9 +154,9 @@ fn dark_pattern_jpeg(seed: u32) -> Vec<u8> {
     encode(&image::DynamicImage::ImageLuma8(img), image::ImageFormat::Jpeg)
 }
 
-#[tokio::test]
-async fn every_analysed_face_has_quality_and_enrolment_refuses_a_photo_below_the_policy() {
-    let (app, _) = app().await;
+on_both_backends!(every_analysed_face_has_quality_and_enrolment_refuses_a_photo_below_the_policy);
+async fn every_analysed_face_has_quality_and_enrolment_refuses_a_photo_below_the_policy(db: Db) {
+    let (app, _) = app_on(db).await;
     let good = pattern_jpeg(320, 240, 4);
     let dark = dark_pattern_jpeg(4);
     // A dark photo among good ones refuses the whole enrolment, names the photo and lists the
@@ -190,9 +195,9 @@ async fn every_analysed_face_has_quality_and_enrolment_refuses_a_photo_below_the
     assert!(r.json()["faces"][0]["quality"]["brightness"].as_f64().unwrap() < 40.0);
 }
 
-#[tokio::test]
-async fn malformed_requests_are_400_and_wrong_media_types_415() {
-    let (app, engine) = app().await;
+on_both_backends!(malformed_requests_are_400_and_wrong_media_types_415);
+async fn malformed_requests_are_400_and_wrong_media_types_415(db: Db) {
+    let (app, engine) = app_on(db).await;
     let photo = pattern_jpeg(320, 240, 7);
     let b64 = base64(&photo);
     app.post_form("/enroll", None, &[photo.clone()]).await.assert_problem(400, "malformed-request");
@@ -226,13 +231,13 @@ async fn malformed_requests_are_400_and_wrong_media_types_415() {
     assert_eq!(engine.calls.load(Ordering::SeqCst), 0);
 }
 
-#[tokio::test]
-async fn templates_of_another_model_version_are_not_compared() {
-    let first = TestApp::start(StandInEngine::new("v1"), config()).await;
+on_both_backends!(templates_of_another_model_version_are_not_compared);
+async fn templates_of_another_model_version_are_not_compared(db: Db) {
+    let first = TestApp::start_on(db, StandInEngine::new("v1"), config()).await;
     let photo = pattern_jpeg(320, 240, 8);
     assert_eq!(first.post_form("/enroll", Some("frank"), &[photo.clone()]).await.status, 201);
     // The same database served by a newer model.
-    let app = TestApp::start(StandInEngine::new("v2"), config()).await;
+    let app = TestApp::start_on(db, StandInEngine::new("v2"), config()).await;
     let old = first.store.templates(&facegate::service::SubjectId::parse("frank").unwrap()).await.unwrap().unwrap();
     app.store.enroll(&facegate::service::SubjectId::parse("frank").unwrap(), &old).await.unwrap();
     app.post_form("/verify", Some("frank"), &[photo.clone()]).await.assert_problem(409, "model-mismatch");
@@ -280,11 +285,16 @@ async fn slow_work_times_out_with_504_and_overload_is_refused_with_503() {
     assert!(metrics.contains("facegate_queue_rejections_total 1"), "{metrics}");
 }
 
-#[tokio::test]
-async fn health_metrics_and_openapi_are_served() {
-    let (app, _) = app().await;
+on_both_backends!(health_metrics_and_openapi_are_served);
+async fn health_metrics_and_openapi_are_served(db: Db) {
+    let (app, _) = app_on(db).await;
     let r = app.get("/health").await;
     assert_eq!((r.status, r.json()["status"].as_str(), r.json()["model_version"].as_str()), (200, Some("ok"), Some("stand-in-1")));
+    let backend = match db {
+        Db::Sqlite => "sqlite",
+        Db::Postgres => "postgres",
+    };
+    assert_eq!(r.json()["store_backend"], backend);
     assert_eq!(app.post_form("/enroll", Some("gina"), &[pattern_jpeg(320, 240, 1)]).await.status, 201);
     let r = app.get("/metrics").await;
     let text = String::from_utf8(r.body).unwrap();
@@ -295,16 +305,16 @@ async fn health_metrics_and_openapi_are_served() {
     assert_eq!(r.body, facegate::http::OPENAPI_YAML.as_bytes());
 }
 
+on_both_backends!(identify_follows_enrol_and_delete_and_tampered_templates_are_refused);
 /// `/identify` answers from the in-memory gallery, which follows enrolments and deletions; with a
 /// template key the templates are sealed, `/health` says so, and a tampered template is refused
 /// with a 500 problem (never scored) by `/verify` and, once loaded, by `/identify`.
-#[tokio::test]
-async fn identify_follows_enrol_and_delete_and_tampered_templates_are_refused() {
-    let plain = TestApp::start(StandInEngine::new("v1"), config()).await;
+async fn identify_follows_enrol_and_delete_and_tampered_templates_are_refused(db: Db) {
+    let plain = TestApp::start_on(db, StandInEngine::new("v1"), config()).await;
     assert_eq!(plain.get("/health").await.json()["templates_encrypted"], false);
 
     let keys = facegate::store::KeyRing::parse(&"5a".repeat(32)).unwrap();
-    let app = TestApp::start_with_keys(StandInEngine::new("v1"), config(), Some(keys)).await;
+    let app = TestApp::start_with_keys(db, StandInEngine::new("v1"), config(), Some(keys)).await;
     assert_eq!(app.get("/health").await.json()["templates_encrypted"], true);
     let (alice, bob, carol) = (pattern_jpeg(320, 240, 1), pattern_jpeg(320, 240, 9), pattern_jpeg(320, 240, 5));
     let top = |r: Reply| {
@@ -324,13 +334,25 @@ async fn identify_follows_enrol_and_delete_and_tampered_templates_are_refused() 
     assert_eq!(app.post_form("/enroll", Some("bob"), &[bob.clone()]).await.status, 201);
     assert_eq!(top(app.post_form("/identify", None, &[bob.clone()]).await), (Some("bob".into()), Some(true), Some(3)));
 
-    // One bit of alice's sealed template flipped in the database file.
-    let mut db = sqlx::SqliteConnection::connect(&format!("sqlite://{}", app.database().display())).await.unwrap();
-    let mut vector: Vec<u8> =
-        sqlx::query_scalar("SELECT vector FROM templates WHERE subject_id = 'alice'").fetch_one(&mut db).await.unwrap();
-    vector[30] ^= 0x10;
-    sqlx::query("UPDATE templates SET vector = ?1 WHERE subject_id = 'alice'").bind(vector).execute(&mut db).await.unwrap();
-    db.close().await.unwrap();
+    // One bit of alice's sealed template flipped in the database.
+    match db {
+        Db::Sqlite => {
+            let mut db = sqlx::SqliteConnection::connect(&app.database_url).await.unwrap();
+            let mut vector: Vec<u8> =
+                sqlx::query_scalar("SELECT vector FROM templates WHERE subject_id = 'alice'").fetch_one(&mut db).await.unwrap();
+            vector[30] ^= 0x10;
+            sqlx::query("UPDATE templates SET vector = ?1 WHERE subject_id = 'alice'").bind(vector).execute(&mut db).await.unwrap();
+            db.close().await.unwrap();
+        }
+        Db::Postgres => {
+            let mut db = sqlx::PgConnection::connect(&app.database_url).await.unwrap();
+            let mut vector: Vec<u8> =
+                sqlx::query_scalar("SELECT vector FROM templates WHERE subject_id = 'alice'").fetch_one(&mut db).await.unwrap();
+            vector[30] ^= 0x10;
+            sqlx::query("UPDATE templates SET vector = $1 WHERE subject_id = 'alice'").bind(vector).execute(&mut db).await.unwrap();
+            db.close().await.unwrap();
+        }
+    }
     app.post_form("/verify", Some("alice"), &[alice.clone()]).await.assert_problem(500, "internal");
     assert_eq!(app.post_form("/verify", Some("carol"), &[carol.clone()]).await.json()["match"], true, "others verify");
     // A service started on this database refuses to identify until alice is erased.

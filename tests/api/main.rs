@@ -2,21 +2,28 @@
 //!
 //! - `openapi`: `openapi.yaml` against the served operations; every response received by these
 //!   tests is checked against the document.
+//! - `deploy`: `compose.yaml` and the load balancer's config (and `docker compose config` where installed).
 //! - `hostile`: half-open and idle connections, stalled bodies, admission before the body, head
 //!   limits, keys on the operational routes, the audit log (raw TCP where needed).
 //! - `http`: the HTTP layer (formats, every bad-input class, limits, keys, timeouts, overload,
 //!   storage) with a stand-in face engine.
 //! - `pipeline`: enrol and verify real IMM photos through the real `Pipeline` and committed models;
 //!   analyse, avatar and frontal rendering, byte for byte the CLI's.
+//! - `replicas`: two `facegate serve` processes on one PostgreSQL database agree at once.
 //! - `postgres`: a real PostgreSQL server (a throwaway cluster, or `FACEGATE_TEST_POSTGRES`).
+//! - `store_backends`: the template store on SQLite and PostgreSQL through one test body each; concurrent
+//!   migration and the change feed on PostgreSQL.
 //! - `store_cli`: `facegate rekey`, `backup` and `restore`, the real binary on a real database.
 //! - `browser`: the web console in headless Chromium over WebDriver, against the real pipeline.
 
 mod browser;
+mod deploy;
 mod hostile;
 mod http;
 mod openapi;
 mod pipeline;
 mod postgres;
+mod replicas;
+mod store_backends;
 mod store_cli;
 mod support;

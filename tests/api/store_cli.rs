@@ -69,3 +69,35 @@ async fn rekey_backup_and_restore_from_the_command_line() {
     assert!(Path::new(&path("live.db")).exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// On PostgreSQL, `rekey` works as on SQLite; `backup` and `restore` (SQLite file operations)
+/// refuse, naming pg_dump and pg_restore.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn on_postgres_rekey_works_and_backup_restore_name_pg_dump() {
+    let url = crate::postgres_or_skip!("store_cli::on_postgres_rekey_works_and_backup_restore_name_pg_dump");
+    let dir = std::env::temp_dir().join(format!("facegate-store-cli-pg-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = |name: &str| dir.join(name).display().to_string();
+    let plain = Store::connect(&url, None).await.unwrap();
+    let subject = SubjectId::parse("s0").unwrap();
+    plain.enroll(&subject, &[template(0.0), template(1.0)]).await.unwrap();
+    plain.close().await;
+
+    let key = "5d".repeat(32);
+    std::fs::write(dir.join("key"), format!("{key}\n")).unwrap();
+    let (ok, report, stderr) = facegate_with_stderr(&["rekey", "--database", &url, "--template-key-file", &path("key")]);
+    assert!(ok, "{stderr}");
+    assert_eq!((report["sealed"].as_u64(), report["templates_sealed"].as_u64()), (Some(1), Some(2)));
+    let keyed = Store::connect(&url, Some(KeyRing::parse(&key).unwrap())).await.unwrap();
+    assert_eq!(keyed.templates(&subject).await.unwrap().unwrap(), [template(0.0), template(1.0)]);
+    keyed.close().await;
+
+    let (ok, _, stderr) = facegate_with_stderr(&["backup", &path("backup.db"), "--database", &url]);
+    assert!(!ok && stderr.contains("pg_dump"), "{stderr}");
+    assert!(!Path::new(&path("backup.db")).exists());
+    std::fs::write(dir.join("backup.db"), b"anything").unwrap();
+    let (ok, _, stderr) = facegate_with_stderr(&["restore", &path("backup.db"), "--database", &url, "--force"]);
+    assert!(!ok && stderr.contains("pg_restore"), "{stderr}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -31,8 +31,42 @@ pub struct TestApp {
     pub base: String,
     pub client: reqwest::Client,
     pub store: Store,
+    /// The database's URL (`sqlite://…` or `postgres://…`).
+    pub database_url: String,
     dir: PathBuf,
     server: tokio::task::JoinHandle<()>,
+}
+
+/// Which database a [`TestApp`] runs on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Db {
+    /// A SQLite file in the app's temporary folder.
+    Sqlite,
+    /// A fresh database on the test PostgreSQL server ([`crate::postgres`]).
+    Postgres,
+}
+
+/// One test body, `async fn name(db: Db)`, run on each backend: `name::sqlite` and
+/// `name::postgres` (the latter skipped with a printed reason where no server can be had).
+#[macro_export]
+macro_rules! on_both_backends {
+    ($name:ident) => {
+        mod $name {
+            #[tokio::test]
+            async fn sqlite() {
+                super::$name($crate::support::Db::Sqlite).await
+            }
+
+            #[tokio::test]
+            async fn postgres() {
+                if $crate::postgres::fresh_database().is_none() {
+                    $crate::postgres::skip(concat!(module_path!(), "::postgres"));
+                    return;
+                }
+                super::$name($crate::support::Db::Postgres).await
+            }
+        }
+    };
 }
 
 /// A response, already checked against `openapi.yaml`.
@@ -68,30 +102,34 @@ fn default_limits() -> ServerLimits {
 
 impl TestApp {
     pub async fn start(engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {
-        Self::start_full(engine, config, default_limits(), None).await
+        Self::start_full(engine, config, default_limits(), None, Db::Sqlite).await
+    }
+
+    /// [`TestApp::start`] on the database `db`.
+    pub async fn start_on(db: Db, engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {
+        Self::start_full(engine, config, default_limits(), None, db).await
     }
 
     /// [`TestApp::start`] with the connection loop's limits given.
     pub async fn start_with(engine: Arc<dyn FaceEngine>, config: ApiConfig, limits: ServerLimits) -> TestApp {
-        Self::start_full(engine, config, limits, None).await
+        Self::start_full(engine, config, limits, None, Db::Sqlite).await
     }
 
     /// An app whose store seals templates under `keys`.
-    pub async fn start_with_keys(engine: Arc<dyn FaceEngine>, config: ApiConfig, keys: Option<KeyRing>) -> TestApp {
-        Self::start_full(engine, config, default_limits(), keys).await
+    pub async fn start_with_keys(db: Db, engine: Arc<dyn FaceEngine>, config: ApiConfig, keys: Option<KeyRing>) -> TestApp {
+        Self::start_full(engine, config, default_limits(), keys, db).await
     }
 
-    async fn start_full(engine: Arc<dyn FaceEngine>, config: ApiConfig, limits: ServerLimits, keys: Option<KeyRing>) -> TestApp {
+    async fn start_full(engine: Arc<dyn FaceEngine>, config: ApiConfig, limits: ServerLimits, keys: Option<KeyRing>, db: Db) -> TestApp {
         static N: AtomicUsize = AtomicUsize::new(0);
         let dir = std::env::temp_dir().join(format!("facegate-api-{}-{}", std::process::id(), N.fetch_add(1, Ordering::Relaxed)));
         std::fs::create_dir_all(&dir).unwrap();
-        let store = Store::connect(&format!("sqlite://{}", dir.join("facegate.db").display()), keys).await.unwrap();
-        Self::serve(engine, store, config, limits, dir).await
-    }
-
-    /// The database file of an app made by `start` (not by `restarted_with`).
-    pub fn database(&self) -> PathBuf {
-        self.dir.join("facegate.db")
+        let url = match db {
+            Db::Sqlite => format!("sqlite://{}", dir.join("facegate.db").display()),
+            Db::Postgres => crate::postgres::fresh_database().expect("the caller checked that PostgreSQL is available"),
+        };
+        let store = Store::connect(&url, keys).await.unwrap();
+        Self::serve(engine, store, url, config, limits, dir).await
     }
 
     /// A second app on this one's database with another engine (a service restarted with another
@@ -99,18 +137,25 @@ impl TestApp {
     pub async fn restarted_with(&self, engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {
         let scratch = self.dir.join(format!("restart-{}", std::process::id()));
         std::fs::create_dir_all(&scratch).unwrap();
-        Self::serve(engine, self.store.clone(), config, default_limits(), scratch).await
+        Self::serve(engine, self.store.clone(), self.database_url.clone(), config, default_limits(), scratch).await
     }
 
     /// The app behind the service's own connection loop (`http::server`), as `facegate serve` runs it.
-    async fn serve(engine: Arc<dyn FaceEngine>, store: Store, config: ApiConfig, limits: ServerLimits, dir: PathBuf) -> TestApp {
+    async fn serve(
+        engine: Arc<dyn FaceEngine>,
+        store: Store,
+        database_url: String,
+        config: ApiConfig,
+        limits: ServerLimits,
+        dir: PathBuf,
+    ) -> TestApp {
         let app = http::router(AppState::new(engine, store.clone(), config));
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let base = format!("http://{}", listener.local_addr().unwrap());
         let server = tokio::spawn(async move {
             http::server::serve(listener, app, limits, std::future::pending()).await;
         });
-        TestApp { base, client: reqwest::Client::new(), store, dir, server }
+        TestApp { base, client: reqwest::Client::new(), store, database_url, dir, server }
     }
 
     /// Send a request and check the response against the document.
