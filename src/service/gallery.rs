@@ -278,9 +278,7 @@ struct Live {
 
 impl Drop for Live {
     fn drop(&mut self) {
-        if let Some(task) = self.follower.lock().expect("follower lock").take() {
-            task.abort();
-        }
+        self.stop_following();
     }
 }
 
@@ -309,6 +307,13 @@ fn unreadable(error: &StoreError) -> bool {
 }
 
 impl Live {
+    /// Abort the task applying the change feed, if one runs.
+    fn stop_following(&self) {
+        if let Some(task) = self.follower.lock().expect("follower lock").take() {
+            task.abort();
+        }
+    }
+
     /// The store's templates of the gallery's model version, read afresh; the subjects whose
     /// templates cannot be read are noted in it and returned as `(subject, why)`.
     async fn read_gallery(&self) -> Result<(Gallery, Vec<(String, String)>), StoreError> {
@@ -468,9 +473,7 @@ impl LiveGallery {
 
     /// Stop following the change feed (before the store is closed: the feed holds a connection).
     pub fn stop_following(&self) {
-        if let Some(task) = self.0.follower.lock().expect("follower lock").take() {
-            task.abort();
-        }
+        self.0.stop_following();
     }
 
     /// The store's version now, where the gallery follows a change feed (one round trip); `None`

@@ -41,7 +41,7 @@ use serde::{Deserialize, Serialize};
 use sqlx::any::{AnyPoolOptions, AnyRow};
 use sqlx::migrate::Migrator;
 use sqlx::postgres::{PgConnectOptions, PgListener, PgPoolOptions};
-use sqlx::sqlite::{SqliteConnectOptions, SqliteConnection, SqliteJournalMode, SqliteLockingMode, SqliteSynchronous};
+use sqlx::sqlite::{SqliteConnectOptions, SqliteConnection, SqliteLockingMode};
 use sqlx::{AnyConnection, AnyPool, Connection, Executor, Row};
 
 use crate::recognize::Template;
@@ -183,23 +183,30 @@ impl std::fmt::Debug for Store {
     }
 }
 
+/// SQLite's settings, for every connection: given to SQLite's own options ([`sqlite_options`])
+/// and run on each connection of the generic pool ([`sqlite_session`]), which opens the URL and
+/// so carries none of them.
+const SQLITE_PRAGMAS: [(&str, &str); 5] = [
+    ("journal_mode", "WAL"),
+    // FULL: every commit (an enrolment, a deletion) is fsynced to the WAL before it is
+    // acknowledged, so it survives a power loss too. NORMAL in WAL mode survives application
+    // crashes but may lose the last commits on power loss; an acknowledged enrolment must not.
+    ("synchronous", "FULL"),
+    // Deleted content is overwritten with zeros, so it cannot be read back from free pages.
+    ("secure_delete", "ON"),
+    ("foreign_keys", "ON"),
+    ("busy_timeout", "5000"),
+];
+
 fn sqlite_options(url: &str) -> Result<SqliteConnectOptions, StoreError> {
-    Ok(SqliteConnectOptions::from_str(url)
-        .map_err(|source| StoreError::Url { url: url.to_string(), source })?
-        .journal_mode(SqliteJournalMode::Wal)
-        // FULL: every commit (an enrolment, a deletion) is fsynced to the WAL before it is
-        // acknowledged, so it survives a power loss too. NORMAL in WAL mode survives application
-        // crashes but may lose the last commits on power loss; an acknowledged enrolment must not.
-        .synchronous(SqliteSynchronous::Full)
-        // Deleted content is overwritten with zeros, so it cannot be read back from free pages.
-        .pragma("secure_delete", "ON")
-        .foreign_keys(true)
-        .busy_timeout(Duration::from_secs(5)))
+    let options = SqliteConnectOptions::from_str(url).map_err(|source| StoreError::Url { url: url.to_string(), source })?;
+    Ok(SQLITE_PRAGMAS.iter().fold(options, |options, &(key, value)| options.pragma(key, value)))
 }
 
-/// The settings of [`sqlite_options`] for each connection of the pool (the generic pool takes a
-/// URL, which names the file but carries none of these).
-const SQLITE_SESSION: &str = "PRAGMA journal_mode = WAL; PRAGMA synchronous = FULL; PRAGMA secure_delete = ON; PRAGMA foreign_keys = ON; PRAGMA busy_timeout = 5000;";
+/// [`SQLITE_PRAGMAS`] as one batch of statements.
+fn sqlite_session() -> String {
+    SQLITE_PRAGMAS.iter().map(|(key, value)| format!("PRAGMA {key} = {value};")).collect::<Vec<_>>().join(" ")
+}
 
 impl Store {
     /// Open the database at `url` and apply the migrations: `sqlite://...` (created if missing)
@@ -217,7 +224,7 @@ impl Store {
                 SqliteConnection::connect_with(&sqlite_options(url)?.create_if_missing(true)).await?.close().await?;
                 let pool = AnyPoolOptions::new()
                     .max_connections(8)
-                    .after_connect(|connection, _| Box::pin(async move { connection.execute(SQLITE_SESSION).await.map(drop) }))
+                    .after_connect(|connection, _| Box::pin(async move { connection.execute(sqlite_session().as_str()).await.map(drop) }))
                     .connect(url)
                     .await?;
                 SQLITE_MIGRATIONS.run(&pool).await?;

@@ -38,6 +38,11 @@ pub fn fresh_database() -> Option<String> {
     Some(format!("{}/{name}", server.base))
 }
 
+/// Is there a test server (started now if not yet)? Creates no database.
+pub fn available() -> bool {
+    SERVER.get_or_init(start).is_ok()
+}
+
 /// Why there is no test server (after [`fresh_database`] returned `None`).
 pub fn unavailable() -> String {
     match SERVER.get_or_init(start) {

@@ -59,7 +59,7 @@ macro_rules! on_both_backends {
 
             #[tokio::test]
             async fn postgres() {
-                if $crate::postgres::fresh_database().is_none() {
+                if !$crate::postgres::available() {
                     $crate::postgres::skip(concat!(module_path!(), "::postgres"));
                     return;
                 }
