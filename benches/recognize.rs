@@ -4,7 +4,7 @@
 //! same as two different ones).
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
-use facegate::recognize::{Recognizer, Views};
+use facegate::recognize::{ClassicalRecognizer, Views};
 use facegate::research::dataset::{KeyPoints, list_imm};
 
 /// The one crop on every path of the model (what is measured is the time, not the template).
@@ -13,7 +13,7 @@ fn views<T: Copy>(fused: bool, crop: T) -> Views<T> {
 }
 
 fn bench(c: &mut Criterion) {
-    let recognizer = Recognizer::load(&facegate::config::models_dir()).expect("models/dlda.bin (facegate train dlda)");
+    let recognizer = ClassicalRecognizer::load(&facegate::config::models_dir()).expect("models/dlda.bin (facegate train dlda)");
     let sample = &list_imm(&facegate::config::shared_dir().join("data/imm")).expect("IMM data")[0];
     let photo = facegate::core::imaging::open(&sample.image).expect("IMM photo");
     let keypoints = KeyPoints::from_imm(&sample.landmarks().expect("IMM landmarks"));

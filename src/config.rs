@@ -13,6 +13,7 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
+use crate::cli::choices;
 use crate::core::imaging::DecodeLimits;
 use crate::http::ApiConfig;
 use crate::http::server::ServerLimits;
@@ -60,7 +61,7 @@ const DEFAULT_MAX_DECODE_MB: u64 = 256;
 const DEFAULT_MAX_IMAGES: usize = 16;
 const DEFAULT_TIMEOUT_SECS: f64 = 30.0;
 const DEFAULT_CONSOLE: bool = true;
-const DEFAULT_ENROL_QUEUE: usize = 16;
+const DEFAULT_ENROLL_QUEUE: usize = 16;
 const DEFAULT_ADMISSION_WAIT_MS: u64 = 1000;
 const DEFAULT_MAX_BUFFERED_MB: usize = 128;
 const DEFAULT_BODY_TIMEOUT_SECS: f64 = 15.0;
@@ -106,8 +107,8 @@ pub struct Settings {
     pub sfm: Option<PathBuf>,
     /// Which recognizer makes templates: the deep face embedding (`deep.bin`) or the classical
     /// pixels + LBP Direct LDA (`dlda.bin`). Templates of one are never compared with the other's.
-    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = RecognizerKind::default())]
-    pub recognizer: RecognizerKind,
+    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::ClassicalRecognizer::from(RecognizerKind::default()))]
+    pub recognizer: choices::ClassicalRecognizer,
     /// Comma-separated API keys (at least 16 characters each); when none are given (here or in
     /// `--api-keys-file`) the API is open to anyone who can reach it. Keys given as a flag show
     /// in `ps`: prefer the file or the variable.
@@ -124,8 +125,8 @@ pub struct Settings {
     #[arg(long, env = "FACEGATE_QUEUE", default_value_t = DEFAULT_QUEUE)]
     pub queue: usize,
     /// Enrolments that may wait for a worker (a queue of their own) before the service answers 503.
-    #[arg(long, env = "FACEGATE_ENROL_QUEUE", default_value_t = DEFAULT_ENROL_QUEUE)]
-    pub enrol_queue: usize,
+    #[arg(long = "enrol-queue", visible_alias = "enroll-queue", value_name = "ENROL_QUEUE", env = "FACEGATE_ENROL_QUEUE", default_value_t = DEFAULT_ENROLL_QUEUE)]
+    pub enroll_queue: usize,
     /// Milliseconds a request waits (its body unread, in arrival order) for a place in a full
     /// queue before the 503; 0 refuses at once.
     #[arg(long, env = "FACEGATE_ADMISSION_WAIT_MS", default_value_t = DEFAULT_ADMISSION_WAIT_MS)]
@@ -219,12 +220,12 @@ impl Default for Settings {
             database: DEFAULT_DATABASE.into(),
             models: None,
             sfm: None,
-            recognizer: RecognizerKind::default(),
+            recognizer: RecognizerKind::default().into(),
             api_keys: Vec::new(),
             api_keys_file: None,
             workers: None,
             queue: DEFAULT_QUEUE,
-            enrol_queue: DEFAULT_ENROL_QUEUE,
+            enroll_queue: DEFAULT_ENROLL_QUEUE,
             admission_wait_ms: DEFAULT_ADMISSION_WAIT_MS,
             max_buffered_mb: DEFAULT_MAX_BUFFERED_MB,
             max_body_mb: DEFAULT_MAX_BODY_MB,
@@ -271,7 +272,7 @@ impl Settings {
             body_timeout,
             workers: self.workers.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2)).max(1),
             queue_depth: self.queue,
-            enrol_queue_depth: self.enrol_queue,
+            enroll_queue_depth: self.enroll_queue,
             admission_wait: Duration::from_millis(self.admission_wait_ms),
             max_buffered_bytes: self.max_buffered_mb << 20,
             api_keys: self.api_keys()?,
@@ -336,7 +337,7 @@ impl Settings {
         PipelineConfig {
             models_dir: self.models.clone().unwrap_or(defaults.models_dir),
             sfm_dir: self.sfm.clone().or(defaults.sfm_dir),
-            recognizer: self.recognizer,
+            recognizer: self.recognizer.into(),
         }
     }
 }

@@ -1,33 +1,19 @@
-//! facegate: face verification after D. Zhou's thesis (2011).
+//! facegate: face verification after D. Zhou's thesis (2011). This package is the binary: its
+//! settings ([`config`], the one place that reads the environment) and its command line ([`cli`]).
 //!
-//! The runtime, a request's path: bytes → [`core::imaging`] (decode with limits) → [`detect`]
-//! (face boxes) → [`landmarks`] (58 IMM points) → [`morph`] (3DMM fit, frontal rendering) →
-//! [`recognize`] (normalise, DLDA, templates), [`quality`] (face image quality), assembled once in [`pipeline`]; [`service`] decides
-//! (verify, identify) and runs the work pool, [`store`] keeps templates (SQLite), [`http`] serves it.
-//!
-//! Offline: [`research`] (data sets, training, evaluation) and [`cli`] (arguments, printing,
-//! progress bars); [`config`] reads the environment and holds the service's settings. The runtime
-//! never prints, reads the environment or imports the offline side (`runtime_rule` checks it).
+//! The work lives in the workspace's crates, whose dependency graph is the architecture
+//! (docs/architecture.md): `facegate-core` ← `facegate-vision` (the stages and the pipeline) ←
+//! `facegate-store` ← `facegate-service` (the use cases) ← `facegate-http`; `facegate-research`
+//! (data sets, training, evaluation) depends on vision and is never depended on by the runtime.
+//! They are re-exported here under their module names for the command line, the integration tests
+//! and the benches.
 
-pub mod config;
-pub mod core;
-
-pub mod detect;
-pub mod embed;
-pub mod landmarks;
-pub mod morph;
-pub mod quality;
-pub mod recognize;
-
-pub mod pipeline;
-
-pub mod http;
-pub mod service;
-pub mod store;
-
-pub mod research;
+pub use facegate_core as core;
+pub use facegate_http as http;
+pub use facegate_research as research;
+pub use facegate_service as service;
+pub use facegate_store as store;
+pub use facegate_vision::{detect, embed, landmarks, morph, pipeline, quality, recognize};
 
 pub mod cli;
-
-#[cfg(test)]
-mod runtime_rule;
+pub mod config;

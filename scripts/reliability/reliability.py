@@ -2,7 +2,7 @@
 """The service under hostile load, against the real binary on 127.0.0.1 (stdlib only).
 
 Each scenario starts `facegate serve` on a free loopback port with a fresh database, attacks it,
-checks the issue's target and prints one result line; the script exits non-zero if any failed.
+checks its target and prints one result line; the script exits non-zero if any failed.
 
   slowloris   1,000 half-open connections (`GET / HTTP/1.1\\r\\nX: `, then silence): all closed
               within the header timeout (+1 s of slack for 1,000 sockets on a busy machine)

@@ -1,6 +1,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::cli::choices;
 use crate::config::models_dir;
 use crate::detect::{DetectOptions, Detector, DetectorKind, ProfileMode};
 
@@ -8,8 +9,8 @@ use crate::detect::{DetectOptions, Detector, DetectorKind, ProfileMode};
 #[derive(clap::Args, Debug, Clone)]
 pub struct DetectorArgs {
     /// Which detector to run.
-    #[arg(long, value_enum, default_value_t = DetectorKind::default())]
-    pub detector: DetectorKind,
+    #[arg(long, value_enum, default_value_t = choices::Detector::from(DetectorKind::default()))]
+    pub detector: choices::Detector,
     /// Smallest face searched, in pixels.
     #[arg(long, default_value_t = DetectOptions::default().min_face)]
     pub min_face: u32,
@@ -17,8 +18,8 @@ pub struct DetectorArgs {
     #[arg(long, default_value_t = DetectOptions::default().min_face_fraction)]
     pub min_face_fraction: f32,
     /// When the Haar detector also runs the profile cascade (on the image and its mirror).
-    #[arg(long, value_enum, default_value_t = ProfileMode::default())]
-    pub profile: ProfileMode,
+    #[arg(long, value_enum, default_value_t = choices::Profile::from(ProfileMode::default()))]
+    pub profile: choices::Profile,
     /// Overlapping raw windows needed for a detection (Haar).
     #[arg(long, default_value_t = DetectOptions::default().min_neighbours)]
     pub min_neighbours: usize,
@@ -48,7 +49,7 @@ impl DetectorArgs {
         DetectOptions {
             min_face: self.min_face,
             min_face_fraction: self.min_face_fraction,
-            profile: self.profile,
+            profile: self.profile.into(),
             min_neighbours: self.min_neighbours,
             step: self.step,
             scale_step: self.scale_step,
@@ -60,7 +61,7 @@ impl DetectorArgs {
     }
 
     pub fn load(&self) -> anyhow::Result<Detector> {
-        Ok(Detector::load_with(&models_dir(), self.detector, self.options())?)
+        Ok(Detector::load_with(&models_dir(), self.detector.into(), self.options())?)
     }
 }
 

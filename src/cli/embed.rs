@@ -10,12 +10,12 @@ use anyhow::Context;
 use sha2::Digest;
 
 use crate::embed::{self, CHIP_SIZE, FaceChip, weights::Provenance};
-use crate::pipeline::{FaceFinder, Pipeline, load_face_model};
+use crate::pipeline::{FaceFinder, Pipeline};
 use crate::recognize::deep::{DeepModel, DeepProvenance};
 use crate::research::dataset::Split;
 use crate::research::eval::deep::{self as deep_eval, ChipVariant, Scoring};
 use crate::research::eval::verification::VerificationSummary;
-use crate::research::train_deep::{self, DeepFrontEnd, PhotoEmbeddings, Sample, Set};
+use crate::research::train_deep::{self, PhotoEmbeddings, Sample, Set};
 
 #[derive(clap::Args, Debug)]
 pub struct ConvertEmbeddingArgs {
@@ -41,7 +41,7 @@ pub fn run_convert(args: ConvertEmbeddingArgs) -> anyhow::Result<ExitCode> {
     let sha256 = sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect::<String>();
     let provenance =
         Provenance { package: args.package, version: args.package_version, file: args.package_file, sha256, licence: args.licence };
-    let file = embed::convert_dlib(&bytes, provenance).with_context(|| args.dlib.display().to_string())?;
+    let file = crate::research::convert::convert_dlib(&bytes, provenance).with_context(|| args.dlib.display().to_string())?;
     // Build it once: a file that does not make a network is refused before it is written.
     embed::Embedder::new(&file)?;
     crate::core::model_file::write_model(&args.out, &file).map_err(anyhow::Error::msg)?;
@@ -114,10 +114,11 @@ pub fn run_embed(args: EmbedArgs) -> anyhow::Result<ExitCode> {
 /// Options every deep research command shares.
 #[derive(clap::Args, Debug)]
 pub struct DeepDataArgs {
-    /// Embeddings cache (rebuilt when the front end's models change).
-    #[arg(long, default_value = "target/deep-embeddings.bin")]
+    /// The research cache folder, where the embeddings are kept (under a key of the front end's
+    /// model files, its code version and the photos: made again when any changes).
+    #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
     pub cache: PathBuf,
-    /// Threads embedding photos.
+    /// Threads the front end runs on (embedding photos; aligning them for `eval verify`).
     #[arg(long, default_value_t = 2)]
     pub threads: usize,
 }
@@ -125,17 +126,8 @@ pub struct DeepDataArgs {
 /// IMM, ORL and LFW from the shared data, with the embeddings of every photo (cached).
 fn samples_and_embeddings(data: &DeepDataArgs) -> anyhow::Result<(Vec<Sample>, Vec<PhotoEmbeddings>)> {
     let samples = train_deep::list_samples(&crate::config::shared_dir())?;
-    let models = crate::config::models_dir();
-    let key = train_deep::models_key(&models);
-    if let Some(e) = train_deep::read_cache(&data.cache, &key, &samples) {
-        return Ok((samples, e));
-    }
-    let finder = FaceFinder::load(&models)?;
-    let face_model = load_face_model(Some(&crate::config::sfm_dir()));
-    let network = embed::load(&models)?;
-    let front = DeepFrontEnd { finder: &finder, face_model: face_model.as_ref(), network: &network };
-    let e = train_deep::embed_samples(&front, &samples, data.threads, &crate::cli::Bar::default());
-    train_deep::write_cache(&data.cache, &key, &samples, &e)?;
+    let (models, sfm) = (crate::config::models_dir(), crate::config::sfm_dir());
+    let e = train_deep::embeddings(&data.cache, &models, &sfm, &samples, data.threads, &crate::cli::Bar::default())?;
     Ok((samples, e))
 }
 
@@ -318,8 +310,8 @@ fn fusion_report(samples: &[Sample], embeddings: &[PhotoEmbeddings], threads: us
 
 #[derive(clap::Args, Debug)]
 pub struct EvalDeepAlignArgs {
-    /// Key points cache.
-    #[arg(long, default_value = "target/deep-keypoints.json")]
+    /// The research cache folder, where the key points are kept.
+    #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
     pub cache: PathBuf,
     #[arg(long, default_value_t = 5)]
     pub folds: usize,
@@ -332,17 +324,7 @@ pub struct EvalDeepAlignArgs {
 pub fn run_eval_deep_align(args: EvalDeepAlignArgs) -> anyhow::Result<ExitCode> {
     let samples = train_deep::list_samples(&crate::config::shared_dir())?;
     let models = crate::config::models_dir();
-    let key = train_deep::models_key(&models);
-    let cached: Option<(String, Vec<Option<[[f32; 2]; 3]>>)> =
-        std::fs::read(&args.cache).ok().and_then(|b| serde_json::from_slice(&b).ok());
-    let points = match cached {
-        Some((k, p)) if k == key && p.len() == samples.len() => p,
-        _ => {
-            let p = deep_eval::key_points(&FaceFinder::load(&models)?, &samples, args.threads, &|| {});
-            std::fs::write(&args.cache, serde_json::to_vec(&(&key, &p))?)?;
-            p
-        }
-    };
+    let points = deep_eval::cached_key_points(&args.cache, &models, &samples, args.threads, &crate::cli::Bar::default())?;
     let network = embed::load(&models)?;
     type Loaded = Vec<(usize, image::RgbImage, [[f32; 2]; 3])>;
     let load = |f: &dyn Fn(&Sample) -> bool| -> anyhow::Result<Loaded> {

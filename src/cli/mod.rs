@@ -5,6 +5,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
+pub mod choices;
 pub mod detect;
 pub mod embed;
 pub mod landmarks;

@@ -180,7 +180,7 @@ pub fn run_train_imm_sfm(args: TrainImmSfmArgs) -> anyhow::Result<ExitCode> {
     if shapes.is_empty() {
         bail!("no IMM training annotations in {}", imm.display());
     }
-    let (table, before, after) = crate::morph::correspondence::derive_from_annotations(&mut model, &shapes, args.rounds, args.radius_mm)?;
+    let (table, before, after) = crate::research::train_imm_sfm::derive_from_annotations(&mut model, &shapes, args.rounds, args.radius_mm)?;
     let anchors = crate::morph::correspondence::imm_anchors();
     let mut text = String::new();
     text.push_str("# IMM point -> Surrey Face Model (sfm_shape_3448) vertex id, for the fixed points (jaw 0-12 except\n");

@@ -6,22 +6,22 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use crate::config::Settings;
-use crate::pipeline::{FaceFinder, load_face_model};
 use crate::quality::{FEATURE_NAMES, QualityModel};
 use crate::recognize::deep::DeepModel;
 use crate::research::eval::plot::{Chart, Scale, Series, line_chart};
 use crate::research::eval::quality::{
-    self as research, EdcPoint, Measured, QualityFrontEnd, UNIFIED, VARIANTS, edc, genuine_cosine_stats, genuine_match_rates,
-    genuine_pairs, is_held_out, is_training, lowest_first, measures, out_of_fold_logits, partial_area, person_folds, random_edc, scored,
+    self as research, EdcPoint, Measured, UNIFIED, VARIANTS, edc, genuine_cosine_stats, genuine_match_rates, genuine_pairs, is_held_out,
+    is_training, lowest_first, measures, out_of_fold_logits, partial_area, person_folds, random_edc, scored,
 };
 use crate::research::train_deep::{self, Sample, Set};
 
 /// Options both quality commands share.
 #[derive(clap::Args, Debug)]
 pub struct QualityDataArgs {
-    /// Cache of every photo's embedding and quality components (rebuilt when the front end's
-    /// models or the components' definitions change).
-    #[arg(long, default_value = "target/quality-measurements.bin")]
+    /// The research cache folder, where every photo's embedding and quality components are kept
+    /// (under a key of the front end's model files, its code version and the photos: made again
+    /// when any changes).
+    #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
     pub cache: PathBuf,
     /// Threads measuring photos.
     #[arg(long, default_value_t = 2)]
@@ -104,17 +104,8 @@ impl PolicyArgs {
 /// IMM, ORL and LFW with every photo measured (cached).
 fn samples_and_measurements(data: &QualityDataArgs) -> anyhow::Result<(Vec<Sample>, Vec<Option<Measured>>)> {
     let samples = train_deep::list_samples(&crate::config::shared_dir())?;
-    let models = crate::config::models_dir();
-    let key = research::cache_key(&train_deep::models_key(&models));
-    if let Some(m) = research::read_cache(&data.cache, &key, &samples) {
-        return Ok((samples, m));
-    }
-    let finder = FaceFinder::load(&models)?;
-    let face_model = load_face_model(Some(&crate::config::sfm_dir()));
-    let network = crate::embed::load(&models)?;
-    let front = QualityFrontEnd { finder: &finder, face_model: face_model.as_ref(), network: &network };
-    let m = research::measure_samples(&front, &samples, data.threads, &crate::cli::Bar::default());
-    research::write_cache(&data.cache, &key, &samples, &m)?;
+    let (models, sfm) = (crate::config::models_dir(), crate::config::sfm_dir());
+    let m = research::measurements(&data.cache, &models, &sfm, &samples, data.threads, &crate::cli::Bar::default())?;
     Ok((samples, m))
 }
 

@@ -5,13 +5,14 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 
+use crate::cli::choices;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::calibration::DEFAULT_FMR;
-use crate::recognize::{DldaParams, FeatureKind, Model, Normalization, NormalizeParams, Photometric, Recognizer, RecognizerKind, Template};
+use crate::recognize::{DldaParams, FeatureKind, ClassicalModel, Normalization, NormalizeParams, Photometric, ClassicalRecognizer, RecognizerKind, Template};
 use crate::research::eval::identification;
 use crate::research::eval::pairs::{read_pairs, score_pairs};
 use crate::research::eval::verification::{self, summarize};
-use crate::research::train_dlda::{self as train, AlignedFace, FaceRegion, FrontEnd, HeldOutReport, KeypointSource, TrainConfig};
+use crate::research::train_dlda::{self as train, AlignedFace, FaceRegion, FrontEnd, HeldOutReport, TrainConfig};
 
 #[derive(clap::Args, Debug)]
 pub struct CompareArgs {
@@ -20,8 +21,8 @@ pub struct CompareArgs {
     #[arg(long)]
     pub json: bool,
     /// Which recognizer compares the photos.
-    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = RecognizerKind::default())]
-    pub recognizer: RecognizerKind,
+    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::ClassicalRecognizer::from(RecognizerKind::default()))]
+    pub recognizer: choices::ClassicalRecognizer,
     /// Operating point: the calibrated false match rate closest to this (1e-2, 1e-3 or 1e-4).
     #[arg(long, default_value_t = DEFAULT_FMR)]
     pub fmr: f64,
@@ -128,7 +129,7 @@ pub struct ModelOptions {
     /// (comma-separated). Eyes, nose and mouth by default: lower EER and FNMR at FMR 1e-3 in
     /// cross-validation over the training persons than the whole face alone (docs/recognition.md).
     #[arg(long, value_enum, value_delimiter = ',', default_value = "eyes,nose,mouth")]
-    pub local_parts: Vec<FaceRegion>,
+    pub local_parts: Vec<choices::Region>,
     /// The whole face only (no local parts).
     #[arg(long, conflicts_with = "local_parts")]
     pub no_local_parts: bool,
@@ -159,7 +160,11 @@ impl ModelOptions {
             },
             dlda: DldaParams { max_dims: self.dims, regularization: self.regularization, pca_dims: self.pca_dims },
             mirror: !self.no_mirror,
-            local_parts: if self.no_local_parts { Vec::new() } else { self.local_parts.iter().map(|r| r.region()).collect() },
+            local_parts: if self.no_local_parts {
+                Vec::new()
+            } else {
+                self.local_parts.iter().map(|&r| FaceRegion::from(r).region()).collect()
+            },
             local_weight: self.local_weight,
             cohort_top_k: match self.score_norm {
                 ScoreNormArg::None => None,
@@ -194,15 +199,19 @@ pub struct TrainDldaArgs {
     pub out: PathBuf,
     /// Where the eye and mouth centres come from.
     #[arg(long, value_enum, default_value = "annotated")]
-    pub keypoints: KeypointSource,
+    pub keypoints: choices::Keypoints,
     /// Before training, report the EER of K-fold cross-validation over the training persons only
     /// (how parameters are chosen without looking at the held-out persons).
     #[arg(long)]
     pub cv_folds: Option<usize>,
-    /// Keep the aligned crops in this folder between runs (keyed by everything that shapes them,
-    /// including the landmark model file), so that parameter searches skip the front end.
+    /// Keep the aligned crops in this research cache folder between runs (e.g. `target/research-cache`;
+    /// keyed by everything that shapes them: the photos, the settings, every model file the front
+    /// end reads and its code version), so that parameter searches skip the front end.
     #[arg(long)]
     pub crop_cache: Option<PathBuf>,
+    /// Threads the front end runs on (aligning and re-posing photos).
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
     /// Only cross-validate (with --cv-folds); do not train or write the model.
     #[arg(long)]
     pub cv_only: bool,
@@ -230,8 +239,8 @@ pub struct EvalPairsArgs {
     #[arg(long)]
     pub images: PathBuf,
     /// Which recognizer scores the pairs.
-    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = RecognizerKind::default())]
-    pub recognizer: RecognizerKind,
+    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::ClassicalRecognizer::from(RecognizerKind::default()))]
+    pub recognizer: choices::ClassicalRecognizer,
 }
 
 #[derive(clap::Args, Debug)]
@@ -241,8 +250,8 @@ pub struct EvalVerifyArgs {
     #[arg(required_if_eq("recognizer", "classical"))]
     pub dirs: Vec<PathBuf>,
     /// Which recognizer to measure.
-    #[arg(long, value_enum, default_value_t = RecognizerKind::Classical)]
-    pub recognizer: RecognizerKind,
+    #[arg(long, value_enum, default_value_t = choices::ClassicalRecognizer::from(RecognizerKind::Classical))]
+    pub recognizer: choices::ClassicalRecognizer,
     /// The model to measure (default: `dlda.bin`, or `deep.bin` with `--recognizer deep`, in the
     /// models folder).
     #[arg(long)]
@@ -253,7 +262,7 @@ pub struct EvalVerifyArgs {
     #[arg(long)]
     pub json: bool,
     #[arg(long, value_enum, default_value = "annotated")]
-    pub keypoints: KeypointSource,
+    pub keypoints: choices::Keypoints,
     /// Measure on every person, including those the projection was trained on (optimistic).
     #[arg(long)]
     pub all_persons: bool,
@@ -268,28 +277,25 @@ pub struct EvalIdentifyArgs {
     #[arg(long)]
     pub data: Option<PathBuf>,
     #[arg(long, value_enum, default_value = "annotated")]
-    pub keypoints: KeypointSource,
+    pub keypoints: choices::Keypoints,
     /// Add the view-1 photos of the training persons to the gallery as distractors (the probes
     /// stay held-out persons only).
     #[arg(long)]
     pub distractors: bool,
     /// `classical`: a 2D and a 3DMM model trained here and compared; `deep`: the deep recognizer
     /// through the service's pipeline (the IMM data under the shared folder).
-    #[arg(long, value_enum, default_value_t = RecognizerKind::Classical)]
-    pub recognizer: RecognizerKind,
+    #[arg(long, value_enum, default_value_t = choices::ClassicalRecognizer::from(RecognizerKind::Classical))]
+    pub recognizer: choices::ClassicalRecognizer,
     #[command(flatten)]
     pub model: ModelOptions,
 }
 
 pub fn run_compare(args: CompareArgs) -> anyhow::Result<ExitCode> {
-    let pipeline = Pipeline::load(&PipelineConfig { recognizer: args.recognizer, ..crate::config::pipeline_config() })?;
-    let analyze = |path: &Path| -> anyhow::Result<Template> {
-        let photo = crate::core::imaging::open(path)?;
-        Ok(pipeline.analyze(&photo).with_context(|| path.display().to_string())?.template)
-    };
-    let (a, b) = (analyze(&args.a)?, analyze(&args.b)?);
+    let pipeline = Pipeline::load(&PipelineConfig { recognizer: args.recognizer.into(), ..crate::config::pipeline_config() })?;
+    let (a, b) = (crate::core::imaging::open(&args.a)?, crate::core::imaging::open(&args.b)?);
     // `b` plays a subject enrolled with one photo; both templates come from the loaded model.
-    let d = crate::service::decide(&pipeline, &a, std::slice::from_ref(&b), args.fmr);
+    let d = crate::service::compare(&pipeline, &a, &b, args.fmr)
+        .map_err(|e| anyhow::Error::new(e.source).context([&args.a, &args.b][e.photo].display().to_string()))?;
     if args.json {
         crate::cli::print_json_line(&serde_json::json!({"score": d.score, "threshold": d.threshold, "fmr": d.fmr, "match": d.is_match}));
     } else {
@@ -318,39 +324,16 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
 
 /// The crops `train dlda` trains on: every path's, with the re-posed copies unless `--no-repose`.
 fn training_crops(args: &TrainDldaArgs, config: &TrainConfig) -> anyhow::Result<Vec<AlignedFace>> {
-    let mut faces = train::list_faces(&args.data)?;
-    anyhow::ensure!(!faces.is_empty(), "no labelled images under {:?}", args.data);
-    if args.model.train_frontal_only {
-        faces.retain(|f| f.held_out || !f.is_rotated_view());
-    }
-    let paths: Vec<Normalization> = std::iter::once(config.normalization).chain(config.secondary).collect();
-    let repose: Vec<(f32, f32)> = if args.no_repose {
-        Vec::new()
-    } else {
-        args.repose_yaw.iter().map(|&yaw| (yaw, 0.0)).chain(args.repose_pitch.iter().map(|&pitch| (0.0, pitch))).collect()
+    let photos = train::TrainingPhotos {
+        data: args.data.clone(),
+        keypoints: args.keypoints.into(),
+        frontal_only: args.model.train_frontal_only,
+        repose: if args.no_repose { Vec::new() } else { train::repose_offsets(&args.repose_yaw, &args.repose_pitch) },
+        cache: args.crop_cache.clone(),
+        threads: args.threads,
     };
-    // The 3DMM is needed by its path and by the re-posed copies (on the 2D path it only reports
-    // the pose: the crops are the same with or without it).
-    let sfm = (paths.contains(&Normalization::Morph) || !repose.is_empty()).then(crate::config::sfm_dir);
-    let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
-    let mut aligned =
-        train::align_paths(args.crop_cache.as_deref(), &front, &faces, &paths, &config.normalize, &crate::cli::Bar::default())?;
-    if !repose.is_empty() {
-        anyhow::ensure!(
-            front.face_model.is_some(),
-            "the re-posed training copies (--repose-yaw, default ±20°) need the Surrey Face Model (FACEGATE_SFM); or pass --no-repose"
-        );
-        train::attach_reposed_crops(
-            args.crop_cache.as_deref(),
-            &front,
-            &mut aligned,
-            &paths,
-            &config.normalize,
-            &repose,
-            &crate::cli::Bar::default(),
-        )?;
-    }
-    Ok(aligned)
+    let (models, sfm) = (crate::config::models_dir(), crate::config::sfm_dir());
+    train::training_crops(&photos, config, &models, &sfm, &crate::cli::Bar::default())
 }
 
 /// Prints the cross-validation folds (stderr) and their JSON line (stdout).
@@ -371,7 +354,7 @@ fn report_cross_validation(folds: &[verification::VerificationSummary]) {
 }
 
 /// Prints what was trained (stderr: version, held-out measures, threshold tables) and its JSON line.
-fn report_model(out: &Path, model: &Model, report: &HeldOutReport) {
+fn report_model(out: &Path, model: &ClassicalModel, report: &HeldOutReport) {
     let version = model.version();
     eprintln!(
         "{}: {version}, {} → {} dims, trained on {} photos of {} persons (+mirrored: {}), keypoints {}",
@@ -421,7 +404,7 @@ fn report_model(out: &Path, model: &Model, report: &HeldOutReport) {
 pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
     let file = std::fs::File::open(&args.pairs).with_context(|| args.pairs.display().to_string())?;
     let pairs = read_pairs(std::io::BufReader::new(file))?;
-    let pipeline = Pipeline::load(&PipelineConfig { recognizer: args.recognizer, ..crate::config::pipeline_config() })?;
+    let pipeline = Pipeline::load(&PipelineConfig { recognizer: args.recognizer.into(), ..crate::config::pipeline_config() })?;
     let bar = crate::cli::progress(pairs.len() as u64, "pairs");
     let template_of = |path: &Path| -> anyhow::Result<Template> {
         let photo = crate::core::imaging::open(path)?;
@@ -447,12 +430,12 @@ pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
 const ENROLLED_PHOTOS: [usize; 4] = [1, 2, 3, 5];
 
 pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
-    if args.recognizer == RecognizerKind::Deep {
+    if RecognizerKind::from(args.recognizer) == RecognizerKind::Deep {
         let path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::deep::FILE));
         return crate::cli::embed::run_eval_verify_deep(&path, &args.deep, args.json);
     }
     let model_path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::MODEL_FILE));
-    let recognizer = Recognizer::load_file(&model_path)?;
+    let recognizer = ClassicalRecognizer::load_file(&model_path)?;
     let model = recognizer.model();
     let mut faces = train::list_faces(&args.dirs)?;
     if !args.all_persons {
@@ -461,7 +444,7 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
     anyhow::ensure!(!faces.is_empty(), "no photos of held-out persons under {:?}", args.dirs);
     let paths = model.paths();
     let sfm = paths.contains(&Normalization::Morph).then(crate::config::sfm_dir);
-    let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), sfm.as_deref());
+    let front = FrontEnd::load(args.keypoints.into(), &crate::config::models_dir(), sfm.as_deref()).with_threads(args.deep.threads);
     let aligned = train::align_paths(None, &front, &faces, &paths, &model.normalize, &crate::cli::Bar::default())?;
     let templates: Vec<(String, Template, bool)> = aligned
         .iter()
@@ -502,7 +485,7 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
             100.0 * s.fnmr_at_fmr_1e3
         );
     }
-    print_enrolment_protocol(&recognizer, [("frontal/near-frontal", &frontal), ("all views", &all)], who);
+    print_enrollment_protocol(&recognizer, [("frontal/near-frontal", &frontal), ("all views", &all)], who);
     std::fs::create_dir_all(&args.plots)?;
     let (roc, det) = (args.plots.join("roc.svg"), args.plots.join("det.svg"));
     verification::write_roc_det(&roc, &det, &[("frontal/near-frontal", &gf, &iff), ("all views (incl. IMM ±30°)", &ga, &ia)])?;
@@ -512,11 +495,11 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
 
 /// The service's protocol: k photos enrolled per person, the probe scored against all of them, at
 /// the threshold the service uses for a subject with k templates.
-fn print_enrolment_protocol(recognizer: &Recognizer, sets: [(&str, &Vec<(String, Template)>); 2], who: &str) {
+fn print_enrollment_protocol(recognizer: &ClassicalRecognizer, sets: [(&str, &Vec<(String, Template)>); 2], who: &str) {
     let model = recognizer.model();
     for (name, set) in sets {
         for k in ENROLLED_PHOTOS {
-            let (g, i) = train::enrolment_scores(recognizer, set, k, model.combine);
+            let (g, i) = train::enrollment_scores(recognizer, set, k, model.combine);
             if g.is_empty() || i.is_empty() {
                 continue;
             }
@@ -543,12 +526,12 @@ fn print_enrolment_protocol(recognizer: &Recognizer, sets: [(&str, &Vec<(String,
 }
 
 pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
-    if args.recognizer == RecognizerKind::Deep {
+    if RecognizerKind::from(args.recognizer) == RecognizerKind::Deep {
         return crate::cli::embed::run_eval_identify_deep(args.distractors);
     }
     let data = args.data.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/imm"));
     let faces = train::list_faces(std::slice::from_ref(&data))?;
-    let front = FrontEnd::load(args.keypoints, &crate::config::models_dir(), Some(&crate::config::sfm_dir()));
+    let front = FrontEnd::load(args.keypoints.into(), &crate::config::models_dir(), Some(&crate::config::sfm_dir()));
     let mut normalizations = vec![Normalization::TwoD];
     if front.face_model.is_some() {
         normalizations.push(Normalization::Morph);

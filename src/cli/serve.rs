@@ -62,13 +62,13 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
     } else {
         tracing::info!("{} API key(s) configured", config.api_keys.len());
     }
-    tracing::info!(workers = config.workers, queue = config.queue_depth, enrol_queue = config.enrol_queue_depth, "bounded work pool");
+    tracing::info!(workers = config.workers, queue = config.queue_depth, enroll_queue = config.enroll_queue_depth, "bounded work pool");
     let state = AppState::new(Arc::new(pipeline), store.clone(), config);
     let loading = std::time::Instant::now();
-    for (subject, why) in state.load_gallery().await? {
+    for (subject, why) in state.facegate().load_gallery().await? {
         tracing::error!(subject, "templates cannot be read; /identify refuses until the subject is erased: {why}");
     }
-    let (subjects, templates) = state.gallery_size();
+    let (subjects, templates) = state.facegate().gallery_size();
     tracing::info!(subjects, templates, load_ms = loading.elapsed().as_millis() as u64, backend = ?store.backend(), "identify gallery loaded");
     let listener = tokio::net::TcpListener::bind(&args.bind).await.with_context(|| format!("cannot listen on {}", args.bind))?;
     tracing::info!(
@@ -83,7 +83,7 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
             tracing::warn!(grace_s = limits.shutdown_grace.as_secs_f64(), "connections still open after the grace period were dropped")
         }
     }
-    state.stop_following();
+    state.facegate().stop_following();
     store.close().await;
     tracing::info!("stopped");
     Ok(())

@@ -147,7 +147,7 @@ fn imm_path(name: &str) -> PathBuf {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_console_enrols_verifies_shows_the_avatar_and_deletes_in_chromium() {
+async fn the_console_enrolls_verifies_shows_the_avatar_and_deletes_in_chromium() {
     let ci = std::env::var("CI").is_ok_and(|v| v == "true");
     let (Some(chromium), Some(chromedriver)) = (first_existing(&CHROMIUM), first_existing(&CHROMEDRIVER)) else {
         let reason = "Chromium or chromedriver is not installed (apt-get install chromium chromium-driver)";

@@ -89,7 +89,7 @@ async fn a_stalled_body_gets_408_and_a_refused_request_is_answered_before_its_bo
     // One worker, no queue, a slow engine: while a verification runs, another is refused with
     // 503 from its head alone (the client has sent none of its body); an enrolment, in its own
     // queue, is still admitted.
-    let one = ApiConfig { workers: 1, queue_depth: 0, enrol_queue_depth: 1, ..config() };
+    let one = ApiConfig { workers: 1, queue_depth: 0, enroll_queue_depth: 1, ..config() };
     let app = TestApp::start(StandInEngine::slow(Duration::from_millis(800)), one).await;
     let photo = pattern_jpeg(320, 240, 4);
     assert_eq!(app.post_form("/enroll", Some("hana"), std::slice::from_ref(&photo)).await.status, 201);
@@ -232,7 +232,7 @@ fn captured_log() -> &'static Captured {
 }
 
 #[tokio::test]
-async fn the_audit_log_has_one_json_line_per_enrol_verify_identify_delete_with_key_and_request_ids() {
+async fn the_audit_log_has_one_json_line_per_enroll_verify_identify_delete_with_key_and_request_ids() {
     let log = captured_log();
     let key = "0123456789abcdef-audit";
     let app = TestApp::start(StandInEngine::new("v1"), ApiConfig { api_keys: vec![key.into()], ..config() }).await;
@@ -267,10 +267,10 @@ async fn the_audit_log_has_one_json_line_per_enrol_verify_identify_delete_with_k
     let key_id = format!("{:x}", sha2::Sha256::digest(key.as_bytes()))[..8].to_string();
     let by_id = |id: &str| audit.iter().find(|f| f["request_id"] == id).unwrap_or_else(|| panic!("no audit line for {id}: {text}")).clone();
     assert_eq!(audit.len(), 6, "{text}");
-    let enrol = by_id("audit-enrol");
-    assert_eq!((enrol["op"].as_str(), enrol["outcome"].as_str(), enrol["subject"].as_str()), (Some("enroll"), Some("ok"), Some("ivy")));
+    let enroll = by_id("audit-enrol");
+    assert_eq!((enroll["op"].as_str(), enroll["outcome"].as_str(), enroll["subject"].as_str()), (Some("enroll"), Some("ok"), Some("ivy")));
     assert_eq!(
-        (enrol["templates_added"].as_u64(), enrol["model_version"].as_str(), enrol["key_id"].as_str()),
+        (enroll["templates_added"].as_u64(), enroll["model_version"].as_str(), enroll["key_id"].as_str()),
         (Some(1), Some("v1"), Some(&*key_id))
     );
     let verify = by_id("audit-verify");

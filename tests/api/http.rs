@@ -33,8 +33,8 @@ async fn app_on(db: Db) -> (TestApp, Arc<StandInEngine>) {
     (TestApp::start_on(db, engine.clone(), config()).await, engine)
 }
 
-on_both_backends!(enrol_verify_identify_and_subjects_round_trip);
-async fn enrol_verify_identify_and_subjects_round_trip(db: Db) {
+on_both_backends!(enroll_verify_identify_and_subjects_round_trip);
+async fn enroll_verify_identify_and_subjects_round_trip(db: Db) {
     let (app, _) = app_on(db).await;
     let alice = pattern_jpeg(320, 240, 1);
     let bob = pattern_jpeg(320, 240, 9);
@@ -154,8 +154,8 @@ fn dark_pattern_jpeg(seed: u32) -> Vec<u8> {
     encode(&image::DynamicImage::ImageLuma8(img), image::ImageFormat::Jpeg)
 }
 
-on_both_backends!(every_analysed_face_has_quality_and_enrolment_refuses_a_photo_below_the_policy);
-async fn every_analysed_face_has_quality_and_enrolment_refuses_a_photo_below_the_policy(db: Db) {
+on_both_backends!(every_analyzed_face_has_quality_and_enrollment_refuses_a_photo_below_the_policy);
+async fn every_analyzed_face_has_quality_and_enrollment_refuses_a_photo_below_the_policy(db: Db) {
     let (app, _) = app_on(db).await;
     let good = pattern_jpeg(320, 240, 4);
     let dark = dark_pattern_jpeg(4);
@@ -305,11 +305,11 @@ async fn health_metrics_and_openapi_are_served(db: Db) {
     assert_eq!(r.body, facegate::http::OPENAPI_YAML.as_bytes());
 }
 
-on_both_backends!(identify_follows_enrol_and_delete_and_tampered_templates_are_refused);
+on_both_backends!(identify_follows_enroll_and_delete_and_tampered_templates_are_refused);
 /// `/identify` answers from the in-memory gallery, which follows enrolments and deletions; with a
 /// template key the templates are sealed, `/health` says so, and a tampered template is refused
 /// with a 500 problem (never scored) by `/verify` and, once loaded, by `/identify`.
-async fn identify_follows_enrol_and_delete_and_tampered_templates_are_refused(db: Db) {
+async fn identify_follows_enroll_and_delete_and_tampered_templates_are_refused(db: Db) {
     let plain = TestApp::start_on(db, StandInEngine::new("v1"), config()).await;
     assert_eq!(plain.get("/health").await.json()["templates_encrypted"], false);
 

@@ -49,7 +49,7 @@ fn flat_grey() -> Vec<u8> {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn enrol_an_imm_photo_then_verify_the_same_and_another_person() {
+async fn enroll_an_imm_photo_then_verify_the_same_and_another_person() {
     let app = app().await;
     // Two photos (frontal, and turned to the side) of person 01.
     let r = app.post_form("/enroll", Some("imm-01"), &[imm("01-1m.jpg"), imm("01-3m.jpg")]).await;
@@ -241,7 +241,7 @@ fn altered_imm(name: &str, f: impl Fn(image::DynamicImage) -> image::DynamicImag
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn enrolment_refuses_a_darkened_or_blurred_photo_and_accepts_its_original() {
+async fn enrollment_refuses_a_darkened_or_blurred_photo_and_accepts_its_original() {
     let app = app().await;
     let darkened = altered_imm("03-1m.jpg", |img| {
         let mut rgb = img.to_rgb8();

@@ -31,8 +31,8 @@ macro_rules! on_both_backends {
 }
 
 on_both_backends!(
-    enrol_list_read_and_delete,
-    a_failed_enrolment_stores_nothing,
+    enroll_list_read_and_delete,
+    a_failed_enrollment_stores_nothing,
     sealed_round_trip_and_tampered_rows_refused,
     rekey_seals_then_rotates
 );
@@ -87,7 +87,7 @@ async fn scan(store: &Store, version: &str) -> Vec<(String, Result<Vec<Template>
     out
 }
 
-async fn enrol_list_read_and_delete(url: String) {
+async fn enroll_list_read_and_delete(url: String) {
     let store = Store::connect(&url, None).await.unwrap();
     let postgres = store.backend() == Backend::Postgres;
     assert_eq!(store.backend(), if url.starts_with("sqlite:") { Backend::Sqlite } else { Backend::Postgres });
@@ -136,7 +136,7 @@ async fn enrol_list_read_and_delete(url: String) {
     store.close().await;
 }
 
-async fn a_failed_enrolment_stores_nothing(url: String) {
+async fn a_failed_enrollment_stores_nothing(url: String) {
     let store = Store::connect(&url, None).await.unwrap();
     store.enroll(&id("bob"), &[template("m1", &[0.5])]).await.unwrap();
     let version = store.change_version().await.unwrap();

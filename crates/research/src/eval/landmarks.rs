@@ -1,0 +1,613 @@
+//! Landmark accuracy on held-out IMM persons (the analogue of the thesis's table 2.1): the three
+//! variants side by side, from the detector's box to the searched points, with the Jesorsky
+//! d_eye measure and the mouth error (thesis eq. 2.4–2.5), and their cumulative curves.
+
+use std::io::Write;
+use std::path::Path;
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::dataset::{self, ImmSample, KeyPoints};
+use crate::train_asm as train;
+use facegate_core::geometry::{Rect, distance};
+use facegate_vision::detect::Detector;
+use facegate_vision::landmarks::{BoxSource, Landmarker, Variant};
+
+use super::plot::{Chart, Scale, Series, cumulative, line_chart};
+use super::thread_cpu_ns;
+use crate::Progress;
+
+/// d_eye = max(d_left, d_right) / ||C_l − C_r|| (Jesorsky et al.).
+pub fn d_eye(found: &KeyPoints, truth: &KeyPoints) -> f64 {
+    let d = distance(found.left_eye, truth.left_eye).max(distance(found.right_eye, truth.right_eye));
+    (d / distance(truth.left_eye, truth.right_eye).max(1e-6)) as f64
+}
+
+/// Mouth error normalised by the distance from the eyes' midpoint to the mouth (thesis eq. 2.5).
+pub fn d_mouth(found: &KeyPoints, truth: &KeyPoints) -> f64 {
+    let mid = [0.5 * (truth.left_eye[0] + truth.right_eye[0]), 0.5 * (truth.left_eye[1] + truth.right_eye[1])];
+    (distance(found.mouth, truth.mouth) / distance(mid, truth.mouth).max(1e-6)) as f64
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct PhotoError {
+    pub person: u32,
+    pub view: u32,
+    /// `None` when the detector found no face (a failure at every threshold).
+    pub d_eye: Option<f64>,
+    pub d_mouth: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct VariantSummary {
+    pub variant: &'static str,
+    pub photos: usize,
+    pub detector_misses: usize,
+    pub d_eye_005: f64,
+    pub d_eye_01: f64,
+    pub mouth_01: f64,
+    pub mean_d_eye: f64,
+    pub ms_per_face: f64,
+    pub errors: Vec<PhotoError>,
+}
+
+fn share(errors: &[PhotoError], f: impl Fn(&PhotoError) -> Option<f64>, t: f64) -> f64 {
+    errors.iter().filter(|e| f(e).is_some_and(|v| v < t)).count() as f64 / errors.len().max(1) as f64
+}
+
+/// A face box for a test photo: the detector's largest face (as the pipeline uses it), or the
+/// annotation's bounding box when no detector is given.
+fn test_box(detector: Option<&Detector>, gray: &facegate_core::imaging::GrayF32, truth: &[facegate_core::geometry::Point]) -> Option<Rect> {
+    match detector {
+        Some(d) => d.detect(gray).first().map(|f| f.rect),
+        None => Some(train::annotation_box(truth)),
+    }
+}
+
+/// Measure one variant on `test` photos (boxes precomputed).
+pub fn measure(
+    landmarker: &Landmarker,
+    photos: &[(ImmSample, facegate_core::imaging::GrayF32, Vec<facegate_core::geometry::Point>, Option<Rect>)],
+    variant: Variant,
+) -> VariantSummary {
+    measure_fn(photos, variant.name(), &|gray, rect| landmarker.fit(gray, rect, variant).keypoints)
+}
+
+/// Train on the training persons, measure the three variants on the held-out persons, print the
+/// table, write `summary.json`, `landmarks-d_eye.svg` and `landmarks-mouth.svg` into `out`.
+pub fn run(
+    imm: &Path,
+    detector: Option<&Detector>,
+    out: &Path,
+    progress: &dyn Progress,
+    report: &mut dyn Write,
+) -> anyhow::Result<Vec<VariantSummary>> {
+    run_scaled(imm, detector, out, 0, progress, report)
+}
+
+type TestPhoto = (ImmSample, facegate_core::imaging::GrayF32, Vec<facegate_core::geometry::Point>, Option<Rect>);
+
+/// Load test photos, halved `halvings` times (2×2 means, the pyramid's convention: a point `p` goes
+/// to `(p − ½)/2`), with the annotation moved alike and the box of the smaller photo.
+fn load_test_photos(test: &[ImmSample], detector: Option<&Detector>, halvings: usize) -> anyhow::Result<Vec<TestPhoto>> {
+    let mut photos = Vec::new();
+    for s in test {
+        let mut gray = facegate_core::imaging::open(&s.image)?.gray;
+        let mut truth = s.landmarks()?;
+        for _ in 0..halvings {
+            gray = gray.downsample_half();
+            truth.iter_mut().for_each(|p| *p = [(p[0] - 0.5) * 0.5, (p[1] - 0.5) * 0.5]);
+        }
+        let rect = test_box(detector, &gray, &truth);
+        photos.push((s.clone(), gray, truth, rect));
+    }
+    Ok(photos)
+}
+
+/// Person-disjoint k-fold cross-validation: the IMM persons (in order) are dealt into `folds`
+/// folds; each fold is measured by a model trained on the others, so every photo is measured by a
+/// model that never saw its person. Prints the table over all photos and writes
+/// `summary-folds{folds}[-halvings{h}].json` into `out`.
+pub fn run_folds(
+    imm: &Path,
+    detector: Option<&Detector>,
+    out: &Path,
+    folds: usize,
+    halvings: usize,
+    progress: &dyn Progress,
+    report: &mut dyn Write,
+) -> anyhow::Result<Vec<VariantSummary>> {
+    let all = dataset::list_imm(imm)?;
+    let mut persons: Vec<u32> = all.iter().map(|s| s.person).collect();
+    persons.sort_unstable();
+    persons.dedup();
+    anyhow::ensure!(persons.len() >= folds, "{} persons cannot fill {folds} folds", persons.len());
+    let fold_of = |person: u32| persons.iter().position(|&p| p == person).unwrap_or(0) % folds;
+    let mut errors: Vec<Vec<PhotoError>> = vec![Vec::new(); Variant::ALL.len()];
+    let mut cpu_ms = vec![0.0f64; Variant::ALL.len()];
+    for fold in 0..folds {
+        let (test, training): (Vec<ImmSample>, Vec<ImmSample>) = all.iter().cloned().partition(|s| fold_of(s.person) == fold);
+        progress.begin(training.len() as u64, "train asm");
+        let model = train::train(&training, detector, &train::TrainOptions::default(), &|| progress.step())?;
+        progress.end();
+        let landmarker = Landmarker { model };
+        let photos = load_test_photos(&test, detector, halvings)?;
+        for (k, &v) in Variant::ALL.iter().enumerate() {
+            let s = measure(&landmarker, &photos, v);
+            cpu_ms[k] += s.ms_per_face * (s.photos - s.detector_misses) as f64;
+            errors[k].extend(s.errors);
+        }
+    }
+    let summaries: Vec<VariantSummary> = Variant::ALL
+        .iter()
+        .zip(errors)
+        .zip(cpu_ms)
+        .map(|((v, errors), ms)| {
+            let fitted = errors.iter().filter(|e| e.d_eye.is_some()).count();
+            summarise(v.name(), errors, ms / fitted.max(1) as f64)
+        })
+        .collect();
+    writeln!(
+        report,
+        "IMM person-disjoint {folds}-fold cross-validation over {} persons: {} photos, each measured by a model not trained on its person{}",
+        persons.len(),
+        all.len(),
+        if halvings > 0 { format!(", test photos halved {halvings}×") } else { String::new() }
+    )?;
+    print_table(&summaries, report)?;
+    std::fs::create_dir_all(out)?;
+    let name = if halvings > 0 { format!("summary-folds{folds}-halvings{halvings}.json") } else { format!("summary-folds{folds}.json") };
+    let summary = serde_json::json!({ "folds": folds, "halvings": halvings, "photos": all.len(), "variants": summaries });
+    std::fs::write(out.join(&name), serde_json::to_string_pretty(&summary)?)?;
+    writeln!(report, "wrote {}", out.join(name).display())?;
+    Ok(summaries)
+}
+
+fn print_table(summaries: &[VariantSummary], report: &mut dyn Write) -> std::io::Result<()> {
+    writeln!(
+        report,
+        "{:<8} {:>12} {:>12} {:>14} {:>12} {:>9} {:>12}",
+        "variant", "d_eye<0.05", "d_eye<0.1", "mouth<0.1", "mean d_eye", "misses", "cpu ms/face"
+    )?;
+    for s in summaries {
+        writeln!(
+            report,
+            "{:<8} {:>11.1}% {:>11.1}% {:>13.1}% {:>12.4} {:>9} {:>12.2}",
+            s.variant,
+            100.0 * s.d_eye_005,
+            100.0 * s.d_eye_01,
+            100.0 * s.mouth_01,
+            s.mean_d_eye,
+            s.detector_misses,
+            s.ms_per_face
+        )?;
+    }
+    Ok(())
+}
+
+/// [`run`] with the test photos halved `halvings` times (0: exactly [`run`]).
+pub fn run_scaled(
+    imm: &Path,
+    detector: Option<&Detector>,
+    out: &Path,
+    halvings: usize,
+    progress: &dyn Progress,
+    report: &mut dyn Write,
+) -> anyhow::Result<Vec<VariantSummary>> {
+    let all = dataset::list_imm(imm)?;
+    let (test, training): (Vec<ImmSample>, Vec<ImmSample>) = all.into_iter().partition(|s| dataset::imm_is_test_person(s.person));
+    anyhow::ensure!(!test.is_empty() && !training.is_empty(), "need both training and held-out persons in {}", imm.display());
+    progress.begin(training.len() as u64, "train asm");
+    let model = train::train(&training, detector, &train::TrainOptions::default(), &|| progress.step())?;
+    progress.end();
+    let box_source = model.info.box_source;
+    let landmarker = Landmarker { model };
+    let photos = load_test_photos(&test, detector, halvings)?;
+    if halvings > 0 {
+        writeln!(report, "test photos halved {halvings}× before detection and search")?;
+    }
+    let mut summaries: Vec<VariantSummary> = Variant::ALL.iter().map(|&v| measure(&landmarker, &photos, v)).collect();
+    // The 3D-ASM beside them, and the head yaw of each photo for the per-view table.
+    let (yaws, crossover_rows) =
+        match measure_asm3d(&training, if halvings == 0 { &test } else { &[] }, detector, &photos, &landmarker, progress) {
+            Some(m) => {
+                summaries.push(m.asm3d);
+                summaries.push(m.switch);
+                (m.yaws, m.crossover)
+            }
+            None => (vec![f32::NAN; photos.len()], Vec::new()),
+        };
+
+    let boxes = match (detector, box_source) {
+        (Some(_), BoxSource::Detector) => "detector boxes",
+        (Some(_), BoxSource::Annotation) => "detector boxes (placement learnt from annotation boxes)",
+        (None, _) => "ANNOTATION boxes (no detector available)",
+    };
+    writeln!(
+        report,
+        "IMM held-out persons {:?}: {} photos, {} training photos, {boxes}",
+        {
+            let mut p: Vec<u32> = test.iter().map(|s| s.person).collect();
+            p.dedup();
+            p
+        },
+        test.len(),
+        training.len()
+    )?;
+    print_table(&summaries, report)?;
+
+    let per_view = per_view_tables(&summaries, &yaws, report)?;
+    for (name, rows) in &crossover_rows {
+        writeln!(report, "{name}:")?;
+        print_crossover(rows, report)?;
+    }
+
+    std::fs::create_dir_all(out)?;
+    let curves = |f: &dyn Fn(&PhotoError) -> Option<f64>| -> Vec<Series> {
+        summaries
+            .iter()
+            .map(|s| {
+                // Misses count as failures: an error beyond the plotted range.
+                let errs: Vec<f64> = s.errors.iter().map(|e| f(e).unwrap_or(f64::INFINITY)).collect();
+                Series {
+                    name: match s.variant {
+                        "asm" => "ASM (profiles)",
+                        "sift" => "SIFT-ASM",
+                        "asm3d" => "3D-ASM",
+                        "switch" => "service: C-ASM or 3D-ASM by yaw",
+                        _ => "C-ASM",
+                    },
+                    points: cumulative(&errs, 0.25, 100),
+                }
+            })
+            .collect()
+    };
+    let chart = |title, x_label| Chart {
+        title,
+        x_label,
+        y_label: "share of photos",
+        x_range: (0.0, 0.25),
+        y_range: (0.0, 1.0),
+        x_scale: Scale::Linear,
+        y_scale: Scale::Linear,
+    };
+    line_chart(
+        &out.join("landmarks-d_eye.svg"),
+        &chart("IMM held-out persons: eye error", "d_eye (max eye error / eye distance)"),
+        &curves(&|e| e.d_eye),
+    )?;
+    line_chart(
+        &out.join("landmarks-mouth.svg"),
+        &chart("IMM held-out persons: mouth error", "mouth error / eyes-to-mouth distance"),
+        &curves(&|e| e.d_mouth),
+    )?;
+    let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries, "per_view": per_view, "yaw_of_annotation": yaws, "crossover": crossover_rows.iter().map(|(name, rows)| serde_json::json!({ "search": name, "rows": rows, "crossover_yaw": crossover_yaw(rows) })).collect::<Vec<_>>() });
+    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
+    writeln!(report, "wrote {}", out.display())?;
+    Ok(summaries)
+}
+
+/// Measure any landmark search (as [`measure`]) under the name `variant`.
+pub fn measure_fn(
+    photos: &[(ImmSample, facegate_core::imaging::GrayF32, Vec<facegate_core::geometry::Point>, Option<Rect>)],
+    variant: &'static str,
+    fit: &dyn Fn(&facegate_core::imaging::GrayF32, &Rect) -> KeyPoints,
+) -> VariantSummary {
+    let mut errors = Vec::new();
+    let (mut total_ms, mut fitted) = (0.0, 0usize);
+    for (sample, gray, truth, rect) in photos {
+        let truth_k = KeyPoints::from_imm(truth);
+        let (de, dm) = match rect {
+            Some(r) => {
+                let (t, c) = (Instant::now(), thread_cpu_ns());
+                let found = fit(gray, r);
+                total_ms += match (c, thread_cpu_ns()) {
+                    (Some(a), Some(b)) => (b - a) as f64 * 1e-6,
+                    _ => t.elapsed().as_secs_f64() * 1e3,
+                };
+                fitted += 1;
+                (Some(d_eye(&found, &truth_k)), Some(d_mouth(&found, &truth_k)))
+            }
+            None => (None, None),
+        };
+        errors.push(PhotoError { person: sample.person, view: sample.view, d_eye: de, d_mouth: dm });
+    }
+    summarise(variant, errors, total_ms / fitted.max(1) as f64)
+}
+
+fn summarise(variant: &'static str, errors: Vec<PhotoError>, ms_per_face: f64) -> VariantSummary {
+    let found: Vec<f64> = errors.iter().filter_map(|e| e.d_eye).collect();
+    VariantSummary {
+        variant,
+        photos: errors.len(),
+        detector_misses: errors.iter().filter(|e| e.d_eye.is_none()).count(),
+        d_eye_005: share(&errors, |e| e.d_eye, 0.05),
+        d_eye_01: share(&errors, |e| e.d_eye, 0.1),
+        mouth_01: share(&errors, |e| e.d_mouth, 0.1),
+        mean_d_eye: found.iter().sum::<f64>() / found.len().max(1) as f64,
+        ms_per_face,
+        errors,
+    }
+}
+
+/// A landmark search under measurement: photo and face box in, eye and mouth centres out.
+pub type KeypointSearch<'a> = &'a dyn Fn(&facegate_core::imaging::GrayF32, &Rect) -> KeyPoints;
+
+/// What [`measure_asm3d`] measured.
+struct Asm3dMeasurements {
+    /// The 3D-ASM refined by the C-ASM.
+    asm3d: VariantSummary,
+    /// The service's switch between C-ASM and 3D-ASM.
+    switch: VariantSummary,
+    /// Head yaw of each test photo (3DMM fitted to its manual landmarks).
+    yaws: Vec<f32>,
+    /// Crossover rows per search.
+    crossover: Vec<(&'static str, Vec<CrossoverRow>)>,
+}
+
+/// The 3D-ASM beside the 2D variants: trained on the same training persons (needs the Surrey Face
+/// Model; skipped with a message without it), refined by `casm`, measured on the same photos and
+/// boxes, alone and as the service switches to it (`asm3d::Asm3dLandmarker::switch` at
+/// `asm3d::SERVICE_MIN_YAW`); with a detector, both also against C-ASM on turned renders of the
+/// `test` persons ([`crossover`]).
+fn measure_asm3d(
+    training: &[ImmSample],
+    test: &[ImmSample],
+    detector: Option<&Detector>,
+    photos: &[(ImmSample, facegate_core::imaging::GrayF32, Vec<facegate_core::geometry::Point>, Option<Rect>)],
+    casm: &Landmarker,
+    progress: &dyn Progress,
+) -> Option<Asm3dMeasurements> {
+    use facegate_vision::landmarks::asm3d;
+    let fm = match facegate_vision::morph::FaceModel::load(&facegate_paths::sfm_dir()) {
+        Ok(m) => m,
+        Err(e) => {
+            progress.note(&format!("facegate: 3D-ASM not measured: {e}"));
+            return None;
+        }
+    };
+    progress.begin(training.len() as u64, "train asm3d");
+    let model =
+        match crate::train_asm3d::train(training, &fm, detector, &crate::train_asm3d::Asm3dTrainOptions::default(), &|| progress.step()) {
+            Ok(m) => m,
+            Err(e) => {
+                progress.note(&format!("facegate: 3D-ASM not measured: {e}"));
+                return None;
+            }
+        };
+    progress.end();
+    let lm = asm3d::Asm3dLandmarker { model };
+    let fit = |g: &facegate_core::imaging::GrayF32, r: &Rect| lm.fit_with(g, r, asm3d::Refinement::Casm(&casm.model)).keypoints;
+    let summary = measure_fn(photos, "asm3d", &fit);
+    let switch = |g: &facegate_core::imaging::GrayF32, r: &Rect| {
+        lm.switch(g, r, casm, casm.fit(g, r, Variant::Casm), asm3d::SERVICE_MIN_YAW).0.keypoints
+    };
+    let switch_summary = measure_fn(photos, "switch", &switch);
+    // The head yaw of every test photo, from the 3DMM fitted to its manual landmarks.
+    let yaws =
+        photos.iter().map(|(_, g, truth, _)| fm.fit(truth, g.width as u32, g.height as u32).map_or(f32::NAN, |f| f.pose.yaw)).collect();
+    let mut rows = Vec::new();
+    if let Some(det) = detector.filter(|_| !test.is_empty()) {
+        let searches: [(&'static str, KeypointSearch); 2] = [("3D-ASM (refined by C-ASM)", &fit), ("service switch", &switch)];
+        for (name, search) in searches {
+            match crossover(&fm, test, det, casm, search) {
+                Ok(r) => rows.push((name, r)),
+                Err(e) => progress.note(&format!("facegate: crossover not measured: {e}")),
+            }
+        }
+    }
+    Some(Asm3dMeasurements { asm3d: summary, switch: switch_summary, yaws, crossover: rows })
+}
+
+/// Per IMM view group (frontal 1–2, turned 3–4, spot light and free 5–6) and per |yaw| band of the
+/// 3DMM fitted to the manual landmarks: share with d_eye < 0.1 and mean d_eye of every variant.
+fn per_view_tables(summaries: &[VariantSummary], yaws: &[f32], report: &mut dyn Write) -> std::io::Result<serde_json::Value> {
+    let groups: [(&str, &dyn Fn(&PhotoError, f32) -> bool); 7] = [
+        ("views 1-2 (frontal)", &|e, _| matches!(e.view, 1 | 2)),
+        ("views 3-4 (turned)", &|e, _| matches!(e.view, 3 | 4)),
+        ("views 5-6 (light, free)", &|e, _| matches!(e.view, 5 | 6)),
+        ("|yaw| < 10", &|_, y| y.abs() < 10.0),
+        ("|yaw| 10-20", &|_, y| (10.0..20.0).contains(&y.abs())),
+        ("|yaw| 20-30", &|_, y| (20.0..30.0).contains(&y.abs())),
+        ("|yaw| >= 30", &|_, y| y.abs() >= 30.0),
+    ];
+    writeln!(
+        report,
+        "{:<26} {}",
+        "group (photos)",
+        summaries.iter().map(|s| format!("{:>22}", format!("{} <0.1 / mean", s.variant))).collect::<String>()
+    )?;
+    let mut rows = Vec::new();
+    for (name, member) in groups {
+        let mut line = String::new();
+        let mut count = 0;
+        let mut cells = Vec::new();
+        for s in summaries {
+            let d: Vec<f64> =
+                s.errors.iter().zip(yaws).filter(|(e, y)| member(e, **y)).map(|(e, _)| e.d_eye.unwrap_or(f64::INFINITY)).collect();
+            count = d.len();
+            let ok = d.iter().filter(|&&v| v < 0.1).count() as f64 / d.len().max(1) as f64;
+            let finite: Vec<f64> = d.iter().copied().filter(|v| v.is_finite()).collect();
+            let mean = finite.iter().sum::<f64>() / finite.len().max(1) as f64;
+            line += &format!("{:>22}", format!("{:.1}% / {:.3}", 100.0 * ok, mean));
+            cells.push(serde_json::json!({ "variant": s.variant, "d_eye_01": ok, "mean_d_eye": mean }));
+        }
+        writeln!(report, "{:<26}{line}", format!("{name} ({count})"))?;
+        rows.push(serde_json::json!({ "group": name, "photos": count, "variants": cells }));
+    }
+    Ok(serde_json::Value::Array(rows))
+}
+
+/// Yaws (degrees) of the crossover renders.
+pub const CROSSOVER_YAWS: [f32; 9] = [-60.0, -45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0, 60.0];
+
+/// One |yaw| of the crossover measurement: C-ASM and the 3D-ASM on the same renders and boxes.
+#[derive(Debug, Clone, Serialize)]
+pub struct CrossoverRow {
+    pub yaw: f32,
+    pub renders: usize,
+    /// Renders where the detector found no face (failures for both searches).
+    pub detector_misses: usize,
+    pub casm_d_eye_005: f64,
+    pub casm_d_eye_01: f64,
+    pub casm_mean_d_eye: f64,
+    pub asm3d_d_eye_005: f64,
+    pub asm3d_d_eye_01: f64,
+    pub asm3d_mean_d_eye: f64,
+}
+
+/// C-ASM against the 3D-ASM on turned renders of held-out faces: every near-frontal photo
+/// (|yaw| < 10° by the 3DMM fitted to its manual landmarks) of `test` is fitted by the 3DMM,
+/// textured and rendered at each of [`CROSSOVER_YAWS`] (its pitch, no roll, no lighting change) by
+/// the 3D-ASM training's renderer (`asm3d::synthesise_view`, landmarks = projected model points
+/// moved by the photo's annotation residual); both searches start from the detector's box on the
+/// render. Rows by |yaw|. (The renders favour the 3D-ASM, whose view models were trained on
+/// renders of other persons.)
+pub fn crossover(
+    fm: &facegate_vision::morph::FaceModel,
+    test: &[ImmSample],
+    detector: &Detector,
+    casm: &Landmarker,
+    asm3d: KeypointSearch,
+) -> anyhow::Result<Vec<CrossoverRow>> {
+    use facegate_vision::landmarks::asm3d::{
+        annotation_offsets, background_colour, contour_jaw_vertices, photo_jaw_vertices, synthesise_view,
+    };
+    let mut bands: Vec<f32> = CROSSOVER_YAWS.iter().map(|y| y.abs()).collect();
+    bands.sort_by(f32::total_cmp);
+    bands.dedup();
+    // Per band: (C-ASM d_eye, 3D-ASM d_eye) per render, infinite for a detector miss.
+    let mut errors: Vec<Vec<(f64, f64)>> = vec![Vec::new(); bands.len()];
+    let mut misses = vec![0usize; bands.len()];
+    for sample in test {
+        let photo = facegate_core::imaging::open(&sample.image)?;
+        let truth = sample.landmarks()?;
+        let Ok(fit) = fm.fit(&truth, photo.width(), photo.height()) else { continue };
+        if fit.pose.yaw.abs() >= 10.0 {
+            continue;
+        }
+        let texture = fm.extract_texture(&photo.rgb, &fit, 512);
+        let offsets = annotation_offsets(fm, &fit, &truth);
+        // A near-frontal photo keeps its own fitted jaw vertices.
+        let jaw = photo_jaw_vertices(fm, &fit, &contour_jaw_vertices(fm));
+        let background = background_colour(&photo.rgb);
+        for &yaw in &CROSSOVER_YAWS {
+            let pose = facegate_vision::morph::Pose { yaw, pitch: fit.pose.pitch, roll: 0.0 };
+            let view = synthesise_view(fm, &fit, &texture, pose, background, 0.0, &jaw, &offsets);
+            let band = bands.iter().position(|&b| b == yaw.abs()).expect("a band per yaw");
+            let truth_k = KeyPoints::from_imm(&view.points);
+            let Some(rect) = detector.detect(&view.gray).first().map(|f| f.rect) else {
+                misses[band] += 1;
+                errors[band].push((f64::INFINITY, f64::INFINITY));
+                continue;
+            };
+            let c = casm.fit(&view.gray, &rect, Variant::Casm).keypoints;
+            let a = asm3d(&view.gray, &rect);
+            errors[band].push((d_eye(&c, &truth_k), d_eye(&a, &truth_k)));
+        }
+    }
+    let rows = bands
+        .iter()
+        .zip(errors)
+        .zip(misses)
+        .map(|((&yaw, e), detector_misses)| {
+            let pct = |f: &dyn Fn(&(f64, f64)) -> f64, t: f64| e.iter().filter(|x| f(x) < t).count() as f64 / e.len().max(1) as f64;
+            let mean = |f: &dyn Fn(&(f64, f64)) -> f64| {
+                let v: Vec<f64> = e.iter().map(f).filter(|x| x.is_finite()).collect();
+                v.iter().sum::<f64>() / v.len().max(1) as f64
+            };
+            CrossoverRow {
+                yaw,
+                renders: e.len(),
+                detector_misses,
+                casm_d_eye_005: pct(&|x| x.0, 0.05),
+                casm_d_eye_01: pct(&|x| x.0, 0.1),
+                casm_mean_d_eye: mean(&|x| x.0),
+                asm3d_d_eye_005: pct(&|x| x.1, 0.05),
+                asm3d_d_eye_01: pct(&|x| x.1, 0.1),
+                asm3d_mean_d_eye: mean(&|x| x.1),
+            }
+        })
+        .collect();
+    Ok(rows)
+}
+
+/// The smallest |yaw| of `rows` from which on the 3D-ASM is better than C-ASM at every larger
+/// |yaw| too (share with d_eye < 0.1 not lower, mean d_eye lower by at least 5%: a smaller
+/// difference is within the photo-to-photo noise); `None` when it is not better at the largest.
+pub fn crossover_yaw(rows: &[CrossoverRow]) -> Option<f32> {
+    let wins = |r: &CrossoverRow| r.asm3d_d_eye_01 >= r.casm_d_eye_01 && r.asm3d_mean_d_eye < 0.95 * r.casm_mean_d_eye;
+    let mut sorted: Vec<&CrossoverRow> = rows.iter().collect();
+    sorted.sort_by(|a, b| a.yaw.total_cmp(&b.yaw));
+    let mut from = None;
+    for r in sorted.iter().rev() {
+        if !wins(r) {
+            break;
+        }
+        from = Some(r.yaw);
+    }
+    from
+}
+
+/// Print the crossover table.
+pub fn print_crossover(rows: &[CrossoverRow], report: &mut dyn Write) -> std::io::Result<()> {
+    writeln!(report, "crossover on renders of held-out faces (d_eye < 0.05 / < 0.1 / mean; detector misses count as failures)")?;
+    writeln!(report, "{:>6} {:>8} {:>7} {:>26} {:>26}", "|yaw|", "renders", "misses", "C-ASM", "3D-ASM")?;
+    for r in rows {
+        let cell = |a: f64, b: f64, m: f64| format!("{:.1}% / {:.1}% / {:.4}", 100.0 * a, 100.0 * b, m);
+        writeln!(
+            report,
+            "{:>6.0} {:>8} {:>7} {:>26} {:>26}",
+            r.yaw,
+            r.renders,
+            r.detector_misses,
+            cell(r.casm_d_eye_005, r.casm_d_eye_01, r.casm_mean_d_eye),
+            cell(r.asm3d_d_eye_005, r.asm3d_d_eye_01, r.asm3d_mean_d_eye)
+        )?;
+    }
+    match crossover_yaw(rows) {
+        Some(y) => writeln!(report, "3D-ASM better than C-ASM from |yaw| {y:.0}° on")?,
+        None => writeln!(report, "no crossover: C-ASM as good or better at the largest |yaw|")?,
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn error_measures_follow_the_thesis_definitions() {
+        let truth = KeyPoints { left_eye: [0.0, 0.0], right_eye: [100.0, 0.0], mouth: [50.0, 80.0] };
+        let found = KeyPoints { left_eye: [3.0, 4.0], right_eye: [100.0, 2.0], mouth: [50.0, 88.0] };
+        assert!((d_eye(&found, &truth) - 0.05).abs() < 1e-6);
+        assert!((d_mouth(&found, &truth) - 0.1).abs() < 1e-6);
+    }
+
+    #[test]
+    fn crossover_is_where_the_3d_asm_wins_from_on() {
+        let row = |yaw: f32, c: f64, a: f64| CrossoverRow {
+            yaw,
+            renders: 10,
+            detector_misses: 0,
+            casm_d_eye_005: 1.0,
+            casm_d_eye_01: 1.0,
+            casm_mean_d_eye: c,
+            asm3d_d_eye_005: 1.0,
+            asm3d_d_eye_01: 1.0,
+            asm3d_mean_d_eye: a,
+        };
+        // A 1% lower mean at 0° is no win.
+        let rows = [row(0.0, 0.0202, 0.0200), row(30.0, 0.03, 0.02), row(15.0, 0.02, 0.03), row(45.0, 0.05, 0.03), row(60.0, 0.08, 0.04)];
+        assert_eq!(crossover_yaw(&rows[..2]), Some(30.0));
+        assert_eq!(crossover_yaw(&[rows[0].clone(), rows[2].clone(), rows[1].clone(), rows[3].clone(), rows[4].clone()]), Some(30.0));
+        let mut lose = rows.clone();
+        lose[1].asm3d_mean_d_eye = 0.04;
+        // Wins at 45 and 60 but not at 30: the crossover is 45.
+        assert_eq!(crossover_yaw(&lose), Some(45.0));
+        // Losing at the largest |yaw|: none.
+        lose[4].asm3d_d_eye_01 = 0.9;
+        assert_eq!(crossover_yaw(&lose), None);
+    }
+}

@@ -1,0 +1,355 @@
+//! The use cases: [`Facegate`] enrolls, verifies, identifies, deletes, analyzes and renders, in
+//! the order each one needs (cheap checks and store look-ups before the photo work, the photo work
+//! on the bounded [`WorkPool`], the store commit last). HTTP handlers and the command line call
+//! these and only translate requests and results.
+
+use std::sync::Arc;
+
+use bytes::Bytes;
+use std::time::Instant;
+
+use facegate_core::SubjectId;
+use facegate_core::elapsed_ms;
+use facegate_core::imaging::{self, DecodeError, DecodeLimits};
+use facegate_store::{Backend, Store, StoreError, SubjectDetail, SubjectSummary};
+use facegate_vision::morph::AvatarFormat;
+use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PipelineError};
+use facegate_vision::quality::{Failure, QualityPolicy};
+use facegate_vision::recognize::{OperatingPoint, Template};
+
+use crate::gallery::{LiveGallery, UnreadableTemplates};
+use crate::inspect::{self, Analysis, InspectError};
+use crate::{Candidate, Decision, FaceEngine, PoolError, VerifyError, WorkPool};
+
+/// The service's policies (made from the binary's settings, where the defaults are).
+#[derive(Debug, Clone)]
+pub struct ServiceConfig {
+    /// Pixel-count, dimension and decode-memory limits per photo.
+    pub decode_limits: DecodeLimits,
+    /// Most photos in one enrolment.
+    pub max_images: usize,
+    /// The least quality an enrolment photo must have.
+    pub quality_policy: QualityPolicy,
+    /// The false match rate whose operating point decides a match unless a request asks otherwise.
+    pub default_fmr: f64,
+}
+
+/// What is wrong with one photo.
+#[derive(Debug, thiserror::Error)]
+pub enum PhotoError {
+    #[error(transparent)]
+    Decode(#[from] DecodeError),
+    #[error("no face was found in the photo")]
+    NoFace,
+    /// Landmarks the 3D model cannot be fitted to, where a template was asked for: no usable face,
+    /// as far as the client can act on it.
+    #[error("the face found could not be pose-corrected: {0}")]
+    NotPoseCorrected(String),
+    /// The 3D model could not be fitted where the 3D model itself was asked for.
+    #[error("the 3D morphable model could not be fitted to the face: {0}")]
+    FitFailed(String),
+    #[error("{0}")]
+    NoFaceModel(String),
+    #[error("{0} faces were found; an enrolment photo must show exactly one face, since a template of the wrong person is costly")]
+    SeveralFaces(usize),
+    #[error("the photo is below the quality policy")]
+    LowQuality(Vec<Failure>),
+    /// A fault of the pipeline, not of the photo.
+    #[error(transparent)]
+    Internal(PipelineError),
+}
+
+/// Why a use case did not complete.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// A photo cannot be used; `index` names it among several.
+    #[error("{error}")]
+    Photo { index: Option<usize>, error: PhotoError },
+    /// The request asks for something the service does not do (wrong photo count).
+    #[error("{0}")]
+    Invalid(String),
+    #[error("subject {0} is not enrolled")]
+    UnknownSubject(SubjectId),
+    #[error(transparent)]
+    ModelMismatch(#[from] VerifyError),
+    #[error(transparent)]
+    Pool(#[from] PoolError),
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error(transparent)]
+    Gallery(#[from] UnreadableTemplates),
+}
+
+impl From<PhotoError> for ServiceError {
+    fn from(error: PhotoError) -> ServiceError {
+        ServiceError::Photo { index: None, error }
+    }
+}
+
+impl PhotoError {
+    fn at(self, index: usize) -> ServiceError {
+        ServiceError::Photo { index: Some(index), error: self }
+    }
+
+    /// A pipeline error where a template was asked for.
+    fn of_analysis(error: PipelineError) -> PhotoError {
+        match error {
+            PipelineError::NoFace => PhotoError::NoFace,
+            PipelineError::PoseCorrection(e) => PhotoError::NotPoseCorrected(e.to_string()),
+            other => PhotoError::Internal(other),
+        }
+    }
+
+    /// A decoding or pipeline error where the face itself (landmarks, 3D model) was asked for.
+    fn of_inspection(error: InspectError) -> PhotoError {
+        match error {
+            InspectError::Decode(e) => PhotoError::Decode(e),
+            InspectError::Pipeline(PipelineError::NoFace) => PhotoError::NoFace,
+            InspectError::Pipeline(e @ PipelineError::NoFaceModel) => PhotoError::NoFaceModel(e.to_string()),
+            InspectError::Pipeline(PipelineError::PoseCorrection(e)) => PhotoError::FitFailed(e.to_string()),
+            InspectError::Pipeline(other) => PhotoError::Internal(other),
+        }
+    }
+}
+
+/// One photo decoded and analyzed: its face and template, and the time decoding took.
+#[derive(Debug, Clone)]
+pub struct AnalyzedPhoto {
+    pub analysis: FaceAnalysis,
+    pub decode_ms: f64,
+}
+
+/// Decode `bytes` within `limits` and analyze the largest face: the one path from a photo's bytes
+/// to a template (call it on the work pool).
+pub fn analyze_photo(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -> Result<AnalyzedPhoto, PhotoError> {
+    let start = Instant::now();
+    let photo = imaging::decode(bytes, limits)?;
+    let decode_ms = elapsed_ms(start);
+    let analysis = engine.analyze(&photo).map_err(PhotoError::of_analysis)?;
+    Ok(AnalyzedPhoto { analysis, decode_ms })
+}
+
+/// A completed enrolment.
+#[derive(Debug)]
+pub struct Enrollment {
+    pub subject: SubjectId,
+    /// Templates the subject has now (all model versions).
+    pub templates: u32,
+    /// The photos in request order, one template added from each.
+    pub photos: Vec<AnalyzedPhoto>,
+}
+
+/// A completed verification.
+#[derive(Debug)]
+pub struct Verification {
+    pub decision: Decision,
+    pub photo: AnalyzedPhoto,
+    /// Time spent deciding, after the photo's analysis.
+    pub match_ms: f64,
+}
+
+/// A completed identification.
+#[derive(Debug)]
+pub struct Identification {
+    /// The best-scoring subjects, best first.
+    pub candidates: Vec<Candidate>,
+    /// The operating point for a subject with one template (each candidate carries its own).
+    pub operating_point: OperatingPoint,
+    /// Subjects with templates of the current model version that were searched.
+    pub subjects_searched: usize,
+    pub photo: AnalyzedPhoto,
+    /// Time spent searching, after the photo's analysis.
+    pub match_ms: f64,
+}
+
+/// The state of the service, for `/health`.
+#[derive(Debug, Clone)]
+pub struct Health {
+    pub model_version: String,
+    pub subjects: u64,
+    pub templates: u64,
+    /// Whether template vectors are sealed at rest.
+    pub templates_encrypted: bool,
+    pub store_backend: Backend,
+}
+
+struct Inner {
+    engine: Arc<dyn FaceEngine>,
+    store: Store,
+    /// The current model's templates in memory for identification; enrolments and deletions go
+    /// through it so that it stays in step with the store.
+    gallery: LiveGallery,
+    pool: WorkPool,
+    config: ServiceConfig,
+}
+
+/// The service: the face engine, the store, the identification gallery and the work pool behind
+/// the use cases. Cheap to clone.
+#[derive(Clone)]
+pub struct Facegate(Arc<Inner>);
+
+impl Facegate {
+    pub fn new(engine: Arc<dyn FaceEngine>, store: Store, pool: WorkPool, config: ServiceConfig) -> Facegate {
+        let gallery = LiveGallery::new(store.clone(), engine.model_version());
+        Facegate(Arc::new(Inner { engine, store, gallery, pool, config }))
+    }
+
+    /// The version stamped on every template the current model makes.
+    pub fn model_version(&self) -> &str {
+        self.0.engine.model_version()
+    }
+
+    pub fn pool(&self) -> &WorkPool {
+        &self.0.pool
+    }
+
+    pub fn store(&self) -> &Store {
+        &self.0.store
+    }
+
+    pub fn config(&self) -> &ServiceConfig {
+        &self.0.config
+    }
+
+    /// The requested false match rate, or the configured one.
+    fn fmr(&self, fmr: Option<f64>) -> f64 {
+        fmr.unwrap_or(self.0.config.default_fmr)
+    }
+
+    /// Enroll `subject` from `images`: every photo must show exactly one face and meet the quality
+    /// policy; then all templates are stored in one transaction. One bad photo refuses the whole
+    /// enrolment (its index is named) and nothing is stored.
+    pub async fn enroll(&self, subject: &SubjectId, images: Vec<Bytes>) -> Result<Enrollment, ServiceError> {
+        let max = self.0.config.max_images;
+        match images.len() {
+            0 => return Err(ServiceError::Invalid("at least one photo is required (field image)".into())),
+            n if n > max => return Err(ServiceError::Invalid(format!("at most {max} photos per enrolment, got {n}"))),
+            _ => {}
+        }
+        let (engine, limits, policy) = (self.0.engine.clone(), self.0.config.decode_limits, self.0.config.quality_policy);
+        let photos = self.0.pool.run(move || enrollment_photos(engine.as_ref(), &images, &limits, &policy)).await??;
+        let templates: Vec<Template> = photos.iter().map(|p| p.analysis.template.clone()).collect();
+        let count = self.0.gallery.enroll(subject, templates).await?;
+        Ok(Enrollment { subject: subject.clone(), templates: count, photos })
+    }
+
+    /// Is the largest face of `image` the enrolled `subject`? The subject is looked up before the
+    /// photo work.
+    pub async fn verify(&self, subject: &SubjectId, image: Bytes, fmr: Option<f64>) -> Result<Verification, ServiceError> {
+        let fmr = self.fmr(fmr);
+        let enrolled = self.0.store.templates(subject).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))?;
+        let engine = &self.0.engine;
+        let comparable = crate::comparable_templates(engine.as_ref(), subject, enrolled)?;
+        let photo = self.analyze_probe(image).await?;
+        let start = Instant::now();
+        let decision = crate::decide(engine.as_ref(), &photo.analysis.template, &comparable, fmr);
+        Ok(Verification { decision, photo, match_ms: elapsed_ms(start) })
+    }
+
+    /// The best `k` enrolled subjects for the largest face of `image`. What the store holds when
+    /// the request comes in (other replicas' enrolments and deletions included) is what the search
+    /// sees: the gallery catches up while the probe is analyzed.
+    pub async fn identify(&self, image: Bytes, fmr: Option<f64>, k: usize) -> Result<Identification, ServiceError> {
+        let fmr = self.fmr(fmr);
+        let gallery = self.0.gallery.clone();
+        let store_version = gallery.change_version().await?;
+        let photo = self.analyze_probe(image).await?;
+        let start = Instant::now();
+        gallery.load().await?;
+        gallery.wait_until_applied(store_version).await;
+        let (matcher, probe) = (self.0.engine.clone(), photo.analysis.template.clone());
+        // Scoring the whole gallery is CPU work too: it runs on the pool.
+        let (candidates, subjects_searched) = self.0.pool.run(move || gallery.search(matcher.as_ref(), &probe, fmr, k)).await??;
+        let operating_point = self.0.engine.operating_point(fmr, 1);
+        Ok(Identification { candidates, operating_point, subjects_searched, photo, match_ms: elapsed_ms(start) })
+    }
+
+    async fn analyze_probe(&self, image: Bytes) -> Result<AnalyzedPhoto, ServiceError> {
+        let (engine, limits) = (self.0.engine.clone(), self.0.config.decode_limits);
+        Ok(self.0.pool.run(move || analyze_photo(engine.as_ref(), &image, &limits)).await??)
+    }
+
+    /// Erase `subject` and all its templates; `None` when it was not enrolled.
+    pub async fn delete(&self, subject: &SubjectId) -> Result<Option<u32>, ServiceError> {
+        Ok(self.0.gallery.delete(subject).await?)
+    }
+
+    /// One subject's templates by model version and dates.
+    pub async fn subject(&self, subject: &SubjectId) -> Result<SubjectDetail, ServiceError> {
+        self.0.store.subject(subject).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))
+    }
+
+    /// Subjects ordered by id, after `after`, at most `limit`.
+    pub async fn subjects(&self, after: Option<&SubjectId>, limit: u32) -> Result<Vec<SubjectSummary>, ServiceError> {
+        Ok(self.0.store.list_subjects(after, limit).await?)
+    }
+
+    /// The database answers and the models are loaded.
+    pub async fn health(&self) -> Result<Health, ServiceError> {
+        let (subjects, templates) = self.0.store.counts().await?;
+        Ok(Health {
+            model_version: self.model_version().to_string(),
+            subjects,
+            templates,
+            templates_encrypted: self.0.store.encrypts(),
+            store_backend: self.0.store.backend(),
+        })
+    }
+
+    /// Every face of `image` (or the largest) with landmarks, pose and 3D fit; nothing stored.
+    pub async fn analyze(&self, image: Bytes, choice: FaceChoice) -> Result<Analysis, ServiceError> {
+        let (engine, limits) = (self.0.engine.clone(), self.0.config.decode_limits);
+        let analysis = self.0.pool.run(move || inspect::analyze(engine.as_ref(), &image, &limits, choice)).await?;
+        Ok(analysis.map_err(PhotoError::of_inspection)?)
+    }
+
+    /// The textured 3D head of the largest face of `image`.
+    pub async fn avatar(&self, image: Bytes, format: AvatarFormat) -> Result<Vec<u8>, ServiceError> {
+        let (engine, limits) = (self.0.engine.clone(), self.0.config.decode_limits);
+        let bytes = self.0.pool.run(move || inspect::avatar(engine.as_ref(), &image, &limits, format)).await?;
+        Ok(bytes.map_err(PhotoError::of_inspection)?)
+    }
+
+    /// The largest face of `image` rendered from the front, PNG.
+    pub async fn frontalize(&self, image: Bytes) -> Result<Vec<u8>, ServiceError> {
+        let (engine, limits) = (self.0.engine.clone(), self.0.config.decode_limits);
+        let png = self.0.pool.run(move || inspect::frontalize(engine.as_ref(), &image, &limits)).await?;
+        Ok(png.map_err(PhotoError::of_inspection)?)
+    }
+
+    /// Load the identification gallery now (else on first use). Returns the subjects whose
+    /// templates cannot be read, with why: identification refuses to answer while there are any.
+    /// Where other replicas write to the same database, the gallery follows their changes from
+    /// then on, until [`Facegate::stop_following`].
+    pub async fn load_gallery(&self) -> Result<Vec<(String, String)>, StoreError> {
+        self.0.gallery.load().await
+    }
+
+    /// Subjects and templates in the identification gallery.
+    pub fn gallery_size(&self) -> (usize, usize) {
+        self.0.gallery.size()
+    }
+
+    /// Stop following the other replicas' changes (before closing the store).
+    pub fn stop_following(&self) {
+        self.0.gallery.stop_following();
+    }
+}
+
+/// Analyze every enrolment photo in order, refusing at the first that shows several faces or
+/// fails the quality policy.
+fn enrollment_photos(
+    engine: &dyn FaceEngine,
+    images: &[Bytes],
+    limits: &DecodeLimits,
+    policy: &QualityPolicy,
+) -> Result<Vec<AnalyzedPhoto>, ServiceError> {
+    let mut photos = Vec::with_capacity(images.len());
+    for (index, bytes) in images.iter().enumerate() {
+        let photo = analyze_photo(engine, bytes, limits).map_err(|e| e.at(index))?;
+        crate::check_enrollment_photo(photo.analysis.faces_found).map_err(|e| e.at(index))?;
+        crate::check_enrollment_quality(policy, &photo.analysis.quality).map_err(|f| PhotoError::LowQuality(f).at(index))?;
+        photos.push(photo);
+    }
+    Ok(photos)
+}

@@ -1,0 +1,48 @@
+//! What the service shows of a photo without storing anything: every face with its landmarks,
+//! pose and 3DMM fit ([`analyze`]), the textured 3D head ([`avatar`]) and the frontal rendering
+//! ([`frontalize`]). Each decodes the photo within the limits and runs the engine; callers in
+//! async code run them on the [`super::WorkPool`].
+
+use std::time::Instant;
+
+use super::FaceEngine;
+use facegate_core::elapsed_ms;
+use facegate_core::imaging::{self, DecodeError, DecodeLimits};
+use facegate_vision::morph::AvatarFormat;
+use facegate_vision::pipeline::{FaceChoice, PhotoReading, PipelineError};
+
+/// Why a photo could not be shown.
+#[derive(Debug, thiserror::Error)]
+pub enum InspectError {
+    #[error(transparent)]
+    Decode(#[from] DecodeError),
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+}
+
+/// An analysis and the time spent decoding the photo.
+#[derive(Debug, Clone)]
+pub struct Analysis {
+    pub reading: PhotoReading,
+    pub decode_ms: f64,
+}
+
+/// Every face of the photo (or the largest), each with its 58 landmarks, pose and fit residual.
+pub fn analyze(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits, choice: FaceChoice) -> Result<Analysis, InspectError> {
+    let start = Instant::now();
+    let photo = imaging::decode(bytes, limits)?;
+    let decode_ms = elapsed_ms(start);
+    Ok(Analysis { reading: engine.read_faces(&photo, choice)?, decode_ms })
+}
+
+/// The textured 3D head of the largest face as a glTF binary file, or the OBJ files zipped.
+pub fn avatar(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits, format: AvatarFormat) -> Result<Vec<u8>, InspectError> {
+    let photo = imaging::decode(bytes, limits)?;
+    Ok(engine.avatar(&photo, format)?)
+}
+
+/// The frontal rendering of the largest face as PNG.
+pub fn frontalize(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -> Result<Vec<u8>, InspectError> {
+    let photo = imaging::decode(bytes, limits)?;
+    Ok(engine.frontal_png(&photo)?)
+}

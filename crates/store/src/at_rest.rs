@@ -1,0 +1,185 @@
+//! SQLite's files: sealed bytes in the file, erasure, durability settings, backup and restore.
+//!
+//! A module of the crate root, not of `sqlite`, so the tests keep the names docs/service.md cites
+//! (`at_rest::…`).
+
+use std::path::PathBuf;
+
+use facegate_core::SubjectId;
+use facegate_vision::recognize::Template;
+
+use crate::{KeyRing, Store, StoreError, restore, vector_to_blob};
+
+const K1: &str = "000102030405060708090a0b0c0d0e0f101112131415161718191a1b1c1d1e1f";
+
+fn ring(text: &str) -> Option<KeyRing> {
+    Some(KeyRing::parse(text).unwrap())
+}
+
+fn id(s: &str) -> SubjectId {
+    SubjectId::parse(s).unwrap()
+}
+
+/// A vector whose bytes are easy to find in a file, different per `seed`.
+fn marked(seed: f32) -> Template {
+    Template { model_version: "m1".into(), vector: (0..32).map(|i| 1234.5678 + seed + i as f32 * 0.001).collect() }
+}
+
+struct Dir(PathBuf);
+
+impl Dir {
+    fn new() -> Dir {
+        static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir = std::env::temp_dir().join(format!("facegate-at-rest-{}-{n}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        Dir(dir)
+    }
+    fn url(&self, name: &str) -> String {
+        format!("sqlite://{}", self.0.join(name).display())
+    }
+    /// The database file and its WAL, as bytes.
+    fn raw(&self, name: &str) -> Vec<u8> {
+        let mut bytes = std::fs::read(self.0.join(name)).unwrap();
+        bytes.extend(std::fs::read(self.0.join(format!("{name}-wal"))).unwrap_or_default());
+        bytes
+    }
+}
+
+impl Drop for Dir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn contains(haystack: &[u8], needle: &[u8]) -> bool {
+    haystack.windows(needle.len()).any(|w| w == needle)
+}
+
+/// Sealed vectors never reach the file (their round trip, wrong keys and tampered rows are
+/// tested on both backends in tests/api/store_backends.rs).
+#[tokio::test]
+async fn sealed_templates_never_show_in_the_file() {
+    let dir = Dir::new();
+    let store = Store::connect(&dir.url("t.db"), ring(K1)).await.unwrap();
+    store.enroll(&id("alice"), &[marked(0.0), marked(1.0)]).await.unwrap();
+    assert_eq!(store.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0), marked(1.0)]);
+    assert!(store.checkpoint().await.unwrap());
+    let raw = dir.raw("t.db");
+    assert!(contains(&raw, b"alice"));
+    for template in [marked(0.0), marked(1.0)] {
+        assert!(!contains(&raw, &vector_to_blob(&template.vector)[..16]), "a plain vector in the file");
+    }
+    store.close().await;
+}
+
+#[tokio::test]
+async fn a_deleted_subject_leaves_nothing_in_the_files() {
+    let dir = Dir::new();
+    let store = Store::connect(&dir.url("t.db"), None).await.unwrap();
+    let (secure, synchronous): (i64, i64) = (
+        sqlx::query_scalar("PRAGMA secure_delete").fetch_one(&store.pool).await.unwrap(),
+        sqlx::query_scalar("PRAGMA synchronous").fetch_one(&store.pool).await.unwrap(),
+    );
+    assert_eq!((secure, synchronous), (1, 2), "secure_delete on, synchronous FULL");
+    let mode: String = sqlx::query_scalar("PRAGMA journal_mode").fetch_one(&store.pool).await.unwrap();
+    assert_eq!(mode, "wal");
+    let erased = "erasure-subject-7f3a";
+    let erased_vectors = [marked(10.0), marked(20.0)];
+    store.enroll(&id("keeper"), &[marked(30.0)]).await.unwrap();
+    store.enroll(&id(erased), &erased_vectors).await.unwrap();
+    store.enroll(&id("later"), &[marked(40.0)]).await.unwrap();
+    let needles: Vec<Vec<u8>> = std::iter::once(erased.as_bytes().to_vec())
+        .chain(erased_vectors.iter().flat_map(|t| vector_to_blob(&t.vector).chunks(16).map(<[u8]>::to_vec).collect::<Vec<_>>()))
+        .collect();
+    store.checkpoint().await.unwrap();
+    let before = dir.raw("t.db");
+    assert!(needles.iter().all(|n| contains(&before, n)), "the test must see the plain bytes before the deletion");
+
+    assert_eq!(store.delete_subject(&id(erased)).await.unwrap(), Some(2));
+    let after = dir.raw("t.db");
+    for needle in &needles {
+        assert!(!contains(&after, needle), "{needle:?} is still in the database files");
+    }
+    assert!(contains(&after, &vector_to_blob(&marked(30.0).vector)[..16]), "the others stay");
+    store.close().await;
+    let after_close = dir.raw("t.db");
+    assert!(!needles.iter().any(|n| contains(&after_close, n)));
+}
+
+/// The pool opens the file the URL names, also with characters a URL escapes (`%25` is `%`),
+/// and after `close` that file holds everything (no WAL content is left beside it).
+#[tokio::test]
+async fn the_file_named_is_the_file_opened() {
+    let dir = Dir::new();
+    for (name, file) in [("with space.db", "with space.db"), ("per%25cent #1.db", "per%cent #1.db"), ("ünï.db", "ünï.db")] {
+        let store = Store::connect(&dir.url(name), None).await.unwrap();
+        store.enroll(&id("alice"), &[marked(0.0)]).await.unwrap();
+        store.close().await;
+        let mut files: Vec<String> = std::fs::read_dir(&dir.0).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
+        files.sort();
+        assert_eq!(files[0], file, "{files:?}");
+        assert!(files[1..].iter().all(|f| *f == format!("{file}-shm") || *f == format!("{file}-wal")), "{files:?}");
+        assert_eq!(std::fs::metadata(dir.0.join(format!("{file}-wal"))).map_or(0, |m| m.len()), 0, "the WAL is empty");
+        let reopened = Store::connect(&dir.url(name), None).await.unwrap();
+        assert_eq!(reopened.templates(&id("alice")).await.unwrap().unwrap(), [marked(0.0)]);
+        reopened.close().await;
+        // SQLite removes the -wal and -shm files when its last connection closes, on the
+        // connection's worker thread, which may still be running: one may vanish meanwhile.
+        for entry in std::fs::read_dir(&dir.0).unwrap() {
+            match std::fs::remove_file(entry.unwrap().path()) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => panic!("{e}"),
+                _ => {}
+            }
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn backup_while_in_use_then_restore() {
+    let dir = Dir::new();
+    let store = Store::connect(&dir.url("live.db"), ring(K1)).await.unwrap();
+    for i in 0..40 {
+        store.enroll(&id(&format!("s{i:02}")), &[marked(i as f32), marked(i as f32 + 0.5)]).await.unwrap();
+    }
+    // Enrolments keep coming while the backup runs.
+    let writer = {
+        let store = store.clone();
+        tokio::spawn(async move {
+            for i in 0..200 {
+                store.enroll(&id(&format!("w{i:03}")), &[marked(100.0 + i as f32)]).await.unwrap();
+            }
+        })
+    };
+    let backup = dir.0.join("backup.db");
+    store.backup(&backup).await.unwrap();
+    assert!(matches!(store.backup(&backup).await, Err(StoreError::Refused(_))), "never overwrites");
+    writer.await.unwrap();
+    let (live_subjects, _) = store.counts().await.unwrap();
+    assert_eq!(live_subjects, 240);
+
+    // Restore to a new place: every subject of the backup reads back the same.
+    let (subjects, templates) = restore(&backup, &dir.url("restored.db"), false).await.unwrap();
+    assert!((40..=240).contains(&subjects) && templates == 80 + (subjects - 40), "{subjects} {templates}");
+    let restored = Store::connect(&dir.url("restored.db"), ring(K1)).await.unwrap();
+    for i in 0..40 {
+        let s = id(&format!("s{i:02}"));
+        assert_eq!(restored.templates(&s).await.unwrap(), store.templates(&s).await.unwrap());
+    }
+    assert_eq!(restored.counts().await.unwrap(), (subjects, templates));
+
+    // Not over an existing database unless told, and never over one in use.
+    assert!(matches!(restore(&backup, &dir.url("live.db"), false).await, Err(StoreError::Refused(_))));
+    let refused = restore(&backup, &dir.url("restored.db"), true).await;
+    assert!(matches!(refused, Err(StoreError::Refused(ref m)) if m.contains("in use")), "{refused:?}");
+    restored.close().await;
+    store.close().await;
+    assert_eq!(restore(&backup, &dir.url("live.db"), true).await.unwrap(), (subjects, templates));
+    let back = Store::connect(&dir.url("live.db"), ring(K1)).await.unwrap();
+    assert_eq!(back.counts().await.unwrap(), (subjects, templates));
+    assert_eq!(back.templates(&id("s07")).await.unwrap().unwrap(), [marked(7.0), marked(7.5)]);
+    back.close().await;
+    // Not a database at all.
+    std::fs::write(dir.0.join("junk.db"), b"not sqlite").unwrap();
+    assert!(restore(&dir.0.join("junk.db"), &dir.url("other.db"), false).await.is_err());
+}

@@ -1,0 +1,159 @@
+//! The face chip the network expects, cut from a photo with facegate's own landmarks.
+//!
+//! dlib aligns a face by the least-squares similarity that takes its 68-point landmarks (eyes,
+//! nose and upper mouth) to a mean face shape in a `size × size` chip with 25% padding
+//! (`get_face_chip_details(det, 150, 0.25)`); the network was trained on such chips. facegate has
+//! the 58 IMM points instead, so it uses the points both templates share in meaning: the two eye
+//! centres (the mean of each eye outline) and the mouth centre (the mean of the outer lip
+//! outline), placed where dlib's mean shape puts them.
+
+use image::RgbImage;
+
+use facegate_core::geometry::{Point, Similarity};
+
+/// dlib's mean face shape (points 36–59 of the 68-point iBUG template, in the unit square of the
+/// face; `dlib/image_transforms/interpolation.h`, Boost Software License): x then y.
+const MEAN_RIGHT_EYE: [[f32; 2]; 6] =
+    [[0.121737, 0.216423], [0.187122, 0.178758], [0.265825, 0.179852], [0.334606, 0.231733], [0.260918, 0.245099], [0.182743, 0.244077]];
+const MEAN_LEFT_EYE: [[f32; 2]; 6] =
+    [[0.645647, 0.231733], [0.714428, 0.179852], [0.793132, 0.178758], [0.858516, 0.216423], [0.79751, 0.244077], [0.719335, 0.245099]];
+const MEAN_OUTER_LIPS: [[f32; 2]; 12] = [
+    [0.254149, 0.780233],
+    [0.340985, 0.745405],
+    [0.428858, 0.727388],
+    [0.490127, 0.742578],
+    [0.551395, 0.727388],
+    [0.639268, 0.745405],
+    [0.726104, 0.780233],
+    [0.642159, 0.864805],
+    [0.556721, 0.902192],
+    [0.490127, 0.909281],
+    [0.423532, 0.902192],
+    [0.338094, 0.864805],
+];
+
+/// dlib's chip padding around the mean shape, as a fraction of the face.
+const PADDING: f32 = 0.25;
+
+/// A square RGB chip, row-major, 3 bytes a pixel.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FaceChip {
+    pub size: usize,
+    pub rgb: Vec<u8>,
+}
+
+impl FaceChip {
+    pub fn to_image(&self) -> RgbImage {
+        RgbImage::from_raw(self.size as u32, self.size as u32, self.rgb.clone()).expect("size × size × 3 bytes")
+    }
+
+    /// The chip mirrored left to right.
+    pub fn mirrored(&self) -> FaceChip {
+        let mut rgb = self.rgb.clone();
+        for row in rgb.chunks_exact_mut(self.size * 3) {
+            for x in 0..self.size / 2 {
+                let y = self.size - 1 - x;
+                for k in 0..3 {
+                    row.swap(x * 3 + k, y * 3 + k);
+                }
+            }
+        }
+        FaceChip { size: self.size, rgb }
+    }
+
+    pub fn from_image(img: &RgbImage) -> Option<FaceChip> {
+        (img.width() == img.height()).then(|| FaceChip { size: img.width() as usize, rgb: img.as_raw().clone() })
+    }
+}
+
+fn mean(points: &[[f32; 2]]) -> Point {
+    let n = points.len() as f32;
+    [points.iter().map(|p| p[0]).sum::<f32>() / n, points.iter().map(|p| p[1]).sum::<f32>() / n]
+}
+
+/// Where the image-left eye centre, the image-right eye centre and the mouth centre go in a chip
+/// of side `size`.
+pub fn chip_key_points(size: usize) -> [Point; 3] {
+    let place = |p: Point| {
+        let s = size as f32 / (2.0 * PADDING + 1.0);
+        [(PADDING + p[0]) * s, (PADDING + p[1]) * s]
+    };
+    [place(mean(&MEAN_RIGHT_EYE)), place(mean(&MEAN_LEFT_EYE)), place(mean(&MEAN_OUTER_LIPS))]
+}
+
+/// The similarity taking chip pixels to photo pixels, from the photo's image-left eye centre,
+/// image-right eye centre and mouth centre.
+pub fn chip_to_photo(size: usize, left_eye: Point, right_eye: Point, mouth: Point) -> Similarity {
+    Similarity::fit(&chip_key_points(size), &[left_eye, right_eye, mouth], None)
+}
+
+/// Cuts the chip: each chip pixel samples the photo through `to_photo`, bilinearly, averaging
+/// `n × n` samples when the chip shrinks the face by `n` or more so that small chips of large
+/// photos do not alias (dlib samples a pyramid level for the same reason). Outside the photo: black.
+pub fn extract(photo: &RgbImage, to_photo: &Similarity, size: usize) -> FaceChip {
+    let n = to_photo.scale().floor().clamp(1.0, 8.0) as usize;
+    let step = 1.0 / n as f32;
+    let (w, h) = (photo.width() as i64, photo.height() as i64);
+    let raw = photo.as_raw();
+    let px = |x: i64, y: i64, ch: usize| -> f32 {
+        if x < 0 || y < 0 || x >= w || y >= h { 0.0 } else { raw[((y * w + x) * 3) as usize + ch] as f32 }
+    };
+    let mut rgb = vec![0u8; size * size * 3];
+    for cy in 0..size {
+        for cx in 0..size {
+            let mut acc = [0.0f32; 3];
+            for sy in 0..n {
+                for sx in 0..n {
+                    let c = [cx as f32 + (sx as f32 + 0.5) * step - 0.5, cy as f32 + (sy as f32 + 0.5) * step - 0.5];
+                    let [x, y] = to_photo.apply(c);
+                    let (x0, y0) = (x.floor(), y.floor());
+                    let (fx, fy) = (x - x0, y - y0);
+                    let (x0, y0) = (x0 as i64, y0 as i64);
+                    for (ch, a) in acc.iter_mut().enumerate() {
+                        let top = px(x0, y0, ch) * (1.0 - fx) + px(x0 + 1, y0, ch) * fx;
+                        let bottom = px(x0, y0 + 1, ch) * (1.0 - fx) + px(x0 + 1, y0 + 1, ch) * fx;
+                        *a += top * (1.0 - fy) + bottom * fy;
+                    }
+                }
+            }
+            let at = (cy * size + cx) * 3;
+            for ch in 0..3 {
+                rgb[at + ch] = (acc[ch] / (n * n) as f32).round().clamp(0.0, 255.0) as u8;
+            }
+        }
+    }
+    FaceChip { size, rgb }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn key_points_sit_where_dlib_puts_them() {
+        let [l, r, m] = chip_key_points(150);
+        // Eyes level and symmetric about the chip's centre line, mouth below on that line.
+        assert!((l[1] - r[1]).abs() < 1e-3);
+        assert!(((l[0] + r[0]) / 2.0 - m[0]).abs() < 0.5);
+        assert!(l[0] < r[0] && m[1] > l[1] + 40.0);
+    }
+
+    #[test]
+    fn mirroring_swaps_columns_and_twice_is_identity() {
+        let img = RgbImage::from_fn(4, 4, |x, y| image::Rgb([x as u8, y as u8, 9]));
+        let chip = FaceChip::from_image(&img).unwrap();
+        let m = chip.mirrored();
+        assert_eq!(&m.rgb[..3], &[3, 0, 9]);
+        assert_eq!(m.mirrored(), chip);
+    }
+
+    #[test]
+    fn identity_transform_copies_pixels() {
+        let img = RgbImage::from_fn(20, 20, |x, y| image::Rgb([x as u8 * 10, y as u8 * 10, 7]));
+        let t = Similarity { a: 1.0, b: 0.0, tx: 3.0, ty: 4.0 };
+        let chip = extract(&img, &t, 10);
+        assert_eq!(&chip.rgb[..3], &[30, 40, 7]);
+        let last = (9 * 10 + 9) * 3;
+        assert_eq!(&chip.rgb[last..last + 3], &[120, 130, 7]);
+    }
+}

@@ -1,0 +1,17 @@
+//! The face stages, each plain data in and plain data out, and the one pipeline that assembles
+//! them: a decoded photo → [`detect`] (face boxes) → [`landmarks`] (58 IMM points) → [`morph`]
+//! (3D morphable model fit, frontal rendering, avatar) → [`embed`] (the face-embedding network) and
+//! [`recognize`] (normalization, Direct LDA, templates, scores, calibration) → [`quality`] (face
+//! image quality), assembled once in [`pipeline`].
+//!
+//! Runtime code: it never prints, reads the environment or shows progress (the workspace's clippy
+//! lints); models are loaded from paths it is handed.
+
+pub mod detect;
+pub mod embed;
+pub mod landmarks;
+pub mod morph;
+pub mod quality;
+pub mod recognize;
+
+pub mod pipeline;

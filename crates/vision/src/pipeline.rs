@@ -1,0 +1,507 @@
+//! The request path, stage by stage: decoded photo → face box → landmarks → (3DMM pose
+//! correction) → normalised face → template. Used by the CLI, the HTTP API and the evaluation
+//! tools alike. Everything here is synchronous and CPU-bound: callers in async code run it on a
+//! blocking pool.
+
+use std::borrow::Cow;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use facegate_core::elapsed_ms;
+
+use serde::Serialize;
+
+use crate::detect::{Detector, Face};
+use crate::embed::FaceChip;
+use crate::landmarks::asm3d::{Asm3dLandmarker, SERVICE_MIN_YAW};
+use crate::landmarks::{Landmarker, Landmarks, Variant};
+use crate::morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, Pose};
+use crate::quality::{Components, Quality, QualityModel};
+use crate::recognize::{Recognizer, DeepRecognizer, Normalization, ClassicalRecognizer, RecognizerKind, Template, Views};
+use facegate_core::face::KeyPoints;
+use facegate_core::geometry::Rect;
+use facegate_core::imaging::{GrayF32, Photo};
+
+/// Where the pipeline's models are.
+#[derive(Debug, Clone)]
+pub struct PipelineConfig {
+    /// The project's trained models (cascades, `asm.bin`, `dlda.bin`).
+    pub models_dir: PathBuf,
+    /// The Surrey Face Model folder; `None` or missing files mean 2D alignment only.
+    pub sfm_dir: Option<PathBuf>,
+    /// The deep embedding (`deep.bin`) or the classical DLDA (`dlda.bin`).
+    pub recognizer: RecognizerKind,
+}
+
+/// The 2D-alignment recognition model used when the 3DMM is unavailable.
+pub const TWO_D_MODEL_FILE: &str = "dlda-2d.bin";
+
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error("the recognition model needs the 3D morphable model, which is unavailable, and {0} is not a 2D model")]
+    NoTwoDModel(String),
+    #[error("no face was found in the image")]
+    NoFace,
+    #[error("the face could not be pose-corrected: {0}")]
+    PoseCorrection(crate::morph::MorphError),
+    #[error("this needs the 3D morphable model, which is not loaded (the Surrey Face Model folder: --sfm, FACEGATE_SFM)")]
+    NoFaceModel,
+    #[error(transparent)]
+    Detect(#[from] crate::detect::DetectError),
+    #[error(transparent)]
+    Landmarks(#[from] crate::landmarks::LandmarkError),
+    #[error(transparent)]
+    Recognize(#[from] crate::recognize::RecognizeError),
+    #[error(transparent)]
+    Quality(#[from] crate::quality::QualityModelError),
+}
+
+/// Milliseconds spent in each stage of one analysis.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct StageTimings {
+    pub detect_ms: f64,
+    pub landmarks_ms: f64,
+    pub morph_ms: f64,
+    pub template_ms: f64,
+    pub quality_ms: f64,
+}
+
+/// Everything the pipeline learnt about the face it used.
+#[derive(Debug, Clone)]
+pub struct FaceAnalysis {
+    /// The face used: the largest one found.
+    pub face: Face,
+    /// How many faces the detector found.
+    pub faces_found: usize,
+    pub landmarks: Landmarks,
+    /// Head pose from the 3DMM fit, when the model is loaded.
+    pub pose: Option<Pose>,
+    pub template: Template,
+    /// The face image quality components and unified score.
+    pub quality: Quality,
+    pub timings: StageTimings,
+}
+
+/// Which faces of a photo [`Pipeline::read_faces`] reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FaceChoice {
+    /// The largest face only.
+    #[default]
+    Largest,
+    /// Every face found, largest first.
+    All,
+}
+
+/// One face read in full: where it is, its landmarks, and the 3DMM fit's pose and residual.
+#[derive(Debug, Clone)]
+pub struct FaceReading {
+    pub face: Face,
+    pub landmarks: Landmarks,
+    /// Head pose from the 3DMM fit; `None` when the model is not loaded or the fit failed.
+    pub pose: Option<Pose>,
+    /// RMS distance in pixels between the landmarks and the fitted model's points.
+    pub fit_residual_px: Option<f32>,
+    pub quality: Quality,
+    pub landmarks_ms: f64,
+    pub morph_ms: f64,
+}
+
+/// What [`Pipeline::read_faces`] found in a photo.
+#[derive(Debug, Clone)]
+pub struct PhotoReading {
+    pub faces_found: usize,
+    /// Largest first: one face or all of them, as asked.
+    pub faces: Vec<FaceReading>,
+    pub detect_ms: f64,
+}
+
+/// The stages that find a face and its 58 landmarks: the detector, the C-ASM and, on turned
+/// faces, the 3D-ASM. The service's [`Pipeline`] and the training and evaluation tools use this one
+/// chain, so their landmarks are the same.
+pub struct FaceFinder {
+    pub detector: Detector,
+    pub landmarker: Landmarker,
+    /// The 3D-ASM (`asm3d.bin`), used instead of the C-ASM on turned faces; `None` when the file
+    /// is missing: C-ASM only.
+    pub asm3d: Option<Asm3dLandmarker>,
+}
+
+impl FaceFinder {
+    /// The cascades (or SeetaFace), `asm.bin` and, when the file exists, `asm3d.bin` of `models_dir`.
+    pub fn load(models_dir: &Path) -> Result<FaceFinder, PipelineError> {
+        let detector = Detector::load(models_dir)?;
+        let landmarker = Landmarker::load(&models_dir.join("asm.bin"))?;
+        let asm3d_path = models_dir.join("asm3d.bin");
+        let asm3d = if asm3d_path.exists() { Some(Asm3dLandmarker::load(&asm3d_path)?) } else { None };
+        Ok(FaceFinder { detector, landmarker, asm3d })
+    }
+
+    /// The faces in `gray`, largest first.
+    pub fn detect(&self, gray: &GrayF32) -> Vec<Face> {
+        self.detector.detect(gray)
+    }
+
+    /// The service's 58 landmarks of the face in `face`: the C-ASM's, or, when the 3D-ASM is
+    /// loaded and the C-ASM's points are turned by at least [`SERVICE_MIN_YAW`], the 3D-ASM's
+    /// refined by the C-ASM (the crossover measured in docs/asm3d.md).
+    pub fn landmarks(&self, gray: &GrayF32, face: &Rect) -> Landmarks {
+        let casm = self.landmarker.fit(gray, face, Variant::Casm);
+        match &self.asm3d {
+            Some(asm3d) => asm3d.switch(gray, face, &self.landmarker, casm, SERVICE_MIN_YAW).0,
+            None => casm,
+        }
+    }
+
+    /// The largest face of `gray` and its landmarks.
+    pub fn locate(&self, gray: &GrayF32) -> Result<Located, PipelineError> {
+        let faces = self.detect(gray);
+        let face = *faces.first().ok_or(PipelineError::NoFace)?;
+        Ok(Located { face, faces_found: faces.len(), landmarks: self.landmarks(gray, &face.rect) })
+    }
+}
+
+/// The face [`FaceFinder::locate`] chose, with its landmarks.
+#[derive(Debug, Clone)]
+pub struct Located {
+    /// The largest face found.
+    pub face: Face,
+    pub faces_found: usize,
+    pub landmarks: Landmarks,
+}
+
+/// The face [`FaceModel`] when `sfm_dir` holds one; `None` (with a warning) when it does not:
+/// 2D alignment only.
+pub fn load_face_model(sfm_dir: Option<&Path>) -> Option<FaceModel> {
+    match FaceModel::load(sfm_dir?) {
+        Ok(model) => Some(model),
+        Err(e) => {
+            tracing::warn!("3D morphable model unavailable ({e}); falling back to 2D alignment");
+            None
+        }
+    }
+}
+
+/// The stages assembled: photo → face → landmarks → (3DMM pose correction) → template.
+pub struct Pipeline {
+    pub finder: FaceFinder,
+    /// `None` when the Surrey Face Model is not available: 2D alignment only.
+    pub face_model: Option<FaceModel>,
+    pub recognizer: Recognizer,
+    /// The unified quality score's model (`quality.bin`).
+    pub quality: QualityModel,
+}
+
+impl Pipeline {
+    /// Load every stage. The deep recognizer is `deep.bin` over `embedding.bin`. The classical
+    /// one is `dlda.bin`; when it was trained on 3DMM frontal renderings and the Surrey Face Model
+    /// is unavailable, the 2D model `dlda-2d.bin` is used instead (with a warning), so that
+    /// templates are never scored against thresholds calibrated for the other normalisation. Every
+    /// model's templates carry its own version, so subjects enrolled under one model are not
+    /// compared with probes of another.
+    pub fn load(config: &PipelineConfig) -> Result<Pipeline, PipelineError> {
+        let finder = FaceFinder::load(&config.models_dir)?;
+        let face_model = load_face_model(config.sfm_dir.as_deref());
+        let recognizer = match config.recognizer {
+            RecognizerKind::Deep => Recognizer::Deep(Box::new(DeepRecognizer::load(&config.models_dir)?)),
+            RecognizerKind::Classical => Recognizer::Classical(load_classical(config, face_model.is_some())?),
+        };
+        let quality = QualityModel::load(&config.models_dir.join(crate::quality::FILE))?;
+        Ok(Pipeline { finder, face_model, recognizer, quality })
+    }
+
+    /// Detect, landmark, pose-correct and template the largest face of `photo`.
+    pub fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
+        let mut timings = StageTimings::default();
+        let t = Instant::now();
+        let faces = self.finder.detect(&photo.gray);
+        timings.detect_ms = elapsed_ms(t);
+        let face = *faces.first().ok_or(PipelineError::NoFace)?;
+
+        let t = Instant::now();
+        let landmarks = self.finder.landmarks(&photo.gray, &face.rect);
+        timings.landmarks_ms = elapsed_ms(t);
+
+        let (template, pose, quality) = match &self.recognizer {
+            Recognizer::Classical(recognizer) => self.classical_template(recognizer, photo, &landmarks, &mut timings)?,
+            Recognizer::Deep(deep) => {
+                // The network sees the photo itself (the 3DMM frontal rendering measured worse as
+                // its input: docs/recognition.md); the fit still reports the head pose.
+                let t = Instant::now();
+                let input = recognition_input(self.face_model.as_ref(), photo, &landmarks, Normalization::TwoD)?;
+                timings.morph_ms = elapsed_ms(t);
+                let t = Instant::now();
+                let chip = crate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
+                let (template, mirror) = deep.template_and_mirror_pair(&chip);
+                timings.template_ms = elapsed_ms(t);
+                let t = Instant::now();
+                let components = crate::quality::components(&chip, &landmarks.keypoints, input.pose, input.fit_residual_px);
+                let quality = self.quality.assess(components.with_mirror(&mirror));
+                timings.quality_ms = elapsed_ms(t);
+                (template, input.pose, quality)
+            }
+        };
+        Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, template, quality, timings })
+    }
+
+    /// Every face of `photo` (or the largest) with its landmarks and 3DMM fit; no template is made.
+    pub fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError> {
+        let t = Instant::now();
+        let faces = self.finder.detect(&photo.gray);
+        let detect_ms = elapsed_ms(t);
+        if faces.is_empty() {
+            return Err(PipelineError::NoFace);
+        }
+        let wanted = if choice == FaceChoice::All { faces.len() } else { 1 };
+        let readings = faces[..wanted]
+            .iter()
+            .map(|&face| {
+                let t = Instant::now();
+                let landmarks = self.finder.landmarks(&photo.gray, &face.rect);
+                let landmarks_ms = elapsed_ms(t);
+                let t = Instant::now();
+                let fit = self.face_model.as_ref().and_then(|m| m.fit(&landmarks.points, photo.width(), photo.height()).ok());
+                let morph_ms = elapsed_ms(t);
+                let (pose, fit_residual_px) = (fit.as_ref().map(|f| f.pose), fit.as_ref().map(|f| f.residual_px));
+                let quality = self.quality.assess(quality_components(photo, &landmarks, pose, fit_residual_px).1);
+                FaceReading { face, landmarks, pose, fit_residual_px, quality, landmarks_ms, morph_ms }
+            })
+            .collect();
+        Ok(PhotoReading { faces_found: faces.len(), faces: readings, detect_ms })
+    }
+
+    fn face_model(&self) -> Result<&FaceModel, PipelineError> {
+        self.face_model.as_ref().ok_or(PipelineError::NoFaceModel)
+    }
+
+    /// The textured 3D head of the largest face as a glTF binary file, or the OBJ files zipped: the
+    /// bytes `facegate reconstruct --out avatar.glb` (or the files `--out avatar.obj`) writes for
+    /// the same photo ([`reconstruct`]).
+    pub fn avatar(&self, photo: &Photo, format: AvatarFormat) -> Result<Vec<u8>, PipelineError> {
+        let model = self.face_model()?;
+        let avatar = reconstruct(&self.finder, model, photo, &FitOptions::default(), AVATAR_TEXTURE_SIZE)?;
+        model.avatar_file(&avatar, format).map_err(PipelineError::PoseCorrection)
+    }
+
+    /// The frontal rendering of the largest face as PNG: the bytes `facegate frontalize --out X.png`
+    /// writes for the same photo.
+    pub fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
+        let model = self.face_model()?;
+        let located = self.finder.locate(&photo.gray)?;
+        let fitted = model.fit(&located.landmarks.points, photo.width(), photo.height()).map_err(PipelineError::PoseCorrection)?;
+        Ok(model.frontal_png(photo, &fitted, FRONTAL_VIEW_SIZE).map_err(PipelineError::PoseCorrection)?.1)
+    }
+
+    /// The classical recognizer's template: the 3DMM frontal rendering and/or the 2D-aligned photo,
+    /// normalised, projected.
+    fn classical_template(
+        &self,
+        recognizer: &ClassicalRecognizer,
+        photo: &Photo,
+        landmarks: &Landmarks,
+        timings: &mut StageTimings,
+    ) -> Result<(Template, Option<Pose>, Quality), PipelineError> {
+        let t = Instant::now();
+        let input = recognition_input(self.face_model.as_ref(), photo, landmarks, recognizer.normalization())?;
+        timings.morph_ms = elapsed_ms(t);
+
+        let t = Instant::now();
+        let crop = |input: &RecognitionInput| recognizer.normalized_crop(&input.gray, &input.keypoints);
+        let template = match recognizer.paths().get(1) {
+            // A fused model also sees the face on its second path (2D: the photo itself, no fit).
+            Some(&second) => {
+                let other =
+                    recognition_input(self.face_model.as_ref().filter(|_| second == Normalization::Morph), photo, landmarks, second)?;
+                recognizer.template(Views::Fused { primary: &crop(&input), secondary: &crop(&other) })?
+            }
+            None => recognizer.template(Views::Single(&crop(&input)))?,
+        };
+        timings.template_ms = elapsed_ms(t);
+        // Quality is measured on the deep recognizer's chip here too (one scale for both paths).
+        let t = Instant::now();
+        let quality = self.quality.assess(quality_components(photo, landmarks, input.pose, input.fit_residual_px).1);
+        timings.quality_ms = elapsed_ms(t);
+        Ok((template, input.pose, quality))
+    }
+}
+
+/// `dlda.bin`, or `dlda-2d.bin` when the former needs the 3DMM and it is not loaded.
+fn load_classical(config: &PipelineConfig, have_face_model: bool) -> Result<ClassicalRecognizer, PipelineError> {
+    let mut recognizer = ClassicalRecognizer::load(&config.models_dir)?;
+    if recognizer.normalization() == Normalization::Morph && !have_face_model {
+        let fallback = config.models_dir.join(TWO_D_MODEL_FILE);
+        recognizer = ClassicalRecognizer::load_file(&fallback)?;
+        if recognizer.normalization() != Normalization::TwoD {
+            return Err(PipelineError::NoTwoDModel(fallback.display().to_string()));
+        }
+        tracing::warn!(
+            "recognition uses the 2D model {} ({}): templates enrolled with the 3DMM model are not comparable",
+            fallback.display(),
+            recognizer.model_version()
+        );
+    }
+    Ok(recognizer)
+}
+
+/// The avatar of the largest face of `photo`: the service's landmarks ([`FaceFinder::locate`]),
+/// then [`FaceModel::avatar`]. `POST /avatar` and `facegate reconstruct` both come here.
+pub fn reconstruct(
+    finder: &FaceFinder,
+    model: &FaceModel,
+    photo: &Photo,
+    options: &FitOptions,
+    texture_size: usize,
+) -> Result<crate::morph::Avatar, PipelineError> {
+    let located = finder.locate(&photo.gray)?;
+    model.avatar(photo, &located.landmarks.points, options, texture_size).map_err(PipelineError::PoseCorrection)
+}
+
+/// The quality components of the face with `landmarks` in `photo`, measured on the deep
+/// recognizer's chip (returned too, for a caller that embeds it). The service and the quality
+/// research both come here.
+pub fn quality_components(
+    photo: &Photo,
+    landmarks: &Landmarks,
+    pose: Option<Pose>,
+    fit_residual_px: Option<f32>,
+) -> (FaceChip, Components) {
+    let chip = crate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
+    let components = crate::quality::components(&chip, &landmarks.keypoints, pose, fit_residual_px);
+    (chip, components)
+}
+
+/// What the recognizer normalises: a grey image, the eye and mouth centres in it, and the head pose
+/// and fit residual when the 3DMM was fitted.
+pub struct RecognitionInput<'a> {
+    pub gray: Cow<'a, GrayF32>,
+    pub keypoints: KeyPoints,
+    pub pose: Option<Pose>,
+    pub fit_residual_px: Option<f32>,
+}
+
+/// Fit the 3DMM to the landmarks (when the model is loaded) for the head pose and, on the 3DMM path,
+/// render the frontal view: that rendering and its eye/mouth centres are what the recognizer
+/// normalises; on the 2D path it is the photo and the landmarks' centres. On the 3DMM path a failed
+/// fit is an error, never a silent 2D template scored against 3DMM thresholds.
+pub fn recognition_input<'a>(
+    face_model: Option<&FaceModel>,
+    photo: &'a Photo,
+    landmarks: &Landmarks,
+    normalization: Normalization,
+) -> Result<RecognitionInput<'a>, PipelineError> {
+    let fitted = match (face_model, normalization) {
+        (Some(model), Normalization::Morph) => {
+            Some(model.fit(&landmarks.points, photo.width(), photo.height()).map_err(PipelineError::PoseCorrection)?)
+        }
+        // On the 2D path the fit only reports the pose: a failure leaves it unknown.
+        (Some(model), Normalization::TwoD) => model.fit(&landmarks.points, photo.width(), photo.height()).ok(),
+        (None, Normalization::Morph) => return Err(PipelineError::NoFaceModel),
+        (None, Normalization::TwoD) => None,
+    };
+    let pose = fitted.as_ref().map(|f| f.pose);
+    let fit_residual_px = fitted.as_ref().map(|f| f.residual_px);
+    match (normalization, face_model.zip(fitted)) {
+        (Normalization::Morph, Some((model, fit))) => {
+            let frontal = model.frontalize(photo, &fit).map_err(PipelineError::PoseCorrection)?;
+            Ok(RecognitionInput {
+                gray: Cow::Owned(GrayF32::from_rgb(&frontal.image)),
+                keypoints: frontal.keypoints,
+                pose,
+                fit_residual_px,
+            })
+        }
+        _ => Ok(RecognitionInput { gray: Cow::Borrowed(&photo.gray), keypoints: landmarks.keypoints, pose, fit_residual_px }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pipeline_config() -> PipelineConfig {
+        PipelineConfig {
+            models_dir: facegate_paths::models_dir(),
+            sfm_dir: Some(facegate_paths::sfm_dir()),
+            recognizer: RecognizerKind::default(),
+        }
+    }
+
+    fn photo(name: &str) -> Photo {
+        facegate_core::imaging::open(&facegate_paths::shared_dir().join("data/imm").join(name)).unwrap()
+    }
+
+    #[test]
+    fn full_pipeline_reports_every_stage() {
+        let pipeline = Pipeline::load(&pipeline_config()).unwrap();
+        assert!(pipeline.face_model.is_some());
+        let a = pipeline.analyze(&photo("05-1m.jpg")).unwrap();
+        assert_eq!(a.faces_found, 1);
+        assert_eq!(a.landmarks.points.len(), 58);
+        assert!(a.face.rect.contains(a.landmarks.keypoints.left_eye) && a.face.rect.contains(a.landmarks.keypoints.mouth));
+        assert!(a.pose.is_some());
+        assert_eq!(a.template.model_version, pipeline.recognizer.model_version());
+        let norm: f32 = a.template.vector.iter().map(|v| v * v).sum::<f32>().sqrt();
+        assert!((norm - 1.0).abs() < 1e-3, "templates are unit vectors, got norm {norm}");
+        assert!(a.timings.detect_ms > 0.0 && a.timings.landmarks_ms > 0.0);
+    }
+
+    #[test]
+    fn deep_and_classical_templates_carry_their_own_versions() {
+        let deep = Pipeline::load(&pipeline_config()).unwrap();
+        let classical = Pipeline::load(&PipelineConfig { recognizer: RecognizerKind::Classical, ..pipeline_config() }).unwrap();
+        let p = photo("05-1m.jpg");
+        let (a, b) = (deep.analyze(&p).unwrap(), classical.analyze(&p).unwrap());
+        assert!(a.template.model_version.starts_with("deep-") && b.template.model_version.starts_with("dlda-"));
+        assert_eq!(a.template.vector.len(), crate::embed::EMBEDDING_DIMS);
+        assert_eq!((a.face, &a.landmarks), (b.face, &b.landmarks), "one front end for both");
+        // The mirror agreement exists where the chip is embedded (deep), not on the classical path,
+        // whose other components are the same (one chip for both).
+        let (qa, qb) = (a.quality.components, b.quality.components);
+        assert!(qa.mirror_agreement.is_some_and(|m| m > 0.5 && m <= 1.0) && qa.embedding_norm.is_some_and(|n| n > 0.0), "{qa:?}");
+        assert_eq!((qb.mirror_agreement, qb.embedding_norm), (None, None));
+        assert_eq!((qa.sharpness, qa.fit_residual), (qb.sharpness, qb.fit_residual));
+        // Without the 3DMM the deep recognizer is unchanged (it never needed the rendering); the
+        // pose is then unknown.
+        let flat = Pipeline::load(&PipelineConfig { sfm_dir: None, ..pipeline_config() }).unwrap();
+        let c = flat.analyze(&p).unwrap();
+        assert_eq!((c.template.clone(), c.pose), (a.template, None));
+    }
+
+    #[test]
+    fn without_the_3dmm_the_classical_pipeline_uses_a_2d_model() {
+        let config = PipelineConfig { sfm_dir: None, recognizer: RecognizerKind::Classical, ..pipeline_config() };
+        let pipeline = Pipeline::load(&config).unwrap();
+        assert!(pipeline.face_model.is_none());
+        assert_eq!(pipeline.recognizer.classical().map(|r| r.normalization()), Some(Normalization::TwoD));
+        let a = pipeline.analyze(&photo("05-1m.jpg")).unwrap();
+        assert!(a.pose.is_none());
+        assert_eq!(a.template.model_version, pipeline.recognizer.model_version());
+    }
+
+    #[test]
+    fn turned_faces_take_the_3d_asm_points_frontal_ones_the_c_asm() {
+        let pipeline = Pipeline::load(&pipeline_config()).unwrap();
+        let asm3d = pipeline.finder.asm3d.as_ref().expect("models/asm3d.bin");
+        for (name, turned) in [("01-1m.jpg", false), ("02-3m.jpg", true)] {
+            let p = photo(name);
+            let a = pipeline.analyze(&p).unwrap();
+            let casm = pipeline.finder.landmarker.fit(&p.gray, &a.face.rect, Variant::Casm);
+            let yaw = asm3d.yaw_of(&casm.points).unwrap();
+            assert_eq!(yaw.abs() >= SERVICE_MIN_YAW, turned, "{name}: C-ASM yaw {yaw}");
+            if turned {
+                let three = asm3d.fit_seeded(&p.gray, &a.face.rect, &casm.points, &pipeline.finder.landmarker.model);
+                assert_eq!(a.landmarks.points, three.points, "{name}");
+                assert_ne!(a.landmarks.points, casm.points, "{name}: the 3D-ASM's points, not the C-ASM's");
+            } else {
+                assert_eq!(a.landmarks, casm, "{name}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_photo_without_a_face_is_no_face() {
+        let pipeline = Pipeline::load(&pipeline_config()).unwrap();
+        let blank = Photo::from_dynamic(image::DynamicImage::ImageLuma8(image::GrayImage::from_pixel(320, 240, image::Luma([128]))));
+        assert!(matches!(pipeline.analyze(&blank), Err(PipelineError::NoFace)));
+    }
+}

@@ -1,0 +1,146 @@
+//! The deep recognizer's model (`models/deep.bin`): which chip feeds the embedding network, the
+//! Direct LDA projection trained over embeddings, the calibrated thresholds per enrolment size,
+//! and the model version its templates carry. The network itself is `models/embedding.bin`
+//! ([`crate::embed`]); this file is bound to it by the SHA-256 of the package file it came from.
+
+use std::path::Path;
+
+use image::RgbImage;
+use serde::{Deserialize, Serialize};
+
+use super::calibration::{Calibration, EnrolledCalibration};
+use super::template::Combine;
+use super::{Dlda, OperatingPoint, RecognizeError, Template};
+use crate::embed::{Embedder, Embedding};
+use facegate_core::face::KeyPoints;
+use facegate_core::model_file::read_model;
+
+pub const FILE: &str = "deep.bin";
+pub const FORMAT: u32 = 1;
+
+/// What the network sees.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ChipSource {
+    /// The photo itself, aligned by the landmarks.
+    Photo,
+    /// The 3DMM frontal rendering, aligned by its key points.
+    Frontal,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DeepProvenance {
+    /// Persons and photos the projection was trained on.
+    pub trained_on: String,
+    /// The command that rebuilds the file.
+    pub command: String,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DeepModel {
+    pub format: u32,
+    /// `deep-` and the first 12 hex digits of the SHA-256 of the projection and chip source:
+    /// templates of different versions are never compared.
+    pub version: String,
+    /// SHA-256 of the network's package file (`embedding.bin`'s provenance).
+    pub network_sha256: String,
+    pub chip_source: ChipSource,
+    /// `None`: the raw embedding's cosine.
+    pub projection: Option<Dlda>,
+    /// The one-photo table.
+    pub calibration: Calibration,
+    /// Tables for 2 … 5 enrolled photos.
+    pub enrolled_calibration: Vec<EnrolledCalibration>,
+    pub provenance: DeepProvenance,
+}
+
+impl DeepModel {
+    /// The version string of a projection and chip source.
+    pub fn version_of(projection: Option<&Dlda>, chip_source: ChipSource, network_sha256: &str) -> String {
+        use sha2::Digest;
+        let mut h = sha2::Sha256::new();
+        h.update(postcard::to_stdvec(&(projection, chip_source, network_sha256)).expect("serialisable"));
+        let hex: String = h.finalize().iter().take(6).map(|b| format!("{b:02x}")).collect();
+        format!("deep-{hex}")
+    }
+
+    pub fn load(path: &Path) -> Result<DeepModel, RecognizeError> {
+        let fail = |message: String| RecognizeError::Model { path: path.display().to_string(), message };
+        let model: DeepModel =
+            read_model(path, "deep recognition model", FORMAT, "facegate train deep (see models/deep.md)").map_err(fail)?;
+        if model.projection.as_ref().is_some_and(|d| !d.accepts(crate::embed::EMBEDDING_DIMS)) {
+            return Err(fail("the projection does not take 128-value embeddings".into()));
+        }
+        Ok(model)
+    }
+
+    /// The unit template of an embedding.
+    pub fn template(&self, embedding: &Embedding) -> Template {
+        let vector = match &self.projection {
+            Some(d) => d.project(&embedding.0),
+            None => embedding.0.to_vec(),
+        };
+        Template::new(&self.version, vector)
+    }
+
+    /// The thresholds for a subject with `enrolled` templates (the largest table beyond it).
+    pub fn calibration_for(&self, enrolled: usize) -> &Calibration {
+        self.enrolled_calibration
+            .iter()
+            .filter(|t| t.enrolled <= enrolled.max(1))
+            .max_by_key(|t| t.enrolled)
+            .map_or(&self.calibration, |t| &t.calibration)
+    }
+
+    pub fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
+        self.calibration_for(enrolled).operating_point(fmr)
+    }
+}
+
+/// The deep recognizer: the embedding network and its model, with what makes a template of a
+/// photo: the chip cut at the landmarks' eye and mouth centres, the mirror-averaged embedding, the
+/// model's projection (none by default), a unit vector tagged with the model version.
+pub struct DeepRecognizer {
+    pub model: DeepModel,
+    pub network: Embedder,
+}
+
+impl DeepRecognizer {
+    /// `deep.bin` and `embedding.bin` of `models_dir`; refused when the model was calibrated on
+    /// another network than the one in the folder.
+    pub fn load(models_dir: &Path) -> Result<DeepRecognizer, RecognizeError> {
+        let model = DeepModel::load(&models_dir.join(FILE))?;
+        let path = models_dir.join(crate::embed::weights::FILE);
+        let fail = |message: String| RecognizeError::Model { path: path.display().to_string(), message };
+        let file = crate::embed::read_file(&path).map_err(|e| fail(e.to_string()))?;
+        if file.provenance.sha256 != model.network_sha256 {
+            return Err(fail(format!(
+                "network {} is not the one {} was calibrated with ({}); run `facegate train deep`",
+                file.provenance.sha256, FILE, model.network_sha256
+            )));
+        }
+        let network = Embedder::new(&file).map_err(|e| fail(e.to_string()))?;
+        Ok(DeepRecognizer { model, network })
+    }
+
+    pub fn template(&self, photo: &RgbImage, keypoints: &KeyPoints) -> Template {
+        self.model.template(&crate::embed::face_embedding(&self.network, photo, keypoints))
+    }
+
+    /// The template of a chip already cut ([`crate::embed::face_chip`]): what [`Self::template`]
+    /// computes, for a caller that also measures the chip.
+    pub fn template_of_chip(&self, chip: &crate::embed::FaceChip) -> Template {
+        self.template_and_mirror_pair(chip).0
+    }
+
+    /// [`Self::template_of_chip`] and the two embeddings its mean was made of (the chip's and its
+    /// mirror image's), for the quality components that compare them.
+    pub fn template_and_mirror_pair(&self, chip: &crate::embed::FaceChip) -> (Template, crate::embed::MirrorPair) {
+        let pair = crate::embed::chip_mirror_pair(&self.network, chip);
+        (self.model.template(&pair.mean()), pair)
+    }
+
+    /// The best cosine of `probe` against the subject's templates.
+    pub fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
+        Combine::Max.apply(enrolled.iter().map(|t| probe.cosine(t))).unwrap_or(f32::NEG_INFINITY)
+    }
+}

@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# The layout rules no compiler checks (docs/architecture.md): no Rust source file over 800 lines,
+# and no runtime crate (core, vision, store, service, http) depending on what the runtime must not
+# reach — the research crate, the binary, the settings' paths, clap or indicatif. Function length,
+# printing and environment reads are clippy's (the workspace lints; CI runs clippy on the runtime).
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+python3 - <<'PY'
+import json, pathlib, subprocess, sys
+
+failures = []
+for path in sorted(pathlib.Path(".").glob("**/*.rs")):
+    if path.parts[0] in ("target",) or "node_modules" in path.parts:
+        continue
+    lines = sum(1 for _ in path.open(encoding="utf-8"))
+    if lines > 800:
+        failures.append(f"{path}: {lines} lines (at most 800)")
+
+runtime = {"facegate-core", "facegate-vision", "facegate-store", "facegate-service", "facegate-http"}
+forbidden = {"facegate", "facegate-research", "facegate-paths", "clap", "indicatif"}
+meta = json.loads(subprocess.run(["cargo", "metadata", "--format-version", "1", "--no-deps"], check=True,
+                                 capture_output=True, text=True).stdout)
+for package in meta["packages"]:
+    if package["name"] not in runtime:
+        continue
+    for dep in package["dependencies"]:
+        if dep["name"] in forbidden and dep["kind"] is None:
+            failures.append(f"{package['name']} depends on {dep['name']}: the runtime must not")
+
+for failure in failures:
+    print(f"layout: {failure}", file=sys.stderr)
+if failures:
+    sys.exit(1)
+print("layout: ok")
+PY
