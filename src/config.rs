@@ -109,12 +109,14 @@ pub struct Settings {
     /// pixels + LBP Direct LDA (`dlda.bin`). Templates of one are never compared with the other's.
     #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::ClassicalRecognizer::from(RecognizerKind::default()))]
     pub recognizer: choices::ClassicalRecognizer,
-    /// Comma-separated API keys (at least 16 characters each); when none are given (here or in
-    /// `--api-keys-file`) the API is open to anyone who can reach it. Keys given as a flag show
-    /// in `ps`: prefer the file or the variable.
+    /// Comma-separated API keys (at least 16 characters each); when neither this nor
+    /// `--api-keys-file` is set the API is open to anyone who can reach it. Set but holding no key
+    /// (only commas or blanks) stops the start-up; an empty value counts as not set. Keys given as
+    /// a flag show in `ps`: prefer the file or the variable.
     #[arg(long, env = "FACEGATE_API_KEYS", value_delimiter = ',', hide_env_values = true)]
     pub api_keys: Vec<String>,
-    /// A file of API keys: one per line; blank lines and lines starting with `#` are skipped.
+    /// A file of API keys: one per line; blank lines and lines starting with `#` are skipped. A
+    /// file with no key in it stops the start-up.
     #[arg(long, env = "FACEGATE_API_KEYS_FILE")]
     pub api_keys_file: Option<PathBuf>,
     /// Photos analysed at once (default: the number of cores).
@@ -253,7 +255,8 @@ impl Default for Settings {
 
 impl Settings {
     /// The HTTP layer's limits; refuses a timeout that is not positive, an enrolment of no photo,
-    /// an unreadable keys file and a key shorter than [`MIN_API_KEY_LEN`].
+    /// an unreadable keys file, a key setting that holds no key and a key shorter than
+    /// [`MIN_API_KEY_LEN`].
     pub fn api_config(&self) -> anyhow::Result<ApiConfig> {
         let timeout = seconds("--timeout-secs", self.timeout_secs)?;
         let body_timeout = seconds("--body-timeout-secs", self.body_timeout_secs)?;
@@ -306,21 +309,40 @@ impl Settings {
     }
 
     /// The keys of `--api-keys` and of `--api-keys-file`, each at least [`MIN_API_KEY_LEN`]
-    /// characters (the error names the key's place, never the key).
+    /// characters (the error names the key's place, never the key). A setting that is given but
+    /// holds no key (`--api-keys ",,"` or blanks; a keys file of only comments and blank lines)
+    /// stops the start-up: it was meant to close the API, and must not leave it open. An empty
+    /// value (`FACEGATE_API_KEYS=""`) is no setting, as an absent one: the explicit open mode.
     fn api_keys(&self) -> anyhow::Result<Vec<String>> {
-        let mut keys: Vec<(String, String)> =
-            self.api_keys.iter().enumerate().map(|(i, k)| (format!("--api-keys entry {}", i + 1), k.trim().to_string())).collect();
+        let mut keys: Vec<(String, String)> = Vec::new();
+        let flag_given = self.api_keys.len() > 1 || self.api_keys.iter().any(|k| !k.is_empty());
+        for (i, key) in self.api_keys.iter().enumerate() {
+            if !key.trim().is_empty() {
+                keys.push((format!("--api-keys entry {}", i + 1), key.trim().to_string()));
+            }
+        }
+        anyhow::ensure!(
+            !flag_given || !keys.is_empty(),
+            "--api-keys (FACEGATE_API_KEYS) is set but holds no key, only commas or blanks: give at least one key of \
+             {MIN_API_KEY_LEN} or more characters, or remove the setting to run the API open"
+        );
         if let Some(path) = &self.api_keys_file {
             let text =
                 std::fs::read_to_string(path).map_err(|e| anyhow::anyhow!("cannot read the API keys file {}: {e}", path.display()))?;
+            let before = keys.len();
             for (n, line) in text.lines().enumerate() {
                 let line = line.trim();
                 if !line.is_empty() && !line.starts_with('#') {
                     keys.push((format!("{} line {}", path.display(), n + 1), line.to_string()));
                 }
             }
+            anyhow::ensure!(
+                keys.len() > before,
+                "the API keys file {} (--api-keys-file, FACEGATE_API_KEYS_FILE) holds no key, only blank lines and # comments: \
+                 put at least one key of {MIN_API_KEY_LEN} or more characters in it, or remove the setting to run the API open",
+                path.display()
+            );
         }
-        keys.retain(|(_, k)| !k.is_empty());
         for (place, key) in &keys {
             let len = key.chars().count();
             anyhow::ensure!(
@@ -410,6 +432,40 @@ mod tests {
         let error = Settings { api_keys: vec!["tiny".into()], ..Settings::default() }.api_config().unwrap_err().to_string();
         assert!(error.contains("--api-keys entry 1") && !error.contains("tiny"), "{error}");
         assert!(Settings { api_keys_file: Some(dir.join("missing")), ..Settings::default() }.api_config().is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A key setting given but holding no key stops the start-up (naming the setting); an empty
+    /// value, like no setting, is the explicit open mode. Parsed as clap parses the flag (the
+    /// variable's value goes through the same splitting).
+    #[test]
+    fn a_key_setting_that_holds_no_key_stops_the_start_up() {
+        use clap::Parser;
+        #[derive(Parser)]
+        struct Cli {
+            #[command(flatten)]
+            settings: Settings,
+        }
+        let settings = |keys: &str| Cli::try_parse_from(["facegate", "--api-keys", keys]).unwrap().settings;
+        for empty in [",,", ",", " ", " , \t"] {
+            let error = settings(empty).api_config().unwrap_err().to_string();
+            assert!(error.contains("--api-keys") && error.contains("holds no key"), "{empty:?}: {error}");
+        }
+        assert!(settings("").api_config().unwrap().api_keys.is_empty(), "an empty value is no setting");
+        assert_eq!(settings(",0123456789abcdef-flag,").api_config().unwrap().api_keys, ["0123456789abcdef-flag"]);
+
+        let dir = std::env::temp_dir().join(format!("facegate-empty-keys-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("keys");
+        for text in ["", "# the ops team's key goes here\n", "\n  \n# none yet\n"] {
+            std::fs::write(&file, text).unwrap();
+            let error = Settings { api_keys_file: Some(file.clone()), ..Settings::default() }.api_config().unwrap_err().to_string();
+            assert!(error.contains("--api-keys-file") && error.contains("holds no key"), "{text:?}: {error}");
+            // Keys given elsewhere do not excuse an empty file.
+            let both =
+                Settings { api_keys: vec!["0123456789abcdef-flag".into()], api_keys_file: Some(file.clone()), ..Settings::default() };
+            assert!(both.api_config().is_err());
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

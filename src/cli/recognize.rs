@@ -8,7 +8,9 @@ use anyhow::Context;
 use crate::cli::choices;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::calibration::DEFAULT_FMR;
-use crate::recognize::{DldaParams, FeatureKind, ClassicalModel, Normalization, NormalizeParams, Photometric, ClassicalRecognizer, RecognizerKind, Template};
+use crate::recognize::{
+    ClassicalModel, ClassicalRecognizer, DldaParams, FeatureKind, Normalization, NormalizeParams, Photometric, RecognizerKind, Template,
+};
 use crate::research::eval::identification;
 use crate::research::eval::pairs::{read_pairs, score_pairs};
 use crate::research::eval::verification::{self, summarize};

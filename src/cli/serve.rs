@@ -12,7 +12,7 @@ use crate::config::{LogFormat, Settings};
 use crate::http::server::{self, ServerLimits, Stopped};
 use crate::http::{self, ApiConfig, AppState};
 use crate::pipeline::Pipeline;
-use crate::store::Store;
+use crate::store::{KeyCheck, Store};
 
 #[derive(clap::Args, Debug)]
 pub struct ServeArgs {
@@ -43,17 +43,18 @@ pub fn run(args: ServeArgs) -> anyhow::Result<ExitCode> {
 }
 
 async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyhow::Result<()> {
-    let pipeline_config = args.pipeline_config();
-    tracing::info!(models = %pipeline_config.models_dir.display(), "loading the face pipeline");
-    let pipeline =
-        tokio::task::spawn_blocking(move || Pipeline::load(&pipeline_config)).await?.context("cannot load the face pipeline models")?;
-    tracing::info!(model_version = pipeline.recognizer.model_version(), with_3dmm = pipeline.face_model.is_some(), "pipeline loaded");
+    // The store and its keys first: a database the keys cannot read stops the start-up before the
+    // models are loaded.
     let keys = args.template_key.key_ring()?;
     match &keys {
         Some(keys) => tracing::info!(key_id = keys.current_id(), "templates are encrypted at rest"),
         None => tracing::warn!("no template key (FACEGATE_TEMPLATE_KEY_FILE): templates are stored UNENCRYPTED"),
     }
     let store = Store::connect(&args.database, keys).await.with_context(|| format!("cannot open the database {}", args.database))?;
+    if let Err(refused) = template_keys_open_the_store(&store, &args).await {
+        store.close().await;
+        return Err(refused);
+    }
     if config.api_keys.is_empty() {
         tracing::warn!(
             "no API keys configured (FACEGATE_API_KEYS_FILE, FACEGATE_API_KEYS): the API is OPEN to anyone who can reach {}",
@@ -62,6 +63,17 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
     } else {
         tracing::info!("{} API key(s) configured", config.api_keys.len());
     }
+    let pipeline_config = args.pipeline_config();
+    tracing::info!(models = %pipeline_config.models_dir.display(), "loading the face pipeline");
+    let loaded = tokio::task::spawn_blocking(move || Pipeline::load(&pipeline_config)).await?;
+    let pipeline = match loaded.context("cannot load the face pipeline models") {
+        Ok(pipeline) => pipeline,
+        Err(e) => {
+            store.close().await;
+            return Err(e);
+        }
+    };
+    tracing::info!(model_version = pipeline.recognizer.model_version(), with_3dmm = pipeline.face_model.is_some(), "pipeline loaded");
     tracing::info!(workers = config.workers, queue = config.queue_depth, enroll_queue = config.enroll_queue_depth, "bounded work pool");
     let state = AppState::new(Arc::new(pipeline), store.clone(), config);
     let loading = std::time::Instant::now();
@@ -86,6 +98,45 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
     state.facegate().stop_following();
     store.close().await;
     tracing::info!("stopped");
+    Ok(())
+}
+
+/// Refuse to serve a database whose sealed templates the configured template keys cannot open: with
+/// no key, every sealed subject would answer 500 and new enrolments would be stored unencrypted
+/// beside them; with the wrong key, every sealed subject would answer 500. Logs what the keys
+/// leave to do (plain subjects to seal, subjects under an older key to re-wrap).
+async fn template_keys_open_the_store(store: &Store, args: &Settings) -> anyhow::Result<()> {
+    let key_file = || args.template_key.template_key_file.as_ref().map_or_else(String::new, |p| format!(" {}", p.display()));
+    match store.check_template_keys().await.context("cannot check the database's sealed templates")? {
+        KeyCheck::NothingSealed => {}
+        KeyCheck::Opens { sealed_subjects } => tracing::info!(sealed_subjects, "the template key opens the sealed subjects"),
+        KeyCheck::NoKey { sealed_subjects } => anyhow::bail!(
+            "the database holds {sealed_subjects} subject(s) whose templates are sealed with a template key, but no template key \
+             is configured: start with --template-key-file (FACEGATE_TEMPLATE_KEY_FILE) naming the key file that sealed them \
+             (without it every sealed subject would answer 500 and new enrolments would be stored unencrypted)"
+        ),
+        KeyCheck::CannotOpen { key_id, subjects, reason } => anyhow::bail!(
+            "the template key file{} (--template-key-file, FACEGATE_TEMPLATE_KEY_FILE) cannot open the {subjects} subject(s) sealed \
+             under template key {key_id}: {reason}; give the key file that holds that key (an older key stays below the current \
+             one until `facegate rekey` has re-wrapped every subject)",
+            key_file()
+        ),
+    }
+    if store.encrypts() {
+        let counts = store.sealing_counts().await?;
+        if counts.plain > 0 {
+            tracing::warn!(
+                subjects = counts.plain,
+                "subjects enrolled before the template key are still stored plain: run `facegate rekey`"
+            );
+        }
+        if counts.other_keys > 0 {
+            tracing::warn!(
+                subjects = counts.other_keys,
+                "subjects are sealed under an older template key: run `facegate rekey` before removing it from the key file"
+            );
+        }
+    }
     Ok(())
 }
 

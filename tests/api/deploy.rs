@@ -81,7 +81,11 @@ fn compose_config_validates_where_the_tool_is_installed() {
             continue;
         };
         let stderr = String::from_utf8_lossy(&out.stderr);
-        if !out.status.success() && (stderr.contains("unknown command") || stderr.contains("is not a docker command") || stderr.contains("unknown shorthand flag")) {
+        if !out.status.success()
+            && (stderr.contains("unknown command")
+                || stderr.contains("is not a docker command")
+                || stderr.contains("unknown shorthand flag"))
+        {
             continue;
         }
         assert!(out.status.success(), "{} config: {stderr}", tool.join(" "));

@@ -87,8 +87,8 @@ async fn a_stalled_body_gets_408_and_a_refused_request_is_answered_before_its_bo
     assert!(response.to_ascii_lowercase().contains("cache-control: no-store"), "{response}");
 
     // One worker, no queue, a slow engine: while a verification runs, another is refused with
-    // 503 from its head alone (the client has sent none of its body); an enrolment, in its own
-    // queue, is still admitted.
+    // 503 as soon as its body begins (the client has sent a few bytes of a megabyte); an
+    // enrolment, in its own queue, is still admitted.
     let one = ApiConfig { workers: 1, queue_depth: 0, enroll_queue_depth: 1, ..config() };
     let app = TestApp::start(StandInEngine::slow(Duration::from_millis(800)), one).await;
     let photo = pattern_jpeg(320, 240, 4);
@@ -100,7 +100,7 @@ async fn a_stalled_body_gets_408_and_a_refused_request_is_answered_before_its_bo
             tokio::time::sleep(Duration::from_millis(200)).await;
             let mut s = connect(&app).await;
             s.write_all(
-                b"POST /verify HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\nContent-Length: 1000000\r\n\r\n",
+                b"POST /verify HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\nContent-Length: 1000000\r\n\r\n--b\r\n",
             )
             .await
             .unwrap();

@@ -13,17 +13,24 @@
 //! - `postgres`: a real PostgreSQL server (a throwaway cluster, or `FACEGATE_TEST_POSTGRES`).
 //! - `store_backends`: the template store on SQLite and PostgreSQL through one test body each; concurrent
 //!   migration and the change feed on PostgreSQL.
+//! - `fail_closed`: `facegate serve` refuses to start on an API-key setting with no key and on a sealed
+//!   database without the key that opens it; what a DELETE erases (`Facegate-Erasure`), and a backup
+//!   from before it restored with the same key.
 //! - `store_cli`: `facegate rekey`, `backup` and `restore`, the real binary on a real database.
 //! - `browser`: the web console in headless Chromium over WebDriver, against the real pipeline.
 
+mod admission;
 mod browser;
 mod deploy;
+mod fail_closed;
 mod hostile;
 mod http;
+mod json_bounds;
 mod openapi;
 mod pipeline;
 mod postgres;
 mod replicas;
 mod store_backends;
 mod store_cli;
+mod store_outage;
 mod support;

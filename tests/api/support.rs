@@ -132,6 +132,14 @@ impl TestApp {
         Self::serve(engine, store, url, config, limits, dir).await
     }
 
+    /// An app on a store the caller opened (on `database_url`).
+    pub async fn start_on_store(engine: Arc<dyn FaceEngine>, store: Store, database_url: String, config: ApiConfig) -> TestApp {
+        static N: AtomicUsize = AtomicUsize::new(0);
+        let dir = std::env::temp_dir().join(format!("facegate-api-store-{}-{}", std::process::id(), N.fetch_add(1, Ordering::Relaxed)));
+        std::fs::create_dir_all(&dir).unwrap();
+        Self::serve(engine, store, database_url, config, default_limits(), dir).await
+    }
+
     /// A second app on this one's database with another engine (a service restarted with another
     /// recognizer); the database folder stays until this app is dropped.
     pub async fn restarted_with(&self, engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {

@@ -13,6 +13,7 @@ use serde::{Deserialize, Serialize};
 use super::audit::Audit;
 use super::input::{Params, SubjectPath, Upload, subject_id, validate_fmr};
 use super::problem::{Problem, ProblemKind};
+use super::timeout::CommitPoint;
 use super::{AppState, OPENAPI_YAML};
 use facegate_core::elapsed_ms;
 use facegate_service::AnalyzedPhoto;
@@ -105,6 +106,7 @@ struct EnrollResponse {
 pub async fn enroll(
     State(state): State<AppState>,
     audit: Audit,
+    commit: CommitPoint,
     Params(NoParams {}): Params<NoParams>,
     upload: Upload,
 ) -> Result<Response, Problem> {
@@ -112,7 +114,11 @@ pub async fn enroll(
     audit.model_version(facegate.model_version());
     let subject = upload.require_subject()?;
     audit.subject(&subject);
-    let enrollment = facegate.enroll(&subject, upload.images).await?;
+    let prepared = facegate.prepare_enrollment(&subject, upload.images).await?;
+    // From here the answer is the store's: the request deadline waits for it (never a 504 for an
+    // enrollment that is committed).
+    commit.pass();
+    let enrollment = prepared.commit().await?;
     enrollment.photos.iter().for_each(|photo| observe(&state, photo));
     audit.templates_added(enrollment.photos.len());
     let body = EnrollResponse {
@@ -295,12 +301,41 @@ pub async fn get_subject(State(state): State<AppState>, SubjectPath(id): Subject
     Ok(Json(state.facegate().subject(&id).await?))
 }
 
-/// `DELETE /subjects/{id}`: erase the subject and all its templates.
-pub async fn delete_subject(State(state): State<AppState>, audit: Audit, SubjectPath(id): SubjectPath) -> Result<StatusCode, Problem> {
+/// `DELETE /subjects/{id}`: erase the subject and all its templates. The 204 says what the erasure
+/// covers in [`ERASURE_HEADER`] ([`erasure_scope`]).
+pub async fn delete_subject(
+    State(state): State<AppState>,
+    audit: Audit,
+    commit: CommitPoint,
+    SubjectPath(id): SubjectPath,
+) -> Result<Response, Problem> {
     audit.subject(&id);
+    // The deletion's answer is the store's: never a 504 for a subject that is erased.
+    commit.pass();
     match state.facegate().delete(&id).await? {
-        Some(_) => Ok(StatusCode::NO_CONTENT),
+        Some(_) => Ok((StatusCode::NO_CONTENT, [(ERASURE_HEADER, erasure_scope(state.store()))]).into_response()),
         None => Err(Problem::new(ProblemKind::UnknownSubject, format!("subject {id} is not enrolled"))),
+    }
+}
+
+/// The header of a `DELETE /subjects/{id}` answer saying what the erasure covers.
+pub const ERASURE_HEADER: &str = "facegate-erasure";
+
+/// What a deletion erases on this store, then what still holds the subject and until when
+/// (docs/service.md, "Erasure: what it covers"):
+/// - `live-database`: SQLite's files (the database and its WAL) no longer hold any byte of it;
+///   `queries`: on PostgreSQL no query, replica or later dump sees it, but its dead rows stay in
+///   the server's files ("disk") until overwritten;
+/// - `…-until-key-rotation`: with a template key, copies made before (backups, and on PostgreSQL
+///   the dead rows, WAL and archives) hold it sealed, with its wrapped data key, and open with
+///   that key until it is rotated away (`facegate rekey`) and destroyed; `…-not-erased`: without
+///   a key they hold it plain for as long as they exist.
+pub fn erasure_scope(store: &facegate_store::Store) -> &'static str {
+    match (store.backend(), store.encrypts()) {
+        (Backend::Sqlite, true) => "live-database; backups-until-key-rotation",
+        (Backend::Sqlite, false) => "live-database; backups-not-erased",
+        (Backend::Postgres, true) => "queries; disk-and-backups-until-key-rotation",
+        (Backend::Postgres, false) => "queries; disk-and-backups-not-erased",
     }
 }
 
@@ -317,12 +352,37 @@ pub struct Health {
     templates_encrypted: bool,
     /// The database behind the store.
     store_backend: Backend,
+    /// What `DELETE /subjects/{id}` erases here ([`erasure_scope`], its `Facegate-Erasure` header).
+    erasure: &'static str,
+    /// The id of the current template key (never the key); with an accepted key, when one is set.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    template_key_id: Option<String>,
+    /// Subjects whose templates are stored plain (with an accepted key, like the counts).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    subjects_unencrypted: Option<u64>,
+    /// Subjects sealed under an older template key (`facegate rekey` has not re-wrapped them yet);
+    /// with an accepted key, like the counts.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    subjects_on_older_keys: Option<u64>,
 }
 
-/// `GET /health`: the database answers and the models are loaded.
+/// `GET /health`: the database answers and the models are loaded. The service started only if its
+/// template keys open the sealed subjects (or there are none), so the sealing counts say what is
+/// left to do, not whether reads work.
 pub async fn health(State(state): State<AppState>, headers: HeaderMap) -> Result<Json<Health>, Problem> {
+    // Within a second, whatever the database does: a slow answer is a database that is down.
+    let down = || Problem::new(ProblemKind::StoreUnavailable, format!("the template database did not answer within {HEALTH_WAIT:?}"));
+    tokio::time::timeout(HEALTH_WAIT, health_of(&state, &headers)).await.unwrap_or_else(|_| Err(down()))
+}
+
+/// Longest `/health` waits for the database.
+const HEALTH_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
+
+async fn health_of(state: &AppState, headers: &HeaderMap) -> Result<Json<Health>, Problem> {
     let health = state.facegate().health().await?;
-    let admitted = state.keys().admits(&headers);
+    let admitted = state.keys().admits(headers);
+    let store = state.store();
+    let sealing = if admitted { Some(store.sealing_counts().await?) } else { None };
     Ok(Json(Health {
         status: "ok",
         model_version: health.model_version,
@@ -330,6 +390,10 @@ pub async fn health(State(state): State<AppState>, headers: HeaderMap) -> Result
         templates: admitted.then_some(health.templates),
         templates_encrypted: health.templates_encrypted,
         store_backend: health.store_backend,
+        erasure: erasure_scope(store),
+        template_key_id: store.template_key_id().filter(|_| admitted).map(String::from),
+        subjects_unencrypted: sealing.map(|s| s.plain),
+        subjects_on_older_keys: sealing.map(|s| s.other_keys),
     }))
 }
 

@@ -2,6 +2,16 @@
 //! as `multipart/form-data` or base64 in JSON, and the subject id), [`Params`] (query parameters,
 //! unknown ones refused), [`SubjectPath`] (a subject id in the path). Every way a request can be
 //! malformed ends in a [`Problem`], never a panic.
+//!
+//! A JSON body is parsed and its base64 decoded on the blocking pool, never on the async runtime.
+//! The parse counts the `images` entries as it goes and refuses the body at the first entry past
+//! the most photos any operation takes ([`JsonLimit`]); until then each entry stays a slice of the
+//! body (a copy only where the JSON string has escapes), so a body of millions of tiny photos costs
+//! neither memory nor time beyond the body itself.
+
+use std::borrow::Cow;
+use std::cell::Cell;
+use std::fmt;
 
 use axum::body::Bytes;
 use axum::extract::rejection::PathRejection;
@@ -10,8 +20,9 @@ use axum::http::request::Parts;
 use axum::http::{StatusCode, header};
 use base64::Engine as _;
 use serde::Deserialize;
-use serde::de::DeserializeOwned;
+use serde::de::{self, DeserializeOwned, DeserializeSeed, MapAccess, SeqAccess, Visitor};
 
+use super::AppState;
 use super::admission::{BodyDeadline, body_timed_out};
 use super::problem::{Problem, ProblemKind};
 use facegate_service::SubjectId;
@@ -32,20 +43,13 @@ pub struct Upload {
     pub images: Vec<Bytes>,
 }
 
-/// The JSON form of a request: base64 photos (a `data:` URL prefix is allowed).
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct JsonUpload {
-    subject: Option<String>,
-    image: Option<String>,
-    images: Option<Vec<String>>,
-}
-
-impl<S: Send + Sync> FromRequest<S> for Upload {
+impl FromRequest<AppState> for Upload {
     type Rejection = Problem;
 
-    async fn from_request(request: Request, _state: &S) -> Result<Upload, Problem> {
-        read_upload(request).await
+    /// The most photos any operation takes is an enrolment's (`ApiConfig::max_images`): a JSON
+    /// body with more in `images` is refused while it is parsed.
+    async fn from_request(request: Request, state: &AppState) -> Result<Upload, Problem> {
+        read_upload(request, state.max_images().max(1)).await
     }
 }
 
@@ -80,21 +84,25 @@ impl<S: Send + Sync> FromRequestParts<S> for SubjectPath {
 
 /// Read the body of `request` as multipart or JSON. The body limit (axum's `DefaultBodyLimit`)
 /// applies while reading; exceeding it is a `too-large` problem. A body still arriving at the
-/// admission layer's deadline ([`BodyDeadline`]) is a `request-timeout` problem (408).
-pub async fn read_upload(request: Request) -> Result<Upload, Problem> {
+/// admission layer's deadline ([`BodyDeadline`]) is a `request-timeout` problem (408). A JSON body
+/// with more than `max_photos` entries in `images` is malformed, refused as soon as the parse
+/// reaches the first one too many.
+pub async fn read_upload(request: Request, max_photos: usize) -> Result<Upload, Problem> {
     match request.extensions().get::<BodyDeadline>().copied() {
-        Some(BodyDeadline(deadline)) => tokio::time::timeout_at(deadline, read_body(request)).await.map_err(|_| body_timed_out())?,
-        None => read_body(request).await,
+        Some(BodyDeadline(deadline)) => {
+            tokio::time::timeout_at(deadline, read_body(request, max_photos)).await.map_err(|_| body_timed_out())?
+        }
+        None => read_body(request, max_photos).await,
     }
 }
 
-async fn read_body(request: Request) -> Result<Upload, Problem> {
+async fn read_body(request: Request, max_photos: usize) -> Result<Upload, Problem> {
     let content_type = request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
     let essence = content_type.split(';').next().unwrap_or("").trim().to_string();
     if essence == "multipart/form-data" {
         read_multipart(request).await
     } else if essence == "application/json" || essence.ends_with("+json") {
-        read_json(request).await
+        read_json(request, max_photos).await
     } else {
         Err(Problem::new(
             ProblemKind::UnsupportedMediaType,
@@ -144,7 +152,9 @@ fn multipart_problem(e: axum::extract::multipart::MultipartError) -> Problem {
     }
 }
 
-async fn read_json(request: Request) -> Result<Upload, Problem> {
+/// Read a JSON body, then parse it and decode its photos on the blocking pool: a large body takes
+/// no time from the async runtime's other requests.
+async fn read_json(request: Request, max_photos: usize) -> Result<Upload, Problem> {
     let body = Bytes::from_request(request, &()).await.map_err(|e| {
         if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
             Problem::new(ProblemKind::TooLarge, "the request body exceeds the size limit")
@@ -152,13 +162,186 @@ async fn read_json(request: Request) -> Result<Upload, Problem> {
             Problem::malformed(format!("cannot read the body: {}", e.body_text()))
         }
     })?;
-    let json: JsonUpload = serde_json::from_slice(&body).map_err(|e| Problem::malformed(format!("invalid JSON body: {e}")))?;
-    let mut upload = Upload { subject: json.subject, images: Vec::new() };
+    tokio::task::spawn_blocking(move || parse_json(&body, max_photos)).await.map_err(Problem::internal)?
+}
+
+/// Parse a JSON body (at most `max_photos` entries in `images`) and decode its photos, `image`
+/// first.
+fn parse_json(body: &[u8], max_photos: usize) -> Result<Upload, Problem> {
+    let over = Cell::new(false);
+    let mut de = serde_json::Deserializer::from_slice(body);
+    let parsed = JsonLimit { max_photos, over: &over }.deserialize(&mut de).and_then(|json| de.end().map(|()| json));
+    let json = parsed.map_err(|e| {
+        if over.get() {
+            Problem::malformed(format!("at most {max_photos} photos per request (field images), got more than {max_photos}"))
+        } else {
+            Problem::malformed(format!("invalid JSON body: {e}"))
+        }
+    })?;
     let strings = json.image.into_iter().chain(json.images.into_iter().flatten());
-    for (index, s) in strings.enumerate() {
-        upload.images.push(decode_base64(&s).map_err(|p| p.for_image(index))?);
+    let images = strings.enumerate().map(|(index, s)| decode_base64(&s.0).map_err(|p| p.for_image(index))).collect::<Result<_, _>>()?;
+    Ok(Upload { subject: json.subject, images })
+}
+
+/// The JSON form of a request: base64 photos (a `data:` URL prefix is allowed), each still the
+/// body's text. Unknown fields are refused.
+#[derive(Debug)]
+struct JsonUpload<'a> {
+    subject: Option<String>,
+    image: Option<Base64Text<'a>>,
+    images: Option<Vec<Base64Text<'a>>>,
+}
+
+const FIELDS: &[&str] = &["subject", "image", "images"];
+
+/// One photo's base64 text, borrowed from the body (owned only when the JSON string has escapes).
+#[derive(Debug)]
+struct Base64Text<'a>(Cow<'a, str>);
+
+impl<'de> Deserialize<'de> for Base64Text<'de> {
+    fn deserialize<D: de::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        struct TextVisitor;
+        impl<'de> Visitor<'de> for TextVisitor {
+            type Value = Base64Text<'de>;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str("a string")
+            }
+            fn visit_borrowed_str<E: de::Error>(self, v: &'de str) -> Result<Self::Value, E> {
+                Ok(Base64Text(Cow::Borrowed(v)))
+            }
+            fn visit_str<E: de::Error>(self, v: &str) -> Result<Self::Value, E> {
+                Ok(Base64Text(Cow::Owned(v.to_owned())))
+            }
+            fn visit_string<E: de::Error>(self, v: String) -> Result<Self::Value, E> {
+                Ok(Base64Text(Cow::Owned(v)))
+            }
+        }
+        deserializer.deserialize_str(TextVisitor)
     }
-    Ok(upload)
+}
+
+/// Deserializes a [`JsonUpload`] as `#[derive(Deserialize)] #[serde(deny_unknown_fields)]` would
+/// (same errors), except that `images` is refused at its entry `max_photos + 1`, before that entry
+/// is kept; `over` then says so.
+#[derive(Clone, Copy)]
+struct JsonLimit<'c> {
+    max_photos: usize,
+    over: &'c Cell<bool>,
+}
+
+impl<'de> DeserializeSeed<'de> for JsonLimit<'_> {
+    type Value = JsonUpload<'de>;
+
+    fn deserialize<D: de::Deserializer<'de>>(self, deserializer: D) -> Result<JsonUpload<'de>, D::Error> {
+        deserializer.deserialize_struct("JsonUpload", FIELDS, self)
+    }
+}
+
+impl<'de> Visitor<'de> for JsonLimit<'_> {
+    type Value = JsonUpload<'de>;
+
+    fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+        f.write_str("struct JsonUpload")
+    }
+
+    fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<JsonUpload<'de>, A::Error> {
+        let mut json = JsonUpload { subject: None, image: None, images: None };
+        let mut seen = [false; 3];
+        while let Some(Field(index)) = map.next_key::<Field>()? {
+            if std::mem::replace(&mut seen[index], true) {
+                return Err(de::Error::duplicate_field(FIELDS[index]));
+            }
+            match index {
+                0 => json.subject = map.next_value()?,
+                1 => json.image = map.next_value()?,
+                _ => json.images = map.next_value_seed(ImagesSeed(self))?,
+            }
+        }
+        Ok(json)
+    }
+
+    /// The struct as an array `[subject, image, images]`, as serde's derive accepts it.
+    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<JsonUpload<'de>, A::Error> {
+        let missing = |i: usize| <A::Error as de::Error>::invalid_length(i, &"struct JsonUpload with 3 elements");
+        let subject = seq.next_element()?.ok_or_else(|| missing(0))?;
+        let image = seq.next_element()?.ok_or_else(|| missing(1))?;
+        let images = seq.next_element_seed(ImagesSeed(self))?.ok_or_else(|| missing(2))?;
+        Ok(JsonUpload { subject, image, images })
+    }
+}
+
+/// A field name of [`JsonUpload`], as its index in [`FIELDS`]; an unknown one is an error.
+struct Field(usize);
+
+impl<'de> Deserialize<'de> for Field {
+    fn deserialize<D: de::Deserializer<'de>>(deserializer: D) -> Result<Field, D::Error> {
+        struct FieldVisitor;
+        impl Visitor<'_> for FieldVisitor {
+            type Value = Field;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str("field identifier")
+            }
+            fn visit_str<E: de::Error>(self, v: &str) -> Result<Field, E> {
+                FIELDS.iter().position(|f| *f == v).map(Field).ok_or_else(|| E::unknown_field(v, FIELDS))
+            }
+        }
+        deserializer.deserialize_identifier(FieldVisitor)
+    }
+}
+
+/// The `images` field: null or an array of at most `max_photos` strings.
+struct ImagesSeed<'c>(JsonLimit<'c>);
+
+impl<'de> DeserializeSeed<'de> for ImagesSeed<'_> {
+    type Value = Option<Vec<Base64Text<'de>>>;
+
+    fn deserialize<D: de::Deserializer<'de>>(self, deserializer: D) -> Result<Self::Value, D::Error> {
+        deserializer.deserialize_option(self)
+    }
+}
+
+impl<'de> Visitor<'de> for ImagesSeed<'_> {
+    type Value = Option<Vec<Base64Text<'de>>>;
+
+    fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+        f.write_str("option")
+    }
+
+    fn visit_none<E: de::Error>(self) -> Result<Self::Value, E> {
+        Ok(None)
+    }
+
+    fn visit_unit<E: de::Error>(self) -> Result<Self::Value, E> {
+        Ok(None)
+    }
+
+    fn visit_some<D: de::Deserializer<'de>>(self, deserializer: D) -> Result<Self::Value, D::Error> {
+        deserializer.deserialize_seq(PhotoList(self.0)).map(Some)
+    }
+}
+
+/// The array of `images`, counted while it is read.
+struct PhotoList<'c>(JsonLimit<'c>);
+
+impl<'de> Visitor<'de> for PhotoList<'_> {
+    type Value = Vec<Base64Text<'de>>;
+
+    fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+        f.write_str("a sequence")
+    }
+
+    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
+        let JsonLimit { max_photos, over } = self.0;
+        let mut photos = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(max_photos));
+        while let Some(photo) = seq.next_element()? {
+            if photos.len() == max_photos {
+                over.set(true);
+                return Err(de::Error::custom(format_args!("more than {max_photos} photos")));
+            }
+            photos.push(photo);
+        }
+        Ok(photos)
+    }
 }
 
 fn decode_base64(s: &str) -> Result<Bytes, Problem> {
@@ -231,6 +414,96 @@ mod tests {
         assert_eq!(&decode_base64("00").unwrap()[..], &[0xd3]);
         assert!(decode_base64("not base64!").is_err() && decode_base64("A").is_err());
         assert!(decode_base64("").is_err() && decode_base64("data:image/png;base64,").is_err());
+    }
+
+    /// The derived form `parse_json` replaced: its errors are the reference.
+    #[derive(Debug, Deserialize)]
+    #[serde(deny_unknown_fields)]
+    #[allow(dead_code)]
+    struct JsonUpload {
+        subject: Option<String>,
+        image: Option<String>,
+        images: Option<Vec<String>>,
+    }
+
+    fn detail(body: &str, max_photos: usize) -> String {
+        parse_json(body.as_bytes(), max_photos).unwrap_err().detail
+    }
+
+    #[test]
+    fn json_errors_are_the_derived_ones() {
+        let bodies = [
+            "{not json",
+            "",
+            "[]",
+            "\"x\"",
+            "42",
+            r#"{"subject": "a", "image": "aGVsbG8=", "extra": 1}"#,
+            r#"{"subject": 42, "image": "aGVsbG8="}"#,
+            r#"{"subject": "a", "subject": "b"}"#,
+            r#"{"subject": null, "subject": "b"}"#,
+            r#"{"image": "aGVsbG8=", "image": "aGVsbG8="}"#,
+            r#"{"images": [], "images": []}"#,
+            r#"{"images": "aGVsbG8="}"#,
+            r#"{"images": [1]}"#,
+            r#"{"images": ["aGVsbG8=", null]}"#,
+            r#"{"images": {"a": 1}}"#,
+            r#"{"image": ["aGVsbG8="]}"#,
+            r#"{"image": 1.5}"#,
+            r#"{"images": ["aGVsbG8="],}"#,
+            r#"{"subject": "a"} trailing"#,
+            r#"{"subject": "a"}{}"#,
+            r#"["a"]"#,
+            r#"["a", null]"#,
+            r#"["a", null, null, 1]"#,
+            r#"["a", null, [2]]"#,
+            r#"{"subject": "\ud800"}"#,
+            r#"{"images": ["\ud800"]}"#,
+            r#"{"images": ["aGVs\q"]}"#,
+            r#"{"images": ["aGVsbG8="]"#,
+        ];
+        for body in bodies {
+            let reference = serde_json::from_str::<JsonUpload>(body).expect_err(body);
+            assert_eq!(detail(body, 16), format!("invalid JSON body: {reference}"), "{body}");
+        }
+    }
+
+    #[test]
+    fn json_photos_in_order_with_escapes_data_urls_and_nulls() {
+        let body = r#"{"images": ["d29ybGQ=", "data:image\/png;base64,IQ\u003d\u003d"], "subject": "a", "image": "aGVsbG8"}"#;
+        let upload = parse_json(body.as_bytes(), 2).unwrap();
+        assert_eq!(upload.subject.as_deref(), Some("a"));
+        let images: Vec<&[u8]> = upload.images.iter().map(|b| &b[..]).collect();
+        assert_eq!(images, [&b"hello"[..], b"world", b"!"]);
+        for body in [r#"{"subject": "a", "images": null, "image": null}"#, "{}", r#"[null, null, null]"#] {
+            let upload = parse_json(body.as_bytes(), 2).unwrap();
+            assert!(upload.images.is_empty(), "{body}");
+        }
+        let upload = parse_json(br#"["a", "aGVsbG8=", ["d29ybGQ="]]"#, 2).unwrap();
+        assert_eq!((upload.subject.as_deref(), upload.images.len()), (Some("a"), 2));
+    }
+
+    #[test]
+    fn json_photo_errors_name_the_photo() {
+        let p = parse_json(br#"{"image": "aGVsbG8=", "images": ["d29ybGQ=", "***"]}"#, 16).unwrap_err();
+        assert_eq!((p.image, p.detail.starts_with("the image is not valid base64")), (Some(2), true), "{}", p.detail);
+        let p = parse_json(br#"{"images": ["d29ybGQ=", " "]}"#, 16).unwrap_err();
+        assert_eq!((p.image, p.detail.as_str()), (Some(1), "the image is empty"));
+    }
+
+    #[test]
+    fn json_images_are_refused_past_the_cap_while_parsed() {
+        let many = |n: usize, tail: &str| format!(r#"{{"subject": "a", "images": [{}]{tail}"#, vec![r#""AA""#; n].join(","));
+        // At the cap: parsed and decoded; the operation counts them (with `image`, one more).
+        assert_eq!(parse_json(many(3, "}").as_bytes(), 3).unwrap().images.len(), 3);
+        let with_image = format!(r#"{{"image": "AA", "images": [{}]}}"#, [r#""AA""#; 3].join(","));
+        assert_eq!(parse_json(with_image.as_bytes(), 3).unwrap().images.len(), 4);
+        // One past the cap: refused, whatever follows (the rest is never read).
+        let over = "at most 3 photos per request (field images), got more than 3";
+        for body in [many(4, "}"), many(4, ", \"extra\": 1}"), many(4, ", not json at all"), many(3_000_000, "}")] {
+            let p = parse_json(body.as_bytes(), 3).unwrap_err();
+            assert_eq!((p.kind, p.detail.as_str(), p.image), (ProblemKind::MalformedRequest, over, None));
+        }
     }
 
     #[test]

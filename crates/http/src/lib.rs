@@ -38,6 +38,7 @@ pub mod limits;
 pub mod metrics;
 pub mod problem;
 pub mod server;
+pub mod timeout;
 
 pub use metrics::Metrics;
 pub use problem::{Problem, ProblemKind};
@@ -178,6 +179,11 @@ impl AppState {
     fn keys(&self) -> &ApiKeys {
         &self.0.keys
     }
+
+    /// The most photos one enrolment takes (`ApiConfig::max_images`).
+    pub(crate) fn max_images(&self) -> usize {
+        self.0.config.max_images
+    }
 }
 
 /// One operation of the API: method, route, whether it needs an API key, the admission queue of
@@ -214,7 +220,8 @@ pub fn operations() -> Vec<Operation> {
 
 /// The application: routes, API keys, admission, audit, body limit, request timeout, metrics, and
 /// the head limits, request id and `Cache-Control` of [`limits::edge`]. In request order:
-/// edge → metrics → request timeout → audit → API key → admission → handler.
+/// edge → metrics → audit → API key → request timeout → admission → handler (the timeout inside
+/// the audit, so that a request it ends is audited).
 pub fn router(state: AppState) -> Router {
     let keys = state.0.keys.clone();
     let mut protected = Router::new();
@@ -230,12 +237,15 @@ pub fn router(state: AppState) -> Router {
             public = public.route(operation.path, handler);
         }
     }
-    let protected =
-        protected.route_layer(middleware::from_fn_with_state(keys, require_api_key)).route_layer(middleware::from_fn(audit::record));
+    let timeout = middleware::from_fn_with_state(state.0.config.request_timeout, timeout::request_timeout);
+    let protected = protected
+        .route_layer(timeout.clone())
+        .route_layer(middleware::from_fn_with_state(keys, require_api_key))
+        .route_layer(middleware::from_fn(audit::record));
+    let mut public = public.route_layer(timeout);
     if state.0.config.console {
         public = public.merge(console::routes());
     }
-    let timeout = state.0.config.request_timeout;
     let metrics = state.0.metrics.clone();
     Router::new()
         .merge(protected)
@@ -244,7 +254,6 @@ pub fn router(state: AppState) -> Router {
         .method_not_allowed_fallback(handlers::method_not_allowed)
         .with_state(state.clone())
         .layer(DefaultBodyLimit::max(state.0.config.max_body_bytes))
-        .layer(middleware::from_fn_with_state(timeout, request_timeout))
         .layer(middleware::from_fn_with_state(metrics, metrics::track))
         .layer(middleware::from_fn(limits::edge))
 }
@@ -264,13 +273,6 @@ async fn require_api_key(State(keys): State<ApiKeys>, request: Request, next: Ne
         Some(None) => Problem::new(ProblemKind::Unauthorized, "the API key is not valid").into_response(),
         None => Problem::new(ProblemKind::Unauthorized, "an API key is required: send Authorization: Bearer KEY or X-API-Key: KEY")
             .into_response(),
-    }
-}
-
-async fn request_timeout(State(timeout): State<Duration>, request: Request, next: Next) -> Response {
-    match tokio::time::timeout(timeout, next.run(request)).await {
-        Ok(response) => response,
-        Err(_) => Problem::new(ProblemKind::Timeout, format!("the request took longer than {} s", timeout.as_secs_f64())).into_response(),
     }
 }
 

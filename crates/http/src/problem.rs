@@ -50,6 +50,8 @@ pub enum ProblemKind {
     MethodNotAllowed,
     /// The bounded work queue is full: retry later.
     Overloaded,
+    /// The template database cannot be reached: retry later.
+    StoreUnavailable,
     /// The request took longer than the request timeout.
     Timeout,
     /// The request body did not arrive within the body timeout (the client's fault).
@@ -63,7 +65,7 @@ pub enum ProblemKind {
 }
 
 impl ProblemKind {
-    pub const ALL: [ProblemKind; 22] = [
+    pub const ALL: [ProblemKind; 23] = [
         ProblemKind::NotAnImage,
         ProblemKind::UnsupportedFormat,
         ProblemKind::UnsupportedMediaType,
@@ -81,6 +83,7 @@ impl ProblemKind {
         ProblemKind::NotFound,
         ProblemKind::MethodNotAllowed,
         ProblemKind::Overloaded,
+        ProblemKind::StoreUnavailable,
         ProblemKind::Timeout,
         ProblemKind::RequestTimeout,
         ProblemKind::UriTooLong,
@@ -108,6 +111,7 @@ impl ProblemKind {
             ProblemKind::NotFound => "not-found",
             ProblemKind::MethodNotAllowed => "method-not-allowed",
             ProblemKind::Overloaded => "overloaded",
+            ProblemKind::StoreUnavailable => "store-unavailable",
             ProblemKind::Timeout => "timeout",
             ProblemKind::RequestTimeout => "request-timeout",
             ProblemKind::UriTooLong => "uri-too-long",
@@ -139,6 +143,7 @@ impl ProblemKind {
             ProblemKind::NotFound => "Not found",
             ProblemKind::MethodNotAllowed => "Method not allowed",
             ProblemKind::Overloaded => "Overloaded",
+            ProblemKind::StoreUnavailable => "Template database unavailable",
             ProblemKind::Timeout => "Request timeout",
             ProblemKind::RequestTimeout => "Request body timeout",
             ProblemKind::UriTooLong => "URI too long",
@@ -163,7 +168,7 @@ impl ProblemKind {
             ProblemKind::MalformedRequest => StatusCode::BAD_REQUEST,
             ProblemKind::Unauthorized => StatusCode::UNAUTHORIZED,
             ProblemKind::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
-            ProblemKind::Overloaded => StatusCode::SERVICE_UNAVAILABLE,
+            ProblemKind::Overloaded | ProblemKind::StoreUnavailable => StatusCode::SERVICE_UNAVAILABLE,
             ProblemKind::Timeout => StatusCode::GATEWAY_TIMEOUT,
             ProblemKind::RequestTimeout => StatusCode::REQUEST_TIMEOUT,
             ProblemKind::UriTooLong => StatusCode::URI_TOO_LONG,
@@ -258,7 +263,11 @@ impl Problem {
 
 impl From<facegate_store::StoreError> for Problem {
     fn from(error: facegate_store::StoreError) -> Problem {
-        Problem::internal(error)
+        if error.is_unavailable() {
+            Problem::new(ProblemKind::StoreUnavailable, format!("the template database is unavailable; retry shortly ({error})"))
+        } else {
+            Problem::internal(error)
+        }
     }
 }
 
@@ -294,6 +303,7 @@ impl From<ServiceError> for Problem {
             ServiceError::UnknownSubject(id) => Problem::new(ProblemKind::UnknownSubject, format!("subject {id} is not enrolled")),
             ServiceError::ModelMismatch(e) => Problem::new(ProblemKind::ModelMismatch, e.to_string()),
             ServiceError::Pool(e) => Problem::from(e),
+            ServiceError::StoreUnavailable => Problem::new(ProblemKind::StoreUnavailable, error.to_string()),
             ServiceError::Store(e) => Problem::from(e),
             ServiceError::Gallery(e) => Problem::internal(e),
         }
@@ -312,7 +322,7 @@ impl IntoResponse for Problem {
             ProblemKind::Unauthorized => {
                 headers.insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer realm=\"facegate\""));
             }
-            ProblemKind::Overloaded => {
+            ProblemKind::Overloaded | ProblemKind::StoreUnavailable => {
                 headers.insert(header::RETRY_AFTER, HeaderValue::from_static("1"));
             }
             // The body may still be arriving: this connection cannot carry another request.
@@ -336,7 +346,8 @@ mod tests {
         slugs.dedup();
         assert_eq!(slugs.len(), ProblemKind::ALL.len());
         for kind in ProblemKind::ALL {
-            let server_side = matches!(kind, ProblemKind::Overloaded | ProblemKind::Timeout | ProblemKind::Internal);
+            let server_side =
+                matches!(kind, ProblemKind::Overloaded | ProblemKind::StoreUnavailable | ProblemKind::Timeout | ProblemKind::Internal);
             assert_eq!(kind.status().is_server_error(), server_side, "{kind:?}");
         }
     }

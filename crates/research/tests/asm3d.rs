@@ -1,12 +1,12 @@
 use facegate_core::face::{IMM_POINTS, JAW, KeyPoints};
 use facegate_core::geometry::{Point, Rect, centroid};
 use facegate_core::imaging::{self, GrayF32};
-use facegate_vision::landmarks::asm3d::*;
-use facegate_vision::landmarks::{BoxSource, LandmarkError, Variant};
-use facegate_vision::morph::{Camera, FaceModel, Pose};
 use facegate_research::dataset::list_imm;
 use facegate_research::dataset::{self, ImmSample};
 use facegate_research::train_asm3d::*;
+use facegate_vision::landmarks::asm3d::*;
+use facegate_vision::landmarks::{BoxSource, LandmarkError, Variant};
+use facegate_vision::morph::{Camera, FaceModel, Pose};
 use std::sync::OnceLock;
 
 fn face_model() -> &'static FaceModel {

@@ -3,11 +3,11 @@
 // the chips these tests cut; `scripts/embedding-reference.sh` rebuilds it.
 use std::path::PathBuf;
 
-use facegate_research::convert::convert_dlib;
-use facegate_vision::embed::*;
 use facegate_core::face::KeyPoints;
 use facegate_core::geometry::Similarity;
+use facegate_research::convert::convert_dlib;
 use facegate_research::dataset::list_imm;
+use facegate_vision::embed::*;
 
 /// The reference chips: IMM photos cut with their annotated key points (frontal, turned, spot
 /// light) and LFW photos' central 150×150 pixels (no resampling).

@@ -1,7 +1,7 @@
-use facegate_vision::landmarks::*;
 use facegate_core::geometry::{Point, Rect, Similarity, distance};
 use facegate_core::imaging::GrayF32;
 use facegate_research::dataset::{ImmSample, list_imm};
+use facegate_vision::landmarks::*;
 use std::sync::OnceLock;
 
 fn samples() -> Vec<ImmSample> {

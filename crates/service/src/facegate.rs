@@ -3,10 +3,10 @@
 //! on the bounded [`WorkPool`], the store commit last). HTTP handlers and the command line call
 //! these and only translate requests and results.
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use bytes::Bytes;
-use std::time::Instant;
 
 use facegate_core::SubjectId;
 use facegate_core::elapsed_ms;
@@ -74,10 +74,19 @@ pub enum ServiceError {
     ModelMismatch(#[from] VerifyError),
     #[error(transparent)]
     Pool(#[from] PoolError),
+    /// The database cannot be reached: refused at once while the store circuit is open.
+    #[error("the template database is unavailable; retry shortly")]
+    StoreUnavailable,
     #[error(transparent)]
-    Store(#[from] StoreError),
+    Store(StoreError),
     #[error(transparent)]
     Gallery(#[from] UnreadableTemplates),
+}
+
+impl From<StoreError> for ServiceError {
+    fn from(error: StoreError) -> ServiceError {
+        if error.is_unavailable() { ServiceError::StoreUnavailable } else { ServiceError::Store(error) }
+    }
 }
 
 impl From<PhotoError> for ServiceError {
@@ -139,6 +148,23 @@ pub struct Enrollment {
     pub photos: Vec<AnalyzedPhoto>,
 }
 
+/// An enrollment whose photos all passed, not stored yet.
+pub struct PreparedEnrollment {
+    facegate: Facegate,
+    subject: SubjectId,
+    photos: Vec<AnalyzedPhoto>,
+}
+
+impl PreparedEnrollment {
+    /// Store the templates in one transaction, then add them to the identification gallery. The
+    /// commit runs to its end even if the caller stops waiting.
+    pub async fn commit(self) -> Result<Enrollment, ServiceError> {
+        let templates: Vec<Template> = self.photos.iter().map(|p| p.analysis.template.clone()).collect();
+        let count = self.facegate.with_store(self.facegate.0.gallery.enroll(&self.subject, templates)).await?;
+        Ok(Enrollment { subject: self.subject, templates: count, photos: self.photos })
+    }
+}
+
 /// A completed verification.
 #[derive(Debug)]
 pub struct Verification {
@@ -173,6 +199,48 @@ pub struct Health {
     pub store_backend: Backend,
 }
 
+/// How long requests that need the database are refused at once after it could not be reached,
+/// before one request tries it again.
+pub const STORE_RETRY: Duration = Duration::from_secs(1);
+
+/// The store's availability as the use cases last saw it (a circuit breaker): after a failure to
+/// reach the database, every request that needs it is refused at once with
+/// [`ServiceError::StoreUnavailable`] for [`STORE_RETRY`]; then one request tries the database
+/// again, and its success closes the circuit. While the database is down no request waits out the
+/// pool's acquire timeout but that one.
+#[derive(Debug, Default)]
+struct StoreCircuit {
+    open_until: Mutex<Option<Instant>>,
+}
+
+impl StoreCircuit {
+    /// May a request use the store now? While open, no; once the wait is over, the first caller
+    /// may (and the circuit stays open for the others until it reports).
+    fn admit(&self) -> bool {
+        let mut open_until = self.open_until.lock().unwrap_or_else(|e| e.into_inner());
+        match *open_until {
+            Some(until) if Instant::now() < until => false,
+            Some(_) => {
+                *open_until = Some(Instant::now() + STORE_RETRY);
+                true
+            }
+            None => true,
+        }
+    }
+
+    fn report<T>(&self, result: &Result<T, StoreError>) {
+        let mut open_until = self.open_until.lock().unwrap_or_else(|e| e.into_inner());
+        match result {
+            Err(e) if e.is_unavailable() => *open_until = Some(Instant::now() + STORE_RETRY),
+            _ => *open_until = None,
+        }
+    }
+
+    fn is_open(&self) -> bool {
+        self.open_until.lock().unwrap_or_else(|e| e.into_inner()).is_some()
+    }
+}
+
 struct Inner {
     engine: Arc<dyn FaceEngine>,
     store: Store,
@@ -181,6 +249,7 @@ struct Inner {
     gallery: LiveGallery,
     pool: WorkPool,
     config: ServiceConfig,
+    circuit: StoreCircuit,
 }
 
 /// The service: the face engine, the store, the identification gallery and the work pool behind
@@ -191,7 +260,7 @@ pub struct Facegate(Arc<Inner>);
 impl Facegate {
     pub fn new(engine: Arc<dyn FaceEngine>, store: Store, pool: WorkPool, config: ServiceConfig) -> Facegate {
         let gallery = LiveGallery::new(store.clone(), engine.model_version());
-        Facegate(Arc::new(Inner { engine, store, gallery, pool, config }))
+        Facegate(Arc::new(Inner { engine, store, gallery, pool, config, circuit: StoreCircuit::default() }))
     }
 
     /// The version stamped on every template the current model makes.
@@ -211,6 +280,22 @@ impl Facegate {
         &self.0.config
     }
 
+    /// `work` on the store, through the circuit: refused at once while the database is known to be
+    /// unreachable.
+    async fn with_store<T>(&self, work: impl std::future::Future<Output = Result<T, StoreError>>) -> Result<T, ServiceError> {
+        if !self.0.circuit.admit() {
+            return Err(ServiceError::StoreUnavailable);
+        }
+        let result = work.await;
+        self.0.circuit.report(&result);
+        Ok(result?)
+    }
+
+    /// Whether the last use of the database failed to reach it.
+    pub fn store_unavailable(&self) -> bool {
+        self.0.circuit.is_open()
+    }
+
     /// The requested false match rate, or the configured one.
     fn fmr(&self, fmr: Option<f64>) -> f64 {
         fmr.unwrap_or(self.0.config.default_fmr)
@@ -218,8 +303,14 @@ impl Facegate {
 
     /// Enroll `subject` from `images`: every photo must show exactly one face and meet the quality
     /// policy; then all templates are stored in one transaction. One bad photo refuses the whole
-    /// enrolment (its index is named) and nothing is stored.
+    /// enrollment (its index is named) and nothing is stored. [`Facegate::prepare_enrollment`]
+    /// then [`PreparedEnrollment::commit`].
     pub async fn enroll(&self, subject: &SubjectId, images: Vec<Bytes>) -> Result<Enrollment, ServiceError> {
+        self.prepare_enrollment(subject, images).await?.commit().await
+    }
+
+    /// The photo work of an enrollment: every photo analyzed and checked, nothing stored yet.
+    pub async fn prepare_enrollment(&self, subject: &SubjectId, images: Vec<Bytes>) -> Result<PreparedEnrollment, ServiceError> {
         let max = self.0.config.max_images;
         match images.len() {
             0 => return Err(ServiceError::Invalid("at least one photo is required (field image)".into())),
@@ -228,16 +319,15 @@ impl Facegate {
         }
         let (engine, limits, policy) = (self.0.engine.clone(), self.0.config.decode_limits, self.0.config.quality_policy);
         let photos = self.0.pool.run(move || enrollment_photos(engine.as_ref(), &images, &limits, &policy)).await??;
-        let templates: Vec<Template> = photos.iter().map(|p| p.analysis.template.clone()).collect();
-        let count = self.0.gallery.enroll(subject, templates).await?;
-        Ok(Enrollment { subject: subject.clone(), templates: count, photos })
+        Ok(PreparedEnrollment { facegate: self.clone(), subject: subject.clone(), photos })
     }
 
     /// Is the largest face of `image` the enrolled `subject`? The subject is looked up before the
     /// photo work.
     pub async fn verify(&self, subject: &SubjectId, image: Bytes, fmr: Option<f64>) -> Result<Verification, ServiceError> {
         let fmr = self.fmr(fmr);
-        let enrolled = self.0.store.templates(subject).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))?;
+        let enrolled =
+            self.with_store(self.0.store.templates(subject)).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))?;
         let engine = &self.0.engine;
         let comparable = crate::comparable_templates(engine.as_ref(), subject, enrolled)?;
         let photo = self.analyze_probe(image).await?;
@@ -252,10 +342,10 @@ impl Facegate {
     pub async fn identify(&self, image: Bytes, fmr: Option<f64>, k: usize) -> Result<Identification, ServiceError> {
         let fmr = self.fmr(fmr);
         let gallery = self.0.gallery.clone();
-        let store_version = gallery.change_version().await?;
+        let store_version = self.with_store(gallery.change_version()).await?;
         let photo = self.analyze_probe(image).await?;
         let start = Instant::now();
-        gallery.load().await?;
+        self.with_store(gallery.load()).await?;
         gallery.wait_until_applied(store_version).await;
         let (matcher, probe) = (self.0.engine.clone(), photo.analysis.template.clone());
         // Scoring the whole gallery is CPU work too: it runs on the pool.
@@ -271,22 +361,22 @@ impl Facegate {
 
     /// Erase `subject` and all its templates; `None` when it was not enrolled.
     pub async fn delete(&self, subject: &SubjectId) -> Result<Option<u32>, ServiceError> {
-        Ok(self.0.gallery.delete(subject).await?)
+        self.with_store(self.0.gallery.delete(subject)).await
     }
 
     /// One subject's templates by model version and dates.
     pub async fn subject(&self, subject: &SubjectId) -> Result<SubjectDetail, ServiceError> {
-        self.0.store.subject(subject).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))
+        self.with_store(self.0.store.subject(subject)).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))
     }
 
     /// Subjects ordered by id, after `after`, at most `limit`.
     pub async fn subjects(&self, after: Option<&SubjectId>, limit: u32) -> Result<Vec<SubjectSummary>, ServiceError> {
-        Ok(self.0.store.list_subjects(after, limit).await?)
+        self.with_store(self.0.store.list_subjects(after, limit)).await
     }
 
     /// The database answers and the models are loaded.
     pub async fn health(&self) -> Result<Health, ServiceError> {
-        let (subjects, templates) = self.0.store.counts().await?;
+        let (subjects, templates) = self.with_store(self.0.store.counts()).await?;
         Ok(Health {
             model_version: self.model_version().to_string(),
             subjects,

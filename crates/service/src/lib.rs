@@ -21,10 +21,11 @@ use facegate_core::imaging::Photo;
 use facegate_vision::morph::AvatarFormat;
 use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline, PipelineError};
 use facegate_vision::quality::{Failure, Quality, QualityPolicy};
-use facegate_vision::recognize::{Recognizer, OperatingPoint, ClassicalRecognizer, Template};
+use facegate_vision::recognize::{ClassicalRecognizer, OperatingPoint, Recognizer, Template};
 
 pub use facegate::{
-    AnalyzedPhoto, Enrollment, Facegate, Health, Identification, PhotoError, ServiceConfig, ServiceError, Verification, analyze_photo,
+    AnalyzedPhoto, Enrollment, Facegate, Health, Identification, PhotoError, PreparedEnrollment, ServiceConfig, ServiceError, Verification,
+    analyze_photo,
 };
 pub use facegate_core::{InvalidSubjectId, MAX_SUBJECT_LEN, SubjectId};
 pub use pool::{Admission, PoolError, WorkClass, WorkPool};

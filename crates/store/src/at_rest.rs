@@ -183,3 +183,93 @@ async fn backup_while_in_use_then_restore() {
     std::fs::write(dir.0.join("junk.db"), b"not sqlite").unwrap();
     assert!(restore(&dir.0.join("junk.db"), &dir.url("other.db"), false).await.is_err());
 }
+
+/// The start-up check: whether the configured keys open what the database holds, and the counts
+/// `/health` reports.
+#[tokio::test]
+async fn the_key_check_tells_a_missing_or_wrong_key_from_the_right_one() {
+    use crate::{KeyCheck, SealingCounts};
+    const K2: &str = "ff0102030405060708090a0b0c0d0e0f101112131415161718191a1b1c1d1eff";
+    let dir = Dir::new();
+    let url = dir.url("t.db");
+    let plain = Store::connect(&url, None).await.unwrap();
+    assert!(!plain.holds_sealed_templates().await.unwrap());
+    assert_eq!(plain.check_template_keys().await.unwrap(), KeyCheck::NothingSealed);
+    plain.enroll(&id("plain"), &[marked(0.0)]).await.unwrap();
+    assert_eq!(plain.check_template_keys().await.unwrap(), KeyCheck::NothingSealed, "plain subjects need no key");
+    assert_eq!(plain.sealing_counts().await.unwrap(), SealingCounts { plain: 1, current_key: 0, other_keys: 0 });
+    assert_eq!(plain.template_key_id(), None);
+    plain.close().await;
+
+    let k1 = Store::connect(&url, ring(K1)).await.unwrap();
+    assert_eq!(k1.check_template_keys().await.unwrap(), KeyCheck::NothingSealed);
+    for s in ["a", "b", "c", "d"] {
+        k1.enroll(&id(s), &[marked(1.0)]).await.unwrap();
+    }
+    assert!(k1.holds_sealed_templates().await.unwrap());
+    assert_eq!(k1.check_template_keys().await.unwrap(), KeyCheck::Opens { sealed_subjects: 4 });
+    assert_eq!(k1.sealing_counts().await.unwrap(), SealingCounts { plain: 1, current_key: 4, other_keys: 0 });
+    let k1_id = k1.template_key_id().unwrap().to_string();
+
+    // One damaged wrapped data key (the first sampled) is that subject's problem, not a wrong key.
+    let mut wrapped: Vec<u8> = sqlx::query_scalar("SELECT data_key FROM subjects WHERE id = 'a'").fetch_one(&k1.pool).await.unwrap();
+    wrapped[20] ^= 1;
+    sqlx::query("UPDATE subjects SET data_key = $1 WHERE id = 'a'").bind(wrapped).execute(&k1.pool).await.unwrap();
+    assert_eq!(k1.check_template_keys().await.unwrap(), KeyCheck::Opens { sealed_subjects: 4 });
+    k1.close().await;
+
+    let none = Store::connect(&url, None).await.unwrap();
+    assert_eq!(none.check_template_keys().await.unwrap(), KeyCheck::NoKey { sealed_subjects: 4 });
+    none.close().await;
+    let wrong = Store::connect(&url, ring(K2)).await.unwrap();
+    let check = wrong.check_template_keys().await.unwrap();
+    assert!(
+        matches!(&check, KeyCheck::CannotOpen { key_id, subjects: 4, reason: crate::CipherError::UnknownKey(_) } if *key_id == k1_id),
+        "{check:?}"
+    );
+    wrong.close().await;
+
+    // Rotating: K2 current with K1 below opens both; after rekey K2 alone does.
+    let rotating = Store::connect(&url, ring(&format!("{K2}\n{K1}"))).await.unwrap();
+    rotating.enroll(&id("e"), &[marked(2.0)]).await.unwrap();
+    assert_eq!(rotating.check_template_keys().await.unwrap(), KeyCheck::Opens { sealed_subjects: 5 });
+    assert_eq!(rotating.sealing_counts().await.unwrap(), SealingCounts { plain: 1, current_key: 1, other_keys: 4 });
+    // `a`'s damaged key stops its own re-wrap; the others are re-wrapped.
+    assert!(rotating.rekey(|_| {}).await.is_err());
+    sqlx::query("DELETE FROM subjects WHERE id = 'a'").execute(&rotating.pool).await.unwrap();
+    rotating.rekey(|_| {}).await.unwrap();
+    assert_eq!(rotating.sealing_counts().await.unwrap(), SealingCounts { plain: 0, current_key: 5, other_keys: 0 });
+    rotating.close().await;
+    let k2 = Store::connect(&url, ring(K2)).await.unwrap();
+    assert_eq!(k2.check_template_keys().await.unwrap(), KeyCheck::Opens { sealed_subjects: 5 });
+    k2.close().await;
+    let old = Store::connect(&url, ring(K1)).await.unwrap();
+    assert!(matches!(old.check_template_keys().await.unwrap(), KeyCheck::CannotOpen { subjects: 5, .. }));
+    old.close().await;
+}
+
+/// A database that cannot be reached fails within the acquire timeout and says it is unavailable;
+/// a refused request does not.
+#[tokio::test]
+async fn an_unreachable_database_fails_fast_and_is_told_apart() {
+    // Nothing listens on a port just released.
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let started = std::time::Instant::now();
+    let error = Store::connect(&format!("postgres://facegate@127.0.0.1:{port}/facegate"), None).await.unwrap_err();
+    let waited = started.elapsed();
+    assert!(error.is_unavailable(), "{error:?}");
+    assert!(waited < crate::ACQUIRE_TIMEOUT + std::time::Duration::from_secs(3), "waited {waited:?}");
+
+    let dir = Dir::new();
+    let store = Store::connect(&dir.url("t.db"), None).await.unwrap();
+    let refused = sqlx::query("INSERT INTO subjects (id) VALUES (NULL)").execute(&store.pool).await.map_err(StoreError::from).unwrap_err();
+    assert!(!refused.is_unavailable(), "{refused:?}");
+    assert!(!StoreError::NoKey { subject: "a".into() }.is_unavailable());
+    store.close().await;
+    let closed = store.ping().await.unwrap_err();
+    assert!(closed.is_unavailable(), "{closed:?}");
+    // SQLite's file cannot be opened (its folder is a file).
+    std::fs::write(dir.0.join("not-a-dir"), b"").unwrap();
+    let error = Store::connect(&dir.url("not-a-dir/t.db"), None).await.unwrap_err();
+    assert!(error.is_unavailable(), "{error:?}");
+}

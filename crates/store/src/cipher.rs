@@ -11,9 +11,12 @@
 //!   associated data binds the subject id, the model version and the dimension, so a row moved to
 //!   another subject or altered in any of these is refused, not scored.
 //!
-//! Rotating the master key re-wraps the data keys only (templates stay as they are); deleting a
-//! subject deletes its wrapped data key, so any copy of its sealed templates left anywhere (an old
-//! backup, a free page) can no longer be opened with the master key.
+//! Rotating the master key re-wraps the data keys only (templates stay as they are). Deleting a
+//! subject deletes its wrapped data key, so a sealed template left behind without it (a free page,
+//! a dead PostgreSQL tuple) cannot be opened. A copy of the database made *before* the deletion (a
+//! backup) still holds the subject's wrapped data key next to its templates, and opens with the
+//! master key that wrapped it: such copies are erased only once that master key is retired (rotated
+//! away with `facegate rekey`, then destroyed). docs/service.md, "Erasure: what it covers".
 //!
 //! Sealed bytes: a 12-byte nonce, then the ciphertext, then the 16-byte Poly1305 tag.
 

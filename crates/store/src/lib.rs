@@ -63,9 +63,16 @@ use facegate_vision::recognize::Template;
 use codec::{Sealing, encode_vector, seal_subject, template_from_row};
 
 pub use cipher::{CipherError, KeyRing};
-pub use codec::{blob_to_vector, vector_to_blob};
+pub use codec::{KeyCheck, SealingCounts, blob_to_vector, vector_to_blob};
 pub use feed::{ChangeFeed, StoreChange};
 pub use sqlite::restore;
+
+/// Longest a query waits for a connection of the pool (sqlx's default is 30 s). A database that
+/// cannot be reached fails each request within this bound ([`StoreError::is_unavailable`]),
+/// rather than holding it for half a minute; connections refused meanwhile are retried with
+/// back-off until it passes. Under 2 s, so that while the database is down no request waits
+/// longer: the service's circuit refuses the others at once.
+pub const ACQUIRE_TIMEOUT: Duration = Duration::from_millis(1500);
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -85,6 +92,50 @@ pub enum StoreError {
     Refused(String),
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
+}
+
+impl StoreError {
+    /// Is the database unreachable (rather than refusing this one request)? No connection could be
+    /// had within [`ACQUIRE_TIMEOUT`], the pool is closed, the connection failed with an I/O or
+    /// TLS error, or the server says it is shutting down or not accepting connections
+    /// (PostgreSQL classes 08 and 57P0x); on SQLite, the file cannot be opened or read
+    /// (`SQLITE_CANTOPEN`, `SQLITE_IOERR`). A busy or locked database, a constraint, a corrupt
+    /// template or a data key that does not open is not unavailability: retrying elsewhere does not
+    /// help those.
+    pub fn is_unavailable(&self) -> bool {
+        match self {
+            StoreError::Database(e) => sqlx_unavailable(e),
+            StoreError::Migrate(sqlx::migrate::MigrateError::Execute(e) | sqlx::migrate::MigrateError::ExecuteMigration(e, _)) => {
+                sqlx_unavailable(e)
+            }
+            _ => false,
+        }
+    }
+}
+
+fn sqlx_unavailable(error: &sqlx::Error) -> bool {
+    match error {
+        sqlx::Error::PoolTimedOut | sqlx::Error::PoolClosed | sqlx::Error::Io(_) | sqlx::Error::Tls(_) => true,
+        sqlx::Error::Database(e) => {
+            if let Some(e) = e.try_downcast_ref::<sqlx::postgres::PgDatabaseError>() {
+                // SQLSTATE class 08: connection exception; 57P01-57P03: the server is shutting
+                // down, crashed, or cannot take connections now.
+                let code = e.code();
+                code.starts_with("08") || matches!(code, "57P01" | "57P02" | "57P03")
+            } else if e.try_downcast_ref::<sqlx::sqlite::SqliteError>().is_some() {
+                // The extended result code; its low byte is the primary code: 10 SQLITE_IOERR,
+                // 14 SQLITE_CANTOPEN.
+                e.code().and_then(|code| code.parse::<i32>().ok()).is_some_and(|code| matches!(code & 0xff, 10 | 14))
+            } else {
+                false
+            }
+        }
+        sqlx::Error::Migrate(e) => matches!(
+            &**e,
+            sqlx::migrate::MigrateError::Execute(e) | sqlx::migrate::MigrateError::ExecuteMigration(e, _) if sqlx_unavailable(e)
+        ),
+        _ => false,
+    }
 }
 
 /// Which database a [`Store`] is on.
@@ -191,7 +242,7 @@ impl Store {
             }
             Backend::Postgres => {
                 let listen = PgConnectOptions::from_str(url).map_err(bad_url)?;
-                let pool = AnyPoolOptions::new().max_connections(8).connect(url).await?;
+                let pool = AnyPoolOptions::new().max_connections(8).acquire_timeout(ACQUIRE_TIMEOUT).connect(url).await?;
                 POSTGRES_MIGRATIONS.run(&pool).await?;
                 (pool, Some(listen))
             }

@@ -10,7 +10,7 @@ use sqlx::any::AnyPoolOptions;
 use sqlx::sqlite::{SqliteConnectOptions, SqliteConnection, SqliteLockingMode};
 use sqlx::{AnyPool, Connection, Executor, Row};
 
-use crate::{Backend, Store, StoreError};
+use crate::{ACQUIRE_TIMEOUT, Backend, Store, StoreError};
 
 /// SQLite's settings, for every connection: given to SQLite's own options ([`sqlite_options`])
 /// and run on each connection of the generic pool ([`sqlite_session`]), which opens the URL and
@@ -45,6 +45,7 @@ pub(crate) async fn open(url: &str) -> Result<AnyPool, StoreError> {
     SqliteConnection::connect_with(&sqlite_options(url)?.create_if_missing(true)).await?.close().await?;
     let pool = AnyPoolOptions::new()
         .max_connections(8)
+        .acquire_timeout(ACQUIRE_TIMEOUT)
         .after_connect(|connection, _| Box::pin(async move { connection.execute(sqlite_session().as_str()).await.map(drop) }))
         .connect(url)
         .await?;

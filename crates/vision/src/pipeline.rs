@@ -17,7 +17,7 @@ use crate::landmarks::asm3d::{Asm3dLandmarker, SERVICE_MIN_YAW};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
 use crate::morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, Pose};
 use crate::quality::{Components, Quality, QualityModel};
-use crate::recognize::{Recognizer, DeepRecognizer, Normalization, ClassicalRecognizer, RecognizerKind, Template, Views};
+use crate::recognize::{ClassicalRecognizer, DeepRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views};
 use facegate_core::face::KeyPoints;
 use facegate_core::geometry::Rect;
 use facegate_core::imaging::{GrayF32, Photo};

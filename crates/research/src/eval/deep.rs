@@ -9,11 +9,11 @@ use super::protocol::{all_pairs_by, enrollment_scores_by};
 use super::verification::{VerificationSummary, summarize};
 use crate::dataset::Split;
 use crate::train_deep::{PhotoEmbeddings, Sample, Set};
+use facegate_core::vector::{dot, unit};
 use facegate_vision::embed::{CHIP_SIZE, Embedder, Embedding, chip};
 use facegate_vision::pipeline::FaceFinder;
 use facegate_vision::recognize::deep::DeepModel;
 use facegate_vision::recognize::template::Combine;
-use facegate_core::vector::{dot, unit};
 use facegate_vision::recognize::{Dlda, DldaParams};
 
 /// How two embeddings are scored (higher: more alike).
@@ -51,7 +51,6 @@ impl Scoring {
         }
     }
 }
-
 
 /// Trains DLDA over embeddings of the given (label, embedding) pairs.
 pub fn train_dlda(items: &[(&str, &[f32])], params: &DldaParams) -> Result<Dlda, facegate_vision::recognize::dlda::DldaError> {
@@ -317,7 +316,6 @@ pub fn impostor_stats(items: &[FusionItem]) -> [(f64, f64); 2] {
         (mean, (sq / n - mean * mean).max(1e-12).sqrt())
     })
 }
-
 
 /// All-pairs summary of `w · z(deep) + (1 − w) · z(classical)` with the given impostor statistics.
 pub fn fused_summary(items: &[FusionItem], stats: [(f64, f64); 2], w: f64) -> VerificationSummary {

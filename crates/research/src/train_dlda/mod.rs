@@ -18,7 +18,7 @@ use facegate_vision::recognize::dlda::{Dlda, DldaParams};
 use facegate_vision::recognize::features::{self, FeatureKind, Region};
 use facegate_vision::recognize::normalize::{self, NormalizeParams};
 use facegate_vision::recognize::template::{Combine, Template};
-use facegate_vision::recognize::{Cohort, LocalPart, ClassicalModel, Normalization, Provenance, ClassicalRecognizer, SecondaryPath};
+use facegate_vision::recognize::{ClassicalModel, ClassicalRecognizer, Cohort, LocalPart, Normalization, Provenance, SecondaryPath};
 
 pub mod crops;
 pub mod faces;

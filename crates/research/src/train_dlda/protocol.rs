@@ -8,7 +8,10 @@ use facegate_vision::recognize::{ClassicalRecognizer, Views};
 
 /// Template of an aligned face under a model (photometric normalisation, features, projection; the
 /// second path's crop too for a fused model: `RecognizeError::Views` when it is missing).
-pub fn template_of(recognizer: &ClassicalRecognizer, aligned: &AlignedFace) -> Result<Template, facegate_vision::recognize::RecognizeError> {
+pub fn template_of(
+    recognizer: &ClassicalRecognizer,
+    aligned: &AlignedFace,
+) -> Result<Template, facegate_vision::recognize::RecognizeError> {
     let params = &recognizer.model().normalize;
     let relit = |c: &GrayF32| {
         let mut crop = c.clone();
@@ -59,7 +62,12 @@ pub fn combined_scores(recognizer: &ClassicalRecognizer, templates: &[(String, T
 
 /// Genuine and impostor scores of the service's protocol with `k` photos enrolled per person
 /// ([`crate::eval::protocol::enrolment_scores_by`]), scored as the recognizer scores.
-pub fn enrollment_scores(recognizer: &ClassicalRecognizer, templates: &[(String, Template)], k: usize, combine: Combine) -> (Vec<f32>, Vec<f32>) {
+pub fn enrollment_scores(
+    recognizer: &ClassicalRecognizer,
+    templates: &[(String, Template)],
+    k: usize,
+    combine: Combine,
+) -> (Vec<f32>, Vec<f32>) {
     let stats: Vec<_> = templates.iter().map(|(_, t)| recognizer.cohort_stats(t)).collect();
     let labels: Vec<&str> = templates.iter().map(|(l, _)| l.as_str()).collect();
     crate::eval::protocol::enrollment_scores_by(&labels, k, combine, &|p, e| {

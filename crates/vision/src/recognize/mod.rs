@@ -709,7 +709,8 @@ mod tests {
     fn thresholds_follow_the_number_of_enrolled_templates() {
         let params = NormalizeParams::default();
         let dims = FeatureKind::Pixels.dims(params.width, params.height, &params.mask());
-        let mut model = ClassicalModel::new(Normalization::TwoD, params, FeatureKind::Pixels, projection(dims, 3, 1), Provenance::default());
+        let mut model =
+            ClassicalModel::new(Normalization::TwoD, params, FeatureKind::Pixels, projection(dims, 3, 1), Provenance::default());
         let impostor: Vec<f32> = (0..2000).map(|i| i as f32 / 4000.0).collect();
         let table = |shift: f32| Calibration::from_scores(&[0.9], &impostor.iter().map(|s| s + shift).collect::<Vec<_>>(), &[1e-3], "t");
         model.calibration = table(0.0);
@@ -736,7 +737,8 @@ mod tests {
         let mask = params.mask();
         let dims = FeatureKind::Pixels.dims(params.width, params.height, &mask);
         let provenance = Provenance::default();
-        let single = ClassicalModel::new(Normalization::Morph, params.clone(), FeatureKind::Pixels, projection(dims, 5, 1), provenance.clone());
+        let single =
+            ClassicalModel::new(Normalization::Morph, params.clone(), FeatureKind::Pixels, projection(dims, 5, 1), provenance.clone());
         let mut fused = single.clone();
         fused.secondary = Some(SecondaryPath { normalization: Normalization::TwoD, dlda: projection(dims, 4, 2), weight: 0.3 });
         assert_ne!(single.version(), fused.version());

@@ -1,0 +1,92 @@
+//! JSON bodies of many photos: the `images` array is counted while it is parsed and refused at
+//! the first entry past the most photos any operation takes (`max_images`), before anything of it
+//! is copied or decoded; a body at that bound still reaches the operation's own count.
+
+use std::sync::atomic::Ordering;
+
+use facegate::http::ApiConfig;
+use serde_json::json;
+
+use crate::support::*;
+
+/// The serve defaults: a 16 MiB body limit and at most 16 photos per enrolment.
+fn defaults() -> ApiConfig {
+    facegate::config::Settings::default().api_config().unwrap()
+}
+
+/// `{"subject":"a","images":[E,E,…]}` with `n` copies of the JSON text `entry`.
+fn many_photos(n: usize, entry: &str) -> String {
+    let mut body = String::with_capacity(n * (entry.len() + 1) + 32);
+    body.push_str(r#"{"subject":"a","images":["#);
+    for i in 0..n {
+        if i > 0 {
+            body.push(',');
+        }
+        body.push_str(entry);
+    }
+    body.push_str("]}");
+    body
+}
+
+async fn post_raw(app: &TestApp, path: &str, body: String) -> Reply {
+    app.send(app.client.post(app.url(path)).header("content-type", "application/json").body(body)).await
+}
+
+fn detail(r: &Reply) -> String {
+    r.json()["detail"].as_str().unwrap().to_string()
+}
+
+#[tokio::test]
+async fn millions_of_tiny_photos_are_refused_at_the_cap() {
+    let config = defaults();
+    assert_eq!(config.max_images, 16);
+    let engine = StandInEngine::new("v1");
+    let app = TestApp::start(engine.clone(), config.clone()).await;
+    // 3,000,000 one-byte photos (`"AA"`), 15 MB: under the 16 MiB body limit.
+    let body = many_photos(3_000_000, r#""AA""#);
+    assert!(body.len() > 14_000_000 && body.len() < config.max_body_bytes, "{}", body.len());
+    for path in ["/enroll", "/verify", "/identify"] {
+        let r = post_raw(&app, path, body.clone()).await;
+        r.assert_problem(400, "malformed-request");
+        assert_eq!(detail(&r), "at most 16 photos per request (field images), got more than 16", "{path}");
+        assert!(r.json().get("image").is_none(), "{path}: no photo is to blame");
+    }
+    // Empty strings (not even base64 yet) are counted the same way.
+    let r = post_raw(&app, "/enroll", many_photos(3_000_000, r#""""#)).await;
+    r.assert_problem(400, "malformed-request");
+    assert_eq!(detail(&r), "at most 16 photos per request (field images), got more than 16");
+    assert_eq!(engine.calls.load(Ordering::SeqCst), 0, "no photo reached the engine");
+    assert_eq!(app.get("/health").await.status, 200);
+}
+
+#[tokio::test]
+async fn a_body_at_the_cap_reaches_the_operations_count() {
+    let app = TestApp::start(StandInEngine::new("v1"), defaults()).await;
+    let tiny = r#""AA""#;
+    // Exactly 16: parsed and decoded; verification takes one photo and says how many it got.
+    let r = post_raw(&app, "/verify", many_photos(16, tiny)).await;
+    r.assert_problem(400, "malformed-request");
+    assert_eq!(detail(&r), "exactly one photo is expected, got 16");
+    // 16 in `images` and one in `image`: the enrolment counts all 17.
+    let body = many_photos(16, tiny).replacen('{', r#"{"image":"AA","#, 1);
+    let r = post_raw(&app, "/enroll", body).await;
+    r.assert_problem(400, "malformed-request");
+    assert_eq!(detail(&r), "at most 16 photos per enrolment, got 17");
+    // 17 in `images`: refused by the parse.
+    let r = post_raw(&app, "/enroll", many_photos(17, tiny)).await;
+    r.assert_problem(400, "malformed-request");
+    assert_eq!(detail(&r), "at most 16 photos per request (field images), got more than 16");
+
+    // The cap is the setting: with `max_images` 3, three real photos enrol and a fourth is refused.
+    let app = TestApp::start(StandInEngine::new("v1"), ApiConfig { max_images: 3, ..defaults() }).await;
+    let photos: Vec<String> = (0..4).map(|seed| base64(&pattern_jpeg(320, 240, seed))).collect();
+    let r = app.post_json("/enroll", &json!({"subject": "ada", "images": photos[..3]})).await;
+    assert_eq!((r.status, r.json()["added"].as_u64()), (201, Some(3)), "{}", String::from_utf8_lossy(&r.body));
+    let r = app.post_json("/enroll", &json!({"subject": "ada", "images": photos})).await;
+    r.assert_problem(400, "malformed-request");
+    assert_eq!(detail(&r), "at most 3 photos per request (field images), got more than 3");
+    // A bad photo within the cap is still named by its index, `image` first.
+    let r = app.post_json("/enroll", &json!({"subject": "ada", "image": photos[0], "images": [photos[1], "***"]})).await;
+    r.assert_problem(400, "malformed-request");
+    assert_eq!(r.json()["image"], 2);
+}
