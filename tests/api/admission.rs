@@ -95,3 +95,44 @@ async fn an_enrollment_cut_by_the_deadline_before_its_commit_stores_nothing() {
     app.get("/subjects/late").await.assert_problem(404, "unknown-subject");
     assert_eq!(app.store.counts().await.unwrap(), (0, 0));
 }
+
+#[tokio::test]
+async fn a_flood_of_half_open_connections_over_the_cap_does_not_starve_health() {
+    // A cap of 40 connections and a 10 s header timeout; 60 attackers keep reopening half-open
+    // connections. New connections past half the cap get 1 s for their head, so a
+    // health probe gets a place within about that.
+    let limits = facegate::http::server::ServerLimits {
+        max_connections: 40,
+        header_timeout: Duration::from_secs(10),
+        ..facegate::config::Settings::default().server_limits().unwrap()
+    };
+    let app = TestApp::start_with(StandInEngine::new("v1"), config(), limits).await;
+    let addr = app.base.trim_start_matches("http://").to_string();
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let mut attackers = Vec::new();
+    for _ in 0..60 {
+        let (addr, stop) = (addr.clone(), stop.clone());
+        attackers.push(tokio::spawn(async move {
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                let Ok(mut s) = TcpStream::connect(&addr).await else { continue };
+                let _ = s.write_all(b"GET /health HTTP/1.1\r\nX: ").await;
+                let mut sink = [0u8; 64];
+                let _ = tokio::time::timeout(Duration::from_secs(15), s.read(&mut sink)).await;
+            }
+        }));
+    }
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let mut slowest = Duration::ZERO;
+    for _ in 0..5 {
+        let start = Instant::now();
+        let reply = tokio::time::timeout(Duration::from_secs(8), reqwest::Client::new().get(app.url("/health")).send())
+            .await
+            .expect("health answered within 8 s")
+            .unwrap();
+        assert_eq!(reply.status(), 200);
+        slowest = slowest.max(start.elapsed());
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    attackers.iter().for_each(|a| a.abort());
+    assert!(slowest < Duration::from_millis(3000), "health took {slowest:?} under the flood");
+}

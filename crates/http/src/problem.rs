@@ -303,7 +303,7 @@ impl From<ServiceError> for Problem {
             ServiceError::UnknownSubject(id) => Problem::new(ProblemKind::UnknownSubject, format!("subject {id} is not enrolled")),
             ServiceError::ModelMismatch(e) => Problem::new(ProblemKind::ModelMismatch, e.to_string()),
             ServiceError::Pool(e) => Problem::from(e),
-            ServiceError::StoreUnavailable => Problem::new(ProblemKind::StoreUnavailable, error.to_string()),
+            ServiceError::StoreUnavailable | ServiceError::OutcomeUnknown => Problem::new(ProblemKind::StoreUnavailable, error.to_string()),
             ServiceError::Store(e) => Problem::from(e),
             ServiceError::Gallery(e) => Problem::internal(e),
         }

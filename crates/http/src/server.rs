@@ -44,6 +44,12 @@ const HYPER_MAX_HEADERS: usize = 2 * super::limits::MAX_HEADERS;
 /// Hyper's read buffer, which bounds a request head: above the router's URI and header limits.
 const HYPER_MAX_BUF: usize = 4 * (super::limits::MAX_URI_BYTES + super::limits::MAX_HEADER_BYTES);
 
+/// A connection accepted while half the connection cap is in use gets this long
+/// (or the header timeout, if shorter) for each request head and between requests: a flood of
+/// half-open or idle connections then turns over within it, so a real client (a `/health` probe)
+/// waits about this long for a place instead of the whole header timeout.
+const PRESSED_HEADER_TIMEOUT: Duration = Duration::from_secs(1);
+
 /// How the server stopped.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Stopped {
@@ -59,6 +65,9 @@ pub async fn serve(listener: TcpListener, router: Router, limits: ServerLimits, 
     let graceful = GracefulShutdown::new();
     let mut builder = hyper::server::conn::http1::Builder::new();
     builder.timer(TokioTimer::new()).header_read_timeout(limits.header_timeout).max_headers(HYPER_MAX_HEADERS).max_buf_size(HYPER_MAX_BUF);
+    let mut pressed = builder.clone();
+    pressed.header_read_timeout(limits.header_timeout.min(PRESSED_HEADER_TIMEOUT));
+    let pressure_below = limits.max_connections.max(1) / 2;
     tokio::pin!(shutdown);
     loop {
         let permit = tokio::select! {
@@ -79,6 +88,7 @@ pub async fn serve(listener: TcpListener, router: Router, limits: ServerLimits, 
         };
         let _ = stream.set_nodelay(true);
         let service = TowerToHyperService::new(router.clone());
+        let builder = if connections.available_permits() < pressure_below { &pressed } else { &builder };
         let connection = graceful.watch(builder.serve_connection(TokioIo::new(ProblemHeads::new(stream)), service));
         tokio::spawn(async move {
             // Errors here are the client's (reset, timeout, malformed head): nothing to report.

@@ -10,7 +10,7 @@ use bytes::Bytes;
 
 use facegate_core::SubjectId;
 use facegate_core::elapsed_ms;
-use facegate_core::imaging::{self, DecodeError, DecodeLimits};
+use facegate_core::imaging::{DecodeError, DecodeLimits};
 use facegate_store::{Backend, Store, StoreError, SubjectDetail, SubjectSummary};
 use facegate_vision::morph::AvatarFormat;
 use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PipelineError};
@@ -77,6 +77,11 @@ pub enum ServiceError {
     /// The database cannot be reached: refused at once while the store circuit is open.
     #[error("the template database is unavailable; retry shortly")]
     StoreUnavailable,
+    /// The database went away during a write's commit: whether it is stored is not known.
+    #[error(
+        "the template database went away during the commit: the change may or may not be stored; check the subject (GET /subjects/{{id}}) before retrying"
+    )]
+    OutcomeUnknown,
     #[error(transparent)]
     Store(StoreError),
     #[error(transparent)]
@@ -85,7 +90,11 @@ pub enum ServiceError {
 
 impl From<StoreError> for ServiceError {
     fn from(error: StoreError) -> ServiceError {
-        if error.is_unavailable() { ServiceError::StoreUnavailable } else { ServiceError::Store(error) }
+        match error {
+            StoreError::CommitUnknown(_) => ServiceError::OutcomeUnknown,
+            e if e.is_unavailable() => ServiceError::StoreUnavailable,
+            e => ServiceError::Store(e),
+        }
     }
 }
 
@@ -131,9 +140,7 @@ pub struct AnalyzedPhoto {
 /// Decode `bytes` within `limits` and analyze the largest face: the one path from a photo's bytes
 /// to a template (call it on the work pool).
 pub fn analyze_photo(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -> Result<AnalyzedPhoto, PhotoError> {
-    let start = Instant::now();
-    let photo = imaging::decode(bytes, limits)?;
-    let decode_ms = elapsed_ms(start);
+    let (photo, decode_ms) = inspect::decode_photo(bytes, limits)?;
     let analysis = engine.analyze(&photo).map_err(PhotoError::of_analysis)?;
     Ok(AnalyzedPhoto { analysis, decode_ms })
 }
@@ -202,6 +209,10 @@ pub struct Health {
 /// How long requests that need the database are refused at once after it could not be reached,
 /// before one request tries it again.
 pub const STORE_RETRY: Duration = Duration::from_secs(1);
+
+/// Longest a use case waits for a read of the database: past it the database is taken as
+/// unreachable (under the 2 s in which every request is answered while it is down).
+pub const STORE_READ_WAIT: Duration = Duration::from_millis(1800);
 
 /// The store's availability as the use cases last saw it (a circuit breaker): after a failure to
 /// reach the database, every request that needs it is refused at once with
@@ -291,6 +302,13 @@ impl Facegate {
         Ok(result?)
     }
 
+    /// [`Facegate::with_store`] for a read, bounded in time: a read cut short changes nothing,
+    /// and a database that went away answers no read in time.
+    async fn read_store<T>(&self, read: impl std::future::Future<Output = Result<T, StoreError>>) -> Result<T, ServiceError> {
+        let bounded = async { tokio::time::timeout(STORE_READ_WAIT, read).await.unwrap_or_else(|_| Err(StoreError::timed_out())) };
+        self.with_store(bounded).await
+    }
+
     /// Whether the last use of the database failed to reach it.
     pub fn store_unavailable(&self) -> bool {
         self.0.circuit.is_open()
@@ -327,7 +345,7 @@ impl Facegate {
     pub async fn verify(&self, subject: &SubjectId, image: Bytes, fmr: Option<f64>) -> Result<Verification, ServiceError> {
         let fmr = self.fmr(fmr);
         let enrolled =
-            self.with_store(self.0.store.templates(subject)).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))?;
+            self.read_store(self.0.store.templates(subject)).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))?;
         let engine = &self.0.engine;
         let comparable = crate::comparable_templates(engine.as_ref(), subject, enrolled)?;
         let photo = self.analyze_probe(image).await?;
@@ -342,7 +360,7 @@ impl Facegate {
     pub async fn identify(&self, image: Bytes, fmr: Option<f64>, k: usize) -> Result<Identification, ServiceError> {
         let fmr = self.fmr(fmr);
         let gallery = self.0.gallery.clone();
-        let store_version = self.with_store(gallery.change_version()).await?;
+        let store_version = self.read_store(gallery.change_version()).await?;
         let photo = self.analyze_probe(image).await?;
         let start = Instant::now();
         self.with_store(gallery.load()).await?;
@@ -366,17 +384,17 @@ impl Facegate {
 
     /// One subject's templates by model version and dates.
     pub async fn subject(&self, subject: &SubjectId) -> Result<SubjectDetail, ServiceError> {
-        self.with_store(self.0.store.subject(subject)).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))
+        self.read_store(self.0.store.subject(subject)).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))
     }
 
     /// Subjects ordered by id, after `after`, at most `limit`.
     pub async fn subjects(&self, after: Option<&SubjectId>, limit: u32) -> Result<Vec<SubjectSummary>, ServiceError> {
-        self.with_store(self.0.store.list_subjects(after, limit)).await
+        self.read_store(self.0.store.list_subjects(after, limit)).await
     }
 
     /// The database answers and the models are loaded.
     pub async fn health(&self) -> Result<Health, ServiceError> {
-        let (subjects, templates) = self.with_store(self.0.store.counts()).await?;
+        let (subjects, templates) = self.read_store(self.0.store.counts()).await?;
         Ok(Health {
             model_version: self.model_version().to_string(),
             subjects,

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use super::FaceEngine;
 use facegate_core::elapsed_ms;
-use facegate_core::imaging::{self, DecodeError, DecodeLimits};
+use facegate_core::imaging::{self, DecodeError, DecodeLimits, Photo};
 use facegate_vision::morph::AvatarFormat;
 use facegate_vision::pipeline::{FaceChoice, PhotoReading, PipelineError};
 
@@ -27,22 +27,28 @@ pub struct Analysis {
     pub decode_ms: f64,
 }
 
-/// Every face of the photo (or the largest), each with its 58 landmarks, pose and fit residual.
-pub fn analyze(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits, choice: FaceChoice) -> Result<Analysis, InspectError> {
+/// The photo of `bytes` decoded within `limits`, and the milliseconds it took: the one decoding
+/// step of every use case ([`crate::analyze_photo`] too).
+pub fn decode_photo(bytes: &[u8], limits: &DecodeLimits) -> Result<(Photo, f64), DecodeError> {
     let start = Instant::now();
     let photo = imaging::decode(bytes, limits)?;
-    let decode_ms = elapsed_ms(start);
+    Ok((photo, elapsed_ms(start)))
+}
+
+/// Every face of the photo (or the largest), each with its 58 landmarks, pose and fit residual.
+pub fn analyze(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits, choice: FaceChoice) -> Result<Analysis, InspectError> {
+    let (photo, decode_ms) = decode_photo(bytes, limits)?;
     Ok(Analysis { reading: engine.read_faces(&photo, choice)?, decode_ms })
 }
 
 /// The textured 3D head of the largest face as a glTF binary file, or the OBJ files zipped.
 pub fn avatar(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits, format: AvatarFormat) -> Result<Vec<u8>, InspectError> {
-    let photo = imaging::decode(bytes, limits)?;
+    let (photo, _) = decode_photo(bytes, limits)?;
     Ok(engine.avatar(&photo, format)?)
 }
 
 /// The frontal rendering of the largest face as PNG.
 pub fn frontalize(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -> Result<Vec<u8>, InspectError> {
-    let photo = imaging::decode(bytes, limits)?;
+    let (photo, _) = decode_photo(bytes, limits)?;
     Ok(engine.frontal_png(&photo)?)
 }

@@ -92,6 +92,10 @@ pub enum StoreError {
     Refused(String),
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
+    /// The connection was lost while the commit was under way: the server may have committed it
+    /// before it went away, so whether the write is stored is not known.
+    #[error("the database went away during the commit, which may or may not have been stored: {0}")]
+    CommitUnknown(sqlx::Error),
 }
 
 impl StoreError {
@@ -102,9 +106,19 @@ impl StoreError {
     /// (`SQLITE_CANTOPEN`, `SQLITE_IOERR`). A busy or locked database, a constraint, a corrupt
     /// template or a data key that does not open is not unavailability: retrying elsewhere does not
     /// help those.
+    /// A failed commit: [`StoreError::CommitUnknown`] when the database went away meanwhile.
+    fn of_commit(error: sqlx::Error) -> StoreError {
+        if sqlx_unavailable(&error) { StoreError::CommitUnknown(error) } else { StoreError::Database(error) }
+    }
+
+    /// The database did not answer within the time a caller gives it (taken as unreachable).
+    pub fn timed_out() -> StoreError {
+        StoreError::Database(sqlx::Error::PoolTimedOut)
+    }
+
     pub fn is_unavailable(&self) -> bool {
         match self {
-            StoreError::Database(e) => sqlx_unavailable(e),
+            StoreError::Database(e) | StoreError::CommitUnknown(e) => sqlx_unavailable(e),
             StoreError::Migrate(sqlx::migrate::MigrateError::Execute(e) | sqlx::migrate::MigrateError::ExecuteMigration(e, _)) => {
                 sqlx_unavailable(e)
             }
@@ -266,11 +280,29 @@ impl Store {
         Ok(())
     }
 
+    /// A write transaction, begun by `begin_by` (at most [`ACQUIRE_TIMEOUT`] after the caller
+    /// arrived) in all: a database that went away
+    /// can make sqlx's own acquire wait more than once (a dead pooled connection, then a new one),
+    /// and a write that has not begun by then is refused rather than committed after its caller
+    /// was told it failed.
+    async fn begin_write(&self, begin_by: tokio::time::Instant) -> Result<sqlx::Transaction<'static, sqlx::Any>, StoreError> {
+        match tokio::time::timeout_at(begin_by, self.pool.begin()).await {
+            Ok(tx) => Ok(tx?),
+            Err(_) => Err(StoreError::timed_out()),
+        }
+    }
+
     /// Add `templates` to `subject` (created if new), all in one transaction.
     /// Returns the subject's template count afterwards. With a key, a subject whose templates are
     /// still plain (enrolled before the key was set) is sealed in the same transaction.
     pub async fn enroll(&self, subject: &SubjectId, templates: &[Template]) -> Result<u32, StoreError> {
-        let mut tx = self.pool.begin().await?;
+        self.enroll_by(subject, templates, tokio::time::Instant::now() + ACQUIRE_TIMEOUT).await
+    }
+
+    /// [`Store::enroll`], refused unless its transaction has begun by `begin_by` (a writer that
+    /// waited behind another for the database is not held past the caller's bound).
+    pub async fn enroll_by(&self, subject: &SubjectId, templates: &[Template], begin_by: tokio::time::Instant) -> Result<u32, StoreError> {
+        let mut tx = self.begin_write(begin_by).await?;
         // A write first, so the transaction holds the write lock (SQLite) or the subject's row
         // lock (PostgreSQL) from its start.
         sqlx::query("INSERT INTO subjects (id) VALUES ($1) ON CONFLICT (id) DO UPDATE SET updated_at = excluded.updated_at")
@@ -294,7 +326,7 @@ impl Store {
         let count: i64 =
             sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = $1").bind(subject.as_str()).fetch_one(&mut *tx).await?;
         self.record_change(&mut tx, subject.as_str()).await?;
-        tx.commit().await?;
+        tx.commit().await.map_err(StoreError::of_commit)?;
         Ok(count as u32)
     }
 
@@ -418,7 +450,12 @@ impl Store {
     /// truncated, so the erased rows are left neither in the WAL nor (`secure_delete`) in the
     /// database's free space.
     pub async fn delete_subject(&self, id: &SubjectId) -> Result<Option<u32>, StoreError> {
-        let mut tx = self.pool.begin().await?;
+        self.delete_subject_by(id, tokio::time::Instant::now() + ACQUIRE_TIMEOUT).await
+    }
+
+    /// [`Store::delete_subject`], refused unless its transaction has begun by `begin_by`.
+    pub async fn delete_subject_by(&self, id: &SubjectId, begin_by: tokio::time::Instant) -> Result<Option<u32>, StoreError> {
+        let mut tx = self.begin_write(begin_by).await?;
         // The subject's row is locked first (as an enrolment does), so no enrolment adds
         // templates between the count and the deletion.
         let found =
@@ -431,7 +468,7 @@ impl Store {
             sqlx::query_scalar("SELECT count(*) FROM templates WHERE subject_id = $1").bind(id.as_str()).fetch_one(&mut *tx).await?;
         let deleted = sqlx::query("DELETE FROM subjects WHERE id = $1").bind(id.as_str()).execute(&mut *tx).await?.rows_affected();
         self.record_change(&mut tx, id.as_str()).await?;
-        tx.commit().await?;
+        tx.commit().await.map_err(StoreError::of_commit)?;
         if deleted > 0 && self.backend == Backend::Sqlite {
             // The deletion is committed whatever happens here: a checkpoint that cannot finish is
             // logged (the erased rows may then stay in the WAL until it is overwritten or the next

@@ -267,13 +267,16 @@ impl LiveGallery {
     /// [`Store::enroll`], then the same templates into the gallery.
     pub async fn enroll(&self, subject: &SubjectId, templates: Vec<Template>) -> Result<u32, StoreError> {
         self.load().await?;
+        // The write must begin within the store's acquire bound from now, however long it waits
+        // behind other writers: while the database is down none is held longer.
+        let begin_by = tokio::time::Instant::now() + facegate_store::ACQUIRE_TIMEOUT;
         let live = self.0.clone();
         let subject = subject.clone();
         // Spawned, so that a caller dropped mid-way (a request timeout) cannot stop between the
         // commit and the gallery update.
         tokio::spawn(async move {
             let _writes = live.writes.lock().await;
-            let count = live.store.enroll(&subject, &templates).await?;
+            let count = live.store.enroll_by(&subject, &templates, begin_by).await?;
             live.gallery.write().expect("gallery lock").add(subject.as_str(), &templates);
             Ok(count)
         })
@@ -284,11 +287,12 @@ impl LiveGallery {
     /// [`Store::delete_subject`], then the subject out of the gallery.
     pub async fn delete(&self, subject: &SubjectId) -> Result<Option<u32>, StoreError> {
         self.load().await?;
+        let begin_by = tokio::time::Instant::now() + facegate_store::ACQUIRE_TIMEOUT;
         let live = self.0.clone();
         let subject = subject.clone();
         tokio::spawn(async move {
             let _writes = live.writes.lock().await;
-            let deleted = live.store.delete_subject(&subject).await?;
+            let deleted = live.store.delete_subject_by(&subject, begin_by).await?;
             live.gallery.write().expect("gallery lock").remove(subject.as_str());
             Ok(deleted)
         })
