@@ -24,28 +24,9 @@ use crate::recognize::RecognizerKind;
 use crate::store::KeyRing;
 use anyhow::Context;
 
-fn env_path(name: &str) -> Option<PathBuf> {
-    std::env::var_os(name).filter(|v| !v.is_empty()).map(PathBuf::from)
-}
-
-/// The shared research data (IMM, ORL, cascades, SFM), read-only.
-pub fn shared_dir() -> PathBuf {
-    env_path("FACEGATE_SHARED").unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared"))
-}
-
-/// The Surrey Face Model folder (`sfm_shape_3448.bin` and companions).
-pub fn sfm_dir() -> PathBuf {
-    env_path("FACEGATE_SFM").unwrap_or_else(|| shared_dir().join("models/sfm"))
-}
-
-/// The project's own trained models (`asm.bin`, `dlda.bin`, cascades, calibration).
-pub fn models_dir() -> PathBuf {
-    if let Some(p) = env_path("FACEGATE_MODELS") {
-        return p;
-    }
-    let local = PathBuf::from("models");
-    if local.is_dir() { local } else { PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models") }
-}
+/// Where the files are (`FACEGATE_SHARED`, `FACEGATE_SFM`, `FACEGATE_MODELS` and their defaults):
+/// written once, in `facegate-paths`, which the research crate and the tests use too.
+pub use facegate_paths::{models_dir, sfm_dir, shared_dir};
 
 /// The pipeline's model folders: [`models_dir`] and [`sfm_dir`].
 pub fn pipeline_config() -> PipelineConfig {

@@ -292,3 +292,29 @@ async fn the_audit_log_has_one_json_line_per_enroll_verify_identify_delete_with_
     // No photo bytes: every line is short, whatever the photo's size.
     assert!(text.lines().all(|l| l.len() < 1000), "{text}");
 }
+
+/// A request the deadline ends is audited too (the timeout layer sits inside the audit's), with
+/// the outcome `timeout` and what the handler had learnt by then.
+#[tokio::test]
+async fn a_request_ended_by_the_timeout_is_audited() {
+    let log = captured_log();
+    let short = ApiConfig { request_timeout: Duration::from_millis(300), ..config() };
+    let app = TestApp::start(StandInEngine::slow(Duration::from_millis(900)), short).await;
+    let form = reqwest::multipart::Form::new()
+        .text("subject", "late-audit")
+        .part("image", reqwest::multipart::Part::bytes(pattern_jpeg(320, 240, 2)).file_name("p.jpg"));
+    let reply = app.send(app.client.post(app.url("/enroll")).header("x-request-id", "timed-out-audit").multipart(form)).await;
+    reply.assert_problem(504, "timeout");
+    let text = String::from_utf8(log.0.lock().unwrap().clone()).unwrap();
+    let line = text
+        .lines()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .filter(|v| v["target"] == "facegate::audit")
+        .map(|v| v["fields"].clone())
+        .find(|f| f["request_id"] == "timed-out-audit")
+        .unwrap_or_else(|| panic!("no audit line for the timed-out request: {text}"));
+    assert_eq!(
+        (line["op"].as_str(), line["outcome"].as_str(), line["status"].as_u64(), line["subject"].as_str()),
+        (Some("enroll"), Some("timeout"), Some(504), Some("late-audit"))
+    );
+}

@@ -312,7 +312,7 @@ fn expression_blendshapes_lower_the_residual_on_free_expressions() {
 fn write_doc_pictures() {
     use image::imageops::{FilterType, resize};
     let m = model();
-    let out_dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/img/morph");
+    let out_dir = facegate_paths::repository_dir().join("docs/img/morph");
     std::fs::create_dir_all(&out_dir).unwrap();
     let samples = list_imm(&facegate_paths::shared_dir().join("data/imm")).unwrap();
     let tile = 160u32;
