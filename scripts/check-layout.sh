@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The layout rules no compiler checks (docs/architecture.md): no Rust source file over 800 lines,
-# and no runtime crate (core, vision, store, service, http) depending on what the runtime must not
+# no module of the binary outside src/cli importing the command line, and no runtime crate (core, vision, store, service, http) depending on what the runtime must not
 # reach — the research crate, the binary, the settings' paths, clap or indicatif. Function length,
 # printing and environment reads are clippy's (the workspace lints; CI runs clippy on the runtime).
 set -euo pipefail
@@ -15,6 +15,14 @@ for path in sorted(pathlib.Path(".").glob("**/*.rs")):
     lines = sum(1 for _ in path.open(encoding="utf-8"))
     if lines > 800:
         failures.append(f"{path}: {lines} lines (at most 800)")
+
+# The command line is a leaf of the binary: nothing else in it imports `crate::cli`.
+for path in sorted(pathlib.Path("src").glob("**/*.rs")):
+    if path.parts[1] == "cli":
+        continue
+    for number, line in enumerate(path.open(encoding="utf-8"), 1):
+        if "crate::cli" in line and not line.lstrip().startswith("//"):
+            failures.append(f"{path}:{number}: imports the command line (take plain values or a callback instead)")
 
 runtime = {"facegate-core", "facegate-vision", "facegate-store", "facegate-service", "facegate-http"}
 forbidden = {"facegate", "facegate-research", "facegate-paths", "clap", "indicatif"}

@@ -13,7 +13,7 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use crate::cli::choices;
+use crate::choices;
 use crate::core::imaging::DecodeLimits;
 use crate::http::ApiConfig;
 use crate::http::server::ServerLimits;
@@ -88,8 +88,8 @@ pub struct Settings {
     pub sfm: Option<PathBuf>,
     /// Which recognizer makes templates: the deep face embedding (`deep.bin`) or the classical
     /// pixels + LBP Direct LDA (`dlda.bin`). Templates of one are never compared with the other's.
-    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::ClassicalRecognizer::from(RecognizerKind::default()))]
-    pub recognizer: choices::ClassicalRecognizer,
+    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::Recognizer::from(RecognizerKind::default()))]
+    pub recognizer: choices::Recognizer,
     /// Comma-separated API keys (at least 16 characters each); when neither this nor
     /// `--api-keys-file` is set the API is open to anyone who can reach it. Set but holding no key
     /// (only commas or blanks) stops the start-up; an empty value counts as not set. Keys given as

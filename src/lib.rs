@@ -15,5 +15,6 @@ pub use facegate_service as service;
 pub use facegate_store as store;
 pub use facegate_vision::{detect, embed, landmarks, morph, pipeline, quality, recognize};
 
+pub mod choices;
 pub mod cli;
 pub mod config;

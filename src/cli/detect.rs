@@ -1,7 +1,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use crate::cli::choices;
+use crate::choices;
 use crate::config::models_dir;
 use crate::detect::{DetectOptions, Detector, DetectorKind, ProfileMode};
 

@@ -5,7 +5,6 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-pub mod choices;
 pub mod detect;
 pub mod embed;
 pub mod landmarks;

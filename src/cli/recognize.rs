@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 
-use crate::cli::choices;
+use crate::choices;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::calibration::DEFAULT_FMR;
 use crate::recognize::{
@@ -23,8 +23,8 @@ pub struct CompareArgs {
     #[arg(long)]
     pub json: bool,
     /// Which recognizer compares the photos.
-    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::ClassicalRecognizer::from(RecognizerKind::default()))]
-    pub recognizer: choices::ClassicalRecognizer,
+    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::Recognizer::from(RecognizerKind::default()))]
+    pub recognizer: choices::Recognizer,
     /// Operating point: the calibrated false match rate closest to this (1e-2, 1e-3 or 1e-4).
     #[arg(long, default_value_t = DEFAULT_FMR)]
     pub fmr: f64,
@@ -241,8 +241,8 @@ pub struct EvalPairsArgs {
     #[arg(long)]
     pub images: PathBuf,
     /// Which recognizer scores the pairs.
-    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::ClassicalRecognizer::from(RecognizerKind::default()))]
-    pub recognizer: choices::ClassicalRecognizer,
+    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::Recognizer::from(RecognizerKind::default()))]
+    pub recognizer: choices::Recognizer,
 }
 
 #[derive(clap::Args, Debug)]
@@ -252,8 +252,8 @@ pub struct EvalVerifyArgs {
     #[arg(required_if_eq("recognizer", "classical"))]
     pub dirs: Vec<PathBuf>,
     /// Which recognizer to measure.
-    #[arg(long, value_enum, default_value_t = choices::ClassicalRecognizer::from(RecognizerKind::Classical))]
-    pub recognizer: choices::ClassicalRecognizer,
+    #[arg(long, value_enum, default_value_t = choices::Recognizer::from(RecognizerKind::Classical))]
+    pub recognizer: choices::Recognizer,
     /// The model to measure (default: `dlda.bin`, or `deep.bin` with `--recognizer deep`, in the
     /// models folder).
     #[arg(long)]
@@ -286,8 +286,8 @@ pub struct EvalIdentifyArgs {
     pub distractors: bool,
     /// `classical`: a 2D and a 3DMM model trained here and compared; `deep`: the deep recognizer
     /// through the service's pipeline (the IMM data under the shared folder).
-    #[arg(long, value_enum, default_value_t = choices::ClassicalRecognizer::from(RecognizerKind::Classical))]
-    pub recognizer: choices::ClassicalRecognizer,
+    #[arg(long, value_enum, default_value_t = choices::Recognizer::from(RecognizerKind::Classical))]
+    pub recognizer: choices::Recognizer,
     #[command(flatten)]
     pub model: ModelOptions,
 }

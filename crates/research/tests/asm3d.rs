@@ -62,7 +62,7 @@ fn jaw_follows_the_outline_as_the_head_turns() {
 #[test]
 fn learnt_jaw_vertices_follow_the_annotation() {
     // Frontal photos of training persons: the jaw at the learnt vertices of each photo's fitted
-    // shape is near the annotated jaw; the contour rule of session 1 was far above it.
+    // shape is near the annotated jaw; the contour rule (`contour_jaw_vertices`) is far above it.
     let fm = face_model();
     let samples: Vec<ImmSample> = list_imm(&facegate_paths::shared_dir().join("data/imm"))
         .unwrap()

@@ -11,7 +11,7 @@ const OUTLINE_COSINE: f64 = 0.25;
 /// The vertex of each jaw point (IMM 0–12; the chin's is fixed) on a face seen from the front.
 pub type JawVertices = [u32; 13];
 
-/// The session-1 jaw convention: every other vertex of the model contour (`sfm_model_contours.json`),
+/// The contour jaw convention: every other vertex of the model contour (`sfm_model_contours.json`),
 /// from each side's first to the chin. Measured: it puts the jaw's upper ends far above where IMM
 /// annotators mark them (at the temples rather than near the ear lobes), see [`annotated_jaw_vertices`].
 pub fn contour_jaw_vertices(fm: &FaceModel) -> JawVertices {

@@ -36,7 +36,7 @@ pub struct Asm3dLandmarker {
 /// scale and 2 probe iterations, 0.2 minimum-face boxes: 3 views against 2 lifted held-out
 /// d_eye < 0.05 from 94.4% to 96.3% and mouth < 0.1 from 96.3% to 98.1% for ≈ 1.8 ms in the dev
 /// profile; with 1 probe iteration 3 views were worse than 2; 1 view lost frontal and spot-light
-/// photos in session 1).
+/// photos).
 const SEARCHED_VIEWS: usize = 3;
 
 /// Coarse-level iterations each searched view gets before the best one goes on (measured with the

@@ -31,7 +31,7 @@ macro_rules! value_enum {
 
 value_enum! {
     /// Which recognizer makes the templates.
-    ClassicalRecognizer => facegate_vision::recognize::RecognizerKind {
+    Recognizer => facegate_vision::recognize::RecognizerKind {
         /// The deep face embedding (`deep.bin` over `embedding.bin`): the accurate one on real photos.
         Deep,
         /// Pixels + LBP through Direct LDA (`dlda.bin`): no third-party weights, less CPU.
