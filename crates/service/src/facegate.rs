@@ -246,10 +246,6 @@ impl StoreCircuit {
             _ => *open_until = None,
         }
     }
-
-    fn is_open(&self) -> bool {
-        self.open_until.lock().unwrap_or_else(|e| e.into_inner()).is_some()
-    }
 }
 
 struct Inner {
@@ -307,11 +303,6 @@ impl Facegate {
     async fn read_store<T>(&self, read: impl std::future::Future<Output = Result<T, StoreError>>) -> Result<T, ServiceError> {
         let bounded = async { tokio::time::timeout(STORE_READ_WAIT, read).await.unwrap_or_else(|_| Err(StoreError::timed_out())) };
         self.with_store(bounded).await
-    }
-
-    /// Whether the last use of the database failed to reach it.
-    pub fn store_unavailable(&self) -> bool {
-        self.0.circuit.is_open()
     }
 
     /// The requested false match rate, or the configured one.
