@@ -1,6 +1,6 @@
 //! Detection time on one 640×480 IMM photo (frontal, and rotated about 30°), one thread, for the
-//! default Haar detector and the SeetaFace alternative; plus a face-free image, where every
-//! fallback runs.
+//! default Haar detector and the SeetaFace and YuNet alternatives; plus a face-free image, where
+//! every fallback runs.
 
 use std::hint::black_box;
 
@@ -19,7 +19,7 @@ fn bench_detect(c: &mut Criterion<ThreadCpuTime>) {
     let blank = GrayF32::from_fn(640, 480, |x, y| ((x / 40 + y / 40) % 2) as f32 * 60.0 + 90.0);
     let mut group = c.benchmark_group("detect");
     group.sample_size(30);
-    for kind in [DetectorKind::Haar, DetectorKind::Seeta] {
+    for kind in [DetectorKind::Haar, DetectorKind::Seeta, DetectorKind::Yunet] {
         let detector = Detector::load_kind(&models_dir(), kind).expect("detector loads");
         let name = format!("{kind:?}").to_lowercase();
         group.bench_function(format!("{name}/imm_640x480_frontal"), |b| b.iter(|| black_box(detector.detect(black_box(&frontal)))));

@@ -17,8 +17,12 @@ use facegate::pipeline::{Pipeline, PipelineConfig};
 use facegate::recognize::RecognizerKind;
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
-    let config =
-        PipelineConfig { models_dir: models_dir(), sfm_dir: Some(shared_dir().join("models/sfm")), recognizer: RecognizerKind::Deep };
+    let config = PipelineConfig {
+        models_dir: models_dir(),
+        sfm_dir: Some(shared_dir().join("models/sfm")),
+        recognizer: RecognizerKind::Deep,
+        detector: Default::default(),
+    };
     let pipeline = Pipeline::load(&config).expect("models and ../shared/models/sfm");
     let photos: [(&str, PathBuf); 4] = [
         ("imm_01-1m_640x480_frontal", shared_dir().join("data/imm/01-1m.jpg")),
@@ -27,7 +31,8 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
         ("orl_s1-2_92x112", shared_dir().join("data/orl/s1/2.pgm")),
     ];
     // The small-image scan before its coarse small-window levels: step 1 on every level.
-    let mut step1_everywhere = facegate::detect::Detector::load(&models_dir()).expect("cascades");
+    let mut step1_everywhere =
+        facegate::detect::Detector::load_kind(&models_dir(), facegate::detect::DetectorKind::Haar).expect("cascades");
     step1_everywhere.options.small_image_fine_above_scale = 0.0;
     let asm3d = pipeline.finder.asm3d.as_ref().expect("models/asm3d.bin");
     let mut group = c.benchmark_group("pipeline");

@@ -16,8 +16,12 @@ use facegate::pipeline::{Pipeline, PipelineConfig, quality_components};
 use facegate::recognize::RecognizerKind;
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
-    let config =
-        PipelineConfig { models_dir: models_dir(), sfm_dir: Some(shared_dir().join("models/sfm")), recognizer: RecognizerKind::Deep };
+    let config = PipelineConfig {
+        models_dir: models_dir(),
+        sfm_dir: Some(shared_dir().join("models/sfm")),
+        recognizer: RecognizerKind::Deep,
+        detector: Default::default(),
+    };
     let pipeline = Pipeline::load(&config).expect("models and ../shared/models/sfm");
     let photos: [(&str, PathBuf); 2] =
         [("imm_01-1m_640x480", shared_dir().join("data/imm/01-1m.jpg")), ("orl_s1-1_92x112", shared_dir().join("data/orl/s1/1.pgm"))];

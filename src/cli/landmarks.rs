@@ -98,7 +98,8 @@ pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
                 continue;
             }
         };
-        let faces: Vec<serde_json::Value> = detector.detect(&photo.gray).iter().map(|f| fit_face(&photo.gray, &f.rect)).collect();
+        let faces: Vec<serde_json::Value> =
+            detector.detect(&photo.gray).iter().map(|f| fit_face(&photo.gray, &crate::pipeline::seed_box(f))).collect();
         let value = json!({ "image": image.display().to_string(), "variant": variant.name(), "faces": faces });
         if args.json {
             crate::cli::print_json_line(&value);

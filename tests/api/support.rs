@@ -288,7 +288,7 @@ impl FaceEngine for StandInEngine {
         let components = facegate::pipeline::quality_components(photo, &landmarks, None, None).1;
         let quality = Quality { score: (10.0 * components.sharpness).min(100.0), components };
         Ok(FaceAnalysis {
-            face: Face { rect: Rect::new(0.0, 0.0, w, h), score: 1.0 },
+            face: Face { rect: Rect::new(0.0, 0.0, w, h), score: 1.0, points: None },
             faces_found,
             landmarks,
             pose: None,
@@ -306,6 +306,7 @@ impl FaceEngine for StandInEngine {
             landmarks: a.landmarks,
             pose: None,
             fit_residual_px: None,
+            visible: None,
             quality: a.quality,
             landmarks_ms: 0.0,
             morph_ms: 0.0,

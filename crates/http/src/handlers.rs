@@ -159,6 +159,8 @@ struct VerifyResponse {
     model_version: String,
     /// The subject's templates compared (those of the current model version).
     templates_compared: usize,
+    /// Which of them (0-based, in enrolment order) made the score.
+    best_template: Option<usize>,
     #[serde(flatten)]
     found: FaceReport,
     timings: RequestTimings,
@@ -190,6 +192,7 @@ pub async fn verify(
         fmr: decision.fmr,
         model_version: facegate.model_version().to_string(),
         templates_compared: decision.templates_compared,
+        best_template: decision.best_template,
         found: FaceReport::of(&verification.photo),
         timings: RequestTimings {
             photo: PhotoTimings::of(&verification.photo),

@@ -42,10 +42,19 @@ struct FaceTimings {
     morph_ms: f64,
 }
 
+/// The landmarks with, per point, whether the fitted head shows it to the camera.
+#[derive(Debug, Serialize)]
+struct SeenLandmarks {
+    #[serde(flatten)]
+    landmarks: Landmarks,
+    /// Null when the 3DMM is not loaded or could not be fitted.
+    visible: Option<Vec<bool>>,
+}
+
 #[derive(Debug, Serialize)]
 struct AnalyzedFace {
     face: Face,
-    landmarks: Landmarks,
+    landmarks: SeenLandmarks,
     /// Null when the 3DMM is not loaded or could not be fitted.
     pose: Option<Pose>,
     fit_residual_px: Option<f32>,
@@ -86,7 +95,7 @@ pub async fn analyze(State(state): State<AppState>, Params(params): Params<Analy
         .into_iter()
         .map(|f| AnalyzedFace {
             face: f.face,
-            landmarks: f.landmarks,
+            landmarks: SeenLandmarks { landmarks: f.landmarks, visible: f.visible },
             pose: f.pose,
             fit_residual_px: f.fit_residual_px,
             quality: f.quality,

@@ -39,7 +39,11 @@ impl Default for TrainOptions {
 /// centres and the mouth centre (`None` when the detector missed the face).
 pub fn detector_box(detector: &Detector, gray: &GrayF32, shape: &[Point]) -> Option<Rect> {
     let k = dataset::KeyPoints::from_imm(shape);
-    detector.detect(gray).into_iter().map(|f| f.rect).find(|r| r.contains(k.left_eye) && r.contains(k.right_eye) && r.contains(k.mouth))
+    detector
+        .detect(gray)
+        .iter()
+        .map(facegate_vision::pipeline::seed_box)
+        .find(|r| r.contains(k.left_eye) && r.contains(k.right_eye) && r.contains(k.mouth))
 }
 
 /// The fallback box: the bounding box of the annotated points.

@@ -22,7 +22,7 @@ fn detector_is_shareable_across_threads() {
 
 #[test]
 fn finds_one_face_holding_eyes_and_mouth_on_imm() {
-    let detector = Detector::load(&models_dir()).unwrap();
+    let detector = Detector::load_kind(&models_dir(), DetectorKind::Haar).unwrap();
     let samples = list_imm(&imm_dir()).unwrap();
     // Held-out persons, a frontal, a rotated and the spot-light view of each.
     for s in samples.iter().filter(|s| [1, 2, 3, 5, 10].contains(&s.person) && [1, 3, 5].contains(&s.view)) {
@@ -37,7 +37,7 @@ fn finds_one_face_holding_eyes_and_mouth_on_imm() {
 
 #[test]
 fn blank_and_noise_images_hold_no_face() {
-    let detector = Detector::load(&models_dir()).unwrap();
+    let detector = Detector::load_kind(&models_dir(), DetectorKind::Haar).unwrap();
     let blank = GrayF32::from_fn(640, 480, |_, _| 128.0);
     assert!(detector.detect(&blank).is_empty());
     use rand::{Rng, SeedableRng};
@@ -49,7 +49,7 @@ fn blank_and_noise_images_hold_no_face() {
 
 #[test]
 fn two_photos_side_by_side_give_two_faces() {
-    let detector = Detector::load(&models_dir()).unwrap();
+    let detector = Detector::load_kind(&models_dir(), DetectorKind::Haar).unwrap();
     let a = open(&imm_dir().join("02-1m.jpg")).unwrap().gray;
     let b = open(&imm_dir().join("05-2m.jpg")).unwrap().gray;
     let both = GrayF32::from_fn(a.width + b.width, a.height.max(b.height), |x, y| {
@@ -63,7 +63,7 @@ fn two_photos_side_by_side_give_two_faces() {
 
 #[test]
 fn finds_small_grey_orl_faces() {
-    let detector = Detector::load(&models_dir()).unwrap();
+    let detector = Detector::load_kind(&models_dir(), DetectorKind::Haar).unwrap();
     // Held-out subjects; views 2 and 4 include turned heads the plain scan missed.
     for subject in [1, 2, 3, 5, 10, 25] {
         for view in [1, 2, 4] {
@@ -81,8 +81,8 @@ fn finds_small_grey_orl_faces() {
 fn small_images_keep_their_step_1_boxes_with_coarse_small_window_levels() {
     // The levels of small windows at step 2 must not move the face a full step-1 scan finds
     // (s10/10 moved when step 1 started above scale 2 instead of 1.75).
-    let fine = Detector::load(&models_dir()).unwrap();
-    let mut everywhere = Detector::load(&models_dir()).unwrap();
+    let fine = Detector::load_kind(&models_dir(), DetectorKind::Haar).unwrap();
+    let mut everywhere = Detector::load_kind(&models_dir(), DetectorKind::Haar).unwrap();
     everywhere.options.small_image_fine_above_scale = 0.0;
     for (subject, view) in [(10, 10), (1, 1), (2, 4), (5, 2), (20, 7), (30, 9)] {
         let photo = open(&shared_dir().join(format!("data/orl/s{subject}/{view}.pgm"))).unwrap();
@@ -143,7 +143,7 @@ fn seeta_alternative_finds_a_frontal_face() {
 #[test]
 fn colour_and_grey_formats_give_the_same_face() {
     use image::ImageFormat;
-    let detector = Detector::load(&models_dir()).unwrap();
+    let detector = Detector::load_kind(&models_dir(), DetectorKind::Haar).unwrap();
     let rgb = image::open(imm_dir().join("02-1m.jpg")).unwrap().resize(320, 240, image::imageops::FilterType::Triangle);
     let reference = detector.detect(&facegate_core::imaging::Photo::from_dynamic(rgb.clone()).gray);
     assert_eq!(reference.len(), 1);

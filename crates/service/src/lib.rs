@@ -125,6 +125,9 @@ pub struct Decision {
     pub is_match: bool,
     /// The subject's templates compared (those of the current model version).
     pub templates_compared: usize,
+    /// Which of them (0-based, in enrolment order) made the score, when the decision compared
+    /// templates one by one (verify); `None` for a gallery's decisions.
+    pub best_template: Option<usize>,
 }
 
 /// Why a subject cannot be verified.
@@ -148,7 +151,11 @@ pub fn comparable_templates(matcher: &dyn Matcher, subject: &SubjectId, enrolled
 /// Is `probe` the subject of the `comparable` templates (see [`comparable_templates`])? The score is
 /// held against the threshold at `fmr` for a subject with that many templates.
 pub fn decide(matcher: &dyn Matcher, probe: &Template, comparable: &[Template], fmr: f64) -> Decision {
-    Decision::at(matcher, matcher.score(probe, comparable), comparable.len(), fmr)
+    let best = (0..comparable.len()).max_by(|&a, &b| {
+        let score = |i: usize| matcher.score(probe, std::slice::from_ref(&comparable[i]));
+        score(a).total_cmp(&score(b))
+    });
+    Decision { best_template: best, ..Decision::at(matcher, matcher.score(probe, comparable), comparable.len(), fmr) }
 }
 
 impl Decision {
@@ -156,7 +163,14 @@ impl Decision {
     /// that many templates: the one rule verify, identify and the gallery decide by.
     pub fn at(matcher: &dyn Matcher, score: f32, templates: usize, fmr: f64) -> Decision {
         let point = matcher.operating_point(fmr, templates);
-        Decision { score, threshold: point.threshold, fmr: point.fmr, is_match: score >= point.threshold, templates_compared: templates }
+        Decision {
+            score,
+            threshold: point.threshold,
+            fmr: point.fmr,
+            is_match: score >= point.threshold,
+            templates_compared: templates,
+            best_template: None,
+        }
     }
 }
 

@@ -2,7 +2,8 @@
 //! them: a decoded photo → [`detect`] (face boxes) → [`landmarks`] (58 IMM points) → [`morph`]
 //! (3D morphable model fit, frontal rendering, avatar) → [`embed`] (the face-embedding network) and
 //! [`recognize`] (normalization, Direct LDA, templates, scores, calibration) → [`quality`] (face
-//! image quality), assembled once in [`pipeline`].
+//! image quality), assembled once in [`pipeline`]; [`synthetic`] renders an enrolled head at other
+//! yaws for templates a turned probe can meet.
 //!
 //! Runtime code: it never prints, reads the environment or shows progress (the workspace's clippy
 //! lints); models are loaded from paths it is handed.
@@ -15,3 +16,4 @@ pub mod quality;
 pub mod recognize;
 
 pub mod pipeline;
+pub mod synthetic;

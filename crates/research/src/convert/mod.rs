@@ -2,6 +2,7 @@
 //! only reads the converted file).
 
 pub mod dlib;
+pub mod yunet;
 
 use facegate_vision::embed::weights::{self, NetworkFile};
 

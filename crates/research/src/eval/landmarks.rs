@@ -60,7 +60,7 @@ fn share(errors: &[PhotoError], f: impl Fn(&PhotoError) -> Option<f64>, t: f64) 
 /// annotation's bounding box when no detector is given.
 fn test_box(detector: Option<&Detector>, gray: &facegate_core::imaging::GrayF32, truth: &[facegate_core::geometry::Point]) -> Option<Rect> {
     match detector {
-        Some(d) => d.detect(gray).first().map(|f| f.rect),
+        Some(d) => d.detect(gray).first().map(facegate_vision::pipeline::seed_box),
         None => Some(train::annotation_box(truth)),
     }
 }
@@ -497,7 +497,7 @@ pub fn crossover(
             let view = synthesise_view(fm, &fit, &texture, pose, background, 0.0, &jaw, &offsets);
             let band = bands.iter().position(|&b| b == yaw.abs()).expect("a band per yaw");
             let truth_k = KeyPoints::from_imm(&view.points);
-            let Some(rect) = detector.detect(&view.gray).first().map(|f| f.rect) else {
+            let Some(rect) = detector.detect(&view.gray).first().map(facegate_vision::pipeline::seed_box) else {
                 misses[band] += 1;
                 errors[band].push((f64::INFINITY, f64::INFINITY));
                 continue;

@@ -6,6 +6,7 @@ pub mod identification;
 pub mod landmarks;
 pub mod pairs;
 pub mod plot;
+pub mod pose;
 pub mod protocol;
 pub mod quality;
 pub mod verification;

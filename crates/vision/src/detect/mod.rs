@@ -1,5 +1,6 @@
-//! Face detection (thesis 2.5.1): OpenCV Viola–Jones cascades, with SeetaFace (`rustface`) as a
-//! measured alternative.
+//! Face detection: the YuNet CNN (through `tract`), which finds faces from frontal to full
+//! profile and is the default, the thesis's OpenCV Viola–Jones cascades (2.5.1), and SeetaFace
+//! (`rustface`) as a measured alternative.
 //!
 //! The Haar detector runs `haarcascade_frontalface_alt2.xml`; when it finds nothing (the default
 //! [`ProfileMode::Fallback`]) it also runs `haarcascade_profileface.xml` on the image and on its
@@ -8,12 +9,13 @@
 
 pub mod cascade;
 pub mod seeta;
+pub mod yunet;
 
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use facegate_core::geometry::Rect;
+use facegate_core::geometry::{Point, Rect};
 use facegate_core::imaging::GrayF32;
 
 pub use cascade::{Cascade, ScanOptions};
@@ -24,6 +26,11 @@ pub struct Face {
     #[serde(rename = "box")]
     pub rect: Rect,
     pub score: f32,
+    /// Five key points in pixels of the input image, from detectors that locate them (YuNet):
+    /// the image-left eye, the image-right eye, the nose tip, the image-left and the image-right
+    /// mouth corner. For an upright, unmirrored face the image-left eye is the subject's right.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub points: Option<[Point; 5]>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -36,22 +43,29 @@ pub enum DetectError {
 pub const FRONTAL_CASCADE: &str = "haarcascade_frontalface_alt2.xml";
 pub const PROFILE_CASCADE: &str = "haarcascade_profileface.xml";
 pub const SEETA_MODEL: &str = "seeta_fd_frontal_v1.0.bin";
+/// YuNet's ONNX file, directly under `<models_dir>/` (see `models/yunet.md`).
+pub const YUNET_MODEL: &str = "yunet.onnx";
 
 /// Copies compiled into the binary, used when the models folder does not hold the files (so the
 /// service and the CLI work from any directory).
 pub const EMBEDDED_FRONTAL: &str = include_str!("../../../../models/cascades/haarcascade_frontalface_alt2.xml");
 pub const EMBEDDED_PROFILE: &str = include_str!("../../../../models/cascades/haarcascade_profileface.xml");
 pub const EMBEDDED_SEETA: &[u8] = include_bytes!("../../../../models/cascades/seeta_fd_frontal_v1.0.bin");
+pub const EMBEDDED_YUNET: &[u8] = include_bytes!("../../../../models/yunet.onnx");
 
 /// Which detector to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum DetectorKind {
-    /// OpenCV Viola–Jones Haar cascades (frontal, then profile and mirrored profile).
-    #[default]
+    /// OpenCV Viola–Jones Haar cascades (frontal, then profile and mirrored profile): the
+    /// thesis's detector.
     Haar,
     /// SeetaFace funnel-structured cascade through the `rustface` crate.
     Seeta,
+    /// YuNet, a multi-view CNN with five key points (OpenCV Zoo, run through `tract`): finds
+    /// faces from frontal to full profile (docs/pose.md), so it is the default.
+    #[default]
+    Yunet,
 }
 
 /// When the Haar detector also runs the profile cascade.
@@ -89,15 +103,19 @@ pub struct DetectOptions {
     pub fine_rescan: bool,
     /// Images whose shorter side is below this (e.g. ORL's 92×112 crops, where the face fills the
     /// frame) are scanned with step 1 and a replicated border, so a face as large as the frame
-    /// still gets enough overlapping windows.
+    /// still gets enough overlapping windows; YuNet gives them a zero border, room around the head.
     pub small_image_side: u32,
-    /// Border added on each side of a small image, as a fraction of its size.
+    /// Border added on each side of a small image, as a fraction of its size (Haar and YuNet).
     pub small_image_pad: f32,
     /// On small images, pyramid levels at a scale above this are scanned at every pixel and the
     /// others with step 2 (OpenCV's own rule). Faces filling a small frame are found on the fine
     /// levels; the coarse ones only hold windows far smaller than the frame. 0 scans every level
     /// at step 1.
     pub small_image_fine_above_scale: f32,
+    /// YuNet's square input side in pixels (a multiple of 32; read when the detector is loaded).
+    pub yunet_input_size: u32,
+    /// YuNet's score threshold (√(class · objectness), 0–1).
+    pub yunet_score: f32,
 }
 
 impl Default for DetectOptions {
@@ -113,6 +131,8 @@ impl Default for DetectOptions {
             small_image_side: 200,
             small_image_pad: 0.1,
             small_image_fine_above_scale: 1.75,
+            yunet_input_size: 320,
+            yunet_score: 0.6,
         }
     }
 }
@@ -127,6 +147,7 @@ impl DetectOptions {
 enum Engine {
     Haar { frontal: Cascade, profile: Cascade, profile_mirrored: Cascade },
     Seeta(seeta::SeetaDetector),
+    Yunet(yunet::YunetDetector),
 }
 
 /// A face detector, shareable across threads (`Send + Sync`; `detect` takes `&self`).
@@ -174,6 +195,12 @@ impl Detector {
                 let bytes = read_or_embedded(&path, EMBEDDED_SEETA)?;
                 Engine::Seeta(seeta::SeetaDetector::from_bytes(&bytes, &path.display().to_string())?)
             }
+            DetectorKind::Yunet => {
+                let path = models_dir.join(YUNET_MODEL);
+                let bytes = read_or_embedded(&path, EMBEDDED_YUNET)?;
+                let side = options.yunet_input_size as usize;
+                Engine::Yunet(yunet::YunetDetector::from_bytes(&bytes, &path.display().to_string(), side)?)
+            }
         };
         Ok(Detector { engine, options })
     }
@@ -182,6 +209,7 @@ impl Detector {
         match self.engine {
             Engine::Haar { .. } => DetectorKind::Haar,
             Engine::Seeta(_) => DetectorKind::Seeta,
+            Engine::Yunet(_) => DetectorKind::Yunet,
         }
     }
 
@@ -223,7 +251,7 @@ impl Detector {
                     group_eps: 0.2,
                 };
                 let to_faces = |hits: Vec<cascade::Hit>| {
-                    hits.into_iter().map(|h| Face { rect: h.rect, score: h.neighbours as f32 }).collect::<Vec<_>>()
+                    hits.into_iter().map(|h| Face { rect: h.rect, score: h.neighbours as f32, points: None }).collect::<Vec<_>>()
                 };
                 let mut faces = to_faces(frontal.detect(gray, &scan));
                 if faces.is_empty() && opts.fine_rescan && scan.step > 1 {
@@ -239,7 +267,7 @@ impl Detector {
                         .detect(gray, &scan)
                         .into_iter()
                         .chain(profile_mirrored.detect(gray, &scan))
-                        .map(|h| Face { rect: h.rect, score: h.neighbours as f32 })
+                        .map(|h| Face { rect: h.rect, score: h.neighbours as f32, points: None })
                         .collect();
                     // The strongest profile box of a head wins over its mirror-image twin.
                     turned.sort_by(|a, b| b.score.total_cmp(&a.score));
@@ -256,6 +284,7 @@ impl Detector {
                 faces
             }
             Engine::Seeta(seeta) => seeta.detect(gray, min_size),
+            Engine::Yunet(yunet) => yunet.detect(gray, opts, min_size),
         };
         faces.sort_by(|a, b| b.rect.area().total_cmp(&a.rect.area()).then(b.score.total_cmp(&a.score)));
         faces

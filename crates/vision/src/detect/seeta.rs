@@ -44,7 +44,11 @@ impl SeetaDetector {
             .into_iter()
             .map(|f| {
                 let b = f.bbox();
-                Face { rect: Rect::new(b.x() as f32, b.y() as f32, b.width() as f32, b.height() as f32), score: f.score() as f32 }
+                Face {
+                    rect: Rect::new(b.x() as f32, b.y() as f32, b.width() as f32, b.height() as f32),
+                    score: f.score() as f32,
+                    points: None,
+                }
             })
             .collect()
     }

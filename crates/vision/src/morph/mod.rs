@@ -13,6 +13,7 @@
 pub mod correspondence;
 pub mod export;
 pub mod fit;
+pub mod key_points;
 pub mod model;
 pub mod render;
 
@@ -436,6 +437,22 @@ impl FaceModel {
     pub fn keypoints(&self, projected: &[[f32; 3]], correspondence: &[u32; IMM_POINTS]) -> KeyPoints {
         let pts: Vec<Point> = correspondence.iter().map(|&v| [projected[v as usize][0], projected[v as usize][1]]).collect();
         KeyPoints { left_eye: centroid(&pts[EYE_IMAGE_LEFT]), right_eye: centroid(&pts[EYE_IMAGE_RIGHT]), mouth: centroid(&pts[MOUTH]) }
+    }
+
+    /// Which of the 58 landmarks the camera sees on a fit: a point is visible when its vertex is
+    /// the nearest surface at its pixel (the model's own depth buffer, 2 mm of tolerance), so the
+    /// far eye, brow and jaw of a turned head come out hidden.
+    pub fn landmark_visibility(&self, fit: &FittedFace) -> Vec<bool> {
+        let projected = self.project(&fit.vertices, &fit.camera);
+        let depth = render::DepthBuffer::render(&projected, &self.shape.triangles, fit.image_width as usize, fit.image_height as usize);
+        let tolerance = ((2.0 * fit.camera.scale) as f32).max(0.5);
+        fit.correspondence
+            .iter()
+            .map(|&v| {
+                let p = projected[v as usize];
+                depth.visible(p[0], p[1], p[2], tolerance)
+            })
+            .collect()
     }
 
     /// The 58 model points of a fit projected into its photo.

@@ -1,0 +1,61 @@
+//! The service's photo → template cost (`Pipeline::analyze`, decoding included, deep recognizer,
+//! 3DMM loaded) with the multi-view YuNet front end against the Viola–Jones one, in one run, on
+//! frontal photos (IMM 640×480, LFW 250×250) and on turned ones (UMIST 92×112: near frontal,
+//! 45°, full profile, which only YuNet finds). Thread CPU time (`benches/common`); the ratio of
+//! the two front ends on one photo is what holds across machines.
+
+mod common;
+
+use criterion::{Criterion, black_box, criterion_group, criterion_main};
+use facegate::config::{models_dir, shared_dir};
+use facegate::core::imaging::{self, DecodeLimits};
+use facegate::detect::DetectorKind;
+use facegate::pipeline::{Pipeline, PipelineConfig};
+use facegate::recognize::RecognizerKind;
+
+fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
+    let load = |detector| {
+        let config = PipelineConfig {
+            models_dir: models_dir(),
+            sfm_dir: Some(shared_dir().join("models/sfm")),
+            recognizer: RecognizerKind::Deep,
+            detector,
+        };
+        Pipeline::load(&config).expect("models and ../shared/models/sfm")
+    };
+    let pipelines = [("yunet", load(DetectorKind::Yunet)), ("haar", load(DetectorKind::Haar))];
+    let photos = [
+        ("imm_01-1m_640x480_frontal", "data/imm/01-1m.jpg"),
+        ("lfw_250x250_frontal", "data/lfw/Aaron_Peirsol/Aaron_Peirsol_0001.jpg"),
+        ("umist_s01-19_near_frontal", "data/umist/s01/19.pgm"),
+        ("umist_s01-08_45deg", "data/umist/s01/08.pgm"),
+        ("umist_s01-01_profile", "data/umist/s01/01.pgm"),
+    ];
+    let mut group = c.benchmark_group("pose");
+    group.sample_size(20);
+    for (name, path) in photos {
+        let bytes = std::fs::read(shared_dir().join(path)).expect("photo");
+        for (front_end, pipeline) in &pipelines {
+            let photo = imaging::decode(&bytes, &DecodeLimits::default()).expect("decodes");
+            // A photo a front end cannot find a face in costs its detection only: not comparable.
+            if pipeline.analyze(&photo).is_err() {
+                eprintln!("{name}: {front_end} finds no face");
+                continue;
+            }
+            group.bench_function(format!("decode_analyze/{name}/{front_end}"), |b| {
+                b.iter(|| {
+                    let photo = imaging::decode(black_box(&bytes), &DecodeLimits::default()).unwrap();
+                    black_box(pipeline.analyze(&photo).unwrap())
+                })
+            });
+        }
+    }
+    group.finish();
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().with_measurement(common::ThreadCpuTime);
+    targets = bench
+}
+criterion_main!(benches);

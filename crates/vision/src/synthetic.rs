@@ -1,0 +1,79 @@
+//! Synthetic templates: the thesis's pose correction turned around. Instead of rendering a turned
+//! probe from the front (which measured worse as the network's input), the enrolled face's fitted,
+//! textured 3D head is rendered at other yaws, and each rendering is read by the same front end
+//! as a probe photo (detector, landmarks, chip, network), so that a turned probe meets a template
+//! made at its own pose and aligned the way its own chip is.
+
+use facegate_core::face::KeyPoints;
+use facegate_core::imaging::{GrayF32, Photo};
+
+use crate::landmarks::asm3d;
+use crate::morph::{FittedFace, Pose, TEXTURE_SIZE};
+use crate::pipeline::{FaceAnalysis, Pipeline};
+use crate::recognize::{Recognizer, Template};
+
+/// One synthetic template and the yaw it was rendered at.
+#[derive(Debug, Clone)]
+pub struct SyntheticTemplate {
+    /// Degrees; the sign follows [`Pose::yaw`].
+    pub yaw: f32,
+    pub template: Template,
+}
+
+/// A rendering of the fitted head at `pose`, at the photo's size, scale and place, on a flat
+/// background of the photo's mean grey, with the 58 landmarks the model puts there.
+pub fn render_at(
+    pipeline: &Pipeline,
+    photo: &Photo,
+    fit: &FittedFace,
+    points: &[facegate_core::geometry::Point],
+    poses: &[Pose],
+) -> Vec<(Photo, KeyPoints)> {
+    let Some(model) = pipeline.face_model.as_ref() else { return Vec::new() };
+    let texture = model.extract_texture(&photo.rgb, fit, TEXTURE_SIZE);
+    let offsets = asm3d::annotation_offsets(model, fit, points);
+    let jaw = asm3d::photo_jaw_vertices(model, fit, &asm3d::contour_jaw_vertices(model));
+    let grey = (photo.gray.data.iter().sum::<f32>() / photo.gray.data.len().max(1) as f32).clamp(0.0, 255.0) as u8;
+    poses
+        .iter()
+        .map(|&pose| {
+            let view = asm3d::synthesise_view(model, fit, &texture, pose, [grey; 3], 0.0, &jaw, &offsets);
+            (photo_of(view.gray), KeyPoints::from_imm(&view.points))
+        })
+        .collect()
+}
+
+fn photo_of(gray: GrayF32) -> Photo {
+    let rgb = image::RgbImage::from_fn(gray.width as u32, gray.height as u32, |x, y| {
+        image::Rgb([gray.get(x as usize, y as usize).clamp(0.0, 255.0) as u8; 3])
+    });
+    Photo { rgb, gray }
+}
+
+impl Pipeline {
+    /// The deep templates of the analysed face's head rendered at each of `yaws` (degrees, the
+    /// head's pitch and roll kept). Each rendering is read like a photo: its largest face's
+    /// landmarks give the chip, and when the detector finds no face there the rendering's own
+    /// model landmarks do. Empty without the 3D model, with the classical recognizer, or when the
+    /// fit fails.
+    pub fn synthetic_templates(&self, photo: &Photo, analysis: &FaceAnalysis, yaws: &[f32]) -> Vec<SyntheticTemplate> {
+        let (Some(model), Recognizer::Deep(deep)) = (self.face_model.as_ref(), &self.recognizer) else {
+            return Vec::new();
+        };
+        let points = &analysis.landmarks.points;
+        let Ok(fit) = model.fit(points, photo.width(), photo.height()) else { return Vec::new() };
+        let poses: Vec<Pose> = yaws.iter().map(|&yaw| Pose { yaw, pitch: fit.pose.pitch, roll: fit.pose.roll }).collect();
+        render_at(self, photo, &fit, points, &poses)
+            .into_iter()
+            .zip(yaws)
+            .map(|((view, exact), &yaw)| {
+                let keypoints = match self.finder.detect(&view.gray).first() {
+                    Some(face) => self.finder.landmarks_of(&view.gray, face).keypoints,
+                    None => exact,
+                };
+                let chip = crate::embed::face_chip(&view.rgb, &keypoints);
+                SyntheticTemplate { yaw, template: deep.template_of_chip(&chip) }
+            })
+            .collect()
+    }
+}
