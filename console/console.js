@@ -57,6 +57,9 @@ function showProblem(target, error) {
             const item = (f) => el('li', { text: `${f.component.replaceAll('_', ' ')}: ${fmt(f.value, 1)} (${f.bound} ${fmt(f.limit, 1)})` });
             box.append(el('ul', { class: 'failures' }, ...p.failures.map(item)));
         }
+        if (typeof p.score === 'number' && typeof p.threshold === 'number') {
+            box.append(el('p', { class: 'liveness', text: `Liveness score ${fmt(p.score)} below the threshold ${fmt(p.threshold)}` }));
+        }
         if (slug) box.append(el('code', { text: slug }));
     } else {
         box.append(el('strong', { text: 'The request failed' }), el('p', { text: String(error.message || error) }));
@@ -226,6 +229,14 @@ function faceDetails(report) {
             ['|Yaw|, |pitch|', `${deg(q.yaw_abs_deg)}, ${deg(q.pitch_abs_deg)}`],
             ['Mirror agreement', typeof q.mirror_agreement === 'number' ? fmt(q.mirror_agreement, 3) : 'not measured (no embedding)'],
         ], 'Photo quality'));
+    }
+    // Absent when the server runs with liveness off.
+    const l = report.liveness;
+    if (l) {
+        parts.push(table([
+            ['Liveness', `${l.attack ? 'attack' : 'live'} (score ${fmt(l.score, 3)})`],
+            ['Liveness model', l.model],
+        ], 'Live face or printed photo'));
     }
     if (report.timings) {
         const rows = Object.entries(report.timings).map(([k, v]) => [k.replace(/_ms$/, '').replace('_', ' '), `${fmt(v, 1)} ms`]);

@@ -5,7 +5,7 @@
     python facegate_example.py verify alice probe.jpg [--fmr 1e-4]
 
 FACEGATE_URL (default http://127.0.0.1:8080) and FACEGATE_API_KEY (if the server has keys) set the
-server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, ...),
+server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo, ...),
 3 model mismatch (enrol the subject again), 4 any other error.
 """
 
@@ -74,7 +74,7 @@ def main() -> int:
             print(f"{verdict}: score {v['score']:.3f}, threshold {v['threshold']:.3f} at FMR {v['fmr']:g}")
             return 0 if v["match"] else 1
         except Problem as p:
-            if p.slug in ("no-face", "several-faces", "not-an-image", "corrupt-image", "unsupported-format", "too-large"):
+            if p.slug in ("no-face", "several-faces", "presentation-attack", "not-an-image", "corrupt-image", "unsupported-format", "too-large"):
                 photos = args.photos if args.command == "enroll" else [args.photo]
                 which = photos[p.image or 0]
                 print(f"{which}: {p.detail} ({p.slug}); take another photo", file=sys.stderr)

@@ -5,7 +5,7 @@
 #   ./facegate_example.sh verify alice probe.jpg [FMR]        # e.g. 1e-4
 #
 # FACEGATE_URL (default http://127.0.0.1:8080) and FACEGATE_API_KEY (if the server has keys) set the
-# server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, ...),
+# server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo, ...),
 # 3 model mismatch (enrol the subject again), 4 any other error.
 set -euo pipefail
 url="${FACEGATE_URL:-http://127.0.0.1:8080}"
@@ -35,7 +35,7 @@ post() {
 # Map a problem to the exit status above.
 refused() {
     case "$problem" in
-        no-face | several-faces | not-an-image | corrupt-image | unsupported-format | too-large)
+        no-face | several-faces | presentation-attack | not-an-image | corrupt-image | unsupported-format | too-large)
             echo "photo $(jq -r ".image // 0" "$body") refused: $(jq -r .detail "$body") ($problem); take another photo" >&2
             return 2 ;;
         model-mismatch)

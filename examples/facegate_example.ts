@@ -6,7 +6,7 @@
 //   node facegate_example.js verify alice probe.jpg [--fmr 1e-4]
 //
 // FACEGATE_URL (default http://127.0.0.1:8080) and FACEGATE_API_KEY (if the server has keys) set
-// the server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, ...),
+// the server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo, ...),
 // 3 model mismatch (enrol the subject again), 4 any other error.
 import { readFileSync } from "node:fs";
 import { basename } from "node:path";
@@ -70,7 +70,7 @@ async function main(argv: string[]): Promise<number> {
       console.error(`request to facegate at ${BASE_URL} failed: ${e}`);
       return 4;
     }
-    if (["no-face", "several-faces", "not-an-image", "corrupt-image", "unsupported-format", "too-large"].includes(e.slug)) {
+    if (["no-face", "several-faces", "presentation-attack", "not-an-image", "corrupt-image", "unsupported-format", "too-large"].includes(e.slug)) {
       console.error(`${rest[e.body.image ?? 0]}: ${e.body.detail} (${e.slug}); take another photo`);
       return 2;
     }

@@ -52,6 +52,18 @@ value_enum! {
 }
 
 value_enum! {
+    /// What the service does with a face's liveness (a live face or a printed photo of one).
+    Liveness => facegate_service::LivenessPolicy {
+        /// No liveness model is run and responses carry no `liveness`.
+        Off,
+        /// Every face reports its `liveness`; nothing is refused.
+        Report,
+        /// Enrolment, verify and identify refuse a face taken for an attack (422 `presentation-attack`).
+        Enforce,
+    }
+}
+
+value_enum! {
     /// When the Haar detector also runs the profile cascade.
     Profile => facegate_vision::detect::ProfileMode {
         /// Frontal cascade only.

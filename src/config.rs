@@ -18,10 +18,12 @@ use crate::core::imaging::DecodeLimits;
 use crate::detect::DetectorKind;
 use crate::http::ApiConfig;
 use crate::http::server::ServerLimits;
-use crate::pipeline::PipelineConfig;
+use crate::liveness::LivenessModel;
+use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::quality::QualityPolicy;
 use crate::recognize::DEFAULT_FMR;
 use crate::recognize::RecognizerKind;
+use crate::service::LivenessPolicy;
 use crate::store::KeyRing;
 use anyhow::Context;
 
@@ -183,6 +185,17 @@ pub struct Settings {
     /// Enrolment: largest |pitch| of the head, degrees (3DMM fit; not checked without it).
     #[arg(long, env = "FACEGATE_MAX_PITCH_DEG", default_value_t = DEFAULT_MAX_PITCH_DEG)]
     pub max_pitch_deg: f32,
+    /// Presentation-attack detection (a printed photo held to the camera): `off` runs no liveness
+    /// model and reports none, `report` adds each face's `liveness` to the responses, `enforce`
+    /// also refuses enrolment photos and verify/identify probes taken for an attack (422
+    /// `presentation-attack`). `enforce` without `liveness.bin` in the models stops the start-up.
+    #[arg(long, env = "FACEGATE_LIVENESS", value_enum, default_value_t = choices::Liveness::from(LivenessPolicy::default()))]
+    pub liveness: choices::Liveness,
+    /// Liveness score (strictly between 0 and 1) below which a face is an attack, in place of the
+    /// model's operating point (the EER of its NUAA evaluation): for a camera whose live and
+    /// printed-photo scores the operator has measured.
+    #[arg(long, env = "FACEGATE_LIVENESS_THRESHOLD")]
+    pub liveness_threshold: Option<f32>,
     #[command(flatten)]
     pub template_key: TemplateKeyArgs,
 }
@@ -241,15 +254,20 @@ impl Default for Settings {
             max_brightness: DEFAULT_MAX_BRIGHTNESS,
             max_yaw_deg: DEFAULT_MAX_YAW_DEG,
             max_pitch_deg: DEFAULT_MAX_PITCH_DEG,
+            liveness: LivenessPolicy::default().into(),
+            liveness_threshold: None,
         }
     }
 }
 
 impl Settings {
     /// The HTTP layer's limits; refuses a timeout that is not positive, an enrolment of no photo,
-    /// an unreadable keys file, a key setting that holds no key and a key shorter than
-    /// [`MIN_API_KEY_LEN`].
+    /// an unreadable keys file, a key setting that holds no key, a key shorter than
+    /// [`MIN_API_KEY_LEN`] and a liveness threshold outside (0, 1).
     pub fn api_config(&self) -> anyhow::Result<ApiConfig> {
+        if let Some(threshold) = self.liveness_threshold {
+            liveness_threshold(threshold)?;
+        }
         let timeout = seconds("--timeout-secs", self.timeout_secs)?;
         let body_timeout = seconds("--body-timeout-secs", self.body_timeout_secs)?;
         anyhow::ensure!(body_timeout <= timeout, "--body-timeout-secs must not exceed --timeout-secs");
@@ -274,7 +292,48 @@ impl Settings {
             default_fmr: DEFAULT_FMR,
             console: self.console,
             quality_policy: self.quality_policy(),
+            liveness: self.liveness.into(),
         })
+    }
+
+    /// The liveness model the service runs, made from the one the pipeline loaded (`None` when
+    /// `liveness.bin` is missing): none with `--liveness off` (so no time is spent on it), and with
+    /// `--liveness-threshold` the operator's threshold in place of the model's operating point.
+    /// `enforce` without a model, and a threshold with no model to apply it to, stop the start-up.
+    pub fn liveness_model(&self, model: Option<LivenessModel>) -> anyhow::Result<Option<LivenessModel>> {
+        let policy = LivenessPolicy::from(self.liveness);
+        if policy == LivenessPolicy::Off {
+            return Ok(None);
+        }
+        let file = crate::liveness::FILE;
+        let Some(mut model) = model else {
+            anyhow::ensure!(
+                policy != LivenessPolicy::Enforce,
+                "--liveness enforce (FACEGATE_LIVENESS) needs the liveness model {file} in the models folder (`facegate train \
+                 liveness` makes it): without it no face could be checked"
+            );
+            anyhow::ensure!(
+                self.liveness_threshold.is_none(),
+                "--liveness-threshold (FACEGATE_LIVENESS_THRESHOLD) is set but there is no liveness model ({file}) to apply it to"
+            );
+            return Ok(None);
+        };
+        if let Some(threshold) = self.liveness_threshold {
+            model.operating_point = format!(
+                "the operator's threshold (--liveness-threshold {}) in place of the model's {:.3}, the {}",
+                liveness_threshold(threshold)?,
+                model.threshold,
+                model.operating_point
+            );
+            model.threshold = threshold;
+        }
+        Ok(Some(model))
+    }
+
+    /// [`Settings::liveness_model`] applied to a loaded pipeline.
+    pub fn configure_liveness(&self, pipeline: &mut Pipeline) -> anyhow::Result<()> {
+        pipeline.liveness = self.liveness_model(pipeline.liveness.take())?;
+        Ok(())
     }
 
     /// The enrolment quality policy.
@@ -357,6 +416,16 @@ impl Settings {
     }
 }
 
+/// A liveness threshold: a probability strictly between 0 and 1 (0 would let every print through,
+/// 1 refuse every face).
+fn liveness_threshold(value: f32) -> anyhow::Result<f32> {
+    anyhow::ensure!(
+        value > 0.0 && value < 1.0,
+        "--liveness-threshold (FACEGATE_LIVENESS_THRESHOLD) must be strictly between 0 and 1, got {value}"
+    );
+    Ok(value)
+}
+
 fn seconds(flag: &str, value: f64) -> anyhow::Result<Duration> {
     anyhow::ensure!(value > 0.0 && value.is_finite(), "{flag} must be positive");
     Ok(Duration::from_secs_f64(value))
@@ -390,6 +459,8 @@ mod tests {
                 "MAX_BRIGHTNESS",
                 "MAX_YAW_DEG",
                 "MAX_PITCH_DEG",
+                "LIVENESS",
+                "LIVENESS_THRESHOLD",
             ])
             .any(|v| env_set(&format!("FACEGATE_{v}")))
         {
@@ -400,6 +471,7 @@ mod tests {
         assert_eq!(api.decode_limits.max_alloc_bytes, 256 << 20);
         assert!(Settings { timeout_secs: 0.0, ..Settings::default() }.api_config().is_err());
         assert!(Settings { body_timeout_secs: 60.0, ..Settings::default() }.api_config().is_err());
+        assert_eq!(api.liveness, LivenessPolicy::Report);
         let server = Settings::default().server_limits().unwrap();
         assert_eq!(
             (server.max_connections, server.header_timeout, server.shutdown_grace),
@@ -460,6 +532,42 @@ mod tests {
             assert!(both.api_config().is_err());
         }
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// `off` drops the model, `report` and `enforce` keep it, the operator's threshold replaces the
+    /// model's (and says so), and what cannot be honoured stops the start-up.
+    #[test]
+    fn the_liveness_settings_shape_the_model_the_service_runs() {
+        use crate::choices::Liveness;
+        let model = || Some(LivenessModel::load(&models_dir().join(crate::liveness::FILE)).unwrap());
+        let with = |liveness, liveness_threshold| Settings { liveness, liveness_threshold, ..Settings::default() };
+        assert!(with(Liveness::Off, None).liveness_model(model()).unwrap().is_none());
+        assert!(with(Liveness::Off, Some(0.3)).liveness_model(model()).unwrap().is_none(), "off wins over a threshold");
+        for policy in [Liveness::Report, Liveness::Enforce] {
+            assert_eq!(with(policy, None).liveness_model(model()).unwrap(), model());
+            let overridden = with(policy, Some(0.25)).liveness_model(model()).unwrap().unwrap();
+            let original = model().unwrap();
+            assert_eq!((overridden.threshold, overridden.name.as_str()), (0.25, original.name.as_str()));
+            assert!(overridden.threshold != original.threshold);
+            assert!(
+                overridden.operating_point.contains("--liveness-threshold 0.25")
+                    && overridden.operating_point.contains(&original.operating_point),
+                "{}",
+                overridden.operating_point
+            );
+        }
+        // No model: reported as none, refused where it was needed.
+        assert!(with(Liveness::Report, None).liveness_model(None).unwrap().is_none());
+        let error = with(Liveness::Enforce, None).liveness_model(None).unwrap_err().to_string();
+        assert!(error.contains("--liveness enforce") && error.contains("liveness.bin"), "{error}");
+        let error = with(Liveness::Report, Some(0.5)).liveness_model(None).unwrap_err().to_string();
+        assert!(error.contains("--liveness-threshold"), "{error}");
+        // The threshold is a probability strictly inside (0, 1).
+        for bad in [0.0, 1.0, 1.5, -0.1, f32::NAN] {
+            let error = with(Liveness::Report, Some(bad)).api_config().unwrap_err().to_string();
+            assert!(error.contains("--liveness-threshold") && error.contains("between 0 and 1"), "{bad}: {error}");
+        }
+        assert_eq!(with(Liveness::Enforce, Some(0.5)).api_config().unwrap().liveness, LivenessPolicy::Enforce);
     }
 
     #[test]

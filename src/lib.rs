@@ -13,7 +13,7 @@ pub use facegate_http as http;
 pub use facegate_research as research;
 pub use facegate_service as service;
 pub use facegate_store as store;
-pub use facegate_vision::{detect, embed, landmarks, morph, pipeline, quality, recognize};
+pub use facegate_vision::{detect, embed, landmarks, liveness, morph, pipeline, quality, recognize};
 
 pub mod choices;
 pub mod cli;

@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 pub mod detect;
 pub mod embed;
 pub mod landmarks;
+pub mod liveness;
 pub mod morph;
 pub mod pose;
 pub mod quality;
@@ -77,6 +78,8 @@ pub enum TrainCommand {
     Deep(embed::TrainDeepArgs),
     /// Train the unified face-quality score (logistic model over the components) → models/quality.bin.
     Quality(quality::TrainQualityArgs),
+    /// Train the passive liveness model (live face or printed photo) from NUAA → models/liveness.bin.
+    Liveness(liveness::TrainLivenessArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -102,6 +105,8 @@ pub enum EvalCommand {
     QualityCv(quality::EvalQualityCvArgs),
     /// Verification by pose band on UMIST (profile to frontal), through the service's pipeline.
     Pose(pose::EvalPoseArgs),
+    /// Liveness by NUAA subject folds: APCER, BPCER, ACER, BPCER at APCER 1% and 5%, a DET plot.
+    Liveness(liveness::EvalLivenessArgs),
 }
 
 pub fn main() -> ExitCode {
@@ -135,6 +140,8 @@ pub fn main() -> ExitCode {
         Command::Eval(EvalCommand::Quality(args)) => quality::run_eval(args),
         Command::Eval(EvalCommand::QualityCv(args)) => quality::run_eval_cv(args),
         Command::Eval(EvalCommand::Pose(args)) => pose::run_eval(args),
+        Command::Train(TrainCommand::Liveness(args)) => liveness::run_train(args),
+        Command::Eval(EvalCommand::Liveness(args)) => liveness::run_eval(args),
     };
     match result {
         Ok(code) => code,

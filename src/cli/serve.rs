@@ -12,6 +12,7 @@ use crate::config::{LogFormat, Settings};
 use crate::http::server::{self, ServerLimits, Stopped};
 use crate::http::{self, ApiConfig, AppState};
 use crate::pipeline::Pipeline;
+use crate::service::LivenessPolicy;
 use crate::store::{KeyCheck, Store};
 
 #[derive(clap::Args, Debug)]
@@ -66,7 +67,12 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
     let pipeline_config = args.pipeline_config();
     tracing::info!(models = %pipeline_config.models_dir.display(), "loading the face pipeline");
     let loaded = tokio::task::spawn_blocking(move || Pipeline::load(&pipeline_config)).await?;
-    let pipeline = match loaded.context("cannot load the face pipeline models") {
+    // The liveness settings shape the loaded pipeline: off drops the model, a threshold replaces its own.
+    let configured = loaded.context("cannot load the face pipeline models").and_then(|mut pipeline| {
+        args.configure_liveness(&mut pipeline)?;
+        Ok(pipeline)
+    });
+    let pipeline = match configured {
         Ok(pipeline) => pipeline,
         Err(e) => {
             store.close().await;
@@ -74,6 +80,17 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
         }
     };
     tracing::info!(model_version = pipeline.recognizer.model_version(), with_3dmm = pipeline.face_model.is_some(), "pipeline loaded");
+    match &pipeline.liveness {
+        Some(model) => tracing::info!(
+            policy = ?config.liveness,
+            model = model.name,
+            threshold = model.threshold,
+            operating_point = model.operating_point,
+            "liveness (presentation-attack detection)"
+        ),
+        None if config.liveness == LivenessPolicy::Off => tracing::info!("liveness off: no face is checked for a presentation attack"),
+        None => tracing::warn!("no liveness model ({}): faces report no liveness", crate::liveness::FILE),
+    }
     tracing::info!(workers = config.workers, queue = config.queue_depth, enroll_queue = config.enroll_queue_depth, "bounded work pool");
     let state = AppState::new(Arc::new(pipeline), store.clone(), config);
     let loading = std::time::Instant::now();

@@ -1,10 +1,10 @@
 //! The web console in a real browser: headless Chromium (Debian's `chromium` and
 //! `chromium-driver`) driven over WebDriver (fantoccini) against the real app and pipeline.
 //!
-//! Scenario: enrol two photos of one IMM person through the page, verify a third (match shown),
-//! verify another person (no match shown), identify, open the avatar view (the WebGL canvas
-//! renders, no console errors), inspect and delete the subject; the verify view again at phone
-//! width. Screenshots of each view go to `target/tmp/console/`, or to the folder named by
+//! Scenario: enrol two photos of one IMM person through the page, verify a third (match and the
+//! probe's liveness shown), verify another person (no match shown), identify, open the avatar view
+//! (the WebGL canvas renders, no console errors), inspect and delete the subject; the verify view
+//! again at phone width. Screenshots of each view go to `target/tmp/console/`, or to the folder named by
 //! `FACEGATE_CONSOLE_SCREENSHOTS` (the README's images: `FACEGATE_CONSOLE_SCREENSHOTS=docs/img/console
 //! cargo test --test api browser::`).
 //!
@@ -216,6 +216,12 @@ async fn the_console_enrolls_verifies_shows_the_avatar_and_deletes_in_chromium()
     assert!(page.text("#verify-result").await.contains("threshold"));
     assert!(page.text("#verify-result").await.contains("Quality score"));
     assert!(page.text("#verify-result").await.contains("best against enrolled photo"), "the enrolled photo that made the score");
+    // The probe's liveness (reported by default), as the pipeline scores the photo.
+    let probe = facegate::core::imaging::decode(&std::fs::read(imm_path("02-4m.jpg")).unwrap(), &Default::default()).unwrap();
+    let liveness = crate::pipeline::pipeline().analyze(&probe).unwrap().liveness.expect("the committed liveness model is loaded");
+    let shown = format!("{} (score {:.3})", if liveness.attack { "attack" } else { "live" }, liveness.score);
+    let text = page.text("#verify-result").await;
+    assert!(text.contains("Liveness") && text.contains(&shown), "{shown:?} not shown: {text}");
     page.screenshot("verify-match.png").await;
 
     // Another person: no match.

@@ -4,7 +4,8 @@
 //!   setting and never listens: an API-key setting given but holding no key (`--api-keys ",,"`, a
 //!   key file of comments only), and a database sealed by one template key started without a key
 //!   or with another one (SQLite and PostgreSQL). The right key starts it, and `/health` says what
-//!   it knows.
+//!   it knows. `--liveness enforce` without the liveness model, and a liveness threshold outside
+//!   (0, 1), stop it too.
 //! - `DELETE /subjects/{id}` answers 204 with `Facegate-Erasure`, and `/health` repeats it.
 //! - The statement of docs/service.md ("Erasure: what it covers"): a backup taken before a DELETE
 //!   and restored with the same key brings the subject back, and it verifies; once the key is
@@ -183,6 +184,29 @@ fn an_api_key_setting_that_holds_no_key_stops_the_start_up() {
     // A short key still stops it (its place named, the key not shown).
     let error = serve_is_refused(&database, &["--api-keys", "short-secret"], &["--api-keys entry 1", "at least 16"]);
     assert!(!error.contains("short-secret"), "{error}");
+}
+
+/// Liveness enforced with no model to enforce it, or a threshold that is no probability, stops the
+/// start-up rather than letting faces through unchecked.
+#[test]
+fn liveness_that_cannot_be_enforced_stops_the_start_up() {
+    let dir = Scratch::new("liveness");
+    let database = dir.url("facegate.db");
+    // The committed models without liveness.bin (linked, not copied).
+    let models = dir.0.join("models");
+    std::fs::create_dir_all(&models).unwrap();
+    for entry in std::fs::read_dir(facegate::config::models_dir()).unwrap() {
+        let entry = entry.unwrap();
+        if entry.file_name() != facegate::liveness::FILE {
+            std::os::unix::fs::symlink(entry.path().canonicalize().unwrap(), models.join(entry.file_name())).unwrap();
+        }
+    }
+    let models = models.display().to_string();
+    serve_is_refused(&database, &["--models", &models, "--liveness", "enforce"], &["--liveness enforce", "liveness.bin"]);
+    serve_is_refused(&database, &["--models", &models, "--liveness-threshold", "0.5"], &["--liveness-threshold", "no liveness model"]);
+    for bad in ["--liveness-threshold=1.5", "--liveness-threshold=0", "--liveness-threshold=-0.2"] {
+        serve_is_refused(&database, &[bad], &["--liveness-threshold", "between 0 and 1"]);
+    }
 }
 
 fn template(seed: f32) -> Template {

@@ -17,15 +17,21 @@
 //!   database without the key that opens it; what a DELETE erases (`Facegate-Erasure`), and a backup
 //!   from before it restored with the same key.
 //! - `store_cli`: `facegate rekey`, `backup` and `restore`, the real binary on a real database.
+//! - `liveness`: `--liveness enforce`, `report` and `off` and an operator's threshold, through the
+//!   real pipeline and `models/liveness.bin` on NUAA print and live frames.
+//! - `frames`: `/verify` of a capture (a probe and further frames): the frames' checks (a face,
+//!   the probe's person), the liveness fused over them, enforced by the fused score; NUAA frames.
 //! - `browser`: the web console in headless Chromium over WebDriver, against the real pipeline.
 
 mod admission;
 mod browser;
 mod deploy;
 mod fail_closed;
+mod frames;
 mod hostile;
 mod http;
 mod json_bounds;
+mod liveness;
 mod openapi;
 mod pipeline;
 mod postgres;

@@ -243,5 +243,5 @@ fn multipart_photo_parts_are_binary_for_generators() {
             }
         }
     }
-    assert_eq!(parts, 6, "the image parts of /enroll, /verify, /identify, /analyze, /avatar and /frontalize");
+    assert_eq!(parts, 7, "the image parts of /enroll, /verify, /identify, /analyze, /avatar and /frontalize, and /verify's frame parts");
 }

@@ -19,7 +19,7 @@ use facegate::morph::AvatarFormat;
 use facegate::pipeline::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, PipelineError, StageTimings};
 use facegate::quality::Quality;
 use facegate::recognize::{OperatingPoint, Template};
-use facegate::service::Matcher;
+use facegate::service::{LivenessPoint, Matcher};
 use facegate::store::{KeyRing, Store};
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
@@ -294,6 +294,7 @@ impl FaceEngine for StandInEngine {
             pose: None,
             template: Template { model_version: self.version.clone(), vector },
             quality,
+            liveness: None,
             timings: StageTimings::default(),
         })
     }
@@ -308,6 +309,7 @@ impl FaceEngine for StandInEngine {
             fit_residual_px: None,
             visible: None,
             quality: a.quality,
+            liveness: None,
             landmarks_ms: 0.0,
             morph_ms: 0.0,
         };
@@ -323,6 +325,11 @@ impl FaceEngine for StandInEngine {
     fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
         self.analyze(photo)?;
         Err(PipelineError::NoFaceModel)
+    }
+
+    /// The stand-in has no liveness model: its faces carry no liveness.
+    fn liveness_point(&self) -> Option<LivenessPoint> {
+        None
     }
 }
 

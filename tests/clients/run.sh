@@ -17,6 +17,7 @@ root="$(cd "$here/../.." && pwd)"
 cd "$root"
 shared="$(cd "${FACEGATE_SHARED:-../shared}" && pwd)"
 imm="$shared/data/imm"
+nuaa="$shared/data/nuaa"
 bin="${FACEGATE_BIN:-target/debug/facegate}"
 if [[ ! -x "$bin" ]]; then
     cargo build --bin facegate </dev/null
@@ -148,8 +149,13 @@ PY
     python3 "$here/overload_stub.py" "$base" >"$work/stub.url" &
     pids+=($!)
     for _ in $(seq 1 100); do [[ -s "$work/stub.url" ]] && break; sleep 0.1; done
-    BASE="$base" STUB="$(head -1 "$work/stub.url")" IMM="$imm" GREY="$work/grey.pgm" PYTHON="$work/venv/bin/python" \
-        TS_EXAMPLE="$work/ts/out/facegate_example.js" "$here/test_examples.sh"
+    # A second server refusing presentation attacks (a printed photo of a NUAA subject).
+    local report="$base"
+    start_server examples-enforce --liveness enforce
+    local enforce="$base"
+    base="$report"
+    BASE="$base" STUB="$(head -1 "$work/stub.url")" ENFORCE="$enforce" IMM="$imm" NUAA="$nuaa" GREY="$work/grey.pgm" \
+        PYTHON="$work/venv/bin/python" TS_EXAMPLE="$work/ts/out/facegate_example.js" "$here/test_examples.sh"
 }
 
 run_suite python python_suite

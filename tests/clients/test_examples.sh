@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The examples in examples/ against a running facegate, run by tests/clients/run.sh with:
-# BASE (the server), STUB (tests/clients/overload_stub.py in front of it), IMM (the IMM photos),
-# GREY (a face-free photo), PYTHON (a python with httpx), TS_EXAMPLE (the compiled TypeScript
-# example), and a subject `legacy` whose only template is of another model version.
+# BASE (the server), STUB (tests/clients/overload_stub.py in front of it), ENFORCE (a server with
+# --liveness enforce), IMM (the IMM photos), NUAA (the NUAA live and print frames), GREY (a
+# face-free photo), PYTHON (a python with httpx), TS_EXAMPLE (the compiled TypeScript example), and
+# a subject `legacy` whose only template is of another model version.
 # Closes with "examples: N passed, M failed"; exits non-zero on any failure.
 set -uo pipefail
 examples="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../examples" && pwd)"
@@ -47,6 +48,9 @@ for lang in python typescript curl; do
     expect "$lang" 2 '' 'no-face' "$BASE" -- enroll "$s" "$IMM/01-2m.jpg" "$GREY"
     expect "$lang" 3 '' 'enrol the subject again' "$BASE" -- verify legacy "$IMM/01-2m.jpg"
     expect "$lang" 0 '^match: ' 'busy; retrying in 1 s' "$STUB" -- verify "$s" "$IMM/01-5m.jpg"
+    # Under --liveness enforce: a live frame enrols, a printed photo of the same person is refused.
+    expect "$lang" 0 "^enrolled $s: 1 template" '' "$ENFORCE" -- enroll "$s" "$NUAA/real/0004/0004_01_00_02_134.jpg"
+    expect "$lang" 2 '' 'presentation-attack' "$ENFORCE" -- verify "$s" "$NUAA/print/0004/0004_01_01_03_211.jpg"
 done
 echo "examples: $passed passed, $failed failed"
 [[ $failed == 0 ]]

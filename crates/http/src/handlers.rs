@@ -20,6 +20,7 @@ use facegate_service::AnalyzedPhoto;
 use facegate_store::{Backend, SubjectDetail, SubjectSummary};
 use facegate_vision::detect::Face;
 use facegate_vision::landmarks::Landmarks;
+use facegate_vision::liveness::Liveness;
 use facegate_vision::morph::Pose;
 use facegate_vision::pipeline::StageTimings;
 use facegate_vision::quality::Quality;
@@ -43,12 +44,45 @@ struct FaceReport {
     pose: Option<Pose>,
     /// Face image quality: the components and the unified score (0–100).
     quality: Quality,
+    /// Live face or presentation attack; absent when liveness is off (or no model is loaded).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    liveness: Option<LivenessReport>,
+}
+
+/// A face's liveness; for a `/verify` capture with further frames, the capture's, fused over
+/// them, with how many were fused and each one's own score (the probe's first).
+#[derive(Debug, Serialize)]
+struct LivenessReport {
+    #[serde(flatten)]
+    liveness: Liveness,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    frames: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    frame_scores: Option<Vec<f32>>,
 }
 
 impl FaceReport {
     fn of(photo: &AnalyzedPhoto) -> FaceReport {
         let a = &photo.analysis;
-        FaceReport { faces_found: a.faces_found, face: a.face, landmarks: a.landmarks.clone(), pose: a.pose, quality: a.quality }
+        FaceReport {
+            faces_found: a.faces_found,
+            face: a.face,
+            landmarks: a.landmarks.clone(),
+            pose: a.pose,
+            quality: a.quality,
+            liveness: a.liveness.clone().map(|liveness| LivenessReport { liveness, frames: None, frame_scores: None }),
+        }
+    }
+
+    /// The report of a `/verify` probe whose liveness was fused over the capture's `frame_scores`
+    /// (the probe's first); a single photo's (no scores) is [`FaceReport::of`].
+    fn of_capture(photo: &AnalyzedPhoto, frame_scores: &[f32]) -> FaceReport {
+        let mut report = FaceReport::of(photo);
+        if let Some(live) = report.liveness.as_mut().filter(|_| !frame_scores.is_empty()) {
+            live.frames = Some(frame_scores.len());
+            live.frame_scores = Some(frame_scores.to_vec());
+        }
+        report
     }
 }
 
@@ -99,10 +133,11 @@ struct EnrollResponse {
     images: Vec<ImageReport>,
 }
 
-/// `POST /enroll`: all photos must each show exactly one face and meet the quality policy; then all
-/// templates are stored in one transaction. Any bad photo refuses the whole enrollment and names the
-/// photo (`image`). There is no `?quality=off`: the policy is the operator's (settings), and a
-/// photo it refuses can be retaken, while a poor template costs every later verification.
+/// `POST /enroll`: all photos must each show exactly one face, meet the quality policy and (liveness
+/// enforced) be taken for a live face; then all templates are stored in one transaction. Any bad
+/// photo refuses the whole enrollment and names the photo (`image`). There is no `?quality=off`:
+/// the policy is the operator's (settings), and a photo it refuses can be retaken, while a poor
+/// template costs every later verification.
 pub async fn enroll(
     State(state): State<AppState>,
     audit: Audit,
@@ -114,6 +149,7 @@ pub async fn enroll(
     audit.model_version(facegate.model_version());
     let subject = upload.require_subject()?;
     audit.subject(&subject);
+    upload.refuse_frames()?;
     let prepared = facegate.prepare_enrollment(&subject, upload.images).await?;
     // From here the answer is the store's: the request deadline waits for it (never a 504 for an
     // enrollment that is committed).
@@ -166,12 +202,14 @@ struct VerifyResponse {
     timings: RequestTimings,
 }
 
-/// `POST /verify`: is the probe's largest face the enrolled subject?
+/// `POST /verify`: is the probe's largest face the enrolled subject? Up to four further frames of
+/// the same capture (`frame` parts, `frames` in JSON) must show the probe's person and lend their
+/// liveness to the probe's: the response's `liveness` is then fused over all of them.
 pub async fn verify(
     State(state): State<AppState>,
     audit: Audit,
     Params(params): Params<MatchParams>,
-    upload: Upload,
+    mut upload: Upload,
 ) -> Result<Response, Problem> {
     let start = Instant::now();
     let facegate = state.facegate();
@@ -179,9 +217,10 @@ pub async fn verify(
     let fmr = validate_fmr(params.fmr)?;
     let subject = upload.require_subject()?;
     audit.subject(&subject);
+    let frames = std::mem::take(&mut upload.frames);
     let image = upload.single_image()?;
-    let verification = facegate.verify(&subject, image, fmr).await?;
-    observe(&state, &verification.photo);
+    let verification = facegate.verify_capture(&subject, image, frames, fmr).await?;
+    std::iter::once(&verification.photo).chain(&verification.frames).for_each(|photo| observe(&state, photo));
     let decision = verification.decision;
     audit.decision(decision.score, decision.threshold, decision.is_match);
     let body = VerifyResponse {
@@ -193,7 +232,7 @@ pub async fn verify(
         model_version: facegate.model_version().to_string(),
         templates_compared: decision.templates_compared,
         best_template: decision.best_template,
-        found: FaceReport::of(&verification.photo),
+        found: FaceReport::of_capture(&verification.photo, &verification.frame_scores),
         timings: RequestTimings {
             photo: PhotoTimings::of(&verification.photo),
             match_ms: verification.match_ms,

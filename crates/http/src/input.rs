@@ -5,9 +5,10 @@
 //!
 //! A JSON body is parsed and its base64 decoded on the blocking pool, never on the async runtime.
 //! The parse counts the `images` entries as it goes and refuses the body at the first entry past
-//! the most photos any operation takes ([`JsonLimit`]); until then each entry stays a slice of the
-//! body (a copy only where the JSON string has escapes), so a body of millions of tiny photos costs
-//! neither memory nor time beyond the body itself.
+//! the most photos any operation takes ([`JsonLimit`]), and the `frames` entries (`/verify`'s
+//! further frames of the probe's capture) past [`MAX_FRAMES`]; until then each entry stays a slice
+//! of the body (a copy only where the JSON string has escapes), so a body of millions of tiny
+//! photos costs neither memory nor time beyond the body itself.
 
 use std::borrow::Cow;
 use std::cell::Cell;
@@ -25,7 +26,7 @@ use serde::de::{self, DeserializeOwned, DeserializeSeed, MapAccess, SeqAccess, V
 use super::AppState;
 use super::admission::{BodyDeadline, body_timed_out};
 use super::problem::{Problem, ProblemKind};
-use facegate_service::SubjectId;
+use facegate_service::{MAX_FRAMES, SubjectId};
 
 /// A subject id of a request, parsed once ([`SubjectId::parse`]); an invalid one is malformed.
 pub fn subject_id(id: &str) -> Result<SubjectId, Problem> {
@@ -41,6 +42,9 @@ fn truncate(s: &str, n: usize) -> String {
 pub struct Upload {
     pub subject: Option<String>,
     pub images: Vec<Bytes>,
+    /// Further frames of the probe's capture (`frame` parts, `frames` entries), at most
+    /// [`MAX_FRAMES`]; only `/verify` takes them.
+    pub frames: Vec<Bytes>,
 }
 
 impl FromRequest<AppState> for Upload {
@@ -85,8 +89,8 @@ impl<S: Send + Sync> FromRequestParts<S> for SubjectPath {
 /// Read the body of `request` as multipart or JSON. The body limit (axum's `DefaultBodyLimit`)
 /// applies while reading; exceeding it is a `too-large` problem. A body still arriving at the
 /// admission layer's deadline ([`BodyDeadline`]) is a `request-timeout` problem (408). A JSON body
-/// with more than `max_photos` entries in `images` is malformed, refused as soon as the parse
-/// reaches the first one too many.
+/// with more than `max_photos` entries in `images`, or either form with more than [`MAX_FRAMES`]
+/// frames, is malformed, refused as soon as the read reaches the first one too many.
 pub async fn read_upload(request: Request, max_photos: usize) -> Result<Upload, Problem> {
     match request.extensions().get::<BodyDeadline>().copied() {
         Some(BodyDeadline(deadline)) => {
@@ -107,7 +111,7 @@ async fn read_body(request: Request, max_photos: usize) -> Result<Upload, Proble
         Err(Problem::new(
             ProblemKind::UnsupportedMediaType,
             format!(
-                "Content-Type {:?} is not accepted: send multipart/form-data (fields subject, image) or application/json",
+                "Content-Type {:?} is not accepted: send multipart/form-data (fields subject, image, frame) or application/json",
                 truncate(&content_type, 80)
             ),
         ))
@@ -136,12 +140,27 @@ async fn read_multipart(request: Request) -> Result<Upload, Problem> {
                 let bytes = field.bytes().await.map_err(multipart_problem)?;
                 upload.images.push(bytes);
             }
+            "frame" => {
+                // Refused at the first frame too many, before its bytes are read.
+                if upload.frames.len() == MAX_FRAMES {
+                    return Err(too_many_frames("frame"));
+                }
+                let bytes = field.bytes().await.map_err(multipart_problem)?;
+                upload.frames.push(bytes);
+            }
             other => {
-                return Err(Problem::malformed(format!("unknown form field {:?}: the fields are subject and image", truncate(other, 40))));
+                return Err(Problem::malformed(format!(
+                    "unknown form field {:?}: the fields are subject, image and (/verify) frame",
+                    truncate(other, 40)
+                )));
             }
         }
     }
     Ok(upload)
+}
+
+fn too_many_frames(field: &str) -> Problem {
+    Problem::malformed(format!("at most {MAX_FRAMES} frames besides the probe (field {field}), got more than {MAX_FRAMES}"))
 }
 
 fn multipart_problem(e: axum::extract::multipart::MultipartError) -> Problem {
@@ -165,34 +184,39 @@ async fn read_json(request: Request, max_photos: usize) -> Result<Upload, Proble
     tokio::task::spawn_blocking(move || parse_json(&body, max_photos)).await.map_err(Problem::internal)?
 }
 
-/// Parse a JSON body (at most `max_photos` entries in `images`) and decode its photos, `image`
-/// first.
+/// Parse a JSON body (at most `max_photos` entries in `images`, [`MAX_FRAMES`] in `frames`) and
+/// decode its photos, `image` first, then its frames.
 fn parse_json(body: &[u8], max_photos: usize) -> Result<Upload, Problem> {
-    let over = Cell::new(false);
+    let (over, frames_over) = (Cell::new(false), Cell::new(false));
     let mut de = serde_json::Deserializer::from_slice(body);
-    let parsed = JsonLimit { max_photos, over: &over }.deserialize(&mut de).and_then(|json| de.end().map(|()| json));
+    let limit = JsonLimit { max_photos, over: &over, frames_over: &frames_over };
+    let parsed = limit.deserialize(&mut de).and_then(|json| de.end().map(|()| json));
     let json = parsed.map_err(|e| {
         if over.get() {
             Problem::malformed(format!("at most {max_photos} photos per request (field images), got more than {max_photos}"))
+        } else if frames_over.get() {
+            too_many_frames("frames")
         } else {
             Problem::malformed(format!("invalid JSON body: {e}"))
         }
     })?;
     let strings = json.image.into_iter().chain(json.images.into_iter().flatten());
     let images = strings.enumerate().map(|(index, s)| decode_base64(&s.0).map_err(|p| p.for_image(index))).collect::<Result<_, _>>()?;
-    Ok(Upload { subject: json.subject, images })
+    let frames = json.frames.iter().enumerate().map(|(index, s)| decode_base64(&s.0).map_err(|p| p.for_frame(index)));
+    Ok(Upload { subject: json.subject, images, frames: frames.collect::<Result<_, _>>()? })
 }
 
 /// The JSON form of a request: base64 photos (a `data:` URL prefix is allowed), each still the
-/// body's text. Unknown fields are refused.
+/// body's text. Unknown fields are refused; `frames`, when present, must be an array.
 #[derive(Debug)]
 struct JsonUpload<'a> {
     subject: Option<String>,
     image: Option<Base64Text<'a>>,
     images: Option<Vec<Base64Text<'a>>>,
+    frames: Vec<Base64Text<'a>>,
 }
 
-const FIELDS: &[&str] = &["subject", "image", "images"];
+const FIELDS: &[&str] = &["subject", "image", "images", "frames"];
 
 /// One photo's base64 text, borrowed from the body (owned only when the JSON string has escapes).
 #[derive(Debug)]
@@ -221,12 +245,14 @@ impl<'de> Deserialize<'de> for Base64Text<'de> {
 }
 
 /// Deserializes a [`JsonUpload`] as `#[derive(Deserialize)] #[serde(deny_unknown_fields)]` would
-/// (same errors), except that `images` is refused at its entry `max_photos + 1`, before that entry
-/// is kept; `over` then says so.
+/// (same errors; `frames` as a `#[serde(default)]` field), except that `images` is refused at its
+/// entry `max_photos + 1` and `frames` at its entry `MAX_FRAMES + 1`, before that entry is kept;
+/// `over` or `frames_over` then says so.
 #[derive(Clone, Copy)]
 struct JsonLimit<'c> {
     max_photos: usize,
     over: &'c Cell<bool>,
+    frames_over: &'c Cell<bool>,
 }
 
 impl<'de> DeserializeSeed<'de> for JsonLimit<'_> {
@@ -245,8 +271,8 @@ impl<'de> Visitor<'de> for JsonLimit<'_> {
     }
 
     fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<JsonUpload<'de>, A::Error> {
-        let mut json = JsonUpload { subject: None, image: None, images: None };
-        let mut seen = [false; 3];
+        let mut json = JsonUpload { subject: None, image: None, images: None, frames: Vec::new() };
+        let mut seen = [false; 4];
         while let Some(Field(index)) = map.next_key::<Field>()? {
             if std::mem::replace(&mut seen[index], true) {
                 return Err(de::Error::duplicate_field(FIELDS[index]));
@@ -254,19 +280,29 @@ impl<'de> Visitor<'de> for JsonLimit<'_> {
             match index {
                 0 => json.subject = map.next_value()?,
                 1 => json.image = map.next_value()?,
-                _ => json.images = map.next_value_seed(ImagesSeed(self))?,
+                2 => json.images = map.next_value_seed(ImagesSeed(self))?,
+                _ => json.frames = map.next_value_seed(self.frames())?,
             }
         }
         Ok(json)
     }
 
-    /// The struct as an array `[subject, image, images]`, as serde's derive accepts it.
+    /// The struct as an array `[subject, image, images, frames]` (`frames` may be left out), as
+    /// serde's derive accepts it.
     fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<JsonUpload<'de>, A::Error> {
-        let missing = |i: usize| <A::Error as de::Error>::invalid_length(i, &"struct JsonUpload with 3 elements");
+        let missing = |i: usize| <A::Error as de::Error>::invalid_length(i, &"struct JsonUpload with 4 elements");
         let subject = seq.next_element()?.ok_or_else(|| missing(0))?;
         let image = seq.next_element()?.ok_or_else(|| missing(1))?;
         let images = seq.next_element_seed(ImagesSeed(self))?.ok_or_else(|| missing(2))?;
-        Ok(JsonUpload { subject, image, images })
+        let frames = seq.next_element_seed(self.frames())?.unwrap_or_default();
+        Ok(JsonUpload { subject, image, images, frames })
+    }
+}
+
+impl<'c> JsonLimit<'c> {
+    /// The reader of `frames`: an array of at most [`MAX_FRAMES`] strings.
+    fn frames(self) -> PhotoList<'c> {
+        PhotoList { max: MAX_FRAMES, over: self.frames_over }
     }
 }
 
@@ -316,12 +352,24 @@ impl<'de> Visitor<'de> for ImagesSeed<'_> {
     }
 
     fn visit_some<D: de::Deserializer<'de>>(self, deserializer: D) -> Result<Self::Value, D::Error> {
-        deserializer.deserialize_seq(PhotoList(self.0)).map(Some)
+        deserializer.deserialize_seq(PhotoList { max: self.0.max_photos, over: self.0.over }).map(Some)
     }
 }
 
-/// The array of `images`, counted while it is read.
-struct PhotoList<'c>(JsonLimit<'c>);
+/// An array of photos (`images`, `frames`), counted while it is read: refused at its entry
+/// `max + 1`, which `over` then says.
+struct PhotoList<'c> {
+    max: usize,
+    over: &'c Cell<bool>,
+}
+
+impl<'de> DeserializeSeed<'de> for PhotoList<'_> {
+    type Value = Vec<Base64Text<'de>>;
+
+    fn deserialize<D: de::Deserializer<'de>>(self, deserializer: D) -> Result<Self::Value, D::Error> {
+        deserializer.deserialize_seq(self)
+    }
+}
 
 impl<'de> Visitor<'de> for PhotoList<'_> {
     type Value = Vec<Base64Text<'de>>;
@@ -331,12 +379,12 @@ impl<'de> Visitor<'de> for PhotoList<'_> {
     }
 
     fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
-        let JsonLimit { max_photos, over } = self.0;
-        let mut photos = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(max_photos));
+        let PhotoList { max, over } = self;
+        let mut photos = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(max));
         while let Some(photo) = seq.next_element()? {
-            if photos.len() == max_photos {
+            if photos.len() == max {
                 over.set(true);
-                return Err(de::Error::custom(format_args!("more than {max_photos} photos")));
+                return Err(de::Error::custom(format_args!("more than {max} photos")));
             }
             photos.push(photo);
         }
@@ -382,8 +430,18 @@ impl Upload {
         if self.subject.is_some() { Err(Problem::malformed(why.to_string())) } else { Ok(()) }
     }
 
-    /// Exactly one photo.
+    /// No further frames: only `/verify` takes them (it takes them out of the upload first).
+    pub fn refuse_frames(&self) -> Result<(), Problem> {
+        if self.frames.is_empty() {
+            Ok(())
+        } else {
+            Err(Problem::malformed("only /verify takes further frames of a capture (field frame, or frames in JSON)"))
+        }
+    }
+
+    /// Exactly one photo, and no further frames.
     pub fn single_image(mut self) -> Result<Bytes, Problem> {
+        self.refuse_frames()?;
         match self.images.len() {
             1 => Ok(self.images.pop().expect("one image")),
             0 => Err(Problem::malformed("the photo is missing (field image)")),
@@ -424,6 +482,8 @@ mod tests {
         subject: Option<String>,
         image: Option<String>,
         images: Option<Vec<String>>,
+        #[serde(default)]
+        frames: Vec<String>,
     }
 
     fn detail(body: &str, max_photos: usize) -> String {
@@ -461,6 +521,13 @@ mod tests {
             r#"{"images": ["\ud800"]}"#,
             r#"{"images": ["aGVs\q"]}"#,
             r#"{"images": ["aGVsbG8="]"#,
+            r#"{"frames": null}"#,
+            r#"{"frames": "aGVsbG8="}"#,
+            r#"{"frames": [1]}"#,
+            r#"{"frames": [], "frames": []}"#,
+            r#"{"frames": ["aGVsbG8="], "extra": 1}"#,
+            r#"["a", null, null, [2]]"#,
+            r#"["a", null, null, [], 5]"#,
         ];
         for body in bodies {
             let reference = serde_json::from_str::<JsonUpload>(body).expect_err(body);
@@ -481,6 +548,35 @@ mod tests {
         }
         let upload = parse_json(br#"["a", "aGVsbG8=", ["d29ybGQ="]]"#, 2).unwrap();
         assert_eq!((upload.subject.as_deref(), upload.images.len()), (Some("a"), 2));
+    }
+
+    #[test]
+    fn json_frames_in_order_apart_from_the_photos() {
+        let body = r#"{"frames": ["d29ybGQ=", "data:image/png;base64,IQ=="], "subject": "a", "image": "aGVsbG8"}"#;
+        let upload = parse_json(body.as_bytes(), 1).unwrap();
+        let frames: Vec<&[u8]> = upload.frames.iter().map(|b| &b[..]).collect();
+        assert_eq!((upload.images.len(), frames), (1, vec![&b"world"[..], b"!"]));
+        for body in [r#"{"image": "aGVsbG8", "frames": []}"#, r#"{"image": "aGVsbG8"}"#, r#"["a", "aGVsbG8", null, []]"#] {
+            assert!(parse_json(body.as_bytes(), 1).unwrap().frames.is_empty(), "{body}");
+        }
+        // A frame that is not base64 is named by its index among the frames.
+        let p = parse_json(br#"{"image": "aGVsbG8=", "images": ["d29ybGQ="], "frames": ["d29ybGQ=", "***"]}"#, 16).unwrap_err();
+        assert_eq!((p.image, p.frame, p.detail.starts_with("the image is not valid base64")), (None, Some(1), true), "{}", p.detail);
+        // Frames are taken by /verify alone.
+        let upload = parse_json(br#"{"image": "aGVsbG8=", "frames": ["d29ybGQ="]}"#, 16).unwrap();
+        assert_eq!(upload.refuse_frames().unwrap_err().kind, ProblemKind::MalformedRequest);
+        assert_eq!(upload.single_image().unwrap_err().kind, ProblemKind::MalformedRequest);
+    }
+
+    #[test]
+    fn json_frames_are_refused_past_four_while_parsed() {
+        let many = |n: usize, tail: &str| format!(r#"{{"image": "AA", "frames": [{}]{tail}"#, vec![r#""AA""#; n].join(","));
+        assert_eq!(parse_json(many(MAX_FRAMES, "}").as_bytes(), 16).unwrap().frames.len(), 4);
+        let over = "at most 4 frames besides the probe (field frames), got more than 4";
+        for body in [many(5, "}"), many(5, ", not json at all"), many(3_000_000, "}")] {
+            let p = parse_json(body.as_bytes(), 16).unwrap_err();
+            assert_eq!((p.kind, p.detail.as_str(), p.frame), (ProblemKind::MalformedRequest, over, None));
+        }
     }
 
     #[test]

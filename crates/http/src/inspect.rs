@@ -60,6 +60,9 @@ struct AnalyzedFace {
     fit_residual_px: Option<f32>,
     /// Face image quality: the components and the unified score (0–100).
     quality: facegate_vision::quality::Quality,
+    /// Live face or presentation attack (reported, never refused here); absent when liveness is off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    liveness: Option<facegate_vision::liveness::Liveness>,
     timings: FaceTimings,
 }
 
@@ -84,7 +87,8 @@ fn single_photo(upload: Upload) -> Result<Bytes, Problem> {
 }
 
 /// `POST /analyze?faces=largest|all`: every face found (or the largest), with box, detector score,
-/// 58 landmarks and key points, pose, 3DMM fit residual and stage timings.
+/// 58 landmarks and key points, pose, 3DMM fit residual, quality, liveness (reported unless off,
+/// never refused: an inspection) and stage timings.
 pub async fn analyze(State(state): State<AppState>, Params(params): Params<AnalyzeParams>, upload: Upload) -> Result<Response, Problem> {
     let start = Instant::now();
     let image = single_photo(upload)?;
@@ -99,6 +103,7 @@ pub async fn analyze(State(state): State<AppState>, Params(params): Params<Analy
             pose: f.pose,
             fit_residual_px: f.fit_residual_px,
             quality: f.quality,
+            liveness: f.liveness,
             timings: FaceTimings { landmarks_ms: f.landmarks_ms, morph_ms: f.morph_ms },
         })
         .collect();

@@ -22,7 +22,7 @@ use self::admission::BodyBudget;
 use self::audit::KeyId;
 
 use facegate_core::imaging::DecodeLimits;
-use facegate_service::{Facegate, ServiceConfig, WorkClass, WorkPool};
+use facegate_service::{Facegate, LivenessPolicy, ServiceConfig, WorkClass, WorkPool};
 use facegate_store::Store;
 
 pub use facegate_service::FaceEngine;
@@ -79,6 +79,9 @@ pub struct ApiConfig {
     pub console: bool,
     /// The least quality an enrolment photo must have (else `low-quality`, 422).
     pub quality_policy: facegate_vision::quality::QualityPolicy,
+    /// Liveness off, reported, or enforced (enrol, verify, identify refuse an attack:
+    /// `presentation-attack`, 422).
+    pub liveness: LivenessPolicy,
 }
 
 /// SHA-256 digests of the accepted API keys, compared in constant time.
@@ -156,6 +159,7 @@ impl AppState {
             max_images: config.max_images,
             quality_policy: config.quality_policy,
             default_fmr: config.default_fmr,
+            liveness: config.liveness,
         };
         let facegate = Facegate::new(engine, store, pool, service);
         let keys = ApiKeys::new(&config.api_keys);

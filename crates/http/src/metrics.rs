@@ -81,6 +81,7 @@ impl Metrics {
             ("morph", timings.morph_ms),
             ("template", timings.template_ms),
             ("quality", timings.quality_ms),
+            ("liveness", timings.liveness_ms),
         ] {
             self.stages.get_or_create(&StageLabels { stage }).observe(ms / 1e3);
         }

@@ -8,7 +8,7 @@ use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 
 use facegate_core::imaging::DecodeError;
-use facegate_service::{PhotoError, PoolError, ServiceError};
+use facegate_service::{FramesMismatch, PhotoError, PoolError, PresentationAttack, ServiceError};
 
 /// The base of every problem type URI.
 pub const PROBLEM_BASE: &str = "https://facegate.dev/problems/";
@@ -32,6 +32,10 @@ pub enum ProblemKind {
     SeveralFaces,
     /// An enrolment photo below the quality policy.
     LowQuality,
+    /// Liveness is enforced and the face was taken for a printed photo (enrol, verify, identify).
+    PresentationAttack,
+    /// A further frame of a `/verify` capture does not show the probe's person.
+    FramesMismatch,
     /// The 3D morphable model the operation needs is not loaded (avatar, frontal rendering).
     NoFaceModel,
     /// The 3D morphable model could not be fitted to the face's landmarks.
@@ -65,7 +69,7 @@ pub enum ProblemKind {
 }
 
 impl ProblemKind {
-    pub const ALL: [ProblemKind; 23] = [
+    pub const ALL: [ProblemKind; 25] = [
         ProblemKind::NotAnImage,
         ProblemKind::UnsupportedFormat,
         ProblemKind::UnsupportedMediaType,
@@ -74,6 +78,8 @@ impl ProblemKind {
         ProblemKind::NoFace,
         ProblemKind::SeveralFaces,
         ProblemKind::LowQuality,
+        ProblemKind::PresentationAttack,
+        ProblemKind::FramesMismatch,
         ProblemKind::NoFaceModel,
         ProblemKind::FitFailed,
         ProblemKind::UnknownSubject,
@@ -102,6 +108,8 @@ impl ProblemKind {
             ProblemKind::NoFace => "no-face",
             ProblemKind::SeveralFaces => "several-faces",
             ProblemKind::LowQuality => "low-quality",
+            ProblemKind::PresentationAttack => "presentation-attack",
+            ProblemKind::FramesMismatch => "frames-mismatch",
             ProblemKind::NoFaceModel => "no-face-model",
             ProblemKind::FitFailed => "fit-failed",
             ProblemKind::UnknownSubject => "unknown-subject",
@@ -134,6 +142,8 @@ impl ProblemKind {
             ProblemKind::NoFace => "No face found",
             ProblemKind::SeveralFaces => "Several faces found",
             ProblemKind::LowQuality => "Photo quality too low",
+            ProblemKind::PresentationAttack => "Presentation attack",
+            ProblemKind::FramesMismatch => "Frames of another person",
             ProblemKind::NoFaceModel => "No 3D morphable model",
             ProblemKind::FitFailed => "3D morphable model fit failed",
             ProblemKind::UnknownSubject => "Unknown subject",
@@ -159,6 +169,8 @@ impl ProblemKind {
             | ProblemKind::NoFace
             | ProblemKind::SeveralFaces
             | ProblemKind::LowQuality
+            | ProblemKind::PresentationAttack
+            | ProblemKind::FramesMismatch
             | ProblemKind::NoFaceModel
             | ProblemKind::FitFailed => StatusCode::UNPROCESSABLE_ENTITY,
             ProblemKind::UnsupportedFormat | ProblemKind::UnsupportedMediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
@@ -179,14 +191,20 @@ impl ProblemKind {
 }
 
 /// One problem: its class, a human-readable detail, and for multi-image requests the index of
-/// the image at fault.
+/// the image at fault (or, for a `/verify` capture's further frames, of the frame).
 #[derive(Debug, Clone)]
 pub struct Problem {
     pub kind: ProblemKind,
     pub detail: String,
     pub image: Option<usize>,
+    /// The 0-based index among a `/verify` request's further frames (`frame` parts, `frames`
+    /// entries) of the frame at fault (the body's `frame` member).
+    pub frame: Option<usize>,
     /// `low-quality`: the limits the photo breaks (the body's `failures` member).
     pub failures: Vec<facegate_vision::quality::Failure>,
+    /// `presentation-attack`: the liveness score and the operating point it fell below (the
+    /// body's `score`, `threshold`, `operating_point` and `model` members).
+    pub attack: Option<Box<PresentationAttack>>,
 }
 
 /// The JSON body of a problem response.
@@ -199,13 +217,28 @@ struct ProblemBody<'a> {
     detail: &'a str,
     #[serde(skip_serializing_if = "Option::is_none")]
     image: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    frame: Option<usize>,
     #[serde(skip_serializing_if = "<[_]>::is_empty")]
     failures: &'a [facegate_vision::quality::Failure],
+    #[serde(skip_serializing_if = "Option::is_none")]
+    score: Option<f32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    threshold: Option<f32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    operating_point: Option<&'a str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    model: Option<&'a str>,
 }
 
 impl Problem {
     pub fn new(kind: ProblemKind, detail: impl Into<String>) -> Problem {
-        Problem { kind, detail: detail.into(), image: None, failures: Vec::new() }
+        Problem { kind, detail: detail.into(), image: None, frame: None, failures: Vec::new(), attack: None }
+    }
+
+    /// `presentation-attack`: the face's liveness score fell below the operating point.
+    pub fn presentation_attack(attack: PresentationAttack) -> Problem {
+        Problem { detail: attack.to_string(), attack: Some(Box::new(attack)), ..Problem::new(ProblemKind::PresentationAttack, "") }
     }
 
     /// `low-quality`: the photo breaks `failures` of the enrolment policy.
@@ -225,6 +258,18 @@ impl Problem {
     pub fn for_image(mut self, index: usize) -> Problem {
         self.image = Some(index);
         self
+    }
+
+    /// The same problem, attributed to the further frame at `index` of a `/verify` capture
+    /// (0-based among the frames, in request order; the probe is not counted).
+    pub fn for_frame(mut self, index: usize) -> Problem {
+        self.frame = Some(index);
+        self
+    }
+
+    /// `frames-mismatch`: a further frame does not show the probe's person.
+    pub fn frames_mismatch(mismatch: &FramesMismatch) -> Problem {
+        Problem::new(ProblemKind::FramesMismatch, mismatch.to_string()).for_frame(mismatch.frame)
     }
 
     pub fn malformed(detail: impl Into<String>) -> Problem {
@@ -255,7 +300,12 @@ impl Problem {
             status: self.kind.status().as_u16(),
             detail: &self.detail,
             image: self.image,
+            frame: self.frame,
             failures: &self.failures,
+            score: self.attack.as_ref().map(|a| a.score),
+            threshold: self.attack.as_ref().map(|a| a.threshold),
+            operating_point: self.attack.as_ref().map(|a| a.operating_point.as_str()),
+            model: self.attack.as_ref().map(|a| a.model.as_str()),
         };
         serde_json::to_vec(&body).expect("problem bodies serialise")
     }
@@ -289,6 +339,8 @@ impl From<PhotoError> for Problem {
             PhotoError::NoFaceModel(_) => Problem::new(ProblemKind::NoFaceModel, error.to_string()),
             PhotoError::SeveralFaces(_) => Problem::new(ProblemKind::SeveralFaces, error.to_string()),
             PhotoError::LowQuality(failures) => Problem::low_quality(failures),
+            PhotoError::PresentationAttack(attack) => Problem::presentation_attack(attack),
+            PhotoError::LivenessUnavailable => Problem::internal(error),
             PhotoError::Internal(e) => Problem::internal(e),
         }
     }
@@ -299,6 +351,8 @@ impl From<ServiceError> for Problem {
         match error {
             ServiceError::Photo { index: Some(index), error } => Problem::from(error).for_image(index),
             ServiceError::Photo { index: None, error } => Problem::from(error),
+            ServiceError::Frame { index, error } => Problem::from(error).for_frame(index),
+            ServiceError::FramesMismatch(mismatch) => Problem::frames_mismatch(&mismatch),
             ServiceError::Invalid(detail) => Problem::malformed(detail),
             ServiceError::UnknownSubject(id) => Problem::new(ProblemKind::UnknownSubject, format!("subject {id} is not enrolled")),
             ServiceError::ModelMismatch(e) => Problem::new(ProblemKind::ModelMismatch, e.to_string()),
@@ -350,6 +404,45 @@ mod tests {
                 matches!(kind, ProblemKind::Overloaded | ProblemKind::StoreUnavailable | ProblemKind::Timeout | ProblemKind::Internal);
             assert_eq!(kind.status().is_server_error(), server_side, "{kind:?}");
         }
+    }
+
+    #[test]
+    fn a_presentation_attack_carries_its_score_and_operating_point() {
+        let attack = PresentationAttack { score: 0.25, threshold: 0.75, operating_point: "EER".into(), model: "m-1".into() };
+        let problem = Problem::from(ServiceError::Photo { index: Some(2), error: PhotoError::PresentationAttack(attack) });
+        let body: serde_json::Value = serde_json::from_slice(&problem.json()).unwrap();
+        assert_eq!(
+            body,
+            serde_json::json!({
+                "type": "https://facegate.dev/problems/presentation-attack", "title": "Presentation attack", "status": 422,
+                "detail": problem.detail, "image": 2, "score": 0.25, "threshold": 0.75, "operating_point": "EER", "model": "m-1",
+            })
+        );
+        // Other problems carry none of these members.
+        let other: serde_json::Value = serde_json::from_slice(&Problem::new(ProblemKind::NoFace, "none").json()).unwrap();
+        assert!(["score", "threshold", "operating_point", "model"].iter().all(|k| other.get(k).is_none()), "{other}");
+        assert_eq!(Problem::from(PhotoError::LivenessUnavailable).kind, ProblemKind::Internal);
+    }
+
+    #[test]
+    fn a_frame_at_fault_is_named_by_its_index() {
+        let body = |error: ServiceError| serde_json::from_slice::<serde_json::Value>(&Problem::from(error).json()).unwrap();
+        let no_face = body(ServiceError::Frame { index: 3, error: PhotoError::NoFace });
+        assert_eq!(
+            (&no_face["type"], &no_face["frame"], no_face.get("image")),
+            (&"https://facegate.dev/problems/no-face".into(), &3.into(), None)
+        );
+        let mismatch = body(ServiceError::FramesMismatch(FramesMismatch { frame: 1, score: 0.125, threshold: 0.5 }));
+        assert_eq!(
+            mismatch,
+            serde_json::json!({
+                "type": "https://facegate.dev/problems/frames-mismatch", "title": "Frames of another person", "status": 422,
+                "detail": "frame 1 does not show the person of the probe: its score against the probe, 0.125, is below the verification \
+                           threshold 0.500; every frame must be of the same capture of the same face",
+                "frame": 1,
+            })
+        );
+        assert!(body(ServiceError::Photo { index: Some(2), error: PhotoError::NoFace }).get("frame").is_none());
     }
 
     #[test]

@@ -11,6 +11,7 @@ pub mod train_asm3d;
 pub mod train_deep;
 pub mod train_dlda;
 pub mod train_imm_sfm;
+pub mod train_liveness;
 
 /// Progress of a long loop, handed down by the caller (the CLI draws a bar; tests stay quiet).
 pub trait Progress: Sync {

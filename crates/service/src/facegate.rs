@@ -19,6 +19,7 @@ use facegate_vision::recognize::{OperatingPoint, Template};
 
 use crate::gallery::{LiveGallery, UnreadableTemplates};
 use crate::inspect::{self, Analysis, InspectError};
+use crate::liveness::{LivenessPolicy, PresentationAttack};
 use crate::{Candidate, Decision, FaceEngine, PoolError, VerifyError, WorkPool};
 
 /// The service's policies (made from the binary's settings, where the defaults are).
@@ -32,6 +33,8 @@ pub struct ServiceConfig {
     pub quality_policy: QualityPolicy,
     /// The false match rate whose operating point decides a match unless a request asks otherwise.
     pub default_fmr: f64,
+    /// What enrolment, verify and identify do with a face's liveness.
+    pub liveness: LivenessPolicy,
 }
 
 /// What is wrong with one photo.
@@ -54,6 +57,13 @@ pub enum PhotoError {
     SeveralFaces(usize),
     #[error("the photo is below the quality policy")]
     LowQuality(Vec<Failure>),
+    /// Liveness is enforced and the face was taken for a printed photo.
+    #[error("{0}")]
+    PresentationAttack(PresentationAttack),
+    /// Liveness is enforced but the engine gave none (no liveness model): a fault of the server,
+    /// and no face is let through unchecked.
+    #[error("liveness is enforced but no liveness model is loaded")]
+    LivenessUnavailable,
     /// A fault of the pipeline, not of the photo.
     #[error(transparent)]
     Internal(PipelineError),
@@ -65,6 +75,13 @@ pub enum ServiceError {
     /// A photo cannot be used; `index` names it among several.
     #[error("{error}")]
     Photo { index: Option<usize>, error: PhotoError },
+    /// A further frame of a verification's capture cannot be used; `index` is 0-based among the
+    /// frames (the probe is not counted).
+    #[error("{error}")]
+    Frame { index: usize, error: PhotoError },
+    /// A further frame of a verification's capture does not show the probe's person.
+    #[error("{0}")]
+    FramesMismatch(FramesMismatch),
     /// The request asks for something the service does not do (wrong photo count).
     #[error("{0}")]
     Invalid(String),
@@ -104,9 +121,36 @@ impl From<PhotoError> for ServiceError {
     }
 }
 
+/// A frame of a verification's capture whose face is not the probe's person: its score against
+/// the probe's template is below the verification threshold of the operating point in use, for a
+/// subject of one template. It stops a print presented as the probe from borrowing the liveness of
+/// someone else's live frames.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FramesMismatch {
+    /// 0-based among the frames (the probe is not counted).
+    pub frame: usize,
+    pub score: f32,
+    pub threshold: f32,
+}
+
+impl std::fmt::Display for FramesMismatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "frame {} does not show the person of the probe: its score against the probe, {:.3}, is below the verification threshold \
+             {:.3}; every frame must be of the same capture of the same face",
+            self.frame, self.score, self.threshold
+        )
+    }
+}
+
 impl PhotoError {
     fn at(self, index: usize) -> ServiceError {
         ServiceError::Photo { index: Some(index), error: self }
+    }
+
+    fn at_frame(self, index: usize) -> ServiceError {
+        ServiceError::Frame { index, error: self }
     }
 
     /// A pipeline error where a template was asked for.
@@ -176,7 +220,14 @@ impl PreparedEnrollment {
 #[derive(Debug)]
 pub struct Verification {
     pub decision: Decision,
+    /// The probe, the photo the decision is about. With further frames its `liveness` is the
+    /// capture's, fused over the probe and the frames ([`crate::fuse_liveness`]).
     pub photo: AnalyzedPhoto,
+    /// The further frames of the capture, in request order (none for a single photo).
+    pub frames: Vec<AnalyzedPhoto>,
+    /// Each photo's own liveness score, the probe's first, when the liveness was fused over
+    /// frames; empty otherwise (a single photo, or no liveness).
+    pub frame_scores: Vec<f32>,
     /// Time spent deciding, after the photo's analysis.
     pub match_ms: f64,
 }
@@ -326,23 +377,47 @@ impl Facegate {
             n if n > max => return Err(ServiceError::Invalid(format!("at most {max} photos per enrolment, got {n}"))),
             _ => {}
         }
-        let (engine, limits, policy) = (self.0.engine.clone(), self.0.config.decode_limits, self.0.config.quality_policy);
-        let photos = self.0.pool.run(move || enrollment_photos(engine.as_ref(), &images, &limits, &policy)).await??;
+        let (engine, limits) = (self.0.engine.clone(), self.0.config.decode_limits);
+        let policies = (self.0.config.quality_policy, self.0.config.liveness);
+        let photos = self.0.pool.run(move || enrollment_photos(engine.as_ref(), &images, &limits, policies)).await??;
         Ok(PreparedEnrollment { facegate: self.clone(), subject: subject.clone(), photos })
     }
 
     /// Is the largest face of `image` the enrolled `subject`? The subject is looked up before the
     /// photo work.
     pub async fn verify(&self, subject: &SubjectId, image: Bytes, fmr: Option<f64>) -> Result<Verification, ServiceError> {
+        self.verify_capture(subject, image, Vec::new(), fmr).await
+    }
+
+    /// [`Facegate::verify`] of a probe with up to [`crate::MAX_FRAMES`] further `frames` of the
+    /// same capture. The probe alone is matched against the subject's templates; each frame must
+    /// show a face (else `Frame` with its index) of the probe's person ([`FramesMismatch`]), and
+    /// the liveness the policy judges is the capture's, fused over the probe and the frames.
+    /// Without frames this is the single-photo verification, unchanged.
+    pub async fn verify_capture(
+        &self,
+        subject: &SubjectId,
+        image: Bytes,
+        frames: Vec<Bytes>,
+        fmr: Option<f64>,
+    ) -> Result<Verification, ServiceError> {
+        if frames.len() > crate::MAX_FRAMES {
+            let (max, n) = (crate::MAX_FRAMES, frames.len());
+            return Err(ServiceError::Invalid(format!("at most {max} frames besides the probe, got {n}")));
+        }
         let fmr = self.fmr(fmr);
         let enrolled =
             self.read_store(self.0.store.templates(subject)).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))?;
         let engine = &self.0.engine;
         let comparable = crate::comparable_templates(engine.as_ref(), subject, enrolled)?;
-        let photo = self.analyze_probe(image).await?;
+        let (photo, frames, frame_scores) = if frames.is_empty() {
+            (self.analyze_probe(image).await?, Vec::new(), Vec::new())
+        } else {
+            self.analyze_capture(image, frames, fmr).await?
+        };
         let start = Instant::now();
         let decision = crate::decide(engine.as_ref(), &photo.analysis.template, &comparable, fmr);
-        Ok(Verification { decision, photo, match_ms: elapsed_ms(start) })
+        Ok(Verification { decision, photo, frames, frame_scores, match_ms: elapsed_ms(start) })
     }
 
     /// The best `k` enrolled subjects for the largest face of `image`. What the store holds when
@@ -363,9 +438,39 @@ impl Facegate {
         Ok(Identification { candidates, operating_point, subjects_searched, photo, match_ms: elapsed_ms(start) })
     }
 
+    /// The probe of a verify or identify, analyzed and held against the liveness policy.
     async fn analyze_probe(&self, image: Bytes) -> Result<AnalyzedPhoto, ServiceError> {
-        let (engine, limits) = (self.0.engine.clone(), self.0.config.decode_limits);
-        Ok(self.0.pool.run(move || analyze_photo(engine.as_ref(), &image, &limits)).await??)
+        let (engine, limits, liveness) = (self.0.engine.clone(), self.0.config.decode_limits, self.0.config.liveness);
+        let mut photo = self.0.pool.run(move || analyze_photo(engine.as_ref(), &image, &limits)).await??;
+        crate::check_liveness(liveness, self.0.engine.liveness_point(), &mut photo.analysis.liveness)?;
+        Ok(photo)
+    }
+
+    /// A probe and further frames of its capture, analyzed on the pool and checked to show one
+    /// person at `fmr`'s operating point, then held against the liveness policy with the liveness
+    /// fused over all of them. Returns the probe (with the fused liveness), the frames and each
+    /// photo's own liveness score (empty when there is no liveness to fuse).
+    async fn analyze_capture(
+        &self,
+        image: Bytes,
+        frames: Vec<Bytes>,
+        fmr: f64,
+    ) -> Result<(AnalyzedPhoto, Vec<AnalyzedPhoto>, Vec<f32>), ServiceError> {
+        let (engine, limits, policy) = (self.0.engine.clone(), self.0.config.decode_limits, self.0.config.liveness);
+        let (mut probe, frames) = self.0.pool.run(move || capture_photos(engine.as_ref(), &image, &frames, &limits, fmr)).await??;
+        let point = self.0.engine.liveness_point();
+        let each: Option<Vec<_>> = std::iter::once(&probe).chain(&frames).map(|p| p.analysis.liveness.clone()).collect();
+        let mut fused = match (each.as_deref(), point.as_ref()) {
+            (Some(each), Some(point)) => crate::fuse_liveness(each, point.threshold),
+            _ => None,
+        };
+        crate::check_liveness(policy, point, &mut fused)?;
+        let scores = match (&fused, each) {
+            (Some(_), Some(each)) => each.iter().map(|l| l.score).collect(),
+            _ => Vec::new(),
+        };
+        probe.analysis.liveness = fused;
+        Ok((probe, frames, scores))
     }
 
     /// Erase `subject` and all its templates; `None` when it was not enrolled.
@@ -395,11 +500,16 @@ impl Facegate {
         })
     }
 
-    /// Every face of `image` (or the largest) with landmarks, pose and 3D fit; nothing stored.
+    /// Every face of `image` (or the largest) with landmarks, pose, 3D fit and (unless liveness
+    /// is off) liveness; nothing stored, nothing refused as an attack: an inspection.
     pub async fn analyze(&self, image: Bytes, choice: FaceChoice) -> Result<Analysis, ServiceError> {
         let (engine, limits) = (self.0.engine.clone(), self.0.config.decode_limits);
         let analysis = self.0.pool.run(move || inspect::analyze(engine.as_ref(), &image, &limits, choice)).await?;
-        Ok(analysis.map_err(PhotoError::of_inspection)?)
+        let mut analysis = analysis.map_err(PhotoError::of_inspection)?;
+        if self.0.config.liveness == LivenessPolicy::Off {
+            analysis.reading.faces.iter_mut().for_each(|face| face.liveness = None);
+        }
+        Ok(analysis)
     }
 
     /// The textured 3D head of the largest face of `image`.
@@ -435,19 +545,44 @@ impl Facegate {
     }
 }
 
-/// Analyze every enrolment photo in order, refusing at the first that shows several faces or
-/// fails the quality policy.
+/// Analyze a verification's probe, then each further frame of its capture in order, refusing at
+/// the first frame with no usable face or whose face is not the probe's person at `fmr`'s
+/// operating point (the recognizer's own score and threshold, for a subject of one template).
+fn capture_photos(
+    engine: &dyn FaceEngine,
+    image: &[u8],
+    frames: &[Bytes],
+    limits: &DecodeLimits,
+    fmr: f64,
+) -> Result<(AnalyzedPhoto, Vec<AnalyzedPhoto>), ServiceError> {
+    let probe = analyze_photo(engine, image, limits)?;
+    let mut analyzed = Vec::with_capacity(frames.len());
+    for (index, bytes) in frames.iter().enumerate() {
+        let frame = analyze_photo(engine, bytes, limits).map_err(|e| e.at_frame(index))?;
+        let same = crate::decide(engine, &frame.analysis.template, std::slice::from_ref(&probe.analysis.template), fmr);
+        if !same.is_match {
+            return Err(ServiceError::FramesMismatch(FramesMismatch { frame: index, score: same.score, threshold: same.threshold }));
+        }
+        analyzed.push(frame);
+    }
+    Ok((probe, analyzed))
+}
+
+/// Analyze every enrolment photo in order, refusing at the first that shows several faces, fails
+/// the quality policy or (liveness enforced) is taken for a presentation attack. Quality comes
+/// before liveness, so that a genuine photo too poor to judge is told what to fix.
 fn enrollment_photos(
     engine: &dyn FaceEngine,
     images: &[Bytes],
     limits: &DecodeLimits,
-    policy: &QualityPolicy,
+    (quality, liveness): (QualityPolicy, LivenessPolicy),
 ) -> Result<Vec<AnalyzedPhoto>, ServiceError> {
     let mut photos = Vec::with_capacity(images.len());
     for (index, bytes) in images.iter().enumerate() {
-        let photo = analyze_photo(engine, bytes, limits).map_err(|e| e.at(index))?;
+        let mut photo = analyze_photo(engine, bytes, limits).map_err(|e| e.at(index))?;
         crate::check_enrollment_photo(photo.analysis.faces_found).map_err(|e| e.at(index))?;
-        crate::check_enrollment_quality(policy, &photo.analysis.quality).map_err(|f| PhotoError::LowQuality(f).at(index))?;
+        crate::check_enrollment_quality(&quality, &photo.analysis.quality).map_err(|f| PhotoError::LowQuality(f).at(index))?;
+        crate::check_liveness(liveness, engine.liveness_point(), &mut photo.analysis.liveness).map_err(|e| e.at(index))?;
         photos.push(photo);
     }
     Ok(photos)

@@ -1,6 +1,7 @@
 //! What the service does, without HTTP: the use cases ([`Facegate`]: enroll, verify, identify,
 //! delete, analyze, avatar, frontalize), the face engine behind them ([`FaceEngine`]), which photos
-//! can be enrolled ([`check_enrollment_photo`], [`check_enrollment_quality`]), what a decision is
+//! can be enrolled ([`check_enrollment_photo`], [`check_enrollment_quality`]), which faces are let
+//! through as live ([`liveness`]: the policy, [`check_liveness`]), what a decision is
 //! ([`comparable_templates`], [`decide`]: which templates count, the threshold for the subject's
 //! number of templates), the identification gallery ([`gallery`]) and the bounded work pool
 //! ([`WorkPool`]). The HTTP layer and the command line both go through here.
@@ -13,6 +14,7 @@
 mod facegate;
 pub mod gallery;
 pub mod inspect;
+pub mod liveness;
 pub mod pool;
 
 use serde::Serialize;
@@ -24,10 +26,11 @@ use facegate_vision::quality::{Failure, Quality, QualityPolicy};
 use facegate_vision::recognize::{ClassicalRecognizer, OperatingPoint, Recognizer, Template};
 
 pub use facegate::{
-    AnalyzedPhoto, Enrollment, Facegate, Health, Identification, PhotoError, PreparedEnrollment, ServiceConfig, ServiceError, Verification,
-    analyze_photo,
+    AnalyzedPhoto, Enrollment, Facegate, FramesMismatch, Health, Identification, PhotoError, PreparedEnrollment, ServiceConfig,
+    ServiceError, Verification, analyze_photo,
 };
 pub use facegate_core::{InvalidSubjectId, MAX_SUBJECT_LEN, SubjectId};
+pub use liveness::{LivenessPoint, LivenessPolicy, MAX_FRAMES, PresentationAttack, check_liveness, fuse_liveness};
 pub use pool::{Admission, PoolError, WorkClass, WorkPool};
 
 /// How templates are compared: what the verify and identify decisions need of a recognizer.
@@ -69,6 +72,9 @@ pub trait FaceEngine: Matcher + Send + Sync + 'static {
     fn avatar(&self, photo: &Photo, format: AvatarFormat) -> Result<Vec<u8>, PipelineError>;
     /// The frontal rendering of the largest face, PNG.
     fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError>;
+    /// The operating point of the liveness model behind the analyses' `liveness`; `None` when
+    /// no liveness model is loaded (then no analysis carries one).
+    fn liveness_point(&self) -> Option<LivenessPoint>;
 }
 
 impl Matcher for Pipeline {
@@ -100,6 +106,9 @@ impl FaceEngine for Pipeline {
     }
     fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
         Pipeline::frontal_png(self, photo)
+    }
+    fn liveness_point(&self) -> Option<LivenessPoint> {
+        self.liveness.as_ref().map(|m| LivenessPoint { threshold: m.threshold, operating_point: m.operating_point.clone() })
     }
 }
 

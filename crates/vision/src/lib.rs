@@ -2,7 +2,7 @@
 //! them: a decoded photo → [`detect`] (face boxes) → [`landmarks`] (58 IMM points) → [`morph`]
 //! (3D morphable model fit, frontal rendering, avatar) → [`embed`] (the face-embedding network) and
 //! [`recognize`] (normalization, Direct LDA, templates, scores, calibration) → [`quality`] (face
-//! image quality), assembled once in [`pipeline`]; [`synthetic`] renders an enrolled head at other
+//! image quality) and [`liveness`] (a live face or a printed photo), assembled once in [`pipeline`]; [`synthetic`] renders an enrolled head at other
 //! yaws for templates a turned probe can meet.
 //!
 //! Runtime code: it never prints, reads the environment or shows progress (the workspace's clippy
@@ -11,6 +11,7 @@
 pub mod detect;
 pub mod embed;
 pub mod landmarks;
+pub mod liveness;
 pub mod morph;
 pub mod quality;
 pub mod recognize;

@@ -15,6 +15,7 @@ use crate::detect::{Detector, DetectorKind, Face};
 use crate::embed::FaceChip;
 use crate::landmarks::asm3d::{Asm3dLandmarker, SERVICE_MIN_YAW};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
+use crate::liveness::{Liveness, LivenessModel};
 use crate::morph::key_points::HIDDEN_SIDE_YAW;
 use crate::morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, FittedFace, Pose};
 use crate::quality::{Components, Quality, QualityModel};
@@ -57,6 +58,8 @@ pub enum PipelineError {
     Recognize(#[from] crate::recognize::RecognizeError),
     #[error(transparent)]
     Quality(#[from] crate::quality::QualityModelError),
+    #[error(transparent)]
+    Liveness(#[from] crate::liveness::LivenessModelError),
 }
 
 /// Milliseconds spent in each stage of one analysis.
@@ -67,6 +70,7 @@ pub struct StageTimings {
     pub morph_ms: f64,
     pub template_ms: f64,
     pub quality_ms: f64,
+    pub liveness_ms: f64,
 }
 
 /// Everything the pipeline learnt about the face it used.
@@ -82,6 +86,8 @@ pub struct FaceAnalysis {
     pub template: Template,
     /// The face image quality components and unified score.
     pub quality: Quality,
+    /// Live face or printed photo; `None` when no liveness model is loaded.
+    pub liveness: Option<Liveness>,
     pub timings: StageTimings,
 }
 
@@ -108,6 +114,8 @@ pub struct FaceReading {
     /// Per landmark, whether the fitted head shows it to the camera (`None` without a fit).
     pub visible: Option<Vec<bool>>,
     pub quality: Quality,
+    /// Live face or printed photo; `None` when no liveness model is loaded.
+    pub liveness: Option<Liveness>,
     pub landmarks_ms: f64,
     pub morph_ms: f64,
 }
@@ -275,6 +283,9 @@ pub struct Pipeline {
     pub recognizer: Recognizer,
     /// The unified quality score's model (`quality.bin`).
     pub quality: QualityModel,
+    /// The liveness model (`liveness.bin`); `None` when the file is missing, or when the caller
+    /// has no use for it (the service with liveness off drops it: no time is spent on it).
+    pub liveness: Option<LivenessModel>,
 }
 
 impl Pipeline {
@@ -292,7 +303,9 @@ impl Pipeline {
             RecognizerKind::Classical => Recognizer::Classical(load_classical(config, face_model.is_some())?),
         };
         let quality = QualityModel::load(&config.models_dir.join(crate::quality::FILE))?;
-        Ok(Pipeline { finder, face_model, recognizer, quality })
+        let liveness_path = config.models_dir.join(crate::liveness::FILE);
+        let liveness = if liveness_path.exists() { Some(LivenessModel::load(&liveness_path)?) } else { None };
+        Ok(Pipeline { finder, face_model, recognizer, quality, liveness })
     }
 
     /// Detect, landmark, pose-correct and template the largest face of `photo`.
@@ -329,7 +342,10 @@ impl Pipeline {
                 (template, input.pose, quality)
             }
         };
-        Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, template, quality, timings })
+        let t = Instant::now();
+        let liveness = self.liveness_of(photo, &landmarks);
+        timings.liveness_ms = elapsed_ms(t);
+        Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, template, quality, liveness, timings })
     }
 
     /// Every face of `photo` (or the largest) with its landmarks and 3DMM fit; no template is made.
@@ -355,7 +371,8 @@ impl Pipeline {
                 let (pose, fit_residual_px) = (fit.as_ref().map(|f| f.pose), fit.as_ref().map(|f| f.residual_px));
                 let visible = self.face_model.as_ref().zip(fit.as_ref()).map(|(m, f)| m.landmark_visibility(f));
                 let quality = self.quality.assess(quality_components(photo, &landmarks, pose, fit_residual_px).1);
-                FaceReading { face, landmarks, pose, fit_residual_px, visible, quality, landmarks_ms, morph_ms }
+                let liveness = self.liveness_of(photo, &landmarks);
+                FaceReading { face, landmarks, pose, fit_residual_px, visible, quality, liveness, landmarks_ms, morph_ms }
             })
             .collect();
         Ok(PhotoReading { faces_found: faces.len(), faces: readings, detect_ms })
@@ -366,6 +383,11 @@ impl Pipeline {
     fn profile_fit(&self, photo: &Photo, face: &Face) -> Option<FittedFace> {
         let fit = self.face_model.as_ref()?.fit_key_points(face.points.as_ref()?, photo.width(), photo.height()).ok()?;
         (fit.pose.yaw.abs() >= HIDDEN_SIDE_YAW).then_some(fit)
+    }
+
+    /// The liveness of the face with `landmarks`, measured where the recognizer cuts its chip.
+    fn liveness_of(&self, photo: &Photo, landmarks: &Landmarks) -> Option<Liveness> {
+        self.liveness.as_ref().map(|model| model.assess(&photo.rgb, &landmarks.keypoints))
     }
 
     fn face_model(&self) -> Result<&FaceModel, PipelineError> {
@@ -553,6 +575,29 @@ mod tests {
         assert!(face.pose.expect("posed").yaw.abs() < 20.0, "{:?}", face.pose);
         let shown = face.visible.as_ref().expect("visibility").iter().filter(|v| **v).count();
         assert!(shown >= 50, "{shown} of 58 landmarks visible on a frontal face");
+    }
+
+    /// Live webcam frames and frames of printed photos (NUAA; the committed model was trained on
+    /// these subjects, so this checks the wiring, crops and features end to end, not accuracy:
+    /// `facegate eval liveness` measures that on subjects left out).
+    #[test]
+    fn liveness_tells_printed_photos_from_live_faces() {
+        let pipeline = Pipeline::load(&pipeline_config()).unwrap();
+        let nuaa = facegate_paths::shared_dir().join("data/nuaa");
+        for (path, live) in [
+            ("real/0004/0004_01_00_01_109.jpg", true),
+            ("real/0007/0007_00_00_01_101.jpg", true),
+            ("print/0004/0004_01_01_03_211.jpg", false),
+            ("print/0007/0007_01_00_01_111.jpg", false),
+        ] {
+            let a = pipeline.analyze(&facegate_core::imaging::open(&nuaa.join(path)).unwrap()).unwrap();
+            let liveness = a.liveness.expect("models/liveness.bin is loaded");
+            assert_eq!(liveness.attack, !live, "{path}: score {}", liveness.score);
+            assert!((0.0..=1.0).contains(&liveness.score));
+        }
+        let mut without = pipeline;
+        without.liveness = None;
+        assert!(without.analyze(&photo("05-1m.jpg")).unwrap().liveness.is_none());
     }
 
     #[test]

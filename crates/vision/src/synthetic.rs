@@ -7,8 +7,10 @@
 use facegate_core::face::KeyPoints;
 use facegate_core::imaging::{GrayF32, Photo};
 
-use crate::landmarks::asm3d;
-use crate::morph::{FittedFace, Pose, TEXTURE_SIZE};
+use facegate_core::geometry::Point;
+
+use crate::landmarks::{Landmarks, asm3d};
+use crate::morph::{FaceModel, FittedFace, Pose, TEXTURE_SIZE};
 use crate::pipeline::{FaceAnalysis, Pipeline};
 use crate::recognize::{Recognizer, Template};
 
@@ -20,16 +22,11 @@ pub struct SyntheticTemplate {
     pub template: Template,
 }
 
-/// A rendering of the fitted head at `pose`, at the photo's size, scale and place, on a flat
-/// background of the photo's mean grey, with the 58 landmarks the model puts there.
-pub fn render_at(
-    pipeline: &Pipeline,
-    photo: &Photo,
-    fit: &FittedFace,
-    points: &[facegate_core::geometry::Point],
-    poses: &[Pose],
-) -> Vec<(Photo, KeyPoints)> {
-    let Some(model) = pipeline.face_model.as_ref() else { return Vec::new() };
+/// Renderings of the fitted head at each of `poses`, at the photo's size, scale and place, on a
+/// flat background of the photo's mean grey, with the 58 landmarks (and their eye and mouth
+/// centres) the model puts there. The synthetic templates here and the classical recognizer's
+/// re-posed training views (`research::train_dlda`) are both made by it.
+pub fn render_at(model: &FaceModel, photo: &Photo, fit: &FittedFace, points: &[Point], poses: &[Pose]) -> Vec<(Photo, Landmarks)> {
     let texture = model.extract_texture(&photo.rgb, fit, TEXTURE_SIZE);
     let offsets = asm3d::annotation_offsets(model, fit, points);
     let jaw = asm3d::photo_jaw_vertices(model, fit, &asm3d::contour_jaw_vertices(model));
@@ -38,7 +35,8 @@ pub fn render_at(
         .iter()
         .map(|&pose| {
             let view = asm3d::synthesise_view(model, fit, &texture, pose, [grey; 3], 0.0, &jaw, &offsets);
-            (photo_of(view.gray), KeyPoints::from_imm(&view.points))
+            let keypoints = KeyPoints::from_imm(&view.points);
+            (photo_of(view.gray), Landmarks { points: view.points, keypoints })
         })
         .collect()
 }
@@ -63,13 +61,13 @@ impl Pipeline {
         let points = &analysis.landmarks.points;
         let Ok(fit) = model.fit(points, photo.width(), photo.height()) else { return Vec::new() };
         let poses: Vec<Pose> = yaws.iter().map(|&yaw| Pose { yaw, pitch: fit.pose.pitch, roll: fit.pose.roll }).collect();
-        render_at(self, photo, &fit, points, &poses)
+        render_at(model, photo, &fit, points, &poses)
             .into_iter()
             .zip(yaws)
             .map(|((view, exact), &yaw)| {
                 let keypoints = match self.finder.detect(&view.gray).first() {
                     Some(face) => self.finder.landmarks_of(&view.gray, face).keypoints,
-                    None => exact,
+                    None => exact.keypoints,
                 };
                 let chip = crate::embed::face_chip(&view.rgb, &keypoints);
                 SyntheticTemplate { yaw, template: deep.template_of_chip(&chip) }

@@ -4,6 +4,7 @@ pub mod deep;
 pub mod detection;
 pub mod identification;
 pub mod landmarks;
+pub mod liveness;
 pub mod pairs;
 pub mod plot;
 pub mod pose;

@@ -403,7 +403,7 @@ pub fn render_curve(
             let model = pipeline.face_model.as_ref()?;
             let fit = model.fit(&analysis.landmarks.points, photo.width(), photo.height()).ok()?;
             let poses: Vec<_> = yaws.iter().map(|&yaw| facegate_vision::morph::Pose { yaw, ..fit.pose }).collect();
-            let views = facegate_vision::synthetic::render_at(pipeline, &photo, &fit, &analysis.landmarks.points, &poses);
+            let views = facegate_vision::synthetic::render_at(model, &photo, &fit, &analysis.landmarks.points, &poses);
             Some(
                 views
                     .iter()

@@ -128,27 +128,15 @@ impl FrontEnd {
     /// of each rendering (moved by the photo's annotation offsets, as the 3D-ASM's synthetic
     /// views are, so that they follow the same convention as the photo's own landmarks).
     pub fn reposed_views(&self, face: &FaceImage, offsets: &[(f32, f32)]) -> Result<Vec<(imaging::Photo, Landmarks)>, FrontEndError> {
-        use facegate_vision::landmarks::asm3d;
         let photo = imaging::open(&face.image)?;
         let (landmarks, _) = self.landmarks(face, &photo)?;
         let model = self.face_model.as_ref().ok_or(FrontEndError::NoFaceModel)?;
         let fit = model.fit(&landmarks.points, photo.width(), photo.height())?;
-        let texture = model.extract_texture(&photo.rgb, &fit, facegate_vision::morph::TEXTURE_SIZE);
-        let annotation_offsets = asm3d::annotation_offsets(model, &fit, &landmarks.points);
-        let jaw = asm3d::photo_jaw_vertices(model, &fit, &asm3d::contour_jaw_vertices(model));
-        let grey = (photo.gray.data.iter().sum::<f32>() / photo.gray.data.len().max(1) as f32).clamp(0.0, 255.0) as u8;
-        Ok(offsets
+        let poses: Vec<Pose> = offsets
             .iter()
-            .map(|&(yaw, pitch)| {
-                let pose = Pose { yaw: fit.pose.yaw + yaw, pitch: fit.pose.pitch + pitch, roll: fit.pose.roll };
-                let view = asm3d::synthesise_view(model, &fit, &texture, pose, [grey; 3], 0.0, &jaw, &annotation_offsets);
-                let rgb = image::RgbImage::from_fn(view.gray.width as u32, view.gray.height as u32, |x, y| {
-                    image::Rgb([view.gray.get(x as usize, y as usize).clamp(0.0, 255.0) as u8; 3])
-                });
-                let keypoints = KeyPoints::from_imm(&view.points);
-                (imaging::Photo { rgb, gray: view.gray }, Landmarks { points: view.points, keypoints })
-            })
-            .collect())
+            .map(|&(yaw, pitch)| Pose { yaw: fit.pose.yaw + yaw, pitch: fit.pose.pitch + pitch, roll: fit.pose.roll })
+            .collect();
+        Ok(facegate_vision::synthetic::render_at(model, &photo, &fit, &landmarks.points, &poses))
     }
 
     /// The image and keypoints the recognizer normalises, as the service's pipeline makes them.

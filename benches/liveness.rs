@@ -1,0 +1,56 @@
+//! The liveness check's cost: `LivenessModel::assess` on one face (crops, colour planes, LBP,
+//! the logistic model) beside the service's whole photo → template path (`Pipeline::analyze`,
+//! decoding included, deep recognizer, 3DMM loaded) with the liveness model dropped and loaded,
+//! in one run, on a NUAA webcam frame (640×480) and an LFW photo (250×250). Thread CPU time
+//! (`benches/common`); the ratios to `analyze` without liveness are what hold across machines.
+
+mod common;
+
+use criterion::{Criterion, black_box, criterion_group, criterion_main};
+use facegate::config::{models_dir, shared_dir};
+use facegate::core::imaging::{self, DecodeLimits};
+use facegate::detect::DetectorKind;
+use facegate::pipeline::{Pipeline, PipelineConfig};
+use facegate::recognize::RecognizerKind;
+
+fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
+    let config = PipelineConfig {
+        models_dir: models_dir(),
+        sfm_dir: Some(shared_dir().join("models/sfm")),
+        recognizer: RecognizerKind::Deep,
+        detector: DetectorKind::default(),
+    };
+    let with = Pipeline::load(&config).expect("models and ../shared/models/sfm");
+    assert!(with.liveness.is_some(), "models/liveness.bin");
+    let mut without = Pipeline::load(&config).expect("models");
+    without.liveness = None;
+    let photos = [
+        ("nuaa_640x480_live", "data/nuaa/real/0004/0004_01_00_01_109.jpg"),
+        ("lfw_250x250", "data/lfw/Aaron_Peirsol/Aaron_Peirsol_0001.jpg"),
+    ];
+    let mut group = c.benchmark_group("liveness");
+    group.sample_size(20);
+    for (name, path) in photos {
+        let bytes = std::fs::read(shared_dir().join(path)).expect("photo");
+        let photo = imaging::decode(&bytes, &DecodeLimits::default()).expect("decodes");
+        let keypoints = with.analyze(&photo).expect("a face").landmarks.keypoints;
+        let model = with.liveness.as_ref().expect("loaded");
+        group.bench_function(format!("assess/{name}"), |b| b.iter(|| black_box(model.assess(black_box(&photo.rgb), &keypoints))));
+        for (label, pipeline) in [("without_liveness", &without), ("with_liveness", &with)] {
+            group.bench_function(format!("decode_analyze/{name}/{label}"), |b| {
+                b.iter(|| {
+                    let photo = imaging::decode(black_box(&bytes), &DecodeLimits::default()).unwrap();
+                    black_box(pipeline.analyze(&photo).unwrap())
+                })
+            });
+        }
+    }
+    group.finish();
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().with_measurement(common::ThreadCpuTime);
+    targets = bench
+}
+criterion_main!(benches);
