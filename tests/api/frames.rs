@@ -12,17 +12,9 @@ use serde_json::{Value, json};
 use crate::pipeline::pipeline;
 use crate::support::*;
 
-/// A NUAA frame from the shared data (read from its path, never copied).
-fn nuaa(name: &str) -> Vec<u8> {
-    let path = facegate::config::shared_dir().join("data/nuaa").join(name);
-    std::fs::read(&path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()))
-}
+use crate::liveness::{LIVE_ENROL, LIVE_PROBE, PRINT, nuaa};
 
-/// A printed photo of subject 0004 held to the camera.
-const PRINT: &str = "print/0004/0004_01_01_03_211.jpg";
-/// Live frames of subject 0004: one to enrol, the others to verify.
-const LIVE_ENROL: &str = "real/0004/0004_01_00_02_134.jpg";
-const LIVE_PROBE: &str = "real/0004/0004_01_00_01_235.jpg";
+/// Further live frames of subject 0004, from the probe's capture.
 const LIVE_FRAMES: [&str; 2] = ["real/0004/0004_01_00_01_246.jpg", "real/0004/0004_01_00_01_261.jpg"];
 const SUBJECT: &str = "nuaa-0004";
 

@@ -15,16 +15,16 @@ use crate::pipeline::pipeline;
 use crate::support::*;
 
 /// A NUAA frame from the shared data (read from its path, never copied).
-fn nuaa(name: &str) -> Vec<u8> {
+pub(crate) fn nuaa(name: &str) -> Vec<u8> {
     let path = facegate::config::shared_dir().join("data/nuaa").join(name);
     std::fs::read(&path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()))
 }
 
 /// A printed photo of subject 0004 held to the camera.
-const PRINT: &str = "print/0004/0004_01_01_03_211.jpg";
+pub(crate) const PRINT: &str = "print/0004/0004_01_01_03_211.jpg";
 /// Live frames of subject 0004: one to enrol, two to verify.
-const LIVE_ENROL: &str = "real/0004/0004_01_00_02_134.jpg";
-const LIVE_PROBE: &str = "real/0004/0004_01_00_01_235.jpg";
+pub(crate) const LIVE_ENROL: &str = "real/0004/0004_01_00_02_134.jpg";
+pub(crate) const LIVE_PROBE: &str = "real/0004/0004_01_00_01_235.jpg";
 const LIVE_OTHER: &str = "real/0004/0004_01_00_01_0.jpg";
 
 fn settings(liveness: Choice, liveness_threshold: Option<f32>) -> Settings {

@@ -82,13 +82,26 @@ pub fn keypoints(
     threads: usize,
     progress: &dyn Progress,
 ) -> anyhow::Result<Vec<Option<KeyPoints>>> {
-    let key =
-        CacheKey::new("liveness-keypoints", &ModelFiles::new().finder(models_dir), &[], images.iter().map(|p| p.display().to_string()));
+    located(("liveness-keypoints", "find faces"), cache_dir, models_dir, images, threads, progress, |l| l.keypoints)
+}
+
+/// What `pick` takes of the service's landmarks of the largest face of each photo, computed by
+/// the face finder of `models_dir` or read from the cache (`kind`, and what the loop is called).
+fn located<R: Serialize + serde::de::DeserializeOwned + Send + Clone>(
+    (kind, what): (&str, &str),
+    cache_dir: &Path,
+    models_dir: &Path,
+    images: &[PathBuf],
+    threads: usize,
+    progress: &dyn Progress,
+    pick: impl Fn(facegate_vision::landmarks::Landmarks) -> R + Sync,
+) -> anyhow::Result<Vec<Option<R>>> {
+    let key = CacheKey::new(kind, &ModelFiles::new().finder(models_dir), &[], images.iter().map(|p| p.display().to_string()));
     cache::get_or_compute(cache_dir, &key, images.len(), progress, || {
         let finder = FaceFinder::load(models_dir)?;
-        Ok(map_samples(images, threads, "find faces", progress, |path| {
+        Ok(map_samples(images, threads, what, progress, |path| {
             let photo = facegate_core::imaging::open(path).ok()?;
-            Some(finder.locate(&photo.gray).ok()?.landmarks.keypoints)
+            Some(pick(finder.locate(&photo.gray).ok()?.landmarks))
         }))
     })
 }
@@ -166,7 +179,7 @@ pub fn fit_logistic(rows: &[&[f32]], live: &[bool], weights: &[f64], ridge: f64)
     LogisticFit {
         mean: mean.iter().map(|&v| v as f32).collect(),
         scale: scale.iter().map(|&v| v as f32).collect(),
-        weights: (1..=d).map(|k| (w[(k, 0)] / 1.0) as f32).collect(),
+        weights: (1..=d).map(|k| w[(k, 0)] as f32).collect(),
         bias: w[(0, 0)] as f32,
     }
 }
@@ -397,15 +410,7 @@ pub fn landmarks(
     threads: usize,
     progress: &dyn Progress,
 ) -> anyhow::Result<Vec<Option<Vec<facegate_core::geometry::Point>>>> {
-    let key =
-        CacheKey::new("liveness-landmarks", &ModelFiles::new().finder(models_dir), &[], images.iter().map(|p| p.display().to_string()));
-    cache::get_or_compute(cache_dir, &key, images.len(), progress, || {
-        let finder = FaceFinder::load(models_dir)?;
-        Ok(map_samples(images, threads, "landmarks", progress, |path| {
-            let photo = facegate_core::imaging::open(path).ok()?;
-            Some(finder.locate(&photo.gray).ok()?.landmarks.points)
-        }))
-    })
+    located(("liveness-landmarks", "landmarks"), cache_dir, models_dir, images, threads, progress, |l| l.points)
 }
 
 /// How far the points of a later frame are from the best homography of the first frame's onto

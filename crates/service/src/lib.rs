@@ -160,10 +160,9 @@ pub fn comparable_templates(matcher: &dyn Matcher, subject: &SubjectId, enrolled
 /// Is `probe` the subject of the `comparable` templates (see [`comparable_templates`])? The score is
 /// held against the threshold at `fmr` for a subject with that many templates.
 pub fn decide(matcher: &dyn Matcher, probe: &Template, comparable: &[Template], fmr: f64) -> Decision {
-    let best = (0..comparable.len()).max_by(|&a, &b| {
-        let score = |i: usize| matcher.score(probe, std::slice::from_ref(&comparable[i]));
-        score(a).total_cmp(&score(b))
-    });
+    // Each template scored once (a comparison in `max_by` would score both sides every time).
+    let per_template: Vec<f32> = comparable.iter().map(|t| matcher.score(probe, std::slice::from_ref(t))).collect();
+    let best = per_template.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, _)| i);
     Decision { best_template: best, ..Decision::at(matcher, matcher.score(probe, comparable), comparable.len(), fmr) }
 }
 

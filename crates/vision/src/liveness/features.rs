@@ -117,14 +117,21 @@ fn sample_crop(photo: &RgbImage, to_photo: &Similarity, size: usize) -> RgbImage
 pub fn features(crops: &Crops, blocks: &[Block]) -> Vec<f32> {
     let mut out = Vec::with_capacity(blocks.iter().map(|b| b.len()).sum());
     let face = ColourPlanes::of(&crops.face);
+    // The luma's LBP(8,1) serves two blocks: computed once.
+    let face_luma = std::cell::OnceCell::new();
+    let luma_codes = || face_luma.get_or_init(|| lbp::codes(&face.y, 1));
     for block in blocks {
         match block {
             Block::FaceLbp => {
-                out.extend(lbp::grid_histograms(&lbp::codes(&face.y, 1), FACE_SIZE, 3));
+                out.extend(lbp::grid_histograms(luma_codes(), FACE_SIZE, 3));
                 out.extend(lbp::grid_histograms(&lbp::codes(&face.y, 2), FACE_SIZE, 1));
             }
             Block::FaceColourLbp => {
-                for plane in [&face.h, &face.s, &face.v, &face.y, &face.cb, &face.cr] {
+                for plane in [&face.h, &face.s, &face.v] {
+                    out.extend(lbp::grid_histograms(&lbp::codes(plane, 1), FACE_SIZE, 1));
+                }
+                out.extend(lbp::grid_histograms(luma_codes(), FACE_SIZE, 1));
+                for plane in [&face.cb, &face.cr] {
                     out.extend(lbp::grid_histograms(&lbp::codes(plane, 1), FACE_SIZE, 1));
                 }
             }
