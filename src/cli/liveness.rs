@@ -31,7 +31,7 @@ pub struct TrainLivenessArgs {
 #[derive(clap::Args, Debug)]
 pub struct EvalLivenessArgs {
     /// The DET plot of the compared recipes.
-    #[arg(long, default_value = "docs/img/liveness-det.svg")]
+    #[arg(long, default_value = "docs/img/liveness/det.svg")]
     pub plot: PathBuf,
     /// Print each recipe's measures as one JSON line on stdout.
     #[arg(long)]
