@@ -7,22 +7,14 @@
 mod common;
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
-use facegate::config::{models_dir, shared_dir};
+use facegate::config::shared_dir;
 use facegate::core::imaging::{self, DecodeLimits};
 use facegate::detect::DetectorKind;
-use facegate::pipeline::{Pipeline, PipelineConfig};
-use facegate::recognize::RecognizerKind;
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
-    let config = PipelineConfig {
-        models_dir: models_dir(),
-        sfm_dir: Some(shared_dir().join("models/sfm")),
-        recognizer: RecognizerKind::Deep,
-        detector: DetectorKind::default(),
-    };
-    let with = Pipeline::load(&config).expect("models and ../shared/models/sfm");
+    let with = common::deep_pipeline(DetectorKind::default());
     assert!(with.liveness.is_some(), "models/liveness.bin");
-    let mut without = Pipeline::load(&config).expect("models");
+    let mut without = common::deep_pipeline(DetectorKind::default());
     without.liveness = None;
     let photos = [
         ("nuaa_640x480_live", "data/nuaa/real/0004/0004_01_00_01_109.jpg"),
@@ -37,12 +29,7 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
         let model = with.liveness.as_ref().expect("loaded");
         group.bench_function(format!("assess/{name}"), |b| b.iter(|| black_box(model.assess(black_box(&photo.rgb), &keypoints))));
         for (label, pipeline) in [("without_liveness", &without), ("with_liveness", &with)] {
-            group.bench_function(format!("decode_analyze/{name}/{label}"), |b| {
-                b.iter(|| {
-                    let photo = imaging::decode(black_box(&bytes), &DecodeLimits::default()).unwrap();
-                    black_box(pipeline.analyze(&photo).unwrap())
-                })
-            });
+            group.bench_function(format!("decode_analyze/{name}/{label}"), |b| common::decode_analyze(b, pipeline, &bytes));
         }
     }
     group.finish();

@@ -13,17 +13,9 @@ use criterion::{Criterion, black_box, criterion_group, criterion_main};
 use facegate::config::{models_dir, shared_dir};
 use facegate::core::imaging::{self, DecodeLimits};
 use facegate::landmarks::asm3d::SERVICE_MIN_YAW;
-use facegate::pipeline::{Pipeline, PipelineConfig};
-use facegate::recognize::RecognizerKind;
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
-    let config = PipelineConfig {
-        models_dir: models_dir(),
-        sfm_dir: Some(shared_dir().join("models/sfm")),
-        recognizer: RecognizerKind::Deep,
-        detector: Default::default(),
-    };
-    let pipeline = Pipeline::load(&config).expect("models and ../shared/models/sfm");
+    let pipeline = common::deep_pipeline(Default::default());
     let photos: [(&str, PathBuf); 4] = [
         ("imm_01-1m_640x480_frontal", shared_dir().join("data/imm/01-1m.jpg")),
         ("imm_01-3m_640x480_turned", shared_dir().join("data/imm/01-3m.jpg")),
@@ -44,12 +36,7 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
         let casm = pipeline.finder.landmarker.fit(&photo.gray, &located.face.rect, facegate::landmarks::Variant::Casm);
         let switched = asm3d.yaw_of(&casm.points).is_some_and(|yaw| yaw.abs() >= SERVICE_MIN_YAW);
         eprintln!("{name}: 3D-ASM switch {}", if switched { "on" } else { "off" });
-        group.bench_function(format!("decode_analyze/{name}"), |b| {
-            b.iter(|| {
-                let photo = imaging::decode(black_box(&bytes), &DecodeLimits::default()).unwrap();
-                black_box(pipeline.analyze(&photo).unwrap())
-            })
-        });
+        group.bench_function(format!("decode_analyze/{name}"), |b| common::decode_analyze(b, &pipeline, &bytes));
         group.bench_function(format!("detect/{name}"), |b| b.iter(|| black_box(pipeline.finder.detect(black_box(&photo.gray)))));
         if name.starts_with("orl") {
             group.bench_function(format!("detect_step1_everywhere/{name}"), |b| {

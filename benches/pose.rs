@@ -6,24 +6,13 @@
 
 mod common;
 
-use criterion::{Criterion, black_box, criterion_group, criterion_main};
-use facegate::config::{models_dir, shared_dir};
+use criterion::{Criterion, criterion_group, criterion_main};
+use facegate::config::shared_dir;
 use facegate::core::imaging::{self, DecodeLimits};
 use facegate::detect::DetectorKind;
-use facegate::pipeline::{Pipeline, PipelineConfig};
-use facegate::recognize::RecognizerKind;
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
-    let load = |detector| {
-        let config = PipelineConfig {
-            models_dir: models_dir(),
-            sfm_dir: Some(shared_dir().join("models/sfm")),
-            recognizer: RecognizerKind::Deep,
-            detector,
-        };
-        Pipeline::load(&config).expect("models and ../shared/models/sfm")
-    };
-    let pipelines = [("yunet", load(DetectorKind::Yunet)), ("haar", load(DetectorKind::Haar))];
+    let pipelines = [("yunet", common::deep_pipeline(DetectorKind::Yunet)), ("haar", common::deep_pipeline(DetectorKind::Haar))];
     let photos = [
         ("imm_01-1m_640x480_frontal", "data/imm/01-1m.jpg"),
         ("lfw_250x250_frontal", "data/lfw/Aaron_Peirsol/Aaron_Peirsol_0001.jpg"),
@@ -42,12 +31,7 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
                 eprintln!("{name}: {front_end} finds no face");
                 continue;
             }
-            group.bench_function(format!("decode_analyze/{name}/{front_end}"), |b| {
-                b.iter(|| {
-                    let photo = imaging::decode(black_box(&bytes), &DecodeLimits::default()).unwrap();
-                    black_box(pipeline.analyze(&photo).unwrap())
-                })
-            });
+            group.bench_function(format!("decode_analyze/{name}/{front_end}"), |b| common::decode_analyze(b, pipeline, &bytes));
         }
     }
     group.finish();

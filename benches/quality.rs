@@ -12,17 +12,10 @@ use std::path::PathBuf;
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
 use facegate::config::{models_dir, shared_dir};
 use facegate::core::imaging::{self, DecodeLimits};
-use facegate::pipeline::{Pipeline, PipelineConfig, quality_components};
-use facegate::recognize::RecognizerKind;
+use facegate::pipeline::quality_components;
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
-    let config = PipelineConfig {
-        models_dir: models_dir(),
-        sfm_dir: Some(shared_dir().join("models/sfm")),
-        recognizer: RecognizerKind::Deep,
-        detector: Default::default(),
-    };
-    let pipeline = Pipeline::load(&config).expect("models and ../shared/models/sfm");
+    let pipeline = common::deep_pipeline(Default::default());
     let photos: [(&str, PathBuf); 2] =
         [("imm_01-1m_640x480", shared_dir().join("data/imm/01-1m.jpg")), ("orl_s1-1_92x112", shared_dir().join("data/orl/s1/1.pgm"))];
     let mut group = c.benchmark_group("quality");
@@ -50,12 +43,7 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
         group.bench_function(format!("chip_components_score/{name}"), |b| {
             b.iter(|| black_box(pipeline.quality.assess(quality_components(black_box(&photo), landmarks, pose, residual).1)))
         });
-        group.bench_function(format!("decode_analyze/{name}"), |b| {
-            b.iter(|| {
-                let photo = imaging::decode(black_box(&bytes), &DecodeLimits::default()).unwrap();
-                black_box(pipeline.analyze(&photo).unwrap())
-            })
-        });
+        group.bench_function(format!("decode_analyze/{name}"), |b| common::decode_analyze(b, &pipeline, &bytes));
     }
     group.finish();
 }

@@ -38,3 +38,26 @@ impl Measurement for ThreadCpuTime {
         WallTime.formatter()
     }
 }
+
+/// The service's pipeline as the benches measure it: deep recognizer, the Surrey Face Model of
+/// `../shared`, the detector `detector`. (Not every bench that shares this module loads one.)
+#[allow(dead_code)]
+pub fn deep_pipeline(detector: facegate::detect::DetectorKind) -> facegate::pipeline::Pipeline {
+    let config = facegate::pipeline::PipelineConfig {
+        models_dir: facegate::config::models_dir(),
+        sfm_dir: Some(facegate::config::shared_dir().join("models/sfm")),
+        recognizer: facegate::recognize::RecognizerKind::Deep,
+        detector,
+    };
+    facegate::pipeline::Pipeline::load(&config).expect("models and ../shared/models/sfm")
+}
+
+/// The service's cost of one photo: `bytes` decoded, then `Pipeline::analyze` (the face must be found).
+#[allow(dead_code)]
+pub fn decode_analyze(b: &mut criterion::Bencher<'_, ThreadCpuTime>, pipeline: &facegate::pipeline::Pipeline, bytes: &[u8]) {
+    use facegate::core::imaging::{self, DecodeLimits};
+    b.iter(|| {
+        let photo = imaging::decode(criterion::black_box(bytes), &DecodeLimits::default()).unwrap();
+        criterion::black_box(pipeline.analyze(&photo).unwrap())
+    })
+}
