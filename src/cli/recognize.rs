@@ -436,6 +436,10 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
         let path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::deep::FILE));
         return crate::cli::embed::run_eval_verify_deep(&path, &args.deep, args.json);
     }
+    if let Some(file) = RecognizerKind::from(args.recognizer).embedding_model_file() {
+        let path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(file));
+        return crate::cli::networks::run_eval_verify_embedding(&path, &args.deep, args.json);
+    }
     let model_path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::MODEL_FILE));
     let recognizer = ClassicalRecognizer::load_file(&model_path)?;
     let model = recognizer.model();

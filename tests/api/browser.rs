@@ -190,7 +190,7 @@ async fn the_console_enrolls_verifies_shows_the_avatar_and_deletes_in_chromium()
 
     page.client.goto(&app.url("/#enrol")).await.unwrap();
     page.until("the page script", "document.body.dataset.ready === 'true'").await;
-    page.until("the health line", "document.querySelector('#health').textContent.includes('model deep-')").await;
+    page.until("the health line", "document.querySelector('#health').textContent.includes('model emb-')").await;
 
     // Enrol two photos of IMM person 02 (held out of training).
     page.type_into("#enrol-subject", "imm-02").await;
@@ -300,7 +300,7 @@ async fn the_console_enrolls_verifies_shows_the_avatar_and_deletes_in_chromium()
     page.find("#subjects-table tr[data-subject=\"imm-02\"]").await;
     page.click("button[aria-label=\"Inspect imm-02\"]").await;
     page.until("the detail", "document.querySelector('#subject-detail h3')?.textContent === 'imm-02'").await;
-    assert!(page.text("#subject-detail").await.contains("deep-"));
+    assert!(page.text("#subject-detail").await.contains("emb-"));
     page.screenshot("subjects.png").await;
     page.click("button[data-subject=\"imm-02\"]").await;
     page.until("the confirmation", "document.querySelector('#delete-dialog').open").await;

@@ -35,6 +35,7 @@ mod liveness;
 mod openapi;
 mod pipeline;
 mod postgres;
+mod recognizers;
 mod replicas;
 mod store_backends;
 mod store_cli;

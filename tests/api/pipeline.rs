@@ -132,7 +132,7 @@ async fn every_bad_input_class_with_the_real_pipeline() {
 async fn both_recognizers_verify_and_never_compare_each_others_templates() {
     let config = facegate::config::Settings::default().api_config().unwrap();
     let deep = pipeline();
-    assert_eq!(deep.recognizer.kind(), RecognizerKind::Deep, "the default recognizer is the deep one");
+    assert_eq!(deep.recognizer.kind(), RecognizerKind::Fusion, "the default recognizer is the fusion of dlib's network and SFace");
     // Enrolled under the classical recognizer, verified there.
     let old = TestApp::start(classical(), config.clone()).await;
     let r = old.post_form("/enroll", Some("imm-05"), &[imm("05-1m.jpg"), imm("05-2m.jpg")]).await;
@@ -148,7 +148,7 @@ async fn both_recognizers_verify_and_never_compare_each_others_templates() {
     // Enrolled again, the deep templates join the old ones and the deep recognizer decides.
     let r = new.post_form("/enroll", Some("imm-05"), &[imm("05-1m.jpg")]).await;
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
-    assert!(r.json()["model_version"].as_str().unwrap().starts_with("deep-"));
+    assert!(r.json()["model_version"].as_str().unwrap().starts_with("emb-"));
     let r = new.post_form("/verify", Some("imm-05"), &[imm("05-6m.jpg")]).await;
     let v = r.json();
     assert_eq!((v["match"].clone(), v["templates_compared"].clone()), (json!(true), json!(1)), "{v}");

@@ -10,6 +10,7 @@ pub mod train_asm;
 pub mod train_asm3d;
 pub mod train_deep;
 pub mod train_dlda;
+pub mod train_embedding;
 pub mod train_imm_sfm;
 pub mod train_liveness;
 

@@ -88,9 +88,9 @@ impl Matcher for Pipeline {
         self.recognizer.operating_point(fmr, enrolled)
     }
     fn max_cosine_scoring(&self) -> bool {
-        // The deep recognizer's score is the best cosine (`DeepRecognizer::score`); the classical
+        // The deep recognizers' score is the best cosine (`DeepRecognizer::score`); the classical
         // one may S-normalise against a cohort and average, so it keeps its own `score`.
-        matches!(self.recognizer, Recognizer::Deep(_))
+        matches!(self.recognizer, Recognizer::Deep(_) | Recognizer::Embedding(..))
     }
 }
 

@@ -19,7 +19,9 @@ use crate::liveness::{Liveness, LivenessModel};
 use crate::morph::key_points::HIDDEN_SIDE_YAW;
 use crate::morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, FittedFace, Pose};
 use crate::quality::{Components, Quality, QualityModel};
-use crate::recognize::{ClassicalRecognizer, DeepRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views};
+use crate::recognize::{
+    ClassicalRecognizer, DeepRecognizer, EmbeddingRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views,
+};
 use facegate_core::face::KeyPoints;
 use facegate_core::geometry::{Point, Rect};
 use facegate_core::imaging::{GrayF32, Photo};
@@ -301,6 +303,10 @@ impl Pipeline {
         let recognizer = match config.recognizer {
             RecognizerKind::Deep => Recognizer::Deep(Box::new(DeepRecognizer::load(&config.models_dir)?)),
             RecognizerKind::Classical => Recognizer::Classical(load_classical(config, face_model.is_some())?),
+            kind @ (RecognizerKind::Sface | RecognizerKind::Fusion | RecognizerKind::Custom) => {
+                let file = kind.embedding_model_file().expect("an embedding recognizer");
+                Recognizer::Embedding(Box::new(EmbeddingRecognizer::load(&config.models_dir, file)?), kind)
+            }
         };
         let quality = QualityModel::load(&config.models_dir.join(crate::quality::FILE))?;
         let liveness_path = config.models_dir.join(crate::liveness::FILE);
@@ -322,30 +328,55 @@ impl Pipeline {
 
         let (template, pose, quality) = match &self.recognizer {
             Recognizer::Classical(recognizer) => self.classical_template(recognizer, photo, &landmarks, &mut timings)?,
-            Recognizer::Deep(deep) => {
-                // The network sees the photo itself (the 3DMM frontal rendering measured worse as
-                // its input: docs/recognition.md); the fit still reports the head pose.
-                let t = Instant::now();
-                let mut input = recognition_input(self.face_model.as_ref(), photo, &landmarks, Normalization::TwoD)?;
-                if let Some(fit) = self.profile_fit(photo, &face) {
-                    (input.pose, input.fit_residual_px) = (Some(fit.pose), Some(fit.residual_px));
-                }
-                timings.morph_ms = elapsed_ms(t);
-                let t = Instant::now();
-                let chip = crate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
-                let (template, mirror) = deep.template_and_mirror_pair(&chip);
-                timings.template_ms = elapsed_ms(t);
-                let t = Instant::now();
-                let components = crate::quality::components(&chip, &landmarks.keypoints, input.pose, input.fit_residual_px);
-                let quality = self.quality.assess(components.with_mirror(&mirror));
-                timings.quality_ms = elapsed_ms(t);
-                (template, input.pose, quality)
-            }
+            _ => self.embedding_template(photo, &face, &landmarks, &mut timings)?,
         };
         let t = Instant::now();
         let liveness = self.liveness_of(photo, &landmarks);
         timings.liveness_ms = elapsed_ms(t);
         Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, template, quality, liveness, timings })
+    }
+
+    /// The deep recognizers' template (dlib's network, SFace, their fusion, a user's network)
+    /// with the head pose and the quality.
+    fn embedding_template(
+        &self,
+        photo: &Photo,
+        face: &Face,
+        landmarks: &Landmarks,
+        timings: &mut StageTimings,
+    ) -> Result<(Template, Option<Pose>, Quality), PipelineError> {
+        // The networks see the photo itself (the 3DMM frontal rendering measured worse as the
+        // dlib network's input: docs/recognition.md); the fit still reports the head pose.
+        let t = Instant::now();
+        let mut input = recognition_input(self.face_model.as_ref(), photo, landmarks, Normalization::TwoD)?;
+        if let Some(fit) = self.profile_fit(photo, face) {
+            (input.pose, input.fit_residual_px) = (Some(fit.pose), Some(fit.residual_px));
+        }
+        timings.morph_ms = elapsed_ms(t);
+        let t = Instant::now();
+        // The quality components are measured on dlib's chip whichever network embeds.
+        let chip = crate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
+        let (template, mirror) = match &self.recognizer {
+            Recognizer::Embedding(recognizer, _) => {
+                let embedded = recognizer.embed(&photo.rgb, &landmarks.keypoints, face.points.as_ref(), Some(&chip));
+                (embedded.template, embedded.dlib_pair)
+            }
+            Recognizer::Deep(deep) => {
+                let (template, mirror) = deep.template_and_mirror_pair(&chip);
+                (template, Some(mirror))
+            }
+            Recognizer::Classical(recognizer) => return self.classical_template(recognizer, photo, landmarks, timings),
+        };
+        timings.template_ms = elapsed_ms(t);
+        let t = Instant::now();
+        let components = crate::quality::components(&chip, &landmarks.keypoints, input.pose, input.fit_residual_px);
+        let components = match &mirror {
+            Some(mirror) => components.with_mirror(mirror),
+            None => components,
+        };
+        let quality = self.quality.assess(components);
+        timings.quality_ms = elapsed_ms(t);
+        Ok((template, input.pose, quality))
     }
 
     /// Every face of `photo` (or the largest) with its landmarks and 3DMM fit; no template is made.
@@ -617,7 +648,7 @@ mod tests {
 
     #[test]
     fn deep_and_classical_templates_carry_their_own_versions() {
-        let deep = Pipeline::load(&pipeline_config()).unwrap();
+        let deep = Pipeline::load(&PipelineConfig { recognizer: RecognizerKind::Deep, ..pipeline_config() }).unwrap();
         let classical = Pipeline::load(&PipelineConfig { recognizer: RecognizerKind::Classical, ..pipeline_config() }).unwrap();
         let p = photo("05-1m.jpg");
         let (a, b) = (deep.analyze(&p).unwrap(), classical.analyze(&p).unwrap());
@@ -632,9 +663,23 @@ mod tests {
         assert_eq!((qa.sharpness, qa.fit_residual), (qb.sharpness, qb.fit_residual));
         // Without the 3DMM the deep recognizer is unchanged (it never needed the rendering); the
         // pose is then unknown.
-        let flat = Pipeline::load(&PipelineConfig { sfm_dir: None, ..pipeline_config() }).unwrap();
+        let flat = Pipeline::load(&PipelineConfig { sfm_dir: None, recognizer: RecognizerKind::Deep, ..pipeline_config() }).unwrap();
         let c = flat.analyze(&p).unwrap();
         assert_eq!((c.template.clone(), c.pose), (a.template, None));
+    }
+
+    #[test]
+    fn the_default_fusion_joins_both_networks_and_keeps_the_mirror_agreement() {
+        let fusion = Pipeline::load(&pipeline_config()).unwrap();
+        assert_eq!(fusion.recognizer.kind(), RecognizerKind::Fusion);
+        let a = fusion.analyze(&photo("05-1m.jpg")).unwrap();
+        assert!(a.template.model_version.starts_with("emb-"), "{}", a.template.model_version);
+        assert_eq!(a.template.vector.len(), 2 * crate::embed::EMBEDDING_DIMS, "dlib's 128 values and SFace's 128");
+        // dlib's half carries √0.8 of the unit vector, SFace's √0.2.
+        let (dlib, sface) = a.template.vector.split_at(crate::embed::EMBEDDING_DIMS);
+        let norm = |v: &[f32]| v.iter().map(|x| x * x).sum::<f32>();
+        assert!((norm(dlib) - 0.8).abs() < 1e-3 && (norm(sface) - 0.2).abs() < 1e-3, "{} {}", norm(dlib), norm(sface));
+        assert!(a.quality.components.mirror_agreement.is_some_and(|m| m > 0.5), "dlib's mirror pair feeds the quality score");
     }
 
     #[test]

@@ -55,7 +55,7 @@ impl Pipeline {
     /// model landmarks do. Empty without the 3D model, with the classical recognizer, or when the
     /// fit fails.
     pub fn synthetic_templates(&self, photo: &Photo, analysis: &FaceAnalysis, yaws: &[f32]) -> Vec<SyntheticTemplate> {
-        let (Some(model), Recognizer::Deep(deep)) = (self.face_model.as_ref(), &self.recognizer) else {
+        let Some(model) = self.face_model.as_ref().filter(|_| !matches!(self.recognizer, Recognizer::Classical(_))) else {
             return Vec::new();
         };
         let points = &analysis.landmarks.points;
@@ -64,13 +64,19 @@ impl Pipeline {
         render_at(model, photo, &fit, points, &poses)
             .into_iter()
             .zip(yaws)
-            .map(|((view, exact), &yaw)| {
-                let keypoints = match self.finder.detect(&view.gray).first() {
+            .filter_map(|((view, exact), &yaw)| {
+                let found = self.finder.detect(&view.gray).first().copied();
+                let keypoints = match &found {
                     Some(face) => self.finder.landmarks_of(&view.gray, face).keypoints,
                     None => exact.keypoints,
                 };
-                let chip = crate::embed::face_chip(&view.rgb, &keypoints);
-                SyntheticTemplate { yaw, template: deep.template_of_chip(&chip) }
+                let points = found.and_then(|f| f.points);
+                let template = match &self.recognizer {
+                    Recognizer::Deep(deep) => deep.template_of_chip(&crate::embed::face_chip(&view.rgb, &keypoints)),
+                    Recognizer::Embedding(recognizer, _) => recognizer.embed(&view.rgb, &keypoints, points.as_ref(), None).template,
+                    Recognizer::Classical(_) => return None,
+                };
+                Some(SyntheticTemplate { yaw, template })
             })
             .collect()
     }

@@ -2,6 +2,8 @@
 //! only reads the converted file).
 
 pub mod dlib;
+pub mod onnx_embedding;
+pub mod wheel;
 pub mod yunet;
 
 use facegate_vision::embed::weights::{self, NetworkFile};

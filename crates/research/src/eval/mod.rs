@@ -1,5 +1,6 @@
 //! Evaluation: accuracy measures of each stage on held-out people, and their plots.
 
+pub mod calibration;
 pub mod deep;
 pub mod detection;
 pub mod identification;

@@ -6,8 +6,10 @@
 //! Plain data in and out: a [`FaceChip`] cut from a photo with facegate's own landmarks
 //! ([`chip`]), an [`Embedding`] out ([`net`]).
 
+pub mod chain;
 pub mod chip;
 pub mod net;
+pub mod onnx;
 pub mod weights;
 
 use std::path::Path;

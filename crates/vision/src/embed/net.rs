@@ -66,9 +66,9 @@ pub enum NetworkError {
 
 /// A convolution with its batch normalisation folded in, weights as the `(k·k·c) × filters`
 /// right-hand side of the im2col product (rows ordered ky, kx, channel).
-struct FoldedConv {
-    filters: usize,
-    channels: usize,
+pub(super) struct FoldedConv {
+    pub(super) filters: usize,
+    pub(super) channels: usize,
     size: usize,
     stride: usize,
     padding: usize,
@@ -77,7 +77,7 @@ struct FoldedConv {
 }
 
 impl FoldedConv {
-    fn new(conv: &Conv, gamma: &[f32], beta: &[f32]) -> Result<FoldedConv, NetworkError> {
+    pub(super) fn new(conv: &Conv, gamma: &[f32], beta: &[f32]) -> Result<FoldedConv, NetworkError> {
         let (f, c, k) = (conv.filters, conv.channels, conv.size);
         if gamma.len() != f || beta.len() != f {
             return Err(NetworkError::Layout(format!("affine of {} channels after {f} filters", gamma.len())));
@@ -97,7 +97,7 @@ impl FoldedConv {
         Ok(FoldedConv { filters: f, channels: c, size: k, stride: conv.stride, padding: conv.padding, rhs, bias })
     }
 
-    fn out_side(&self, side: usize) -> usize {
+    pub(super) fn out_side(&self, side: usize) -> usize {
         (side + 2 * self.padding - self.size) / self.stride + 1
     }
 }
@@ -112,15 +112,15 @@ struct Residual {
 
 /// Activations: `h × w × c`, channels fastest.
 #[derive(Default)]
-struct Act {
-    h: usize,
-    w: usize,
-    c: usize,
-    data: Vec<f32>,
+pub(super) struct Act {
+    pub(super) h: usize,
+    pub(super) w: usize,
+    pub(super) c: usize,
+    pub(super) data: Vec<f32>,
 }
 
 impl Act {
-    fn reshape(&mut self, h: usize, w: usize, c: usize) {
+    pub(super) fn reshape(&mut self, h: usize, w: usize, c: usize) {
         self.h = h;
         self.w = w;
         self.c = c;
@@ -347,13 +347,17 @@ impl Embedder {
 }
 
 /// `out = conv(input)` (+ relu): im2col into `cols`, then one matrix product.
-fn conv(layer: &FoldedConv, input: &Act, out: &mut Act, cols: &mut Vec<f32>, relu: bool) {
+pub(super) fn conv(layer: &FoldedConv, input: &Act, out: &mut Act, cols: &mut Vec<f32>, relu: bool) {
     debug_assert_eq!(input.c, layer.channels);
     let (ho, wo) = (layer.out_side(input.h), layer.out_side(input.w));
     let (k, c, s, p) = (layer.size, layer.channels, layer.stride, layer.padding as isize);
     let kk = k * k * c;
-    cols.resize(ho * wo * kk, 0.0);
-    for oy in 0..ho {
+    // A 1×1 convolution of stride 1 multiplies the activations themselves: no im2col copy.
+    let pointwise = k == 1 && s == 1 && p == 0;
+    if !pointwise {
+        cols.resize(ho * wo * kk, 0.0);
+    }
+    for oy in (0..ho).filter(|_| !pointwise) {
         for ox in 0..wo {
             let row = &mut cols[(oy * wo + ox) * kk..(oy * wo + ox + 1) * kk];
             for ky in 0..k {
@@ -378,7 +382,7 @@ fn conv(layer: &FoldedConv, input: &Act, out: &mut Act, cols: &mut Vec<f32>, rel
     }
     out.reshape(ho, wo, layer.filters);
     let f = layer.filters;
-    let lhs = MatRef::from_row_major_slice(&cols[..], ho * wo, kk);
+    let lhs = MatRef::from_row_major_slice(if pointwise { &input.data[..] } else { &cols[..] }, ho * wo, kk);
     let rhs = MatRef::from_row_major_slice(&layer.rhs[..], kk, f);
     let dst = MatMut::from_row_major_slice_mut(&mut out.data[..], ho * wo, f);
     matmul(dst, Accum::Replace, lhs, rhs, 1.0f32, Par::Seq);

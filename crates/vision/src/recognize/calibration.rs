@@ -49,6 +49,12 @@ pub struct EnrolledCalibration {
     pub calibration: Calibration,
 }
 
+/// The table for a subject with `enrolled` templates: the largest enrolment-size table not beyond
+/// it, or the one-photo table.
+pub fn table_for<'a>(one: &'a Calibration, tables: &'a [EnrolledCalibration], enrolled: usize) -> &'a Calibration {
+    tables.iter().filter(|t| t.enrolled <= enrolled.max(1)).max_by_key(|t| t.enrolled).map_or(one, |t| &t.calibration)
+}
+
 /// The smallest f32 strictly greater than `v` (finite `v`).
 fn next_up(v: f32) -> f32 {
     if v.is_nan() || v == f32::INFINITY {

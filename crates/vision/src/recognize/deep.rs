@@ -84,11 +84,7 @@ impl DeepModel {
 
     /// The thresholds for a subject with `enrolled` templates (the largest table beyond it).
     pub fn calibration_for(&self, enrolled: usize) -> &Calibration {
-        self.enrolled_calibration
-            .iter()
-            .filter(|t| t.enrolled <= enrolled.max(1))
-            .max_by_key(|t| t.enrolled)
-            .map_or(&self.calibration, |t| &t.calibration)
+        super::calibration::table_for(&self.calibration, &self.enrolled_calibration, enrolled)
     }
 
     pub fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {

@@ -10,8 +10,10 @@
 pub mod calibration;
 pub mod deep;
 pub mod dlda;
+pub mod embedding;
 pub mod features;
 pub mod normalize;
+mod recognizer;
 pub mod score_norm;
 pub mod template;
 
@@ -31,61 +33,8 @@ pub use score_norm::{Cohort, CohortStats};
 pub use template::{Combine, Template};
 
 pub use deep::DeepRecognizer;
-
-/// Which recognizer makes the templates.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-pub enum RecognizerKind {
-    /// The deep face embedding (`deep.bin` over `embedding.bin`): the accurate one on real photos.
-    #[default]
-    Deep,
-    /// Pixels + LBP through Direct LDA (`dlda.bin`): no third-party weights, less CPU.
-    Classical,
-}
-
-/// The recognizer the pipeline runs: one of the two, behind what the service needs of either
-/// (the model version on templates, the score, the calibrated operating point).
-pub enum Recognizer {
-    Classical(ClassicalRecognizer),
-    Deep(Box<DeepRecognizer>),
-}
-
-impl Recognizer {
-    pub fn kind(&self) -> RecognizerKind {
-        match self {
-            Recognizer::Classical(_) => RecognizerKind::Classical,
-            Recognizer::Deep(_) => RecognizerKind::Deep,
-        }
-    }
-
-    pub fn model_version(&self) -> &str {
-        match self {
-            Recognizer::Classical(r) => r.model_version(),
-            Recognizer::Deep(d) => &d.model.version,
-        }
-    }
-
-    pub fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
-        match self {
-            Recognizer::Classical(r) => r.score(probe, enrolled),
-            Recognizer::Deep(d) => d.score(probe, enrolled),
-        }
-    }
-
-    pub fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
-        match self {
-            Recognizer::Classical(r) => r.operating_point(fmr, enrolled),
-            Recognizer::Deep(d) => d.model.operating_point(fmr, enrolled),
-        }
-    }
-
-    /// The classical recognizer, when it is the one loaded.
-    pub fn classical(&self) -> Option<&ClassicalRecognizer> {
-        match self {
-            Recognizer::Classical(r) => Some(r),
-            Recognizer::Deep(_) => None,
-        }
-    }
-}
+pub use embedding::EmbeddingRecognizer;
+pub use recognizer::{Recognizer, RecognizerKind};
 
 /// Which normalisation a recognition model was trained for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
