@@ -124,7 +124,8 @@ fn same(values: &[i64], default: i64) -> Option<usize> {
 
 /// Reads the graph into layers; `None` at the first thing the kernels do not do.
 struct Reader<'a> {
-    init: HashMap<&'a str, (&'a [i64], Vec<f32>)>,
+    /// The initializers, decoded only when a layer takes them (a network's weights are read once).
+    init: HashMap<&'a str, &'a TensorProto>,
     ops: Vec<RawOp>,
     /// Current activation shape: channels, height, width; `flat` once flattened.
     shape: (usize, usize, usize),
@@ -134,8 +135,9 @@ struct Reader<'a> {
 }
 
 impl<'a> Reader<'a> {
-    fn tensor(&self, name: &str) -> Option<(&'a [i64], &[f32])> {
-        self.init.get(name).map(|(d, v)| (*d, v.as_slice()))
+    fn tensor(&self, name: &str) -> Option<(&'a [i64], Vec<f32>)> {
+        let t = self.init.get(name)?;
+        Some((t.dims.as_slice(), floats(t)?))
     }
 
     fn scalar(&self, node: &NodeProto) -> Option<f32> {
@@ -152,7 +154,7 @@ impl<'a> Reader<'a> {
             "PRelu" => {
                 let (_, slope) = self.tensor(node.input.get(1)?)?;
                 let n = if self.flat.is_some() { self.shape.0 * self.shape.1 * self.shape.2 } else { self.shape.0 };
-                let slope = if slope.len() == 1 { vec![slope[0]; n] } else { slope.to_vec() };
+                let slope = if slope.len() == 1 { vec![slope[0]; n] } else { slope };
                 (slope.len() == n && self.flat.is_none()).then_some(())?;
                 self.ops.push(RawOp::PRelu(slope));
             }
@@ -166,7 +168,6 @@ impl<'a> Reader<'a> {
 
     fn conv(&mut self, node: &NodeProto) -> Option<()> {
         let (dims, w) = self.tensor(node.input.get(1)?)?;
-        let w = w.to_vec();
         let [f, cg, kh, kw] = <[i64; 4]>::try_from(dims).ok()?;
         let (f, cg, k) = (f as usize, cg as usize, kh as usize);
         let group = int(node, "group", 1) as usize;
@@ -181,7 +182,7 @@ impl<'a> Reader<'a> {
             && node.attribute.iter().all(|a| a.name != "auto_pad" || a.s == b"NOTSET");
         ok.then_some(())?;
         let bias = match node.input.get(2).filter(|n| !n.is_empty()) {
-            Some(name) => self.tensor(name)?.1.to_vec(),
+            Some(name) => self.tensor(name)?.1,
             None => vec![0.0; f],
         };
         (bias.len() == f && w.len() == f * cg * k * k).then_some(())?;
@@ -192,7 +193,7 @@ impl<'a> Reader<'a> {
     }
 
     fn batch_norm(&mut self, node: &NodeProto) -> Option<()> {
-        let get = |i: usize| node.input.get(i).and_then(|n| self.tensor(n)).map(|(_, v)| v.to_vec());
+        let get = |i: usize| node.input.get(i).and_then(|n| self.tensor(n)).map(|(_, v)| v);
         let (gamma, beta, mean, var) = (get(1)?, get(2)?, get(3)?, get(4)?);
         let eps = float(node, "epsilon", 1e-5);
         let scale: Vec<f32> = gamma.iter().zip(&var).map(|(g, v)| g / (v + eps).sqrt()).collect();
@@ -229,7 +230,7 @@ impl<'a> Reader<'a> {
         let outputs = *outputs as usize;
         (b.len() == inputs * outputs).then_some(())?;
         let bias = match node.input.get(2).filter(|n| !n.is_empty()) {
-            Some(name) => self.tensor(name)?.1.to_vec(),
+            Some(name) => self.tensor(name)?.1,
             None => vec![0.0; outputs],
         };
         (bias.len() == outputs).then_some(())?;
@@ -269,8 +270,7 @@ impl ChainNet {
         use tract_onnx::prelude::Framework;
         let proto = tract_onnx::onnx().proto_model_for_read(&mut &bytes[..]).ok()?;
         let graph: &GraphProto = proto.graph.as_ref()?;
-        let init: HashMap<&str, (&[i64], Vec<f32>)> =
-            graph.initializer.iter().filter_map(|t| Some((t.name.as_str(), (t.dims.as_slice(), floats(t)?)))).collect();
+        let init: HashMap<&str, &TensorProto> = graph.initializer.iter().map(|t| (t.name.as_str(), t)).collect();
         let inputs: Vec<&str> = graph.input.iter().map(|i| i.name.as_str()).filter(|n| !init.contains_key(n)).collect();
         let [input] = inputs.as_slice() else { return None };
         let mut reader = Reader { init, ops: Vec::new(), shape: (3, side, side), flat: None, sub: 0.0, mul: 1.0 };
@@ -285,8 +285,11 @@ impl ChainNet {
             RawOp::Dense(d) => d.outputs,
             _ => return None,
         };
-        let ops = reader.ops.into_iter().map(Op::from).collect::<Option<Vec<_>>>()?;
-        Some(ChainNet { side, sub: reader.sub, mul: reader.mul, ops, outputs, workspaces: Mutex::default() })
+        let (raw, sub, mul) = (reader.ops, reader.sub, reader.mul);
+        // The parsed file is let go before the kernels' copies are made: loading peaks lower.
+        drop(proto);
+        let ops = raw.into_iter().map(Op::from).collect::<Option<Vec<_>>>()?;
+        Some(ChainNet { side, sub, mul, ops, outputs, workspaces: Mutex::default() })
     }
 
     pub fn outputs(&self) -> usize {
