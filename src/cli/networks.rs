@@ -380,7 +380,16 @@ pub fn run_eval_calibration(args: EvalCalibrationArgs) -> anyhow::Result<ExitCod
         let stats = cal::cohort_stats(&samples, &templates, top_k, args.cohort_stride);
         reports.push(cal::report(&samples, &templates, Scoring::CohortNorm { top_k }, Some(&stats), CalibrationPersons::Disjoint));
     }
-    println!("{} ({})", model.version, model.provenance.trained_on);
+    let grey: Vec<bool> = crate::research::par_map(&samples, args.data.threads, |s| {
+        crate::core::imaging::open(&s.image).map(|p| cal::is_grey(&p.rgb)).unwrap_or(false)
+    });
+    let by_domain = cal::report_by_probe_domain(&samples, &templates, &grey, CalibrationPersons::Disjoint);
+    reports.push(cal::CandidateReport {
+        scoring: Scoring::CosineByProbeDomain,
+        calibration: CalibrationPersons::Disjoint,
+        rows: by_domain,
+    });
+    println!("{} ({}); grey photos: {} of {}", model.version, model.provenance.trained_on, grey.iter().filter(|g| **g).count(), grey.len());
     for r in &reports {
         if args.json {
             crate::cli::print_json_line(&serde_json::to_value(r)?);

@@ -20,6 +20,8 @@ use facegate_vision::recognize::score_norm::{Cohort, CohortStats, s_norm};
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub enum Scoring {
     Cosine,
+    /// The cosine, with a threshold table per probe domain (grey or colour photo).
+    CosineByProbeDomain,
     /// S-norm (`top_k` 0) or AS-norm over the `top_k` most similar cohort members.
     CohortNorm {
         top_k: usize,
@@ -147,4 +149,95 @@ pub fn report(
         }
     }
     CandidateReport { scoring, calibration, rows }
+}
+
+/// Whether a photo is grey: no pixel's channels differ by more than 3 grey levels (a grey JPEG or
+/// PGM decodes to equal channels; a colour photo has many pixels far apart).
+pub fn is_grey(rgb: &image::RgbImage) -> bool {
+    rgb.pixels().all(|p| {
+        let [r, g, b] = p.0;
+        r.abs_diff(g) <= 3 && g.abs_diff(b) <= 3
+    })
+}
+
+/// The raw cosine with one threshold table per probe domain (grey or colour photo), each
+/// calibrated on the calibration persons' pairs whose probe (the later photo of the pair) is of
+/// that domain; checked the same way.
+pub fn report_by_probe_domain(
+    samples: &[Sample],
+    templates: &[Option<Vec<f32>>],
+    grey: &[bool],
+    calibration: CalibrationPersons,
+) -> Vec<Observed> {
+    let pairs = |keep: &dyn Fn(&Sample) -> bool, domain: bool| -> (Vec<f32>, Vec<f32>) {
+        let items: Vec<(usize, &str, &[f32])> = samples
+            .iter()
+            .zip(templates)
+            .enumerate()
+            .filter(|(_, (s, _))| keep(s))
+            .filter_map(|(i, (s, t))| t.as_deref().map(|t| (i, s.label.as_str(), t)))
+            .collect();
+        let (mut g, mut imp) = (Vec::new(), Vec::new());
+        for a in 0..items.len() {
+            for b in a + 1..items.len() {
+                if grey[items[b].0] != domain {
+                    continue;
+                }
+                let s = dot(items[a].2, items[b].2);
+                if items[a].1 == items[b].1 { g.push(s) } else { imp.push(s) }
+            }
+        }
+        (g, imp)
+    };
+    let table = |domain: bool| {
+        let (g, i) = pairs(&|s| calibration.takes(s), domain);
+        Calibration::from_scores(&g, &i, &CALIBRATED_FMRS, "calibration persons")
+    };
+    let tables = [table(false), table(true)];
+    let mut rows = Vec::new();
+    for (set, keep) in checked_sets() {
+        let scored = [pairs(&keep, false), pairs(&keep, true)];
+        for &fmr in &CALIBRATED_FMRS {
+            let (mut fm, mut imp, mut fnm, mut gen_) = (0, 0, 0, 0);
+            for (domain, (g, i)) in scored.iter().enumerate() {
+                let t = tables[domain].operating_point(fmr).threshold;
+                fm += i.iter().filter(|&&s| s >= t).count();
+                imp += i.len();
+                fnm += g.iter().filter(|&&s| s < t).count();
+                gen_ += g.len();
+            }
+            let observed = fm as f64 / imp.max(1) as f64;
+            let holds = if (imp as f64) * fmr >= 1.0 {
+                (0.5..=2.0).contains(&(observed / fmr))
+            } else {
+                fm as f64 <= (2.0 * fmr * imp as f64).max(1.0)
+            };
+            rows.push(Observed {
+                set,
+                stated: fmr,
+                observed,
+                false_matches: fm,
+                impostors: imp,
+                fnmr: fnm as f64 / gen_.max(1) as f64,
+                holds,
+            });
+        }
+    }
+    rows
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_photo_is_grey_when_no_pixel_has_colour() {
+        let tinted = image::RgbImage::from_fn(8, 8, |x, y| image::Rgb([(x * 30) as u8, (x * 30) as u8 + 2, (x * 30 + y) as u8]));
+        assert!(!is_grey(&tinted), "blue 5 levels from green at the bottom row");
+        let plain = image::RgbImage::from_fn(8, 8, |x, _| image::Rgb([(x * 30) as u8; 3]));
+        assert!(is_grey(&plain));
+        let mut coloured = plain.clone();
+        coloured.put_pixel(3, 3, image::Rgb([200, 90, 90]));
+        assert!(!is_grey(&coloured), "one coloured pixel makes a colour photo");
+    }
 }
