@@ -93,6 +93,17 @@ pub fn cohort_stats(samples: &[Sample], templates: &[Option<Vec<f32>>], top_k: u
     crate::par_map(templates, 2, |t| t.as_ref().map(|t| cohort.stats(t)))
 }
 
+/// The samples `keep` takes that have a template: index, label, template.
+fn kept<'a>(samples: &'a [Sample], templates: &'a [Option<Vec<f32>>], keep: &dyn Fn(&Sample) -> bool) -> Vec<(usize, &'a str, &'a [f32])> {
+    samples
+        .iter()
+        .zip(templates)
+        .enumerate()
+        .filter(|(_, (s, _))| keep(s))
+        .filter_map(|(i, (s, t))| t.as_deref().map(|t| (i, s.label.as_str(), t)))
+        .collect()
+}
+
 /// Genuine and impostor scores of every pair of the samples `keep` takes.
 fn pair_scores(
     samples: &[Sample],
@@ -100,13 +111,7 @@ fn pair_scores(
     stats: Option<&[Option<CohortStats>]>,
     keep: &dyn Fn(&Sample) -> bool,
 ) -> (Vec<f32>, Vec<f32>) {
-    let items: Vec<(usize, &str, &[f32])> = samples
-        .iter()
-        .zip(templates)
-        .enumerate()
-        .filter(|(_, (s, _))| keep(s))
-        .filter_map(|(i, (s, t))| t.as_deref().map(|t| (i, s.label.as_str(), t)))
-        .collect();
+    let items = kept(samples, templates, keep);
     let labels: Vec<&str> = items.iter().map(|(_, l, _)| *l).collect();
     all_pairs_by(&labels, &|a, b| {
         let raw = dot(items[a].2, items[b].2);
@@ -170,13 +175,7 @@ pub fn report_by_probe_domain(
     calibration: CalibrationPersons,
 ) -> Vec<Observed> {
     let pairs = |keep: &dyn Fn(&Sample) -> bool, domain: bool| -> (Vec<f32>, Vec<f32>) {
-        let items: Vec<(usize, &str, &[f32])> = samples
-            .iter()
-            .zip(templates)
-            .enumerate()
-            .filter(|(_, (s, _))| keep(s))
-            .filter_map(|(i, (s, t))| t.as_deref().map(|t| (i, s.label.as_str(), t)))
-            .collect();
+        let items = kept(samples, templates, keep);
         let (mut g, mut imp) = (Vec::new(), Vec::new());
         for a in 0..items.len() {
             for b in a + 1..items.len() {
