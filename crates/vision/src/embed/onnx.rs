@@ -174,7 +174,8 @@ impl OnnxEmbedder {
         let text = std::fs::read_to_string(&manifest_path).map_err(|e| fail(&manifest_path, e.to_string()))?;
         let manifest: Manifest = serde_json::from_str(&text).map_err(|e| fail(&manifest_path, e.to_string()))?;
         let onnx_path = dir.join(format!("{name}.onnx"));
-        let bytes = std::fs::read(&onnx_path).map_err(|e| fail(&onnx_path, e.to_string()))?;
+        let bytes = std::fs::read(&onnx_path)
+            .map_err(|e| fail(&onnx_path, format!("{e} (SFace: scripts/fetch-models.sh; any network: facegate convert)")))?;
         OnnxEmbedder::from_bytes(&bytes, manifest, &onnx_path.display().to_string())
     }
 
