@@ -1,21 +1,25 @@
-//! `/identify`'s search: the in-memory gallery (`service::gallery::Gallery::search`, one pass of
-//! dot products over a contiguous matrix) against the per-subject `service::identify` it replaces,
-//! in the same run, on synthetic 128-d unit templates (one per subject) at 10k, 100k and 1M. The
-//! matcher scores by the best cosine, as the deep recognizer does. Times are the benchmark
-//! thread's CPU time (`benches/common`): the search is single-threaded. The per-subject path is
-//! timed up to 100k (at 1M its input alone would take gigabytes).
+//! `/identify`'s search over the in-memory gallery (`service::gallery::Gallery::search`) in the
+//! same run: the quantised gallery the service holds for best-cosine matchers (one scan of 4-bit
+//! codes to a shortlist, which the service then re-scores from the store), the exact float
+//! gallery (one pass of dot products over a contiguous matrix), and the per-subject
+//! `score_each_subject` the gallery replaced, on synthetic 256-value templates (the default fusion
+//! recognizer's size; one per subject) at 10k, 100k and 1M. The matcher scores by the best
+//! cosine, as the deep recognizers do. Times are the benchmark thread's CPU time
+//! (`benches/common`): the search is single-threaded. The per-subject path is timed up to 100k
+//! (at 1M its input alone would take gigabytes).
 //!
-//! `cargo bench --bench gallery`; memory per template: `cargo run --release --example gallery_rss`.
+//! `cargo bench --bench gallery`; memory, recall and ten million templates:
+//! `cargo run --release --example gallery_scale`.
 
 use criterion::{BatchSize, BenchmarkId, Criterion, black_box};
 use facegate::recognize::{OperatingPoint, Template};
 use facegate::service::Matcher;
-use facegate::service::gallery::Gallery;
+use facegate::service::gallery::{Found, Gallery, Precision};
 use rand::{Rng, SeedableRng};
 
 mod common;
 
-const DIMS: usize = 128;
+const DIMS: usize = 256;
 
 /// The deep recognizer's scoring (the best cosine), with a fixed threshold.
 struct MaxCosine;
@@ -45,13 +49,20 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
     let mut group = c.benchmark_group("identify");
     for n in [10_000usize, 100_000, 1_000_000] {
         let subjects: Vec<(String, Vec<Template>)> = (0..n).map(|i| (format!("subject-{i:07}"), vec![template(&mut rng)])).collect();
-        let mut gallery = Gallery::new("bench");
+        let mut exact = Gallery::new("bench");
+        let mut quantised = Gallery::with_precision("bench", Precision::Quantised);
         for (subject, templates) in &subjects {
-            gallery.add(subject, templates);
+            exact.add(subject, templates);
+            quantised.add(subject, templates);
         }
-        let (found, _) = gallery.search(&MaxCosine, &probe, 1e-3, 5).unwrap();
-        group.bench_with_input(BenchmarkId::new("gallery", n), &n, |b, _| {
-            b.iter(|| black_box(gallery.search(&MaxCosine, black_box(&probe), 1e-3, 5).unwrap()))
+        let (Found::Decided(found), _) = exact.search(&MaxCosine, &probe, 1e-3, 5).unwrap() else { unreachable!() };
+        let (Found::Shortlist(shortlist), _) = quantised.search(&MaxCosine, &probe, 1e-3, 5).unwrap() else { unreachable!() };
+        assert!(found.iter().all(|c| shortlist.contains(&c.subject)), "the shortlist holds the exact top 5");
+        group.bench_with_input(BenchmarkId::new("quantised", n), &n, |b, _| {
+            b.iter(|| black_box(quantised.search(&MaxCosine, black_box(&probe), 1e-3, 5).unwrap()))
+        });
+        group.bench_with_input(BenchmarkId::new("exact", n), &n, |b, _| {
+            b.iter(|| black_box(exact.search(&MaxCosine, black_box(&probe), 1e-3, 5).unwrap()))
         });
         if n <= 100_000 {
             let expected = facegate::service::gallery::score_each_subject(&MaxCosine, &probe, subjects.clone(), 1e-3, 5);

@@ -139,7 +139,7 @@ async fn the_gallery_reloads_after_its_listening_connection_is_cut() {
     let url = postgres_or_skip!("replicas::the_gallery_reloads_after_its_listening_connection_is_cut");
     let here = Store::connect(&url, None).await.unwrap();
     let other = Store::connect(&url, None).await.unwrap();
-    let live = LiveGallery::new(here.clone(), "v1");
+    let live = LiveGallery::new(here.clone(), "v1", facegate::service::gallery::Precision::Quantised);
     live.load().await.unwrap();
     let template = |seed: f32| Template::new("v1", (0..16).map(|i| (i as f32 + seed).sin()).collect());
     let id = |s: &str| SubjectId::parse(s).unwrap();

@@ -34,7 +34,8 @@ on_both_backends!(
     enroll_list_read_and_delete,
     a_failed_enrollment_stores_nothing,
     sealed_round_trip_and_tampered_rows_refused,
-    rekey_seals_then_rotates
+    rekey_seals_then_rotates,
+    the_gallery_reads_in_parts_and_by_subject
 );
 
 pub struct TempDir(std::path::PathBuf);
@@ -85,6 +86,37 @@ async fn scan(store: &Store, version: &str) -> Vec<(String, Result<Vec<Template>
     let mut out = Vec::new();
     store.gallery(version, |s, t| out.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap();
     out
+}
+
+/// The identification gallery's reads: in parts (start-up, several connections) that together are
+/// the whole scan, each subject in exactly one part; and the shortlist's templates in one statement.
+async fn the_gallery_reads_in_parts_and_by_subject(url: String) {
+    let store = Store::connect(&url, None).await.unwrap();
+    for i in 0..10 {
+        let mut templates = vec![marked(i as f32)];
+        if i == 4 {
+            templates.push(marked(40.0));
+        }
+        store.enroll(&id(&format!("s{i}")), &templates).await.unwrap();
+    }
+    store.enroll(&id("other"), &[template("m2", &[1.0])]).await.unwrap();
+    let whole = scan(&store, "m1").await;
+    assert_eq!(whole.len(), 10);
+    for parts in [1, 3, 4, 11, 40] {
+        let cut = store.gallery_parts("m1", parts).await.unwrap();
+        assert!(!cut.is_empty() && cut.len() <= parts, "{parts} parts: {cut:?}");
+        let mut joined = Vec::new();
+        for part in &cut {
+            store.gallery_part("m1", part, |s, t| joined.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap();
+        }
+        assert_eq!(joined, whole, "{parts} parts");
+    }
+    assert_eq!(store.gallery_parts("m3", 4).await.unwrap().len(), 1, "an empty version is one part");
+
+    let found = store.templates_of(&[id("s7"), id("s4"), id("nobody"), id("other")], "m1").await.unwrap();
+    assert_eq!(found, [("s4".to_string(), vec![marked(4.0), marked(40.0)]), ("s7".to_string(), vec![marked(7.0)])]);
+    assert!(store.templates_of(&[], "m1").await.unwrap().is_empty());
+    store.close().await;
 }
 
 async fn enroll_list_read_and_delete(url: String) {

@@ -17,7 +17,7 @@ use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PipelineError};
 use facegate_vision::quality::{Failure, QualityPolicy};
 use facegate_vision::recognize::{OperatingPoint, Template};
 
-use crate::gallery::{LiveGallery, UnreadableTemplates};
+use crate::gallery::{Found, LiveGallery, Precision, UnreadableTemplates};
 use crate::inspect::{self, Analysis, InspectError};
 use crate::liveness::{LivenessPolicy, PresentationAttack};
 use crate::{Candidate, Decision, FaceEngine, PoolError, VerifyError, WorkPool};
@@ -317,7 +317,10 @@ pub struct Facegate(Arc<Inner>);
 
 impl Facegate {
     pub fn new(engine: Arc<dyn FaceEngine>, store: Store, pool: WorkPool, config: ServiceConfig) -> Facegate {
-        let gallery = LiveGallery::new(store.clone(), engine.model_version());
+        // Best-cosine matchers search 4-bit codes and re-score the shortlist from the store; any
+        // other matcher scores every subject from floats held in memory.
+        let precision = if engine.max_cosine_scoring() { Precision::Quantised } else { Precision::Exact };
+        let gallery = LiveGallery::new(store.clone(), engine.model_version(), precision);
         Facegate(Arc::new(Inner { engine, store, gallery, pool, config, circuit: StoreCircuit::default() }))
     }
 
@@ -432,8 +435,16 @@ impl Facegate {
         self.with_store(gallery.load()).await?;
         gallery.wait_until_applied(store_version).await;
         let (matcher, probe) = (self.0.engine.clone(), photo.analysis.template.clone());
-        // Scoring the whole gallery is CPU work too: it runs on the pool.
-        let (candidates, subjects_searched) = self.0.pool.run(move || gallery.search(matcher.as_ref(), &probe, fmr, k)).await??;
+        // Scanning the whole gallery is CPU work too: it runs on the pool.
+        let searching = gallery.clone();
+        let (found, subjects_searched) = self.0.pool.run(move || searching.search(matcher.as_ref(), &probe, fmr, k)).await??;
+        let candidates = match found {
+            Found::Decided(candidates) => candidates,
+            Found::Shortlist(shortlist) => {
+                let engine = self.0.engine.as_ref();
+                self.read_store(gallery.rerank(engine, &photo.analysis.template, shortlist, fmr, k)).await?
+            }
+        };
         let operating_point = self.0.engine.operating_point(fmr, 1);
         Ok(Identification { candidates, operating_point, subjects_searched, photo, match_ms: elapsed_ms(start) })
     }

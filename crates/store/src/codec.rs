@@ -188,29 +188,75 @@ pub fn vector_to_blob(vector: &[f32]) -> Vec<u8> {
 
 /// Inverse of [`vector_to_blob`]; `None` when the length is not a multiple of 4.
 pub fn blob_to_vector(blob: &[u8]) -> Option<Vec<f32>> {
-    (blob.len() % 4 == 0).then(|| blob.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
+    if !blob.len().is_multiple_of(4) {
+        return None;
+    }
+    // Filled in place rather than collected: the loop compiles to a copy (the gallery's start-up
+    // decodes ten million of these).
+    let mut vector = vec![0.0f32; blob.len() / 4];
+    for (v, c) in vector.iter_mut().zip(blob.chunks_exact(4)) {
+        *v = f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
+    }
+    Some(vector)
 }
 
 /// A template row of `subject` read as its `sealing` says: a sealed vector must authenticate, a
 /// plain one must have exactly its dimension's length (a sealed vector on a plain subject, or the
 /// reverse, is refused: rows were moved or altered).
 pub(crate) fn template_from_row(sealing: &Sealing, subject: &str, row: &AnyRow) -> Result<Template, StoreError> {
-    let id: i64 = row.try_get("id")?;
-    let dimension: i64 = row.try_get("dimension")?;
-    let model_version: String = row.try_get("model_version")?;
     let blob: Vec<u8> = row.try_get("vector")?;
+    open_vector(sealing, subject, row.try_get("id")?, row.try_get("dimension")?, row.try_get("model_version")?, &blob)
+}
+
+/// [`template_from_row`] on the row's values.
+pub(crate) fn open_vector(
+    sealing: &Sealing,
+    subject: &str,
+    id: i64,
+    dimension: i64,
+    model_version: String,
+    blob: &[u8],
+) -> Result<Template, StoreError> {
     let corrupt = |message: String| StoreError::CorruptTemplate { id, message };
     let vector = match sealing {
         Sealing::Plain => {
-            let vector = blob_to_vector(&blob).ok_or_else(|| corrupt(format!("{} bytes", blob.len())))?;
+            let vector = blob_to_vector(blob).ok_or_else(|| corrupt(format!("{} bytes", blob.len())))?;
             if vector.len() as i64 != dimension {
                 return Err(corrupt(format!("{} values, {dimension} expected", vector.len())));
             }
             vector
         }
         Sealing::Sealed(key) => {
-            key.open_template(subject, &model_version, dimension as usize, &blob).map_err(|e| corrupt(format!("subject {subject}: {e}")))?
+            key.open_template(subject, &model_version, dimension as usize, blob).map_err(|e| corrupt(format!("subject {subject}: {e}")))?
         }
     };
     Ok(Template { model_version, vector })
+}
+
+/// A gallery row as stored (a template with its subject's key columns), before its vector is
+/// opened: what both the sqlx reads and SQLite's bulk scan ([`crate::sqlite_scan`]) hand to
+/// [`Store::group_by_subject`](crate::Store).
+pub(crate) struct StoredRow {
+    pub id: i64,
+    pub subject: String,
+    pub model_version: String,
+    pub dimension: i64,
+    pub vector: Vec<u8>,
+    pub key_id: Option<String>,
+    pub data_key: Option<Vec<u8>>,
+}
+
+impl StoredRow {
+    /// The columns `id, subject_id, model_version, dimension, vector, key_id, data_key`.
+    pub fn of(row: &AnyRow) -> Result<StoredRow, sqlx::Error> {
+        Ok(StoredRow {
+            id: row.try_get("id")?,
+            subject: row.try_get("subject_id")?,
+            model_version: row.try_get("model_version")?,
+            dimension: row.try_get("dimension")?,
+            vector: row.try_get("vector")?,
+            key_id: row.try_get("key_id")?,
+            data_key: row.try_get("data_key")?,
+        })
+    }
 }

@@ -39,6 +39,7 @@ pub mod cipher;
 mod codec;
 mod feed;
 mod sqlite;
+mod sqlite_scan;
 
 #[cfg(test)]
 mod at_rest;
@@ -60,7 +61,7 @@ use sqlx::{AnyPool, Row};
 use facegate_core::SubjectId;
 use facegate_vision::recognize::Template;
 
-use codec::{Sealing, encode_vector, seal_subject, template_from_row};
+use codec::{Sealing, StoredRow, encode_vector, open_vector, seal_subject, template_from_row};
 
 pub use cipher::{CipherError, KeyRing};
 pub use codec::{KeyCheck, SealingCounts, blob_to_vector, vector_to_blob};
@@ -222,6 +223,23 @@ pub struct RekeyReport {
 /// data key cannot be opened), and its templates so far or why they cannot be read.
 type SubjectReading = (String, Option<Sealing>, Result<Vec<Template>, StoreError>);
 
+/// The subjects with ids after `after` and up to `through` (inclusive); `None` is unbounded.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct GalleryPart {
+    pub after: Option<String>,
+    pub through: Option<String>,
+}
+
+impl GalleryPart {
+    /// The parts that `cuts` (increasing subject ids) make: up to the first, between each two,
+    /// after the last.
+    pub fn between(cuts: &[String]) -> Vec<GalleryPart> {
+        let bounds: Vec<Option<String>> =
+            std::iter::once(None).chain(cuts.iter().cloned().map(Some)).chain(std::iter::once(None)).collect();
+        bounds.windows(2).map(|w| GalleryPart { after: w[0].clone(), through: w[1].clone() }).collect()
+    }
+}
+
 /// The template database. Cheap to clone (a connection pool).
 #[derive(Clone)]
 pub struct Store {
@@ -230,6 +248,9 @@ pub struct Store {
     /// Where a [`ChangeFeed`] connects (PostgreSQL only).
     listen: Option<PgConnectOptions>,
     keys: Option<Arc<KeyRing>>,
+    /// The SQLite database file, which the gallery's start-up read scans on a connection of its
+    /// own ([`sqlite_scan`]); `None` on PostgreSQL.
+    sqlite_file: Option<PathBuf>,
 }
 
 impl std::fmt::Debug for Store {
@@ -261,7 +282,11 @@ impl Store {
                 (pool, Some(listen))
             }
         };
-        Ok(Store { pool, backend, listen, keys: keys.map(Arc::new) })
+        let sqlite_file = match backend {
+            Backend::Sqlite => sqlite::file_of(url)?,
+            Backend::Postgres => None,
+        };
+        Ok(Store { pool, backend, listen, keys: keys.map(Arc::new), sqlite_file })
     }
 
     /// Which database this is.
@@ -357,41 +382,139 @@ impl Store {
     /// Every subject's templates made by `model_version`, handed to `each` one subject at a time
     /// in subject id order (rows are streamed, so the whole gallery is never held twice). A
     /// subject whose templates cannot be read is handed its error; the scan goes on.
-    pub async fn gallery(
+    pub async fn gallery(&self, model_version: &str, each: impl FnMut(&str, Result<Vec<Template>, StoreError>)) -> Result<(), StoreError> {
+        self.gallery_part(model_version, &GalleryPart::default(), each).await
+    }
+
+    /// Subject ids that cut `model_version`'s templates into up to `parts` parts of about equal
+    /// size ([`GalleryPart::between`]), so that the gallery can be read by several connections at
+    /// once ([`Store::gallery_part`]). One count and `parts − 1` index lookups.
+    pub async fn gallery_parts(&self, model_version: &str, parts: usize) -> Result<Vec<GalleryPart>, StoreError> {
+        let count: i64 =
+            sqlx::query_scalar("SELECT count(*) FROM templates WHERE model_version = $1").bind(model_version).fetch_one(&self.pool).await?;
+        let mut cuts: Vec<String> = Vec::new();
+        for i in 1..parts.max(1) as i64 {
+            let cut: Option<String> =
+                sqlx::query_scalar("SELECT subject_id FROM templates WHERE model_version = $1 ORDER BY subject_id LIMIT 1 OFFSET $2")
+                    .bind(model_version)
+                    .bind(count * i / parts as i64)
+                    .fetch_optional(&self.pool)
+                    .await?;
+            // A subject's rows stay in one part: parts end at a subject, inclusive.
+            if let Some(cut) = cut.filter(|c| cuts.last().is_none_or(|last| last < c)) {
+                cuts.push(cut);
+            }
+        }
+        Ok(GalleryPart::between(&cuts))
+    }
+
+    /// [`Store::gallery`] for the subjects of one part only. On a SQLite file the rows are read
+    /// through SQLite's C API on a thread of their own ([`sqlite_scan`]), else through the pool.
+    pub async fn gallery_part(
         &self,
         model_version: &str,
+        part: &GalleryPart,
         mut each: impl FnMut(&str, Result<Vec<Template>, StoreError>),
     ) -> Result<(), StoreError> {
-        let mut rows = sqlx::query(
+        if let Some(path) = &self.sqlite_file {
+            let (sender, mut batches) = tokio::sync::mpsc::channel(4);
+            let (file, version, part) = (path.clone(), model_version.to_string(), part.clone());
+            let reader = tokio::task::spawn_blocking(move || {
+                sqlite_scan::read_gallery_part(&file, &version, &part, |batch| sender.blocking_send(batch).is_ok())
+            });
+            let mut current = None;
+            while let Some(batch) = batches.recv().await {
+                for row in batch {
+                    self.group_by_subject(&mut current, row, &mut each);
+                }
+            }
+            if let Some((done, _, templates)) = current.take() {
+                each(&done, templates);
+            }
+            let read = reader.await.expect("the SQLite gallery reader does not panic");
+            return read.map_err(|e| StoreError::Refused(format!("reading the gallery from {}: {e}", path.display())));
+        }
+        // '' sorts before every id (ids are never empty); the upper bound is left out of the
+        // statement when there is none, so that the index range ends where the part does.
+        let statement = format!(
             "SELECT t.id, t.subject_id, t.model_version, t.dimension, t.vector, s.key_id, s.data_key
              FROM templates t JOIN subjects s ON s.id = t.subject_id
-             WHERE t.model_version = $1 ORDER BY t.subject_id, t.id",
-        )
-        .bind(model_version)
-        .fetch(&self.pool);
+             WHERE t.model_version = $1 AND t.subject_id > $2 {}
+             ORDER BY t.subject_id, t.id",
+            if part.through.is_some() { "AND t.subject_id <= $3" } else { "" }
+        );
+        let mut query = sqlx::query(&statement).bind(model_version).bind(part.after.as_deref().unwrap_or(""));
+        if let Some(through) = &part.through {
+            query = query.bind(through.as_str());
+        }
+        self.each_subject(query.fetch(&self.pool), each).await
+    }
+
+    /// The templates of `model_version` of each of `subjects` that holds any, in subject id
+    /// order, in one statement: the identification's exact re-scoring of its shortlist. A
+    /// subject whose templates cannot be read fails the read, as in [`Store::templates`].
+    pub async fn templates_of(&self, subjects: &[SubjectId], model_version: &str) -> Result<Vec<(String, Vec<Template>)>, StoreError> {
+        if subjects.is_empty() {
+            return Ok(Vec::new());
+        }
+        let placeholders: Vec<String> = (2..subjects.len() + 2).map(|i| format!("${i}")).collect();
+        let statement = format!(
+            "SELECT t.id, t.subject_id, t.model_version, t.dimension, t.vector, s.key_id, s.data_key
+             FROM templates t JOIN subjects s ON s.id = t.subject_id
+             WHERE t.model_version = $1 AND t.subject_id IN ({})
+             ORDER BY t.subject_id, t.id",
+            placeholders.join(", ")
+        );
+        let query = subjects.iter().fold(sqlx::query(&statement).bind(model_version), |q, s| q.bind(s.as_str()));
+        let mut found = Vec::with_capacity(subjects.len());
+        let mut failed = None;
+        self.each_subject(query.fetch(&self.pool), |subject, templates| match templates {
+            Ok(templates) => found.push((subject.to_string(), templates)),
+            Err(e) => failed = failed.take().or(Some(e)),
+        })
+        .await?;
+        failed.map_or(Ok(found), Err)
+    }
+
+    /// Template rows (ordered by subject) handed to `each` one subject at a time, opened with the
+    /// subject's sealing; a subject whose key or a template cannot be opened is handed its error.
+    async fn each_subject(
+        &self,
+        mut rows: impl futures_util::Stream<Item = Result<sqlx::any::AnyRow, sqlx::Error>> + Unpin,
+        mut each: impl FnMut(&str, Result<Vec<Template>, StoreError>),
+    ) -> Result<(), StoreError> {
         let mut current: Option<SubjectReading> = None;
         while let Some(row) = rows.try_next().await? {
-            let subject: String = row.try_get("subject_id")?;
-            if current.as_ref().is_none_or(|(s, _, _)| *s != subject) {
-                if let Some((done, _, templates)) = current.take() {
-                    each(&done, templates);
-                }
-                current = Some(match self.sealing(&subject, row.try_get("key_id")?, row.try_get("data_key")?) {
-                    Ok(sealing) => (subject, Some(sealing), Ok(Vec::new())),
-                    Err(e) => (subject, None, Err(e)),
-                });
-            }
-            if let Some((subject, Some(sealing), templates @ Ok(_))) = current.as_mut() {
-                match template_from_row(sealing, subject, &row) {
-                    Ok(template) => templates.as_mut().expect("matched Ok").push(template),
-                    Err(e) => *templates = Err(e),
-                }
-            }
+            self.group_by_subject(&mut current, StoredRow::of(&row)?, &mut each);
         }
         if let Some((done, _, templates)) = current.take() {
             each(&done, templates);
         }
         Ok(())
+    }
+
+    /// One row of a read ordered by subject: a new subject hands the one before to `each`.
+    fn group_by_subject(
+        &self,
+        current: &mut Option<SubjectReading>,
+        row: StoredRow,
+        each: &mut impl FnMut(&str, Result<Vec<Template>, StoreError>),
+    ) {
+        if current.as_ref().is_none_or(|(s, _, _)| *s != row.subject) {
+            if let Some((done, _, templates)) = current.take() {
+                each(&done, templates);
+            }
+            *current = Some(match self.sealing(&row.subject, row.key_id, row.data_key) {
+                Ok(sealing) => (row.subject, Some(sealing), Ok(Vec::new())),
+                Err(e) => (row.subject, None, Err(e)),
+            });
+        }
+        if let Some((subject, Some(sealing), templates @ Ok(_))) = current.as_mut() {
+            match open_vector(sealing, subject, row.id, row.dimension, row.model_version, &row.vector) {
+                Ok(template) => templates.as_mut().expect("matched Ok").push(template),
+                Err(e) => *templates = Err(e),
+            }
+        }
     }
 
     /// Subjects ordered by id, at most `limit` of them, starting after the id `after`.

@@ -52,6 +52,14 @@ pub(crate) async fn open(url: &str) -> Result<AnyPool, StoreError> {
     Ok(pool)
 }
 
+/// The database file of the SQLite `url`, or `None` for an in-memory database.
+pub(crate) fn file_of(url: &str) -> Result<Option<PathBuf>, StoreError> {
+    let options = sqlite_options(url)?;
+    let file = options.get_filename();
+    let in_memory = file.as_os_str().is_empty() || file.to_string_lossy().starts_with(":memory:") || url.contains("mode=memory");
+    Ok((!in_memory).then(|| file.to_path_buf()))
+}
+
 impl Store {
     /// Copy the WAL into the database and truncate it (waits for readers, up to the busy
     /// timeout). Whether it completed. SQLite only.

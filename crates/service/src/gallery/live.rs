@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use tokio::sync::watch;
 
-use super::{Gallery, UnreadableTemplates};
+use super::{Found, Gallery, Precision, UnreadableTemplates};
 use crate::{Candidate, Matcher, SubjectId};
 use facegate_store::{ChangeFeed, Store, StoreChange, StoreError};
 use facegate_vision::recognize::Template;
@@ -14,6 +14,13 @@ use facegate_vision::recognize::Template;
 /// Longest an identification waits for the gallery to apply the store's latest change before it
 /// searches the gallery as it is (and logs a warning).
 const CATCH_UP_WAIT: Duration = Duration::from_secs(2);
+
+/// Connections that read the gallery at start-up, each a part of the subjects: one per core (2 to
+/// 8), so that the rows' decoding and quantising run on every core (docs/service.md measures the
+/// load).
+fn load_parts() -> usize {
+    std::thread::available_parallelism().map_or(2, |n| n.get()).clamp(2, 8)
+}
 
 /// Pause before a change that failed to apply (the database unreachable) is tried again, as a
 /// full reload.
@@ -75,22 +82,47 @@ impl Live {
         }
     }
 
-    /// The store's templates of the gallery's model version, read afresh; the subjects whose
-    /// templates cannot be read are noted in it and returned as `(subject, why)`.
+    /// The store's templates of the gallery's model version, read afresh by [`load_parts`]
+    /// connections at once (each part of the subjects into a gallery of its own on its own task,
+    /// then joined in id order onto the first); the subjects whose templates cannot be read are noted in it and
+    /// returned as `(subject, why)`.
     async fn read_gallery(&self) -> Result<(Gallery, Vec<(String, String)>), StoreError> {
-        let version = self.gallery.read().expect("gallery lock").model_version.clone();
-        let mut gallery = Gallery::new(&version);
-        let mut unreadable = Vec::new();
-        self.store
-            .gallery(&version, |subject, templates| match templates {
-                Ok(templates) => gallery.add(subject, &templates),
-                Err(e) => {
-                    unreadable.push((subject.to_string(), e.to_string()));
-                    gallery.mark_unreadable(subject, e.to_string());
-                }
+        let (version, precision) = {
+            let gallery = self.gallery.read().expect("gallery lock");
+            (gallery.model_version.clone(), gallery.precision)
+        };
+        let parts = self.store.gallery_parts(&version, load_parts()).await?;
+        let readers: Vec<_> = parts
+            .into_iter()
+            .map(|part| {
+                let (store, version) = (self.store.clone(), version.clone());
+                tokio::spawn(async move {
+                    let mut gallery = Gallery::with_precision(&version, precision);
+                    let mut unreadable = Vec::new();
+                    store
+                        .gallery_part(&version, &part, |subject, templates| match templates {
+                            Ok(templates) => gallery.add(subject, &templates),
+                            Err(e) => {
+                                unreadable.push((subject.to_string(), e.to_string()));
+                                gallery.mark_unreadable(subject, e.to_string());
+                            }
+                        })
+                        .await?;
+                    Ok::<_, StoreError>((gallery, unreadable))
+                })
             })
-            .await?;
-        Ok((gallery, unreadable))
+            .collect();
+        let mut gallery: Option<Gallery> = None;
+        let mut unreadable = Vec::new();
+        for reader in readers {
+            let (part, cannot_read) = reader.await.expect("a gallery reader does not panic")?;
+            match &mut gallery {
+                Some(gallery) => gallery.absorb(part),
+                None => gallery = Some(part),
+            }
+            unreadable.extend(cannot_read);
+        }
+        Ok((gallery.unwrap_or_else(|| Gallery::with_precision(&version, precision)), unreadable))
     }
 
     /// Apply one change from the feed; returns the store version the gallery now reflects.
@@ -186,12 +218,12 @@ async fn follow(live: Weak<Live>, mut changes: Changes, applied: watch::Sender<i
 }
 
 impl LiveGallery {
-    /// A gallery of `model_version`'s templates in `store`, loaded on [`LiveGallery::load`] or
-    /// first use.
-    pub fn new(store: Store, model_version: &str) -> LiveGallery {
+    /// A gallery of `model_version`'s templates in `store`, held at `precision`, loaded on
+    /// [`LiveGallery::load`] or first use.
+    pub fn new(store: Store, model_version: &str, precision: Precision) -> LiveGallery {
         LiveGallery(Arc::new(Live {
             store,
-            gallery: RwLock::new(Gallery::new(model_version)),
+            gallery: RwLock::new(Gallery::with_precision(model_version, precision)),
             loaded: tokio::sync::OnceCell::new(),
             writes: tokio::sync::Mutex::new(()),
             applied: OnceLock::new(),
@@ -301,14 +333,47 @@ impl LiveGallery {
     }
 
     /// [`Gallery::search`] under the read lock (call it on the work pool: it is CPU work).
-    pub fn search(
+    pub fn search(&self, matcher: &dyn Matcher, probe: &Template, fmr: f64, k: usize) -> Result<(Found, usize), UnreadableTemplates> {
+        self.0.gallery.read().expect("gallery lock").search(matcher, probe, fmr, k)
+    }
+
+    /// The best `k` of a quantised search's shortlist, scored exactly: the subjects' templates of
+    /// the matcher's model version read from the store in one statement (a subject deleted since
+    /// is left out), then [`super::score_each_subject`] over them in id order, so that ties go by
+    /// id as in an exact search.
+    pub async fn rerank(
         &self,
-        matcher: &dyn Matcher,
+        matcher: &(dyn Matcher + Sync),
+        probe: &Template,
+        shortlist: Vec<String>,
+        fmr: f64,
+        k: usize,
+    ) -> Result<Vec<Candidate>, StoreError> {
+        let ids: Vec<SubjectId> = shortlist.iter().filter_map(|s| SubjectId::parse(s).ok()).collect();
+        let mut scored = self.0.store.templates_of(&ids, matcher.model_version()).await?;
+        // In the ids' byte order, as the exact search breaks ties (a database collation may not be).
+        scored.sort_by(|a, b| a.0.cmp(&b.0));
+        Ok(super::score_each_subject(matcher, probe, scored, fmr, k))
+    }
+
+    /// [`LiveGallery::search`] then, for a shortlist, [`LiveGallery::rerank`]: the answer of
+    /// `/identify` (the service runs the search on its work pool; this is for tests and tools).
+    pub async fn identify(
+        &self,
+        matcher: &(dyn Matcher + Sync),
         probe: &Template,
         fmr: f64,
         k: usize,
-    ) -> Result<(Vec<Candidate>, usize), UnreadableTemplates> {
-        self.0.gallery.read().expect("gallery lock").search(matcher, probe, fmr, k)
+    ) -> Result<Result<(Vec<Candidate>, usize), UnreadableTemplates>, StoreError> {
+        let (found, searched) = match self.search(matcher, probe, fmr, k) {
+            Ok(found) => found,
+            Err(e) => return Ok(Err(e)),
+        };
+        let candidates = match found {
+            Found::Decided(candidates) => candidates,
+            Found::Shortlist(shortlist) => self.rerank(matcher, probe, shortlist, fmr, k).await?,
+        };
+        Ok(Ok((candidates, searched)))
     }
 
     /// Subjects and templates held.

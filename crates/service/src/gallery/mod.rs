@@ -12,13 +12,17 @@
 //! the gallery has applied the version the store had when the request came in
 //! ([`LiveGallery::change_version`], [`LiveGallery::wait_until_applied`]).
 //!
-//! Memory: per template, its vector (4 bytes × dimension), its inverse norm and its subject slot
-//! (4 + 4 bytes); per subject, its id and row list (docs/service.md has the measured figure).
+//! Memory: per template, its values (exact: 4 bytes × dimension and an inverse norm; quantised:
+//! half a byte × dimension and a scale) and its subject slot (4 bytes); per subject, its id and
+//! an index entry (docs/service.md has the measured figures).
 
+pub mod codes;
 mod live;
 
-use std::collections::{BTreeMap, HashMap};
-use std::sync::Arc;
+use std::collections::BTreeMap;
+use std::hash::BuildHasher;
+
+use hashbrown::{DefaultHashBuilder, HashTable};
 
 use crate::{Candidate, Decision, Matcher};
 use facegate_core::vector::dot;
@@ -36,53 +40,106 @@ pub struct UnreadableTemplates {
     pub first: String,
 }
 
-/// One subject's place in the gallery: its id and its rows of the matrix.
-#[derive(Debug)]
-struct Slot {
-    id: Arc<str>,
-    rows: Vec<u32>,
+/// How a gallery holds its templates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Precision {
+    /// As floats: the search scores every subject exactly (any matcher).
+    Exact,
+    /// In 4 bits per value ([`codes`]): the search shortlists subjects by their approximate best
+    /// cosine, to be re-scored exactly from the store ([`LiveGallery::rerank`]). For matchers
+    /// whose score is the best cosine; an eighth of the memory and of the bytes scanned.
+    Quantised,
 }
 
-/// The templates of one model version, as a matrix of rows (one per template) with their subjects.
+/// What a search found.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Found {
+    /// The best `k` subjects, scored and decided (an exact gallery).
+    Decided(Vec<Candidate>),
+    /// Subjects whose exact scores decide the answer, in id order (a quantised gallery): the
+    /// best `k + SHORTLIST_MARGIN` by approximate score, or every subject when the approximation
+    /// does not apply (a matcher that is not the best cosine, a probe of another dimension).
+    Shortlist(Vec<String>),
+}
+
+/// Subjects shortlisted beyond the `k` asked for, so that a true top-`k` subject whose
+/// approximate score fell a little is still re-scored (docs/service.md measures the recall).
+pub const SHORTLIST_MARGIN: usize = 32;
+
+/// The templates of one model version with their subjects: per template (row) its values and its
+/// subject slot; per subject slot its id. A subject's rows are found by their slot (a scan of the
+/// slots on deletion, a few milliseconds at ten million) rather than kept in a list per subject,
+/// which would cost more memory than a quantised template.
 #[derive(Debug)]
 pub struct Gallery {
     model_version: String,
+    precision: Precision,
     /// Values per template (0 until the first template).
     dimension: usize,
-    /// Row-major, `rows × dimension`.
+    /// Exact: row-major, `rows × dimension`.
     vectors: Vec<f32>,
-    /// 1 / ‖row‖, or 0 for a zero row (whose cosine is 0, as [`Template::cosine`] has it).
+    /// Exact: 1 / ‖row‖, or 0 for a zero row (whose cosine is 0, as [`Template::cosine`] has it).
     inv_norms: Vec<f32>,
+    /// Quantised: `rows × codes::code_len(dimension)` bytes.
+    codes: Vec<u8>,
+    /// Quantised: each row's factor from integer dot product to cosine.
+    scales: Vec<f32>,
     /// The slot of each row's subject.
     owners: Vec<u32>,
-    slots: Vec<Slot>,
-    slot_of: HashMap<Arc<str>, u32>,
+    /// Each slot's subject id.
+    ids: Vec<Box<str>>,
+    /// Slots by subject id (hashed by `hasher`).
+    slot_of: HashTable<u32>,
+    /// foldhash with a per-process seed: several times faster than SipHash on ten million ids.
+    hasher: DefaultHashBuilder,
     /// Subjects whose templates cannot be read, with why.
     unreadable: BTreeMap<String, String>,
 }
 
 impl Gallery {
+    /// An exact gallery of `model_version`'s templates.
     pub fn new(model_version: &str) -> Gallery {
+        Gallery::with_precision(model_version, Precision::Exact)
+    }
+
+    pub fn with_precision(model_version: &str, precision: Precision) -> Gallery {
         Gallery {
             model_version: model_version.to_string(),
+            precision,
             dimension: 0,
             vectors: Vec::new(),
             inv_norms: Vec::new(),
+            codes: Vec::new(),
+            scales: Vec::new(),
             owners: Vec::new(),
-            slots: Vec::new(),
-            slot_of: HashMap::new(),
+            ids: Vec::new(),
+            slot_of: HashTable::new(),
+            hasher: DefaultHashBuilder::default(),
             unreadable: BTreeMap::new(),
         }
     }
 
+    pub fn model_version(&self) -> &str {
+        &self.model_version
+    }
+
+    pub fn precision(&self) -> Precision {
+        self.precision
+    }
+
     /// Subjects with at least one template.
     pub fn subjects(&self) -> usize {
-        self.slots.len()
+        self.ids.len()
     }
 
     /// Templates held.
     pub fn templates(&self) -> usize {
         self.owners.len()
+    }
+
+    fn find_slot(&self, subject: &str) -> Option<u32> {
+        let hash = self.hasher.hash_one(subject);
+        self.slot_of.find(hash, |&s| &*self.ids[s as usize] == subject).copied()
     }
 
     /// Add `subject`'s templates of this gallery's model version (others are ignored). A template
@@ -92,15 +149,17 @@ impl Gallery {
         if current.peek().is_none() {
             return;
         }
-        let slot = match self.slot_of.get(subject) {
-            Some(&slot) => slot,
+        let (slot, new) = match self.find_slot(subject) {
+            Some(slot) => (slot, false),
             None => {
-                let id: Arc<str> = Arc::from(subject);
-                self.slots.push(Slot { id: id.clone(), rows: Vec::new() });
-                self.slot_of.insert(id, (self.slots.len() - 1) as u32);
-                (self.slots.len() - 1) as u32
+                let slot = self.ids.len() as u32;
+                self.ids.push(Box::from(subject));
+                let (ids, hasher) = (&self.ids, &self.hasher);
+                self.slot_of.insert_unique(hasher.hash_one(subject), slot, |&s| hasher.hash_one(&*ids[s as usize]));
+                (slot, true)
             }
         };
+        let rows_before = self.owners.len();
         for template in current {
             if self.dimension == 0 {
                 self.dimension = template.vector.len();
@@ -110,12 +169,57 @@ impl Gallery {
                 self.unreadable.insert(subject.to_string(), message);
                 continue;
             }
-            let row = self.owners.len() as u32;
-            self.vectors.extend_from_slice(&template.vector);
-            let norm = template.vector.iter().map(|v| v * v).sum::<f32>().sqrt();
-            self.inv_norms.push(if norm > 0.0 { 1.0 / norm } else { 0.0 });
+            match self.precision {
+                Precision::Exact => {
+                    self.vectors.extend_from_slice(&template.vector);
+                    let norm = template.vector.iter().map(|v| v * v).sum::<f32>().sqrt();
+                    self.inv_norms.push(if norm > 0.0 { 1.0 / norm } else { 0.0 });
+                }
+                Precision::Quantised => self.scales.push(codes::encode(&template.vector, &mut self.codes)),
+            }
             self.owners.push(slot);
-            self.slots[slot as usize].rows.push(row);
+        }
+        if new && self.owners.len() == rows_before {
+            // Every template was refused: a new subject holds no row.
+            self.remove_slot(slot);
+        }
+    }
+
+    /// Take in `part`, a gallery of the same model version and precision holding other subjects
+    /// (a part of the store read on its own: [`LiveGallery::load`]). Where the two disagree on
+    /// the dimension, `part`'s subjects are noted unreadable, as [`Gallery::add`] notes a
+    /// template of another dimension.
+    pub fn absorb(&mut self, part: Gallery) {
+        assert_eq!((&self.model_version, self.precision), (&part.model_version, part.precision), "parts of one gallery");
+        self.unreadable.extend(part.unreadable);
+        if part.dimension != 0 && self.dimension != 0 && part.dimension != self.dimension {
+            for id in part.ids {
+                let message = format!("templates of {} values in a gallery of {}", part.dimension, self.dimension);
+                self.unreadable.insert(id.into(), message);
+            }
+            return;
+        }
+        if self.dimension == 0 {
+            self.dimension = part.dimension;
+        }
+        let offset = self.ids.len() as u32;
+        // Exactly: a doubling of ten million codes would be a gigabyte more at the peak.
+        self.owners.reserve_exact(part.owners.len());
+        self.codes.reserve_exact(part.codes.len());
+        self.scales.reserve_exact(part.scales.len());
+        self.ids.reserve_exact(part.ids.len());
+        self.owners.extend(part.owners.iter().map(|o| o + offset));
+        self.vectors.extend_from_slice(&part.vectors);
+        self.inv_norms.extend_from_slice(&part.inv_norms);
+        self.codes.extend_from_slice(&part.codes);
+        self.scales.extend_from_slice(&part.scales);
+        self.slot_of.reserve(part.ids.len(), |&s| self.hasher.hash_one(&*self.ids[s as usize]));
+        for id in part.ids {
+            let slot = self.ids.len() as u32;
+            let hash = self.hasher.hash_one(&*id);
+            self.ids.push(id);
+            let (ids, hasher) = (&self.ids, &self.hasher);
+            self.slot_of.insert_unique(hash, slot, |&s| hasher.hash_one(&*ids[s as usize]));
         }
     }
 
@@ -124,25 +228,32 @@ impl Gallery {
         self.unreadable.insert(subject.to_string(), why);
     }
 
-    /// Remove `subject` and all its templates. Rows and slots are filled from the end, so the
-    /// matrix stays contiguous.
+    /// Remove `subject` and all its templates. The last rows and the last slot fill the holes, so
+    /// the arrays stay contiguous.
     pub fn remove(&mut self, subject: &str) {
         self.unreadable.remove(subject);
-        let Some(slot) = self.slot_of.remove(subject) else { return };
-        let mut rows = std::mem::take(&mut self.slots[slot as usize].rows);
-        // Highest first, so that a row moved into a hole is never one still to be removed.
-        rows.sort_unstable_by(|a, b| b.cmp(a));
-        for row in rows {
-            self.remove_row(row as usize);
+        if let Some(slot) = self.find_slot(subject) {
+            self.remove_slot(slot);
         }
-        let last = self.slots.len() - 1;
-        self.slots.swap_remove(slot as usize);
-        if (slot as usize) < last {
-            let moved = &self.slots[slot as usize];
-            for &row in &moved.rows {
-                self.owners[row as usize] = slot;
+    }
+
+    fn remove_slot(&mut self, slot: u32) {
+        // Highest first, so that a row moved into a hole is never one still to be removed.
+        let rows: Vec<usize> = (0..self.owners.len()).rev().filter(|&r| self.owners[r] == slot).collect();
+        for row in rows {
+            self.remove_row(row);
+        }
+        let hash = self.hasher.hash_one(&*self.ids[slot as usize]);
+        self.slot_of.find_entry(hash, |&s| s == slot).expect("a slot is indexed by its id").remove();
+        let last = (self.ids.len() - 1) as u32;
+        self.ids.swap_remove(slot as usize);
+        if slot < last {
+            // The last slot moved into the hole: its rows and its index entry follow.
+            for owner in self.owners.iter_mut().filter(|o| **o == last) {
+                *owner = slot;
             }
-            self.slot_of.insert(moved.id.clone(), slot);
+            let hash = self.hasher.hash_one(&*self.ids[slot as usize]);
+            *self.slot_of.find_mut(hash, |&s| s == last).expect("a slot is indexed by its id") = slot;
         }
         if self.owners.is_empty() {
             self.dimension = 0;
@@ -151,16 +262,20 @@ impl Gallery {
 
     fn remove_row(&mut self, row: usize) {
         let last = self.owners.len() - 1;
-        let d = self.dimension;
-        if row < last {
-            self.vectors.copy_within(last * d..(last + 1) * d, row * d);
-            let owner = self.owners[last];
-            let rows = &mut self.slots[owner as usize].rows;
-            let at = rows.iter().position(|&r| r as usize == last).expect("a row is listed by its subject");
-            rows[at] = row as u32;
+        match self.precision {
+            Precision::Exact => {
+                let d = self.dimension;
+                self.vectors.copy_within(last * d..(last + 1) * d, row * d);
+                self.vectors.truncate(last * d);
+                self.inv_norms.swap_remove(row);
+            }
+            Precision::Quantised => {
+                let len = codes::code_len(self.dimension);
+                self.codes.copy_within(last * len..(last + 1) * len, row * len);
+                self.codes.truncate(last * len);
+                self.scales.swap_remove(row);
+            }
         }
-        self.vectors.truncate(last * d);
-        self.inv_norms.swap_remove(row);
         self.owners.swap_remove(row);
     }
 
@@ -168,29 +283,46 @@ impl Gallery {
         &self.vectors[row * self.dimension..(row + 1) * self.dimension]
     }
 
-    /// The best `k` subjects for `probe`, best first (ties by subject id), each decided at the
-    /// threshold for its number of templates: what [`super::identify`] gives for the same
-    /// templates. For a matcher whose score is the best cosine ([`Matcher::max_cosine_scoring`]),
-    /// scores come from the matrix; for any other, from its own `score` over each subject's
-    /// templates. Also returns the number of subjects searched.
-    pub fn search(
-        &self,
-        matcher: &dyn Matcher,
-        probe: &Template,
-        fmr: f64,
-        k: usize,
-    ) -> Result<(Vec<Candidate>, usize), UnreadableTemplates> {
+    /// Each slot's rows, in row order.
+    fn rows_by_slot(&self) -> Vec<Vec<u32>> {
+        let mut rows = vec![Vec::new(); self.ids.len()];
+        for (row, &owner) in self.owners.iter().enumerate() {
+            rows[owner as usize].push(row as u32);
+        }
+        rows
+    }
+
+    /// The best `k` subjects for `probe`. An exact gallery decides them (best first, ties by
+    /// subject id, each at the threshold for its number of templates): what
+    /// [`score_each_subject`] gives for the same templates; for a matcher whose score is the best
+    /// cosine ([`Matcher::max_cosine_scoring`]) scores come from the matrix, for any other from
+    /// its own `score`. A quantised gallery shortlists them ([`Found::Shortlist`]). Also returns
+    /// the number of subjects searched.
+    pub fn search(&self, matcher: &dyn Matcher, probe: &Template, fmr: f64, k: usize) -> Result<(Found, usize), UnreadableTemplates> {
         if let Some((first, _)) = self.unreadable.iter().next() {
             return Err(UnreadableTemplates { count: self.unreadable.len(), first: first.clone() });
         }
-        let scores = if matcher.max_cosine_scoring() && probe.vector.len() == self.dimension {
+        let cosine = matcher.max_cosine_scoring() && probe.vector.len() == self.dimension;
+        let found = match self.precision {
+            Precision::Quantised if cosine => Found::Shortlist(self.shortlist(&probe.vector, k + SHORTLIST_MARGIN)),
+            Precision::Quantised => {
+                let mut everyone: Vec<String> = self.ids.iter().map(|id| id.to_string()).collect();
+                everyone.sort_unstable();
+                Found::Shortlist(everyone)
+            }
+            Precision::Exact => Found::Decided(self.decide_exactly(matcher, probe, fmr, k, cosine)),
+        };
+        Ok((found, self.ids.len()))
+    }
+
+    fn decide_exactly(&self, matcher: &dyn Matcher, probe: &Template, fmr: f64, k: usize, cosine: bool) -> Vec<Candidate> {
+        let rows = self.rows_by_slot();
+        let scores = if cosine {
             self.best_cosines(&probe.vector)
         } else {
-            self.slots
-                .iter()
-                .map(|slot| {
-                    let templates: Vec<Template> = slot
-                        .rows
+            rows.iter()
+                .map(|rows| {
+                    let templates: Vec<Template> = rows
                         .iter()
                         .map(|&r| Template { model_version: self.model_version.clone(), vector: self.row(r as usize).to_vec() })
                         .collect();
@@ -198,29 +330,27 @@ impl Gallery {
                 })
                 .collect()
         };
-        let mut order: Vec<u32> = (0..self.slots.len() as u32).collect();
+        let mut order: Vec<u32> = (0..self.ids.len() as u32).collect();
         let rank = |a: &u32, b: &u32| {
-            scores[*b as usize].total_cmp(&scores[*a as usize]).then_with(|| self.slots[*a as usize].id.cmp(&self.slots[*b as usize].id))
+            scores[*b as usize].total_cmp(&scores[*a as usize]).then_with(|| self.ids[*a as usize].cmp(&self.ids[*b as usize]))
         };
         if k < order.len() {
             order.select_nth_unstable_by(k, rank);
             order.truncate(k);
         }
         order.sort_unstable_by(rank);
-        let candidates = order
+        order
             .into_iter()
             .map(|s| {
-                let (score, templates) = (scores[s as usize], self.slots[s as usize].rows.len());
-                let decision = Decision::at(matcher, score, templates, fmr);
-                Candidate { subject: self.slots[s as usize].id.to_string(), decision }
+                let decision = Decision::at(matcher, scores[s as usize], rows[s as usize].len(), fmr);
+                Candidate { subject: self.ids[s as usize].to_string(), decision }
             })
-            .collect();
-        Ok((candidates, self.slots.len()))
+            .collect()
     }
 
     /// Each subject's best cosine with `probe`: one pass over the matrix.
     fn best_cosines(&self, probe: &[f32]) -> Vec<f32> {
-        let mut best = vec![f32::NEG_INFINITY; self.slots.len()];
+        let mut best = vec![f32::NEG_INFINITY; self.ids.len()];
         let probe_norm = probe.iter().map(|v| v * v).sum::<f32>().sqrt();
         let inv_probe = if probe_norm > 0.0 { 1.0 / probe_norm } else { 0.0 };
         if self.dimension == 0 {
@@ -232,6 +362,20 @@ impl Gallery {
             *b = b.max(cosine);
         }
         best
+    }
+
+    /// The `n` subjects with the best approximate cosine (one scan of the codes), in id order.
+    fn shortlist(&self, probe: &[f32], n: usize) -> Vec<String> {
+        let probe = codes::QuantisedProbe::new(probe);
+        let mut best = codes::Best::new(n);
+        codes::scan(&self.codes, &self.scales, &probe, |row, cosine| {
+            if cosine > best.floor() {
+                best.offer(self.owners[row], cosine);
+            }
+        });
+        let mut subjects: Vec<String> = best.slots().map(|s| self.ids[s as usize].to_string()).collect();
+        subjects.sort_unstable();
+        subjects
     }
 }
 

@@ -158,25 +158,40 @@ impl EmbeddingRecognizer {
         let embeddings: Vec<Vec<f32>> = self
             .networks
             .iter()
-            .map(|network| match network {
-                MemberNetwork::Dlib(net) => {
-                    let owned;
-                    let chip = match dlib_chip {
-                        Some(chip) => chip,
-                        None => {
-                            owned = crate::embed::face_chip(photo, keypoints);
-                            &owned
-                        }
-                    };
-                    let pair = crate::embed::chip_mirror_pair(net, chip);
-                    let mean = pair.mean().0.to_vec();
-                    dlib_pair = Some(pair);
-                    mean
-                }
-                MemberNetwork::Onnx(net) => net.embed(&net.chip(photo, keypoints, points)),
+            .map(|network| {
+                let (embedding, pair) = self.embed_with(network, photo, keypoints, points, dlib_chip);
+                dlib_pair = dlib_pair.or(pair);
+                embedding
             })
             .collect();
         EmbeddedFace { template: self.model.template(&embeddings), dlib_pair }
+    }
+
+    /// One member network's embedding of the face (before the fusion's weighting), and dlib's
+    /// mirror pair when the network is dlib's.
+    pub fn embed_with(
+        &self,
+        network: &MemberNetwork,
+        photo: &RgbImage,
+        keypoints: &KeyPoints,
+        points: Option<&[Point; 5]>,
+        dlib_chip: Option<&FaceChip>,
+    ) -> (Vec<f32>, Option<MirrorPair>) {
+        match network {
+            MemberNetwork::Dlib(net) => {
+                let owned;
+                let chip = match dlib_chip {
+                    Some(chip) => chip,
+                    None => {
+                        owned = crate::embed::face_chip(photo, keypoints);
+                        &owned
+                    }
+                };
+                let pair = crate::embed::chip_mirror_pair(net, chip);
+                (pair.mean().0.to_vec(), Some(pair))
+            }
+            MemberNetwork::Onnx(net) => (net.embed(&net.chip(photo, keypoints, points)), None),
+        }
     }
 
     /// The best cosine of `probe` against the subject's templates.

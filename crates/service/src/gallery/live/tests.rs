@@ -48,57 +48,141 @@ fn summary(found: &[Candidate]) -> Vec<(String, usize, bool)> {
     found.iter().map(|c| (c.subject.clone(), c.decision.templates_compared, c.decision.is_match)).collect()
 }
 
+/// The same subjects, decisions and thresholds, scores within 1e-5 (a subject's templates may be
+/// summed in another order).
+fn assert_same(found: &[Candidate], expected: &[Candidate], what: &str) {
+    assert_eq!(summary(found), summary(expected), "{what}");
+    for (a, b) in found.iter().zip(expected) {
+        assert!((a.decision.score - b.decision.score).abs() < 1e-5, "{what}: {} vs {}", a.decision.score, b.decision.score);
+        assert_eq!(a.decision.threshold, b.decision.threshold);
+    }
+}
+
+/// The exact search's answer.
+fn decided(found: (Found, usize)) -> (Vec<Candidate>, usize) {
+    match found {
+        (Found::Decided(candidates), searched) => (candidates, searched),
+        (Found::Shortlist(_), _) => panic!("an exact gallery decides"),
+    }
+}
+
+/// The quantised search's shortlist, re-scored from `reference` as the service re-scores it
+/// from the store.
+fn reranked(
+    found: (Found, usize),
+    reference: &BTreeMap<String, Vec<Template>>,
+    matcher: &dyn Matcher,
+    probe: &Template,
+    k: usize,
+) -> (Vec<Candidate>, usize) {
+    match found {
+        (Found::Shortlist(shortlist), searched) => {
+            let mut sorted = shortlist.clone();
+            sorted.sort();
+            assert_eq!(shortlist, sorted, "in id order");
+            let scored = shortlist.into_iter().map(|s| (s.clone(), reference[&s].clone())).collect();
+            (score_each_subject(matcher, probe, scored, 1e-3, k), searched)
+        }
+        (Found::Decided(_), _) => panic!("a quantised gallery shortlists"),
+    }
+}
+
 /// The gallery's answer is `service::identify`'s over the same subjects and templates, through
-/// additions, other versions, zero vectors and removals.
+/// additions, other versions, zero vectors and removals: the exact gallery's at once, the
+/// quantised one's after its shortlist is re-scored.
 #[test]
 fn search_equals_identify_through_adds_and_removes() {
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
-    let mut gallery = Gallery::new("v1");
-    let mut reference: BTreeMap<String, Vec<Template>> = BTreeMap::new();
-    for i in 0..300 {
-        let subject = format!("s{:03}", i % 120);
-        let mut templates = vec![random_template(&mut rng, "v1", 20)];
-        if i % 7 == 0 {
-            templates.push(random_template(&mut rng, "v0", 20));
-        }
-        if i == 11 {
-            templates.push(Template::new("v1", vec![0.0; 20]));
-        }
-        gallery.add(&subject, &templates);
-        reference.entry(subject).or_default().extend(templates.into_iter().filter(|t| t.model_version == "v1"));
-    }
-    for i in (0..120).step_by(3) {
-        let subject = format!("s{i:03}");
-        gallery.remove(&subject);
-        reference.remove(&subject);
-    }
-    gallery.remove("nobody");
-    assert_eq!(gallery.subjects(), reference.len());
-    assert_eq!(gallery.templates(), reference.values().map(Vec::len).sum::<usize>());
-    for trial in 0..20 {
-        let probe = random_template(&mut rng, "v1", 20);
-        let k = [1, 5, 100, 1000][trial % 4];
-        let expected = score_each_subject(&Cosine { general: true }, &probe, reference.clone().into_iter().collect(), 1e-3, k);
-        for general in [false, true] {
-            let (found, searched) = gallery.search(&Cosine { general }, &probe, 1e-3, k).unwrap();
-            assert_eq!(searched, reference.len());
-            assert_eq!(summary(&found), summary(&expected), "general path: {general}");
-            for (a, b) in found.iter().zip(&expected) {
-                assert!((a.decision.score - b.decision.score).abs() < 1e-5, "{} vs {}", a.decision.score, b.decision.score);
-                assert_eq!(a.decision.threshold, b.decision.threshold);
+    for precision in [Precision::Exact, Precision::Quantised] {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let mut gallery = Gallery::with_precision("v1", precision);
+        let mut reference: BTreeMap<String, Vec<Template>> = BTreeMap::new();
+        for i in 0..300 {
+            let subject = format!("s{:03}", i % 120);
+            let mut templates = vec![random_template(&mut rng, "v1", 20)];
+            if i % 7 == 0 {
+                templates.push(random_template(&mut rng, "v0", 20));
             }
+            if i == 11 {
+                templates.push(Template::new("v1", vec![0.0; 20]));
+            }
+            gallery.add(&subject, &templates);
+            reference.entry(subject).or_default().extend(templates.into_iter().filter(|t| t.model_version == "v1"));
         }
-        // A matcher that is not a cosine scores through its own `score`.
-        let expected = score_each_subject(&Mean, &probe, reference.clone().into_iter().collect(), 1e-3, k);
-        let (found, _) = gallery.search(&Mean, &probe, 1e-3, k).unwrap();
-        assert_eq!(found, expected);
+        for i in (0..120).step_by(3) {
+            let subject = format!("s{i:03}");
+            gallery.remove(&subject);
+            reference.remove(&subject);
+        }
+        gallery.remove("nobody");
+        assert_eq!(gallery.subjects(), reference.len());
+        assert_eq!(gallery.templates(), reference.values().map(Vec::len).sum::<usize>());
+        for trial in 0..20 {
+            let probe = random_template(&mut rng, "v1", 20);
+            let k = [1, 5, 100, 1000][trial % 4];
+            let expected = score_each_subject(&Cosine { general: true }, &probe, reference.clone().into_iter().collect(), 1e-3, k);
+            for general in [false, true] {
+                let matcher = Cosine { general };
+                let found = gallery.search(&matcher, &probe, 1e-3, k).unwrap();
+                let (found, searched) = match precision {
+                    Precision::Exact => decided(found),
+                    Precision::Quantised => reranked(found, &reference, &matcher, &probe, k),
+                };
+                assert_eq!(searched, reference.len());
+                assert_same(&found, &expected, &format!("{precision:?}, general path: {general}"));
+            }
+            // A matcher that is not a cosine scores through its own `score`.
+            let expected = score_each_subject(&Mean, &probe, reference.clone().into_iter().collect(), 1e-3, k);
+            let found = gallery.search(&Mean, &probe, 1e-3, k).unwrap();
+            let (found, _) = match precision {
+                Precision::Exact => decided(found),
+                Precision::Quantised => reranked(found, &reference, &Mean, &probe, k),
+            };
+            assert_same(&found, &expected, &format!("{precision:?}, mean"));
+        }
+        // Everything removed: an empty gallery answers with no candidate.
+        for subject in reference.keys() {
+            gallery.remove(subject);
+        }
+        assert_eq!((gallery.subjects(), gallery.templates(), gallery.vectors.len(), gallery.codes.len()), (0, 0, 0, 0));
+        let found = gallery.search(&Cosine { general: false }, &random_template(&mut rng, "v1", 20), 1e-3, 5).unwrap();
+        let empty = match found {
+            (Found::Decided(c), 0) => c.is_empty(),
+            (Found::Shortlist(s), 0) => s.is_empty(),
+            _ => false,
+        };
+        assert!(empty, "{precision:?}");
     }
-    // Everything removed: an empty gallery answers with no candidate.
-    for subject in reference.keys() {
-        gallery.remove(subject);
+}
+
+/// The quantised shortlist holds the exact search's best subject on a gallery of 20,000
+/// 256-value templates, for probes that are noisy copies of an enrolled template (a genuine
+/// search) and for random ones (an impostor's, where the best scores lie close together).
+#[test]
+fn the_shortlist_holds_the_exact_best() {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+    let mut gallery = Gallery::with_precision("v1", Precision::Quantised);
+    let exact = {
+        let mut exact = Gallery::new("v1");
+        for i in 0..20_000 {
+            let t = random_template(&mut rng, "v1", 256);
+            gallery.add(&format!("s{i:05}"), std::slice::from_ref(&t));
+            exact.add(&format!("s{i:05}"), &[t]);
+        }
+        exact
+    };
+    let matcher = Cosine { general: false };
+    for trial in 0..40 {
+        let probe = if trial % 2 == 0 {
+            let enrolled = &exact.vectors[(trial * 97) * 256..(trial * 97 + 1) * 256];
+            Template::new("v1", enrolled.iter().map(|v| v + rng.random_range(-1.0f32..1.0)).collect())
+        } else {
+            random_template(&mut rng, "v1", 256)
+        };
+        let (best, _) = decided(exact.search(&matcher, &probe, 1e-3, 1).unwrap());
+        let (Found::Shortlist(shortlist), _) = gallery.search(&matcher, &probe, 1e-3, 1).unwrap() else { panic!("a shortlist") };
+        assert_eq!(shortlist.len(), 1 + SHORTLIST_MARGIN);
+        assert!(shortlist.contains(&best[0].subject), "trial {trial}: {} not shortlisted", best[0].subject);
     }
-    assert_eq!((gallery.subjects(), gallery.templates(), gallery.vectors.len()), (0, 0, 0));
-    assert!(gallery.search(&Cosine { general: false }, &random_template(&mut rng, "v1", 20), 1e-3, 5).unwrap().0.is_empty());
 }
 
 #[test]
@@ -114,7 +198,7 @@ fn unreadable_subjects_refuse_the_search_until_erased() {
     gallery.remove("bob");
     assert!(gallery.search(&Cosine { general: false }, &probe, 1e-3, 5).is_err());
     gallery.remove("carol");
-    let (found, searched) = gallery.search(&Cosine { general: false }, &probe, 1e-3, 5).unwrap();
+    let (found, searched) = decided(gallery.search(&Cosine { general: false }, &probe, 1e-3, 5).unwrap());
     assert_eq!((found[0].subject.as_str(), searched), ("alice", 1));
 }
 
@@ -128,7 +212,7 @@ async fn the_live_gallery_stays_in_step_with_the_store() {
     let store = Store::connect(&url, None).await.unwrap();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
     store.enroll(&SubjectId::parse("before").unwrap(), &[random_template(&mut rng, "v1", 16)]).await.unwrap();
-    let live = LiveGallery::new(store.clone(), "v1");
+    let live = LiveGallery::new(store.clone(), "v1", Precision::Quantised);
     let mut tasks = Vec::new();
     for i in 0..120 {
         let live = live.clone();
@@ -153,7 +237,7 @@ async fn the_live_gallery_stays_in_step_with_the_store() {
     // to the writes lock, which is fair, soon after).
     tokio::time::sleep(std::time::Duration::from_millis(300)).await;
     drop(live.0.writes.lock().await);
-    let fresh = LiveGallery::new(store.clone(), "v1");
+    let fresh = LiveGallery::new(store.clone(), "v1", Precision::Quantised);
     assert!(fresh.load().await.unwrap().is_empty());
     assert_eq!(live.size(), fresh.size());
     let (subjects, templates) = store.counts().await.unwrap();
@@ -162,7 +246,9 @@ async fn the_live_gallery_stays_in_step_with_the_store() {
     for _ in 0..10 {
         let probe = random_template(&mut rng, "v1", 16);
         let matcher = Cosine { general: false };
-        assert_eq!(live.search(&matcher, &probe, 1e-3, 20).unwrap(), fresh.search(&matcher, &probe, 1e-3, 20).unwrap());
+        let answer = live.identify(&matcher, &probe, 1e-3, 20).await.unwrap().unwrap();
+        assert_eq!(answer, fresh.identify(&matcher, &probe, 1e-3, 20).await.unwrap().unwrap());
+        assert_eq!(answer.0.len(), answer.1, "k = 20 is more than the subjects: all are answered");
     }
     store.close().await;
     std::fs::remove_dir_all(dir).unwrap();
@@ -188,7 +274,7 @@ async fn the_live_gallery_follows_a_change_feed() {
     let store = Store::connect(&url, None).await.unwrap();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
     let id = |s: &str| SubjectId::parse(s).unwrap();
-    let live = LiveGallery::new(store.clone(), "v1");
+    let live = LiveGallery::new(store.clone(), "v1", Precision::Quantised);
     assert!(live.load().await.unwrap().is_empty());
     assert_eq!((applied(&live), live.change_version().await.unwrap()), (None, None), "SQLite: no feed, nothing to wait for");
     let (changes, script) = tokio::sync::mpsc::unbounded_channel();
@@ -201,7 +287,7 @@ async fn the_live_gallery_follows_a_change_feed() {
     notify("alice", 1);
     live.wait_until_applied(Some(1)).await;
     assert_eq!((applied(&live), live.size()), (Some(1), (1, 1)), "only the gallery's model version");
-    assert_eq!(live.search(&matcher, &alice, 1e-3, 1).unwrap().0[0].subject, "alice");
+    assert_eq!(live.identify(&matcher, &alice, 1e-3, 1).await.unwrap().unwrap().0[0].subject, "alice");
     store.enroll(&id("alice"), &[random_template(&mut rng, "v1", 16)]).await.unwrap();
     notify("alice", 2);
     // The notification of a write already applied (this replica's own) changes nothing.
@@ -222,7 +308,7 @@ async fn the_live_gallery_follows_a_change_feed() {
     other.delete_subject(&id("dave")).await.unwrap();
     notify("dave", 5);
     live.wait_until_applied(Some(5)).await;
-    assert!(live.search(&matcher, &alice, 1e-3, 1).unwrap().0.is_empty());
+    assert!(live.identify(&matcher, &alice, 1e-3, 1).await.unwrap().unwrap().0.is_empty());
 
     // Changes whose notifications were lost: a resync reads them all.
     for name in ["bob", "carol"] {
@@ -232,10 +318,13 @@ async fn the_live_gallery_follows_a_change_feed() {
     notify("nobody", 6);
     live.wait_until_applied(Some(6)).await;
     assert_eq!((applied(&live), live.size()), (Some(6), (2, 2)));
-    let fresh = LiveGallery::new(store.clone(), "v1");
+    let fresh = LiveGallery::new(store.clone(), "v1", Precision::Quantised);
     fresh.load().await.unwrap();
     let probe = random_template(&mut rng, "v1", 16);
-    assert_eq!(live.search(&matcher, &probe, 1e-3, 5).unwrap(), fresh.search(&matcher, &probe, 1e-3, 5).unwrap());
+    assert_eq!(
+        live.identify(&matcher, &probe, 1e-3, 5).await.unwrap().unwrap(),
+        fresh.identify(&matcher, &probe, 1e-3, 5).await.unwrap().unwrap()
+    );
 
     // The feed ends: waiting for a version never applied returns at once.
     drop(changes);
@@ -255,7 +344,7 @@ async fn waiting_for_the_gallery_is_bounded() {
     let dir = std::env::temp_dir().join(format!("facegate-gallery-wait-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let store = Store::connect(&format!("sqlite://{}", dir.join("g.db").display()), None).await.unwrap();
-    let live = LiveGallery::new(store.clone(), "v1");
+    let live = LiveGallery::new(store.clone(), "v1", Precision::Quantised);
     let (_changes, script) = tokio::sync::mpsc::unbounded_channel();
     live.follow(Changes::Script(script), 7);
     let start = std::time::Instant::now();
