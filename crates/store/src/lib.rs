@@ -223,6 +223,25 @@ pub struct RekeyReport {
 /// data key cannot be opened), and its templates so far or why they cannot be read.
 type SubjectReading = (String, Option<Sealing>, Result<Vec<Template>, StoreError>);
 
+/// The gallery read of `part` (the columns [`StoredRow::of`] takes), its parameters named by
+/// `placeholder` (`$n` for sqlx, `?n` for SQLite's C API): 1 the model version, 2 the lower bound
+/// ('' sorts before every id, and ids are never empty), 3 the upper bound, left out of the
+/// statement when there is none so that the index range ends where the part does.
+fn gallery_statement(part: &GalleryPart, placeholder: impl Fn(usize) -> String) -> String {
+    let through = match part.through {
+        Some(_) => format!("AND t.subject_id <= {}", placeholder(3)),
+        None => String::new(),
+    };
+    format!(
+        "SELECT t.id, t.subject_id, t.model_version, t.dimension, t.vector, s.key_id, s.data_key
+         FROM templates t JOIN subjects s ON s.id = t.subject_id
+         WHERE t.model_version = {} AND t.subject_id > {} {through}
+         ORDER BY t.subject_id, t.id",
+        placeholder(1),
+        placeholder(2)
+    )
+}
+
 /// The subjects with ids after `after` and up to `through` (inclusive); `None` is unbounded.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct GalleryPart {
@@ -434,15 +453,7 @@ impl Store {
             let read = reader.await.expect("the SQLite gallery reader does not panic");
             return read.map_err(|e| StoreError::Refused(format!("reading the gallery from {}: {e}", path.display())));
         }
-        // '' sorts before every id (ids are never empty); the upper bound is left out of the
-        // statement when there is none, so that the index range ends where the part does.
-        let statement = format!(
-            "SELECT t.id, t.subject_id, t.model_version, t.dimension, t.vector, s.key_id, s.data_key
-             FROM templates t JOIN subjects s ON s.id = t.subject_id
-             WHERE t.model_version = $1 AND t.subject_id > $2 {}
-             ORDER BY t.subject_id, t.id",
-            if part.through.is_some() { "AND t.subject_id <= $3" } else { "" }
-        );
+        let statement = gallery_statement(part, |n| format!("${n}"));
         let mut query = sqlx::query(&statement).bind(model_version).bind(part.after.as_deref().unwrap_or(""));
         if let Some(through) = &part.through {
             query = query.bind(through.as_str());

@@ -18,17 +18,6 @@ use crate::codec::StoredRow;
 /// Rows per batch sent to the caller: one wake-up per batch rather than per row.
 pub(crate) const BATCH: usize = 2048;
 
-/// The columns of [`StoredRow::of`], in that order, for `part`; `?1` is the model version.
-fn statement(part: &GalleryPart) -> String {
-    format!(
-        "SELECT t.id, t.subject_id, t.model_version, t.dimension, t.vector, s.key_id, s.data_key
-         FROM templates t JOIN subjects s ON s.id = t.subject_id
-         WHERE t.model_version = ?1 AND t.subject_id > ?2 {}
-         ORDER BY t.subject_id, t.id",
-        if part.through.is_some() { "AND t.subject_id <= ?3" } else { "" }
-    )
-}
-
 /// An open read-only connection, closed on drop.
 struct Connection(NonNull<ffi::sqlite3>);
 
@@ -139,7 +128,7 @@ pub(crate) fn read_gallery_part(
     mut send: impl FnMut(Vec<StoredRow>) -> bool,
 ) -> Result<(), String> {
     let connection = Connection::open(path)?;
-    let mut statement = connection.prepare(&statement(part))?;
+    let mut statement = connection.prepare(&crate::gallery_statement(part, |n| format!("?{n}")))?;
     statement.bind_text(1, model_version)?;
     statement.bind_text(2, part.after.as_deref().unwrap_or(""))?;
     if let Some(through) = &part.through {
