@@ -56,11 +56,7 @@ pub struct DeepModel {
 impl DeepModel {
     /// The version string of a projection and chip source.
     pub fn version_of(projection: Option<&Dlda>, chip_source: ChipSource, network_sha256: &str) -> String {
-        use sha2::Digest;
-        let mut h = sha2::Sha256::new();
-        h.update(postcard::to_stdvec(&(projection, chip_source, network_sha256)).expect("serialisable"));
-        let hex: String = h.finalize().iter().take(6).map(|b| format!("{b:02x}")).collect();
-        format!("deep-{hex}")
+        super::model_version("deep", &postcard::to_stdvec(&(projection, chip_source, network_sha256)).expect("serialisable"))
     }
 
     pub fn load(path: &Path) -> Result<DeepModel, RecognizeError> {

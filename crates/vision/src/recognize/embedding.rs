@@ -73,11 +73,7 @@ pub struct EmbeddingModel {
 
 impl EmbeddingModel {
     pub fn version_of(members: &[Member]) -> String {
-        use sha2::Digest;
-        let mut h = sha2::Sha256::new();
-        h.update(postcard::to_stdvec(members).expect("serialisable"));
-        let hex: String = h.finalize().iter().take(6).map(|b| format!("{b:02x}")).collect();
-        format!("emb-{hex}")
+        super::model_version("emb", &postcard::to_stdvec(members).expect("serialisable"))
     }
 
     pub fn load(path: &Path) -> Result<EmbeddingModel, RecognizeError> {

@@ -106,6 +106,14 @@ impl<T> Views<T> {
     }
 }
 
+/// A model version: `prefix`, a dash and the first 12 hex digits of the SHA-256 of `shape` (the
+/// serialised parts of a model that shape its templates). Templates of different versions are
+/// never compared, so a version must not change while the model's templates do not.
+pub(crate) fn model_version(prefix: &str, shape: &[u8]) -> String {
+    let hex: String = Sha256::digest(shape).iter().take(6).map(|b| format!("{b:02x}")).collect();
+    format!("{prefix}-{hex}")
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum RecognizeError {
     #[error("cannot write {path}: {message}")]
@@ -282,9 +290,7 @@ impl ClassicalModel {
         let shape = (&self.normalization, &self.normalize, &self.features, &self.dlda, &self.secondary);
         let bytes = if self.parts.is_empty() { postcard::to_stdvec(&shape) } else { postcard::to_stdvec(&(shape, &self.parts)) }
             .expect("model serialises");
-        let digest = Sha256::digest(&bytes);
-        let hex: String = digest.iter().take(6).map(|b| format!("{b:02x}")).collect();
-        format!("dlda-{hex}")
+        model_version("dlda", &bytes)
     }
 
     /// The normalisation paths a template is made of, primary first.
