@@ -17,7 +17,7 @@ use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PipelineError};
 use facegate_vision::quality::{Failure, QualityPolicy};
 use facegate_vision::recognize::{OperatingPoint, Template};
 
-use crate::gallery::{Found, LiveGallery, Precision, UnreadableTemplates};
+use crate::gallery::{LiveGallery, Precision, UnreadableTemplates};
 use crate::inspect::{self, Analysis, InspectError};
 use crate::liveness::{LivenessPolicy, PresentationAttack};
 use crate::{Candidate, Decision, FaceEngine, PoolError, VerifyError, WorkPool};
@@ -438,13 +438,8 @@ impl Facegate {
         // Scanning the whole gallery is CPU work too: it runs on the pool.
         let searching = gallery.clone();
         let (found, subjects_searched) = self.0.pool.run(move || searching.search(matcher.as_ref(), &probe, fmr, k)).await??;
-        let candidates = match found {
-            Found::Decided(candidates) => candidates,
-            Found::Shortlist(shortlist) => {
-                let engine = self.0.engine.as_ref();
-                self.read_store(gallery.rerank(engine, &photo.analysis.template, shortlist, fmr, k)).await?
-            }
-        };
+        let engine = self.0.engine.as_ref();
+        let candidates = self.read_store(gallery.rerank(engine, &photo.analysis.template, found, fmr, k)).await?;
         let operating_point = self.0.engine.operating_point(fmr, 1);
         Ok(Identification { candidates, operating_point, subjects_searched, photo, match_ms: elapsed_ms(start) })
     }

@@ -462,7 +462,7 @@ impl Store {
     }
 
     /// The templates of `model_version` of each of `subjects` that holds any, in subject id
-    /// order, in one statement: the identification's exact re-scoring of its shortlist. A
+    /// order (bytewise on both backends), in one statement: the identification's exact re-scoring of its shortlist. A
     /// subject whose templates cannot be read fails the read, as in [`Store::templates`].
     pub async fn templates_of(&self, subjects: &[SubjectId], model_version: &str) -> Result<Vec<(String, Vec<Template>)>, StoreError> {
         if subjects.is_empty() {

@@ -337,27 +337,30 @@ impl LiveGallery {
         self.0.gallery.read().expect("gallery lock").search(matcher, probe, fmr, k)
     }
 
-    /// The best `k` of a quantised search's shortlist, scored exactly: the subjects' templates of
-    /// the matcher's model version read from the store in one statement (a subject deleted since
-    /// is left out), then [`super::score_each_subject`] over them in id order, so that ties go by
-    /// id as in an exact search.
+    /// The answer of a search ([`LiveGallery::search`]): an exact gallery's candidates as they
+    /// are; a quantised gallery's shortlist scored exactly, its subjects' templates of the
+    /// matcher's model version read from the store in one statement (in id order; a subject
+    /// deleted since is left out), then the best `k` by [`super::score_each_subject`], so that
+    /// ties go by id as in an exact search.
     pub async fn rerank(
         &self,
         matcher: &(dyn Matcher + Sync),
         probe: &Template,
-        shortlist: Vec<String>,
+        found: Found,
         fmr: f64,
         k: usize,
     ) -> Result<Vec<Candidate>, StoreError> {
+        let shortlist = match found {
+            Found::Decided(candidates) => return Ok(candidates),
+            Found::Shortlist(shortlist) => shortlist,
+        };
         let ids: Vec<SubjectId> = shortlist.iter().filter_map(|s| SubjectId::parse(s).ok()).collect();
-        let mut scored = self.0.store.templates_of(&ids, matcher.model_version()).await?;
-        // In the ids' byte order, as the exact search breaks ties (a database collation may not be).
-        scored.sort_by(|a, b| a.0.cmp(&b.0));
+        let scored = self.0.store.templates_of(&ids, matcher.model_version()).await?;
         Ok(super::score_each_subject(matcher, probe, scored, fmr, k))
     }
 
-    /// [`LiveGallery::search`] then, for a shortlist, [`LiveGallery::rerank`]: the answer of
-    /// `/identify` (the service runs the search on its work pool; this is for tests and tools).
+    /// [`LiveGallery::search`] then [`LiveGallery::rerank`]: the answer of `/identify` (the
+    /// service runs the search on its work pool; this is for tests and tools).
     pub async fn identify(
         &self,
         matcher: &(dyn Matcher + Sync),
@@ -369,11 +372,7 @@ impl LiveGallery {
             Ok(found) => found,
             Err(e) => return Ok(Err(e)),
         };
-        let candidates = match found {
-            Found::Decided(candidates) => candidates,
-            Found::Shortlist(shortlist) => self.rerank(matcher, probe, shortlist, fmr, k).await?,
-        };
-        Ok(Ok((candidates, searched)))
+        Ok(Ok((self.rerank(matcher, probe, found, fmr, k).await?, searched)))
     }
 
     /// Subjects and templates held.

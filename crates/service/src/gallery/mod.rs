@@ -138,7 +138,10 @@ impl Gallery {
     }
 
     fn find_slot(&self, subject: &str) -> Option<u32> {
-        let hash = self.hasher.hash_one(subject);
+        self.find_hashed(self.hasher.hash_one(subject), subject)
+    }
+
+    fn find_hashed(&self, hash: u64, subject: &str) -> Option<u32> {
         self.slot_of.find(hash, |&s| &*self.ids[s as usize] == subject).copied()
     }
 
@@ -149,13 +152,15 @@ impl Gallery {
         if current.peek().is_none() {
             return;
         }
-        let (slot, new) = match self.find_slot(subject) {
+        // Hashed once for the lookup and the insertion: the start-up load adds millions.
+        let hash = self.hasher.hash_one(subject);
+        let (slot, new) = match self.find_hashed(hash, subject) {
             Some(slot) => (slot, false),
             None => {
                 let slot = self.ids.len() as u32;
                 self.ids.push(Box::from(subject));
                 let (ids, hasher) = (&self.ids, &self.hasher);
-                self.slot_of.insert_unique(hasher.hash_one(subject), slot, |&s| hasher.hash_one(&*ids[s as usize]));
+                self.slot_of.insert_unique(hash, slot, |&s| hasher.hash_one(&*ids[s as usize]));
                 (slot, true)
             }
         };
@@ -316,19 +321,25 @@ impl Gallery {
     }
 
     fn decide_exactly(&self, matcher: &dyn Matcher, probe: &Template, fmr: f64, k: usize, cosine: bool) -> Vec<Candidate> {
-        let rows = self.rows_by_slot();
-        let scores = if cosine {
-            self.best_cosines(&probe.vector)
+        // The best cosine needs only each subject's template count; any other score needs each
+        // subject's templates.
+        let (scores, counts): (Vec<f32>, Vec<usize>) = if cosine {
+            let mut counts = vec![0; self.ids.len()];
+            for &owner in &self.owners {
+                counts[owner as usize] += 1;
+            }
+            (self.best_cosines(&probe.vector), counts)
         } else {
-            rows.iter()
+            self.rows_by_slot()
+                .iter()
                 .map(|rows| {
                     let templates: Vec<Template> = rows
                         .iter()
                         .map(|&r| Template { model_version: self.model_version.clone(), vector: self.row(r as usize).to_vec() })
                         .collect();
-                    matcher.score(probe, &templates)
+                    (matcher.score(probe, &templates), rows.len())
                 })
-                .collect()
+                .unzip()
         };
         let mut order: Vec<u32> = (0..self.ids.len() as u32).collect();
         let rank = |a: &u32, b: &u32| {
@@ -342,7 +353,7 @@ impl Gallery {
         order
             .into_iter()
             .map(|s| {
-                let decision = Decision::at(matcher, scores[s as usize], rows[s as usize].len(), fmr);
+                let decision = Decision::at(matcher, scores[s as usize], counts[s as usize], fmr);
                 Candidate { subject: self.ids[s as usize].to_string(), decision }
             })
             .collect()
