@@ -10,7 +10,8 @@
 //! on an idle machine) and whether the exact best subject is in the shortlist (`Gallery::search` with
 //! k = 1). Half the probes are genuine (an enrolled template plus noise of the same size: cosine
 //! about 0.7 with it) and half random (an impostor's search, whose best scores lie close
-//! together). The exact best is found by streaming the same seeded templates a second time, so
+//! together). The exact best is found by streaming the same seeded templates a second time (a
+//! chunk of them against all probes is one matrix product), so
 //! the exact gallery is never held. `--exact` holds the exact float gallery instead (the
 //! `Precision::Exact` search, for the memory and time it costs at the same N).
 //!
@@ -84,19 +85,48 @@ fn one_size(n: usize, dims: usize, exact: bool, probe_count: usize) {
     });
     let load_s = started.elapsed().as_secs_f64();
     let growth = resident_bytes().saturating_sub(before);
-    // The exact best of each probe, streaming the same templates again.
+    // The exact best of each probe, streaming the same templates again: a chunk of unit templates
+    // against every unit probe is one matrix product.
     let probes: Vec<Template> = probes.into_iter().map(|p| Template::new("bench", p)).collect();
-    let units: Vec<Vec<f32>> = probes.iter().map(|p| facegate::core::vector::unit(p.vector.clone())).collect();
+    let units: Vec<f32> = probes.iter().flat_map(|p| facegate::core::vector::unit(p.vector.clone())).collect();
+    let units = faer::MatRef::from_row_major_slice(&units, probe_count, dims);
     let mut best: Vec<(f32, usize)> = vec![(f32::NEG_INFINITY, 0); probe_count];
-    templates(n, dims, |i, v| {
-        let inv = 1.0 / v.iter().map(|x| x * x).sum::<f32>().sqrt();
-        for (b, p) in best.iter_mut().zip(&units) {
-            let c = facegate::core::vector::dot(p, v) * inv;
-            if c > b.0 {
-                *b = (c, i);
+    const CHUNK: usize = 4096;
+    let (mut chunk, mut first) = (Vec::with_capacity(CHUNK * dims), 0);
+    let mut cosines = faer::Mat::<f32>::zeros(CHUNK, probe_count);
+    let mut flush = |chunk: &mut Vec<f32>, first: usize, best: &mut Vec<(f32, usize)>| {
+        let rows = chunk.len() / dims;
+        let lhs = faer::MatRef::from_row_major_slice(chunk, rows, dims);
+        faer::linalg::matmul::matmul(
+            cosines.as_mut().subrows_mut(0, rows),
+            faer::Accum::Replace,
+            lhs,
+            units.transpose(),
+            1.0f32,
+            faer::Par::Seq,
+        );
+        let out = cosines.as_ref();
+        for (p, b) in best.iter_mut().enumerate() {
+            for r in 0..rows {
+                if out[(r, p)] > b.0 {
+                    *b = (out[(r, p)], first + r);
+                }
             }
         }
+        chunk.clear();
+    };
+    templates(n, dims, |i, v| {
+        if chunk.is_empty() {
+            first = i;
+        }
+        chunk.extend_from_slice(&facegate::core::vector::unit(v.to_vec()));
+        if chunk.len() == CHUNK * dims {
+            flush(&mut chunk, first, &mut best);
+        }
     });
+    if !chunk.is_empty() {
+        flush(&mut chunk, first, &mut best);
+    }
     let (mut times, mut found) = (Vec::new(), [0usize; 2]);
     for (p, probe) in probes.iter().enumerate() {
         let t = std::time::Instant::now();

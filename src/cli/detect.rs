@@ -42,9 +42,13 @@ pub struct DetectorArgs {
     /// 0 scans every level with step 1 (Haar).
     #[arg(long, default_value_t = DetectOptions::default().small_image_fine_above_scale)]
     pub small_image_fine_above_scale: f32,
-    /// Square input side of the network in pixels, a multiple of 32 (YuNet).
+    /// Largest input side of the network in pixels, a multiple of 32 (YuNet).
     #[arg(long, default_value_t = DetectOptions::default().yunet_input_size)]
     pub yunet_input_size: u32,
+    /// The input is no larger than makes the smallest face searched this many input pixels
+    /// tall; 0 always fills the square (YuNet).
+    #[arg(long, default_value_t = DetectOptions::default().yunet_min_face_px)]
+    pub yunet_min_face_px: f32,
     /// Score threshold, 0–1 (YuNet).
     #[arg(long, default_value_t = DetectOptions::default().yunet_score)]
     pub yunet_score: f32,
@@ -64,6 +68,7 @@ impl DetectorArgs {
             small_image_pad: self.small_image_pad,
             small_image_fine_above_scale: self.small_image_fine_above_scale,
             yunet_input_size: self.yunet_input_size,
+            yunet_min_face_px: self.yunet_min_face_px,
             yunet_score: self.yunet_score,
         }
     }

@@ -3,7 +3,9 @@
 /// The dot product of `a` and `b` (over the shorter length). Sixteen lanes summed separately, so
 /// the compiler turns the loop into SIMD multiply-adds (four SSE or two AVX registers) without a
 /// reassociation flag; the gallery scan and the landmark search spend their time here.
-#[inline]
+/// Always inlined, so that it takes the caller's target features (the landmark search's AVX2
+/// kernel called it out of line, at the baseline's four lanes).
+#[inline(always)]
 pub fn dot(a: &[f32], b: &[f32]) -> f32 {
     const LANES: usize = 16;
     let mut acc = [0.0f32; LANES];

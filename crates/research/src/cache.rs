@@ -32,7 +32,7 @@ use crate::Progress;
 /// The version of the front ends' code. Bump it whenever a change to the code they run (this
 /// crate's front ends, or facegate-vision's detector, landmarks, 3DMM fit and rendering, chip,
 /// network or quality components) changes what they compute: every cache file is then made again.
-pub const FRONT_END_VERSION: u32 = 1;
+pub const FRONT_END_VERSION: u32 = 5;
 
 /// The cache folder of the research commands, relative to the working directory.
 pub const DEFAULT_DIR: &str = "target/research-cache";

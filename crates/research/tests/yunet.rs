@@ -117,6 +117,25 @@ fn face_free_images_give_no_face() {
     }
 }
 
+/// The input shrunk to the smallest face searched (the default) finds the faces the full square
+/// finds, in about the same boxes: frontal, turned and spot-lit IMM photos, LFW photos (small
+/// images keep the square).
+#[test]
+fn the_shrunk_input_finds_what_the_full_square_finds() {
+    let shrunk = yunet();
+    assert!(shrunk.options.yunet_min_face_px > 0.0, "the default shrinks the input");
+    let options = DetectOptions { yunet_min_face_px: 0.0, ..shrunk.options };
+    let full = Detector::load_with(&models_dir(), DetectorKind::Yunet, options).unwrap();
+    let data = shared_dir().join("data");
+    for path in ["imm/01-1m.jpg", "imm/05-3m.jpg", "imm/10-5m.jpg", "lfw/Hal_Sutton/Hal_Sutton_0001.jpg", "lfw/Al_Gore/Al_Gore_0002.jpg"] {
+        let gray = open(&data.join(path)).unwrap().gray;
+        let (a, b) = (shrunk.detect(&gray), full.detect(&gray));
+        assert_eq!(a.len(), b.len(), "{path}");
+        let iou = a[0].rect.iou(&b[0].rect);
+        assert!(iou > 0.7, "{path}: IoU {iou}");
+    }
+}
+
 #[test]
 fn two_photos_side_by_side_give_two_faces_largest_first() {
     let detector = yunet();

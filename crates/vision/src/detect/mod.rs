@@ -112,8 +112,12 @@ pub struct DetectOptions {
     /// levels; the coarse ones only hold windows far smaller than the frame. 0 scans every level
     /// at step 1.
     pub small_image_fine_above_scale: f32,
-    /// YuNet's square input side in pixels (a multiple of 32; read when the detector is loaded).
+    /// YuNet's largest input side in pixels (a multiple of 32; read when the detector is loaded).
     pub yunet_input_size: u32,
+    /// YuNet's input is no larger than makes the smallest face searched ([`Self::min_size_for`])
+    /// this many input pixels tall (a smaller input, less work); 0 always fills the
+    /// `yunet_input_size` square, as small images (below `small_image_side`) always do.
+    pub yunet_min_face_px: f32,
     /// YuNet's score threshold (√(class · objectness), 0–1).
     pub yunet_score: f32,
 }
@@ -132,6 +136,7 @@ impl Default for DetectOptions {
             small_image_pad: 0.1,
             small_image_fine_above_scale: 1.75,
             yunet_input_size: 320,
+            yunet_min_face_px: 36.0,
             yunet_score: 0.6,
         }
     }

@@ -8,11 +8,17 @@
 //! `FaceDetectorYNImpl::postProcess`: score √(cls·obj) with both clamped to 0–1, then greedy
 //! non-maximum suppression.
 //!
-//! tract needs a concrete input shape, so the model is compiled once for a square input of
-//! `side` pixels; a photo is scaled to fit it with its aspect kept and the rest zero-padded (as
-//! OpenCV pads to the divisor), and the boxes are mapped back to the photo's pixels.
+//! tract needs a concrete input shape, so the model is compiled per input shape. A photo is
+//! scaled with its aspect kept to fit a square of `side` pixels, and no larger than makes the
+//! smallest face searched [`DetectOptions::yunet_min_face_px`] input pixels tall; the input is
+//! that, rounded up to multiples of 32 and zero-padded (as OpenCV pads to the divisor), and the
+//! boxes are mapped back to the photo's pixels. A 640×480 photo, whose smallest face searched is
+//! 96 pixels, runs at 256×192 rather than 320×320: 0.48 of the work. Small images (the padded
+//! ones, below `small_image_side`) keep the square. Each shape is compiled once, on first use, and
+//! kept (at most (side / 32)² of them).
 
-use std::sync::Arc;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
 
 use tract_onnx::prelude::*;
 
@@ -106,8 +112,32 @@ impl Placement {
     pub fn fit(width: usize, height: usize, side: usize, pad: f32) -> Placement {
         let pad = pad.clamp(0.0, 1.0);
         let scale = side as f32 / ((1.0 + 2.0 * pad) * width.max(height).max(1) as f32);
-        let offset = [(pad * width as f32 * scale).floor(), (pad * height as f32 * scale).floor()];
-        Placement { scale, offset }
+        Placement::at_scale(width, height, scale, pad)
+    }
+
+    /// The image with its border (as [`Placement::fit`]) at `scale`.
+    pub fn at_scale(width: usize, height: usize, scale: f32, pad: f32) -> Placement {
+        let pad = pad.clamp(0.0, 1.0);
+        Placement { scale, offset: [(pad * width as f32 * scale).floor(), (pad * height as f32 * scale).floor()] }
+    }
+
+    /// [`Placement::fit`] into a `side` square, shrunk further (never enlarged) so that a face of
+    /// `min_face` image pixels spans `face_px` input pixels; with the input's width and height:
+    /// the placed image and its border rounded up to multiples of 32. `face_px` 0 keeps the
+    /// square.
+    pub fn for_faces(width: usize, height: usize, side: usize, pad: f32, min_face: f32, face_px: f32) -> (Placement, usize, usize) {
+        let fit = Placement::fit(width, height, side, pad);
+        if face_px <= 0.0 || min_face <= 0.0 {
+            return (fit, side, side);
+        }
+        let scale = fit.scale.min(face_px / min_face);
+        let placed = Placement::at_scale(width, height, scale, pad.clamp(0.0, 1.0));
+        let pad = pad.clamp(0.0, 1.0);
+        let input = |n: usize| {
+            let extent = ((1.0 + 2.0 * pad) * n as f32 * scale).ceil() as usize;
+            (extent.max(1).div_ceil(DIVISOR) * DIVISOR).min(side)
+        };
+        (placed, input(width), input(height))
     }
 
     pub fn to_image(&self, p: Point) -> Point {
@@ -127,8 +157,9 @@ impl Placement {
     }
 }
 
-/// The grey image placed in a `side`² grey plane (zeros outside), for all three input channels.
-fn input_plane(gray: &GrayF32, placement: &Placement, side: usize) -> Vec<f32> {
+/// The grey image placed in a `width × height` grey plane (zeros outside), for all three input
+/// channels.
+fn input_plane(gray: &GrayF32, placement: &Placement, width: usize, height: usize) -> Vec<f32> {
     // Halve with a 2×2 box first while the scale is below ½, so bilinear sampling does not alias.
     let mut src = std::borrow::Cow::Borrowed(gray);
     let mut scale = placement.scale;
@@ -137,12 +168,12 @@ fn input_plane(gray: &GrayF32, placement: &Placement, side: usize) -> Vec<f32> {
         scale *= 2.0;
     }
     let (ox, oy) = (placement.offset[0] as usize, placement.offset[1] as usize);
-    let w = ((gray.width as f32 * placement.scale).round() as usize).min(side - ox);
-    let h = ((gray.height as f32 * placement.scale).round() as usize).min(side - oy);
+    let w = ((gray.width as f32 * placement.scale).round() as usize).min(width.saturating_sub(ox));
+    let h = ((gray.height as f32 * placement.scale).round() as usize).min(height.saturating_sub(oy));
     let (sx, sy) = (src.width as f32 / (gray.width as f32 * placement.scale), src.height as f32 / (gray.height as f32 * placement.scale));
-    let mut plane = vec![0.0f32; side * side];
+    let mut plane = vec![0.0f32; width * height];
     for y in 0..h {
-        let row = &mut plane[(oy + y) * side + ox..(oy + y) * side + ox + w];
+        let row = &mut plane[(oy + y) * width + ox..(oy + y) * width + ox + w];
         let v = (y as f32 + 0.5) * sy - 0.5;
         for (x, out) in row.iter_mut().enumerate() {
             *out = src.sample((x as f32 + 0.5) * sx - 0.5, v);
@@ -151,53 +182,76 @@ fn input_plane(gray: &GrayF32, placement: &Placement, side: usize) -> Vec<f32> {
     plane
 }
 
-/// The compiled network for one square input size. `Send + Sync`: every call runs its own state.
+/// A plan compiled for one input shape.
+type Plan = Arc<TypedRunnableModel>;
+
+/// The network, compiled for each input shape as it is first needed. `Send + Sync`: every call
+/// runs its own state.
 pub struct YunetDetector {
-    plan: Arc<TypedRunnableModel>,
+    /// The parsed file, the source of every shape's plan.
+    model: InferenceModel,
+    /// Plans by (width, height).
+    plans: Mutex<HashMap<(usize, usize), Plan>>,
     side: usize,
 }
 
 impl YunetDetector {
-    /// Compile the ONNX model for a `side`-pixel square input (rounded up to a multiple of 32)
-    /// and check its outputs once on a blank input.
+    /// Parse the ONNX model, compile it for a `side`-pixel square input (rounded up to a multiple
+    /// of 32) and check its outputs once on a blank input.
     pub fn from_bytes(bytes: &[u8], name: &str, side: usize) -> Result<YunetDetector, DetectError> {
         let side = side.max(DIVISOR).div_ceil(DIVISOR) * DIVISOR;
         let error = |e: TractError| DetectError::Model { path: name.to_string(), message: format!("{e:#}") };
         // The file records intermediate and output shapes for the input size it was exported
         // with; they contradict any other size (tract refuses the model), so tract recomputes them.
-        let plan = tract_onnx::onnx()
+        let model = tract_onnx::onnx()
             .with_ignore_value_info(true)
             .with_ignore_output_shapes(true)
             .model_for_read(&mut &bytes[..])
-            .and_then(|m| m.with_input_fact(0, f32::fact([1, 3, side, side]).into()))
             .and_then(|m| m.with_outputs_by_name(OUTPUT_NAMES))
-            .and_then(|m| m.into_optimized())
-            .and_then(|m| m.into_runnable())
             .map_err(error)?;
-        let detector = YunetDetector { plan, side };
-        detector.candidates(vec![0.0; side * side], 2.0).map_err(error)?;
+        let detector = YunetDetector { model, plans: Mutex::default(), side };
+        let plan = detector.plan(side, side).map_err(error)?;
+        detector.candidates(&plan, vec![0.0; side * side], side, side, 2.0).map_err(error)?;
         Ok(detector)
     }
 
-    /// The input side the model was compiled for.
+    /// The largest input side (the square the model was first compiled for).
     pub fn side(&self) -> usize {
         self.side
     }
 
+    /// The plan for a `width × height` input (multiples of 32), compiled on first use.
+    fn plan(&self, width: usize, height: usize) -> TractResult<Plan> {
+        if let Some(plan) = self.plans.lock().ok().and_then(|p| p.get(&(width, height)).cloned()) {
+            return Ok(plan);
+        }
+        // Compiled outside the lock: two threads meeting a new shape at once both compile it
+        // (the same plan), rather than every other call waiting.
+        let plan = self
+            .model
+            .clone()
+            .with_input_fact(0, f32::fact([1, 3, height, width]).into())
+            .and_then(|m| m.into_optimized())
+            .and_then(|m| m.into_runnable())?;
+        if let Ok(mut plans) = self.plans.lock() {
+            plans.entry((width, height)).or_insert_with(|| plan.clone());
+        }
+        Ok(plan)
+    }
+
     /// Runs the network on one grey plane (copied to B, G and R) and decodes it.
-    fn candidates(&self, plane: Vec<f32>, threshold: f32) -> TractResult<Vec<Candidate>> {
-        let side = self.side;
-        let mut data = Vec::with_capacity(3 * side * side);
+    fn candidates(&self, plan: &Plan, plane: Vec<f32>, width: usize, height: usize, threshold: f32) -> TractResult<Vec<Candidate>> {
+        let mut data = Vec::with_capacity(3 * width * height);
         for _ in 0..3 {
             data.extend_from_slice(&plane);
         }
-        let input = tract_ndarray::Array4::from_shape_vec((1, 3, side, side), data)?.into_tensor();
-        let outputs = self.plan.run(tvec!(input.into()))?;
+        let input = tract_ndarray::Array4::from_shape_vec((1, 3, height, width), data)?.into_tensor();
+        let outputs = plan.run(tvec!(input.into()))?;
         let views = outputs.iter().map(|o| o.try_as_plain_ram()).collect::<TractResult<Vec<_>>>()?;
         let slices = views.iter().map(|v| v.as_slice::<f32>()).collect::<TractResult<Vec<_>>>()?;
         let mut levels = Vec::with_capacity(STRIDES.len());
         for (i, &stride) in STRIDES.iter().enumerate() {
-            let (cols, rows) = (side / stride, side / stride);
+            let (cols, rows) = (width / stride, height / stride);
             let cells = cols * rows;
             let level = Level { stride, cols, rows, cls: slices[i], obj: slices[3 + i], bbox: slices[6 + i], kps: slices[9 + i] };
             let lens = [level.cls.len(), level.obj.len(), level.bbox.len(), level.kps.len()];
@@ -221,9 +275,12 @@ impl YunetDetector {
         }
         let small = gray.width.min(gray.height) < options.small_image_side as usize;
         let pad = if small { options.small_image_pad } else { 0.0 };
-        let placement = Placement::fit(gray.width, gray.height, self.side, pad);
-        let plane = input_plane(gray, &placement, self.side);
-        match self.candidates(plane, options.yunet_score) {
+        // A small image keeps the whole square: its face fills the frame, and the five points of
+        // a full profile at the smaller input pose it at 45° rather than beyond 60°.
+        let face_px = if small { 0.0 } else { options.yunet_min_face_px };
+        let (placement, width, height) = Placement::for_faces(gray.width, gray.height, self.side, pad, min_size, face_px);
+        let plane = input_plane(gray, &placement, width, height);
+        match self.plan(width, height).and_then(|plan| self.candidates(&plan, plane, width, height, options.yunet_score)) {
             Ok(found) => {
                 suppress(found, NMS_IOU).iter().map(|c| placement.face(c)).filter(|f| f.rect.width.max(f.rect.height) >= min_size).collect()
             }
@@ -356,16 +413,32 @@ mod tests {
     }
 
     #[test]
+    fn the_input_shrinks_to_the_smallest_face_searched_and_no_further() {
+        // 640×480, smallest face 96 px at 36 input px: scale 0.375, 240×180 → 256×192.
+        let (p, w, h) = Placement::for_faces(640, 480, 320, 0.0, 96.0, 36.0);
+        assert!((p.scale - 0.375).abs() < 1e-6 && p.offset == [0.0, 0.0], "{p:?}");
+        assert_eq!((w, h), (256, 192));
+        // A face limit the square already makes small enough keeps the square's scale.
+        let (p, w, h) = Placement::for_faces(640, 480, 320, 0.0, 50.0, 36.0);
+        assert_eq!((p, w, h), (Placement::fit(640, 480, 320, 0.0), 320, 256));
+        // 0 keeps the square input; a small image keeps its border.
+        assert_eq!(Placement::for_faces(640, 480, 320, 0.0, 96.0, 0.0), (Placement::fit(640, 480, 320, 0.0), 320, 320));
+        let (p, w, h) = Placement::for_faces(92, 112, 320, 0.1, 24.0, 36.0);
+        assert!((p.scale - 1.5).abs() < 1e-6 && p.offset == [13.0, 16.0], "{p:?}");
+        assert_eq!((w, h), (192, 224));
+    }
+
+    #[test]
     fn input_plane_holds_the_scaled_image_and_zero_padding() {
         let gray = GrayF32::from_fn(64, 32, |_, _| 200.0);
-        let plane = input_plane(&gray, &Placement::fit(64, 32, 32, 0.0), 32);
+        let plane = input_plane(&gray, &Placement::fit(64, 32, 32, 0.0), 32, 32);
         // Scale ½: 32×16 of image, the rest zero.
         assert_eq!(plane.len(), 32 * 32);
         assert!((plane[5 * 32 + 31] - 200.0).abs() < 1e-3);
         assert_eq!(plane[16 * 32], 0.0);
         // Shrinking by 4 goes through a box halving and keeps a flat image flat.
         let big = GrayF32::from_fn(128, 128, |x, _| if x % 2 == 0 { 0.0 } else { 100.0 });
-        let small = input_plane(&big, &Placement::fit(128, 128, 32, 0.0), 32);
+        let small = input_plane(&big, &Placement::fit(128, 128, 32, 0.0), 32, 32);
         assert!(small.iter().all(|&v| (v - 50.0).abs() < 1e-3), "{:?}", &small[..8]);
     }
 }

@@ -18,7 +18,8 @@ use faer::linalg::matmul::matmul;
 use faer::{Accum, MatMut, MatRef, Par};
 use tract_onnx::pb::{GraphProto, NodeProto, TensorProto};
 
-use super::net::{Act, FoldedConv, conv};
+use super::int8::{self, Epilogue, Int8Weights, Quantisation};
+use super::net::{Act, Arithmetic, Cols, FoldedConv, conv};
 use super::weights::Conv;
 
 /// A convolution as the ONNX file gives it (filters × channels/group × k × k), before folding.
@@ -45,6 +46,8 @@ struct Dense {
     outputs: usize,
     rhs: Vec<f32>,
     bias: Vec<f32>,
+    /// The weights in `i8`, when the layer computes in integers.
+    int8: Option<Int8Weights>,
 }
 
 enum RawOp {
@@ -77,7 +80,7 @@ enum Op {
 struct ChainWorkspace {
     x: Act,
     y: Act,
-    cols: Vec<f32>,
+    cols: Cols,
 }
 
 /// The network, folded and laid out for the kernels. `Send + Sync`.
@@ -246,7 +249,7 @@ impl<'a> Reader<'a> {
                 }
             }
         }
-        let mut dense = Dense { inputs, outputs, rhs, bias };
+        let mut dense = Dense { inputs, outputs, rhs, bias, int8: None };
         // A channel affine just before the flatten (batch normalisation after a PReLU) folds in.
         if let Some(RawOp::Affine(a)) = self.ops.last() {
             for (i, row) in dense.rhs.chunks_exact_mut(outputs).enumerate() {
@@ -289,7 +292,19 @@ impl ChainNet {
         // The parsed file is let go before the kernels' copies are made: loading peaks lower.
         drop(proto);
         let ops = raw.into_iter().map(Op::from).collect::<Option<Vec<_>>>()?;
-        Some(ChainNet { side, sub, mul, ops, outputs, workspaces: Mutex::default() })
+        Some(ChainNet { side, sub, mul, ops, outputs, workspaces: Mutex::default() }.with_arithmetic(Arithmetic::detect()))
+    }
+
+    /// The same network computing in `arithmetic` (evaluations compare the two).
+    pub fn with_arithmetic(mut self, arithmetic: Arithmetic) -> ChainNet {
+        for op in &mut self.ops {
+            match op {
+                Op::Conv(conv) => *conv = std::mem::replace(conv, FoldedConv::empty()).in_arithmetic(arithmetic),
+                Op::Dense(d) => d.int8 = (arithmetic == Arithmetic::Int8).then(|| Int8Weights::new(&d.rhs, d.inputs, d.outputs)),
+                _ => {}
+            }
+        }
+        self
     }
 
     pub fn outputs(&self) -> usize {
@@ -326,12 +341,7 @@ impl ChainNet {
                         px.iter_mut().zip(&a.scale).zip(&a.shift).for_each(|((v, s), t)| *v = *v * s + t);
                     }
                 }
-                Op::Dense(d) => {
-                    out = d.bias.clone();
-                    let lhs = MatRef::from_row_major_slice(&x.data[..d.inputs], 1, d.inputs);
-                    let rhs = MatRef::from_row_major_slice(&d.rhs[..], d.inputs, d.outputs);
-                    matmul(MatMut::from_row_major_slice_mut(&mut out[..], 1, d.outputs), Accum::Add, lhs, rhs, 1.0f32, Par::Seq);
-                }
+                Op::Dense(d) => out = dense(d, &x.data[..d.inputs], cols),
             }
         }
         if let Ok(mut pool) = self.workspaces.lock() {
@@ -339,6 +349,28 @@ impl ChainNet {
         }
         out
     }
+}
+
+/// A fully connected layer on `x`: in integers (the one row quantised into the scratch bytes,
+/// zero-padded to the weights' depth) or floats.
+fn dense(d: &Dense, x: &[f32], cols: &mut Cols) -> Vec<f32> {
+    let mut out = d.bias.clone();
+    match &d.int8 {
+        Some(weights) => {
+            let input = Quantisation::of(x);
+            let bytes = cols.bytes();
+            bytes.clear();
+            bytes.resize(weights.depth, 0);
+            input.apply(x, bytes);
+            int8::matmul(bytes, 1, weights, &Epilogue { input, bias: &d.bias, relu: false }, &mut out);
+        }
+        None => {
+            let lhs = MatRef::from_row_major_slice(x, 1, d.inputs);
+            let rhs = MatRef::from_row_major_slice(&d.rhs[..], d.inputs, d.outputs);
+            matmul(MatMut::from_row_major_slice_mut(&mut out[..], 1, d.outputs), Accum::Add, lhs, rhs, 1.0f32, Par::Seq);
+        }
+    }
+    out
 }
 
 impl Op {

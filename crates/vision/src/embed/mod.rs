@@ -8,6 +8,7 @@
 
 pub mod chain;
 pub mod chip;
+pub mod int8;
 pub mod net;
 pub mod onnx;
 pub mod weights;
@@ -17,7 +18,7 @@ use std::path::Path;
 use facegate_core::face::KeyPoints;
 
 pub use chip::FaceChip;
-pub use net::{EMBEDDING_DIMS, Embedder, Embedding, MirrorPair, Workspace};
+pub use net::{Arithmetic, EMBEDDING_DIMS, Embedder, Embedding, MirrorPair, Workspace};
 pub use weights::NetworkFile;
 
 /// Side of the chips the network takes.

@@ -9,7 +9,30 @@ use faer::linalg::matmul::matmul;
 use faer::{Accum, MatMut, MatRef, Par};
 
 use super::chip::FaceChip;
+use super::int8::{self, Epilogue, Int8Weights, Quantisation};
 use super::weights::{Conv, Layer, NetworkFile};
+
+/// Products per output below which a convolution stays in floats ([`FoldedConv::in_arithmetic`]).
+const MIN_INT8_DEPTH: usize = 64;
+
+/// How the networks' convolutions compute.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Arithmetic {
+    /// 32-bit floats throughout.
+    Float,
+    /// The convolutions in 8-bit integers ([`super::int8`]) but a first one of few products
+    /// per output (SFace's), and an ONNX network's fully connected layer; the pools, the depthwise
+    /// convolutions and dlib's final layer stay in floats.
+    Int8,
+}
+
+impl Arithmetic {
+    /// `Int8` where the CPU has its fast kernel (AVX-512 VNNI), `Float` elsewhere: without it
+    /// the integer product is slower than the float one.
+    pub fn detect() -> Arithmetic {
+        if int8::vnni() { Arithmetic::Int8 } else { Arithmetic::Float }
+    }
+}
 
 /// Length of an embedding.
 pub const EMBEDDING_DIMS: usize = 128;
@@ -74,6 +97,8 @@ pub(super) struct FoldedConv {
     padding: usize,
     rhs: Vec<f32>,
     bias: Vec<f32>,
+    /// The weights in `i8`, when the layer computes in integers.
+    int8: Option<Int8Weights>,
 }
 
 impl FoldedConv {
@@ -94,7 +119,22 @@ impl FoldedConv {
             }
         }
         let bias = (0..f).map(|o| conv.bias[o] * gamma[o] + beta[o]).collect();
-        Ok(FoldedConv { filters: f, channels: c, size: k, stride: conv.stride, padding: conv.padding, rhs, bias })
+        Ok(FoldedConv { filters: f, channels: c, size: k, stride: conv.stride, padding: conv.padding, rhs, bias, int8: None })
+    }
+
+    /// The layer set to compute in `arithmetic`. A first layer with few products per output (the
+    /// photo's three channels under a 3×3 kernel: 27) stays in floats whatever is asked: in 8
+    /// bits SFace's lost a point of EER on UMIST's grey profiles, while dlib's 7×7 stem (147
+    /// products) lost nothing measurable (docs/speed.md).
+    pub(super) fn in_arithmetic(mut self, arithmetic: Arithmetic) -> FoldedConv {
+        let depth = self.size * self.size * self.channels;
+        self.int8 = (arithmetic == Arithmetic::Int8 && depth >= MIN_INT8_DEPTH).then(|| Int8Weights::new(&self.rhs, depth, self.filters));
+        self
+    }
+
+    /// A placeholder of no size, for swapping a layer out while it is rebuilt.
+    pub(super) fn empty() -> FoldedConv {
+        FoldedConv { filters: 0, channels: 0, size: 0, stride: 1, padding: 0, rhs: Vec::new(), bias: Vec::new(), int8: None }
     }
 
     pub(super) fn out_side(&self, side: usize) -> usize {
@@ -128,6 +168,22 @@ impl Act {
     }
 }
 
+/// The im2col copies of a convolution's input: floats, or bytes for an integer layer (whose
+/// input is quantised first, since the copy reads each value up to k·k times).
+#[derive(Default)]
+pub(super) struct Cols {
+    floats: Vec<f32>,
+    input: Vec<u8>,
+    rows: Vec<u8>,
+}
+
+impl Cols {
+    /// A byte buffer for a layer that is not a convolution (its contents are not kept).
+    pub(super) fn bytes(&mut self) -> &mut Vec<u8> {
+        &mut self.rows
+    }
+}
+
 /// Scratch buffers for one forward pass at a time.
 #[derive(Default)]
 pub struct Workspace {
@@ -135,7 +191,7 @@ pub struct Workspace {
     t: Act,
     u: Act,
     s: Act,
-    cols: Vec<f32>,
+    cols: Cols,
 }
 
 /// The loaded network.
@@ -180,10 +236,12 @@ impl<'a> Layers<'a> {
 
 impl Embedder {
     /// Builds the network from the project's weight file: stem (conv, affine, relu, max pool),
-    /// residual units, global average pool, fully connected layer to 128 values.
+    /// residual units, global average pool, fully connected layer to 128 values; in this CPU's
+    /// arithmetic ([`Arithmetic::detect`]).
     pub fn new(file: &NetworkFile) -> Result<Embedder, NetworkError> {
+        let arithmetic = Arithmetic::detect();
         let mut layers = Layers { rest: file.layers.iter() };
-        let stem = layers.conv_affine()?;
+        let stem = layers.conv_affine()?.in_arithmetic(arithmetic);
         layers.relu()?;
         let stem_pool = match layers.next("max pool")? {
             Layer::MaxPool { size, stride, padding } => (*size, *stride, *padding),
@@ -200,9 +258,9 @@ impl Embedder {
                     }
                 }
                 Some(Layer::Conv(_)) => {
-                    let conv1 = layers.conv_affine()?;
+                    let conv1 = layers.conv_affine()?.in_arithmetic(arithmetic);
                     layers.relu()?;
-                    let conv2 = layers.conv_affine()?;
+                    let conv2 = layers.conv_affine()?.in_arithmetic(arithmetic);
                     let down = match layers.next("add or pool")? {
                         Layer::AddPrev => false,
                         Layer::AvgPool { size: 2, stride: 2, padding: 0 } => {
@@ -242,6 +300,17 @@ impl Embedder {
             fc_inputs,
             workspaces: Mutex::new(Vec::new()),
         })
+    }
+
+    /// The same network computing in `arithmetic` (evaluations compare the two).
+    pub fn with_arithmetic(mut self, arithmetic: Arithmetic) -> Embedder {
+        self.stem = std::mem::replace(&mut self.stem, FoldedConv::empty()).in_arithmetic(arithmetic);
+        for unit in &mut self.units {
+            for conv in [&mut unit.conv1, &mut unit.conv2] {
+                *conv = std::mem::replace(conv, FoldedConv::empty()).in_arithmetic(arithmetic);
+            }
+        }
+        self
     }
 
     /// Side of the square chip the network takes.
@@ -346,45 +415,98 @@ impl Embedder {
     }
 }
 
-/// `out = conv(input)` (+ relu): im2col into `cols`, then one matrix product.
-pub(super) fn conv(layer: &FoldedConv, input: &Act, out: &mut Act, cols: &mut Vec<f32>, relu: bool) {
+/// `out = conv(input)` (+ relu): im2col into `cols`, then one matrix product, in floats or (for a
+/// layer with `i8` weights) in integers.
+pub(super) fn conv(layer: &FoldedConv, input: &Act, out: &mut Act, cols: &mut Cols, relu: bool) {
     debug_assert_eq!(input.c, layer.channels);
     let (ho, wo) = (layer.out_side(input.h), layer.out_side(input.w));
-    let (k, c, s, p) = (layer.size, layer.channels, layer.stride, layer.padding as isize);
-    let kk = k * k * c;
-    // A 1×1 convolution of stride 1 multiplies the activations themselves: no im2col copy.
-    let pointwise = k == 1 && s == 1 && p == 0;
-    if !pointwise {
-        cols.resize(ho * wo * kk, 0.0);
+    out.reshape(ho, wo, layer.filters);
+    match &layer.int8 {
+        None => conv_float(layer, input, out, &mut cols.floats, relu),
+        Some(weights) => {
+            let quantisation = input_bytes(layer, input, cols);
+            let rows = if layer.size == 1 && layer.stride == 1 && layer.padding == 0 && weights.depth == layer.channels {
+                &cols.input
+            } else {
+                &cols.rows
+            };
+            let epilogue = Epilogue { input: quantisation, bias: &layer.bias, relu };
+            int8::matmul(rows, ho * wo, weights, &epilogue, &mut out.data);
+        }
     }
-    for oy in (0..ho).filter(|_| !pointwise) {
+}
+
+/// An integer layer's input as bytes: quantised into `cols.input` and, unless the layer is a 1×1
+/// convolution of stride 1 over whole groups of four channels (which multiplies the activations
+/// themselves), copied im2col into `cols.rows`.
+fn input_bytes(layer: &FoldedConv, input: &Act, cols: &mut Cols) -> Quantisation {
+    #[cfg(target_arch = "x86_64")]
+    if int8::vnni() {
+        // SAFETY: the CPU has AVX-512 F and BW (checked at run time).
+        return unsafe { input_bytes_avx512(layer, input, cols) };
+    }
+    input_bytes_body(layer, input, cols)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,avx512f,avx512bw")]
+fn input_bytes_avx512(layer: &FoldedConv, input: &Act, cols: &mut Cols) -> Quantisation {
+    input_bytes_body(layer, input, cols)
+}
+
+#[inline(always)]
+fn input_bytes_body(layer: &FoldedConv, input: &Act, cols: &mut Cols) -> Quantisation {
+    let quantisation = Quantisation::of(&input.data);
+    cols.input.resize(input.data.len(), 0);
+    quantisation.apply(&input.data, &mut cols.input);
+    let depth = layer.int8.as_ref().map_or(0, |w| w.depth);
+    if !(layer.size == 1 && layer.stride == 1 && layer.padding == 0 && depth == layer.channels) {
+        im2col(layer, input, &cols.input, quantisation.zero, depth, &mut cols.rows);
+    }
+    quantisation
+}
+
+/// The im2col copy of `values` (the input's `h × w × c` values, as floats or bytes): one row of
+/// `row_len` per output pixel, `k·k·c` values in (ky, kx, channel) order, `pad` outside the
+/// input, and `pad` again after them up to `row_len`. The taps of one kernel row that fall inside
+/// the input are one run in both, so each is one copy.
+#[inline(always)]
+fn im2col<T: Copy>(layer: &FoldedConv, input: &Act, values: &[T], pad: T, row_len: usize, cols: &mut Vec<T>) {
+    let (ho, wo) = (layer.out_side(input.h), layer.out_side(input.w));
+    let (k, c, s, p) = (layer.size, layer.channels, layer.stride, layer.padding);
+    cols.clear();
+    cols.resize(ho * wo * row_len, pad);
+    for oy in 0..ho {
         for ox in 0..wo {
-            let row = &mut cols[(oy * wo + ox) * kk..(oy * wo + ox + 1) * kk];
+            let row = &mut cols[(oy * wo + ox) * row_len..(oy * wo + ox) * row_len + k * k * c];
+            // Taps kx in first..last land inside the row: 0 ≤ ox·s + kx − p < w.
+            let first = p.saturating_sub(ox * s);
+            let last = (input.w + p).saturating_sub(ox * s).min(k);
+            if first >= last {
+                continue;
+            }
+            let ix = ox * s + first - p;
             for ky in 0..k {
-                let iy = (oy * s + ky) as isize - p;
-                let dst = &mut row[ky * k * c..(ky + 1) * k * c];
-                if iy < 0 || iy >= input.h as isize {
-                    dst.fill(0.0);
-                    continue;
-                }
-                for kx in 0..k {
-                    let ix = (ox * s + kx) as isize - p;
-                    let d = &mut dst[kx * c..(kx + 1) * c];
-                    if ix < 0 || ix >= input.w as isize {
-                        d.fill(0.0);
-                    } else {
-                        let at = (iy as usize * input.w + ix as usize) * c;
-                        d.copy_from_slice(&input.data[at..at + c]);
-                    }
-                }
+                let Some(iy) = (oy * s + ky).checked_sub(p).filter(|&iy| iy < input.h) else { continue };
+                let at = (iy * input.w + ix) * c;
+                row[(ky * k + first) * c..(ky * k + last) * c].copy_from_slice(&values[at..at + (last - first) * c]);
             }
         }
     }
-    out.reshape(ho, wo, layer.filters);
-    let f = layer.filters;
-    let lhs = MatRef::from_row_major_slice(if pointwise { &input.data[..] } else { &cols[..] }, ho * wo, kk);
+}
+
+/// [`conv`] in floats: faer's matrix product.
+fn conv_float(layer: &FoldedConv, input: &Act, out: &mut Act, cols: &mut Vec<f32>, relu: bool) {
+    let kk = layer.size * layer.size * layer.channels;
+    // A 1×1 convolution of stride 1 multiplies the activations themselves: no im2col copy.
+    let pointwise = layer.size == 1 && layer.stride == 1 && layer.padding == 0;
+    if !pointwise {
+        im2col(layer, input, &input.data, 0.0, kk, cols);
+    }
+    let (m, f) = (out.h * out.w, layer.filters);
+    let lhs = MatRef::from_row_major_slice(if pointwise { &input.data[..] } else { &cols[..] }, m, kk);
     let rhs = MatRef::from_row_major_slice(&layer.rhs[..], kk, f);
-    let dst = MatMut::from_row_major_slice_mut(&mut out.data[..], ho * wo, f);
+    let dst = MatMut::from_row_major_slice_mut(&mut out.data[..], m, f);
     matmul(dst, Accum::Replace, lhs, rhs, 1.0f32, Par::Seq);
     for px in out.data.chunks_exact_mut(f) {
         for (v, b) in px.iter_mut().zip(&layer.bias) {

@@ -213,6 +213,15 @@ impl OnnxEmbedder {
         Ok(embedder)
     }
 
+    /// The same network with the own kernels computing in `arithmetic` (tract's are untouched).
+    pub fn with_arithmetic(mut self, arithmetic: super::net::Arithmetic) -> OnnxEmbedder {
+        self.engine = match self.engine {
+            Engine::Own(net) => Engine::Own(net.with_arithmetic(arithmetic)),
+            tract => tract,
+        };
+        self
+    }
+
     /// `facegate` when the project's own kernels run the network, `tract` otherwise.
     pub fn engine(&self) -> &'static str {
         match self.engine {
