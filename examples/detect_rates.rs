@@ -40,9 +40,8 @@ fn main() {
     let open = |p: &std::path::Path| facegate::core::imaging::open(p).unwrap_or_else(|e| panic!("{}: {e}", p.display())).gray;
     let umist: Vec<GrayF32> =
         (1..=10).flat_map(|s| (1..=19).map(move |k| (s, k))).map(|(s, k)| open(&data.join(format!("umist/s{s:02}/{k:02}.pgm")))).collect();
-    let mut lfw_paths: Vec<_> = walk(&data.join("lfw"));
-    lfw_paths.sort();
-    let lfw: Vec<GrayF32> = lfw_paths.iter().map(|p| open(p)).collect();
+    let lfw_photos = facegate::research::dataset::list_labelled(&data.join("lfw")).expect("../shared/data/lfw");
+    let lfw: Vec<GrayF32> = lfw_photos.iter().map(|p| open(&p.image)).collect();
     println!("| min face in the input | UMIST found | UMIST CPU per photo | LFW found | LFW CPU per photo |");
     println!("| --- | --- | --- | --- | --- |");
     for px in sizes {
@@ -71,17 +70,4 @@ fn main() {
             l.cpu_ms / l.photos as f64
         );
     }
-}
-
-fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
-    let mut out = Vec::new();
-    for entry in std::fs::read_dir(dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display())).flatten() {
-        let path = entry.path();
-        if path.is_dir() {
-            out.extend(walk(&path));
-        } else if path.extension().is_some_and(|e| e == "jpg") {
-            out.push(path);
-        }
-    }
-    out
 }

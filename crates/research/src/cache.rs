@@ -7,6 +7,8 @@
 //! under its [`CacheKey`]: the SHA-256 of
 //! - the kind of results (`deep-embeddings`, `quality-measurements`, `crops`, …);
 //! - [`FRONT_END_VERSION`], this crate's version of the front ends' code;
+//! - the networks' arithmetic on this CPU (`Arithmetic::detect`: 8-bit and float convolutions
+//!   differ in the last digits);
 //! - the bytes of every model file the front end reads ([`ModelFiles`]: the detector's cascades,
 //!   `asm.bin`, `asm3d.bin`, `embedding.bin` of the models folder, the Surrey Face Model's files
 //!   and the compiled-in IMM → SFM correspondence, as the front end loads them);
@@ -123,6 +125,7 @@ impl CacheKey {
         let mut hasher = Sha256::new();
         field(&mut hasher, b"facegate research cache");
         hasher.update(FRONT_END_VERSION.to_le_bytes());
+        field(&mut hasher, format!("{:?}", facegate_vision::embed::Arithmetic::detect()).as_bytes());
         field(&mut hasher, kind.as_bytes());
         hasher.update((models.inputs.len() as u64).to_le_bytes());
         for input in &models.inputs {

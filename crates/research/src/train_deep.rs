@@ -130,12 +130,6 @@ pub fn embed_samples(front: &DeepFrontEnd, samples: &[Sample], threads: usize, p
     })
 }
 
-/// The networks' arithmetic on this CPU ([`Arithmetic::detect`]), for the key of a cache of
-/// embeddings: 8-bit and float convolutions differ in the last digits.
-pub fn arithmetic_key() -> Vec<u8> {
-    format!("arithmetic {:?}", facegate_vision::embed::Arithmetic::detect()).into_bytes()
-}
-
 /// What names a sample in a cache key: its photo's path.
 pub fn cache_id(s: &Sample) -> String {
     s.image.display().to_string()
@@ -151,8 +145,7 @@ pub fn embeddings(
     threads: usize,
     progress: &dyn Progress,
 ) -> anyhow::Result<Vec<PhotoEmbeddings>> {
-    let key =
-        CacheKey::new("deep-embeddings", &FrontEndModels::files(models_dir, sfm_dir), &arithmetic_key(), samples.iter().map(cache_id));
+    let key = CacheKey::new("deep-embeddings", &FrontEndModels::files(models_dir, sfm_dir), &[], samples.iter().map(cache_id));
     cache::get_or_compute(cache_dir, &key, samples.len(), progress, || {
         let models = FrontEndModels::load(models_dir, sfm_dir)?;
         Ok(embed_samples(&models.deep(), samples, threads, progress))

@@ -69,8 +69,7 @@ pub fn onnx_embeddings(
 ) -> anyhow::Result<Vec<OnnxPhotoEmbeddings>> {
     let files = ModelFiles::new().finder(models_dir).model(models_dir, &format!("{name}.onnx")).model(models_dir, &format!("{name}.json"));
     // The engine that runs the network is part of the key: its kernels decide the last digits.
-    let settings = [ENGINE.as_bytes(), &crate::train_deep::arithmetic_key()].concat();
-    let key = CacheKey::new(&format!("onnx-embeddings-{name}"), &files, &settings, samples.iter().map(cache_id));
+    let key = CacheKey::new(&format!("onnx-embeddings-{name}"), &files, ENGINE.as_bytes(), samples.iter().map(cache_id));
     cache::get_or_compute(cache_dir, &key, samples.len(), progress, || {
         let finder = FaceFinder::load(models_dir)?;
         let network = OnnxEmbedder::load(models_dir, name)?;

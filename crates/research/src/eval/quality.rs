@@ -67,12 +67,7 @@ pub fn measure_samples(front: &QualityFrontEnd, samples: &[Sample], threads: usi
 /// The key of a cache of [`measure_samples`] of `samples` by the front end of `models_dir` and
 /// `sfm_dir` (a change to the components' definitions bumps [`crate::cache::FRONT_END_VERSION`]).
 pub fn cache_key(models_dir: &Path, sfm_dir: &Path, samples: &[Sample]) -> CacheKey {
-    CacheKey::new(
-        "quality-measurements",
-        &FrontEndModels::files(models_dir, sfm_dir),
-        &crate::train_deep::arithmetic_key(),
-        samples.iter().map(cache_id),
-    )
+    CacheKey::new("quality-measurements", &FrontEndModels::files(models_dir, sfm_dir), &[], samples.iter().map(cache_id))
 }
 
 /// [`measure_samples`] through the research cache in `cache_dir` (see [`crate::cache`]): the

@@ -126,13 +126,13 @@ impl Placement {
     /// the placed image and its border rounded up to multiples of 32. `face_px` 0 keeps the
     /// square.
     pub fn for_faces(width: usize, height: usize, side: usize, pad: f32, min_face: f32, face_px: f32) -> (Placement, usize, usize) {
+        let pad = pad.clamp(0.0, 1.0);
         let fit = Placement::fit(width, height, side, pad);
         if face_px <= 0.0 || min_face <= 0.0 {
             return (fit, side, side);
         }
         let scale = fit.scale.min(face_px / min_face);
-        let placed = Placement::at_scale(width, height, scale, pad.clamp(0.0, 1.0));
-        let pad = pad.clamp(0.0, 1.0);
+        let placed = Placement::at_scale(width, height, scale, pad);
         let input = |n: usize| {
             let extent = ((1.0 + 2.0 * pad) * n as f32 * scale).ceil() as usize;
             (extent.max(1).div_ceil(DIVISOR) * DIVISOR).min(side)

@@ -19,7 +19,7 @@ use faer::{Accum, MatMut, MatRef, Par};
 use tract_onnx::pb::{GraphProto, NodeProto, TensorProto};
 
 use super::int8::{self, Epilogue, Int8Weights, Quantisation};
-use super::net::{Act, Arithmetic, Cols, FoldedConv, conv};
+use super::net::{Act, Arithmetic, Cols, FoldedConv, conv, int8_weights};
 use super::weights::Conv;
 
 /// A convolution as the ONNX file gives it (filters × channels/group × k × k), before folding.
@@ -299,8 +299,8 @@ impl ChainNet {
     pub fn with_arithmetic(mut self, arithmetic: Arithmetic) -> ChainNet {
         for op in &mut self.ops {
             match op {
-                Op::Conv(conv) => *conv = std::mem::replace(conv, FoldedConv::empty()).in_arithmetic(arithmetic),
-                Op::Dense(d) => d.int8 = (arithmetic == Arithmetic::Int8).then(|| Int8Weights::new(&d.rhs, d.inputs, d.outputs)),
+                Op::Conv(conv) => conv.set_arithmetic(arithmetic),
+                Op::Dense(d) => d.int8 = int8_weights(arithmetic, &d.rhs, d.inputs, d.outputs),
                 _ => {}
             }
         }
@@ -357,11 +357,8 @@ fn dense(d: &Dense, x: &[f32], cols: &mut Cols) -> Vec<f32> {
     let mut out = d.bias.clone();
     match &d.int8 {
         Some(weights) => {
-            let input = Quantisation::of(x);
             let bytes = cols.bytes();
-            bytes.clear();
-            bytes.resize(weights.depth, 0);
-            input.apply(x, bytes);
+            let input = Quantisation::into_bytes(x, bytes, weights.depth);
             int8::matmul(bytes, 1, weights, &Epilogue { input, bias: &d.bias, relu: false }, &mut out);
         }
         None => {

@@ -78,6 +78,17 @@ impl Quantisation {
         Quantisation { step, zero: (-lo / step).round().clamp(0.0, 255.0) as u8 }
     }
 
+    /// The quantisation of `data` and its bytes in `out`, resized to `len` (at least the data's
+    /// length; the rest zero: the padding a product's depth may need).
+    #[inline(always)]
+    pub(super) fn into_bytes(data: &[f32], out: &mut Vec<u8>, len: usize) -> Quantisation {
+        let quantisation = Quantisation::of(data);
+        out.resize(len, 0);
+        out[data.len()..].fill(0);
+        quantisation.apply(data, out);
+        quantisation
+    }
+
     /// Writes the bytes of `data` into `out`.
     pub(super) fn apply(&self, data: &[f32], out: &mut [u8]) {
         let (inv, zero) = (1.0 / self.step, self.zero as f32 + 0.5);
@@ -199,19 +210,19 @@ mod x86 {
         let mut r = 0;
         while r + 6 <= m {
             // SAFETY: rows r..r + 6 exist.
-            unsafe { row_tiles::<6>(rows, m, r, w, e, out) };
+            unsafe { row_tiles::<6>(rows, r, w, e, out) };
             r += 6;
         }
         while r < m {
             // SAFETY: row r exists.
-            unsafe { row_tiles::<1>(rows, m, r, w, e, out) };
+            unsafe { row_tiles::<1>(rows, r, w, e, out) };
             r += 1;
         }
     }
 
     /// Rows `r..r + MR` against every block of filters.
     #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
-    unsafe fn row_tiles<const MR: usize>(rows: &[u8], m: usize, r: usize, w: &Int8Weights, e: &Epilogue, out: &mut [f32]) {
+    unsafe fn row_tiles<const MR: usize>(rows: &[u8], r: usize, w: &Int8Weights, e: &Epilogue, out: &mut [f32]) {
         let blocks = w.blocks();
         let mut b = 0;
         while b < blocks {
@@ -219,35 +230,26 @@ mod x86 {
             // SAFETY (all three): blocks b..b + NB exist; the caller gives rows that exist.
             unsafe {
                 if left >= 4 {
-                    tile::<MR, 4>(rows, m, r, b, w, e, out);
+                    tile::<MR, 4>(rows, r, b, w, e, out);
                     b += 4;
                 } else if left >= 2 {
-                    tile::<MR, 2>(rows, m, r, b, w, e, out);
+                    tile::<MR, 2>(rows, r, b, w, e, out);
                     b += 2;
                 } else {
-                    tile::<MR, 1>(rows, m, r, b, w, e, out);
+                    tile::<MR, 1>(rows, r, b, w, e, out);
                     b += 1;
                 }
             }
         }
     }
 
-    /// Rows `r0..r0 + MR` (those past `m` repeat the last row and are not stored) against blocks
-    /// `b0..b0 + NB`.
+    /// Rows `r0..r0 + MR` (all of them rows of the product) against blocks `b0..b0 + NB`.
     #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
     #[inline]
-    unsafe fn tile<const MR: usize, const NB: usize>(
-        rows: &[u8],
-        m: usize,
-        r0: usize,
-        b0: usize,
-        w: &Int8Weights,
-        e: &Epilogue,
-        out: &mut [f32],
-    ) {
+    unsafe fn tile<const MR: usize, const NB: usize>(rows: &[u8], r0: usize, b0: usize, w: &Int8Weights, e: &Epilogue, out: &mut [f32]) {
         let depth = w.depth;
         let mut acc = [[_mm512_setzero_si512(); NB]; MR];
-        let row_at: [*const u8; MR] = std::array::from_fn(|i| rows[(r0 + i).min(m - 1) * depth..].as_ptr());
+        let row_at: [*const u8; MR] = std::array::from_fn(|i| rows[(r0 + i) * depth..].as_ptr());
         let block_at: [*const i8; NB] = std::array::from_fn(|j| w.packed[(b0 + j) * depth * LANES..].as_ptr());
         for step in 0..depth / 4 {
             // SAFETY: each block holds depth / 4 steps of 64 bytes; each row holds depth bytes.
@@ -272,7 +274,7 @@ mod x86 {
                 let scale = _mm512_mul_ps(_mm512_loadu_ps(w.scale[first..].as_ptr()), _mm512_set1_ps(e.input.step));
                 let bias = _mm512_maskz_loadu_ps(mask, e.bias[first..].as_ptr());
                 let offset = _mm512_mullo_epi32(zero, sums);
-                for i in 0..MR.min(m - r0) {
+                for i in 0..MR {
                     let v = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc[i][j], offset));
                     let mut v = _mm512_fmadd_ps(v, scale, bias);
                     if e.relu {

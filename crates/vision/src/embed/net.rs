@@ -12,8 +12,17 @@ use super::chip::FaceChip;
 use super::int8::{self, Epilogue, Int8Weights, Quantisation};
 use super::weights::{Conv, Layer, NetworkFile};
 
-/// Products per output below which a convolution stays in floats ([`FoldedConv::in_arithmetic`]).
+/// Products per output below which a layer stays in floats ([`int8_weights`]).
 const MIN_INT8_DEPTH: usize = 64;
+
+/// The `i8` weights of a layer (`rhs`: `depth × outputs`, as the float product takes it) that
+/// computes in `arithmetic`, or `None` for floats. A layer of few products per output (a first
+/// convolution over the photo's three channels under a 3×3 kernel: 27) stays in floats whatever is
+/// asked: in 8 bits SFace's lost a point of EER on UMIST's grey profiles, while dlib's 7×7 stem
+/// (147 products) lost nothing measurable (docs/speed.md).
+pub(super) fn int8_weights(arithmetic: Arithmetic, rhs: &[f32], depth: usize, outputs: usize) -> Option<Int8Weights> {
+    (arithmetic == Arithmetic::Int8 && depth >= MIN_INT8_DEPTH).then(|| Int8Weights::new(rhs, depth, outputs))
+}
 
 /// How the networks' convolutions compute.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -122,19 +131,14 @@ impl FoldedConv {
         Ok(FoldedConv { filters: f, channels: c, size: k, stride: conv.stride, padding: conv.padding, rhs, bias, int8: None })
     }
 
-    /// The layer set to compute in `arithmetic`. A first layer with few products per output (the
-    /// photo's three channels under a 3×3 kernel: 27) stays in floats whatever is asked: in 8
-    /// bits SFace's lost a point of EER on UMIST's grey profiles, while dlib's 7×7 stem (147
-    /// products) lost nothing measurable (docs/speed.md).
-    pub(super) fn in_arithmetic(mut self, arithmetic: Arithmetic) -> FoldedConv {
-        let depth = self.size * self.size * self.channels;
-        self.int8 = (arithmetic == Arithmetic::Int8 && depth >= MIN_INT8_DEPTH).then(|| Int8Weights::new(&self.rhs, depth, self.filters));
-        self
+    /// Sets the layer to compute in `arithmetic` ([`int8_weights`]).
+    pub(super) fn set_arithmetic(&mut self, arithmetic: Arithmetic) {
+        self.int8 = int8_weights(arithmetic, &self.rhs, self.size * self.size * self.channels, self.filters);
     }
 
-    /// A placeholder of no size, for swapping a layer out while it is rebuilt.
-    pub(super) fn empty() -> FoldedConv {
-        FoldedConv { filters: 0, channels: 0, size: 0, stride: 1, padding: 0, rhs: Vec::new(), bias: Vec::new(), int8: None }
+    /// A 1×1 convolution of stride 1: its input is the product's left-hand side, no im2col copy.
+    fn pointwise(&self) -> bool {
+        self.size == 1 && self.stride == 1 && self.padding == 0
     }
 
     pub(super) fn out_side(&self, side: usize) -> usize {
@@ -239,9 +243,8 @@ impl Embedder {
     /// residual units, global average pool, fully connected layer to 128 values; in this CPU's
     /// arithmetic ([`Arithmetic::detect`]).
     pub fn new(file: &NetworkFile) -> Result<Embedder, NetworkError> {
-        let arithmetic = Arithmetic::detect();
         let mut layers = Layers { rest: file.layers.iter() };
-        let stem = layers.conv_affine()?.in_arithmetic(arithmetic);
+        let stem = layers.conv_affine()?;
         layers.relu()?;
         let stem_pool = match layers.next("max pool")? {
             Layer::MaxPool { size, stride, padding } => (*size, *stride, *padding),
@@ -258,9 +261,9 @@ impl Embedder {
                     }
                 }
                 Some(Layer::Conv(_)) => {
-                    let conv1 = layers.conv_affine()?.in_arithmetic(arithmetic);
+                    let conv1 = layers.conv_affine()?;
                     layers.relu()?;
-                    let conv2 = layers.conv_affine()?.in_arithmetic(arithmetic);
+                    let conv2 = layers.conv_affine()?;
                     let down = match layers.next("add or pool")? {
                         Layer::AddPrev => false,
                         Layer::AvgPool { size: 2, stride: 2, padding: 0 } => {
@@ -299,16 +302,16 @@ impl Embedder {
             fc,
             fc_inputs,
             workspaces: Mutex::new(Vec::new()),
-        })
+        }
+        .with_arithmetic(Arithmetic::detect()))
     }
 
     /// The same network computing in `arithmetic` (evaluations compare the two).
     pub fn with_arithmetic(mut self, arithmetic: Arithmetic) -> Embedder {
-        self.stem = std::mem::replace(&mut self.stem, FoldedConv::empty()).in_arithmetic(arithmetic);
+        self.stem.set_arithmetic(arithmetic);
         for unit in &mut self.units {
-            for conv in [&mut unit.conv1, &mut unit.conv2] {
-                *conv = std::mem::replace(conv, FoldedConv::empty()).in_arithmetic(arithmetic);
-            }
+            unit.conv1.set_arithmetic(arithmetic);
+            unit.conv2.set_arithmetic(arithmetic);
         }
         self
     }
@@ -424,46 +427,38 @@ pub(super) fn conv(layer: &FoldedConv, input: &Act, out: &mut Act, cols: &mut Co
     match &layer.int8 {
         None => conv_float(layer, input, out, &mut cols.floats, relu),
         Some(weights) => {
-            let quantisation = input_bytes(layer, input, cols);
-            let rows = if layer.size == 1 && layer.stride == 1 && layer.padding == 0 && weights.depth == layer.channels {
-                &cols.input
-            } else {
-                &cols.rows
-            };
+            let (quantisation, rows) = input_bytes(layer, weights, input, cols);
             let epilogue = Epilogue { input: quantisation, bias: &layer.bias, relu };
             int8::matmul(rows, ho * wo, weights, &epilogue, &mut out.data);
         }
     }
 }
 
-/// An integer layer's input as bytes: quantised into `cols.input` and, unless the layer is a 1×1
-/// convolution of stride 1 over whole groups of four channels (which multiplies the activations
-/// themselves), copied im2col into `cols.rows`.
-fn input_bytes(layer: &FoldedConv, input: &Act, cols: &mut Cols) -> Quantisation {
+/// An integer layer's input as bytes, and the rows of its product: the quantised input itself
+/// for a 1×1 convolution of stride 1 over whole groups of four channels, else its im2col copy.
+fn input_bytes<'c>(layer: &FoldedConv, weights: &Int8Weights, input: &Act, cols: &'c mut Cols) -> (Quantisation, &'c [u8]) {
     #[cfg(target_arch = "x86_64")]
     if int8::vnni() {
         // SAFETY: the CPU has AVX-512 F and BW (checked at run time).
-        return unsafe { input_bytes_avx512(layer, input, cols) };
+        return unsafe { input_bytes_avx512(layer, weights, input, cols) };
     }
-    input_bytes_body(layer, input, cols)
+    input_bytes_body(layer, weights, input, cols)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,avx512f,avx512bw")]
-fn input_bytes_avx512(layer: &FoldedConv, input: &Act, cols: &mut Cols) -> Quantisation {
-    input_bytes_body(layer, input, cols)
+fn input_bytes_avx512<'c>(layer: &FoldedConv, weights: &Int8Weights, input: &Act, cols: &'c mut Cols) -> (Quantisation, &'c [u8]) {
+    input_bytes_body(layer, weights, input, cols)
 }
 
 #[inline(always)]
-fn input_bytes_body(layer: &FoldedConv, input: &Act, cols: &mut Cols) -> Quantisation {
-    let quantisation = Quantisation::of(&input.data);
-    cols.input.resize(input.data.len(), 0);
-    quantisation.apply(&input.data, &mut cols.input);
-    let depth = layer.int8.as_ref().map_or(0, |w| w.depth);
-    if !(layer.size == 1 && layer.stride == 1 && layer.padding == 0 && depth == layer.channels) {
-        im2col(layer, input, &cols.input, quantisation.zero, depth, &mut cols.rows);
+fn input_bytes_body<'c>(layer: &FoldedConv, weights: &Int8Weights, input: &Act, cols: &'c mut Cols) -> (Quantisation, &'c [u8]) {
+    let quantisation = Quantisation::into_bytes(&input.data, &mut cols.input, input.data.len());
+    if layer.pointwise() && weights.depth == layer.channels {
+        return (quantisation, &cols.input);
     }
-    quantisation
+    im2col(layer, input, &cols.input, quantisation.zero, weights.depth, &mut cols.rows);
+    (quantisation, &cols.rows)
 }
 
 /// The im2col copy of `values` (the input's `h × w × c` values, as floats or bytes): one row of
@@ -498,8 +493,7 @@ fn im2col<T: Copy>(layer: &FoldedConv, input: &Act, values: &[T], pad: T, row_le
 /// [`conv`] in floats: faer's matrix product.
 fn conv_float(layer: &FoldedConv, input: &Act, out: &mut Act, cols: &mut Vec<f32>, relu: bool) {
     let kk = layer.size * layer.size * layer.channels;
-    // A 1×1 convolution of stride 1 multiplies the activations themselves: no im2col copy.
-    let pointwise = layer.size == 1 && layer.stride == 1 && layer.padding == 0;
+    let pointwise = layer.pointwise();
     if !pointwise {
         im2col(layer, input, &input.data, 0.0, kk, cols);
     }
