@@ -83,9 +83,7 @@ async fn raw(url: &str) -> AnyPool {
 }
 
 async fn scan(store: &Store, version: &str) -> Vec<(String, Result<Vec<Template>, String>)> {
-    let mut out = Vec::new();
-    store.gallery(version, |s, t| out.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap();
-    out
+    store.gallery(version, Vec::new(), |out, s, t| out.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap()
 }
 
 /// The identification gallery's reads: in parts (start-up, several connections) that together are
@@ -107,7 +105,8 @@ async fn the_gallery_reads_in_parts_and_by_subject(url: String) {
         assert!(!cut.is_empty() && cut.len() <= parts, "{parts} parts: {cut:?}");
         let mut joined = Vec::new();
         for part in &cut {
-            store.gallery_part("m1", part, |s, t| joined.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap();
+            joined =
+                store.gallery_part("m1", part, joined, |out, s, t| out.push((s.to_string(), t.map_err(|e| e.to_string())))).await.unwrap();
         }
         assert_eq!(joined, whole, "{parts} parts");
     }

@@ -197,11 +197,7 @@ impl GrayF32 {
         // arithmetic as the clamped path below, so the same values.
         if x >= 0.0 && y >= 0.0 && x < (w - 1) as f32 && y < (self.height - 1) as f32 {
             let (x0, y0) = (x as usize, y as usize);
-            let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-            let d = &self.data[y0 * w + x0..y0 * w + x0 + w + 2];
-            let top = d[0] + fx * (d[1] - d[0]);
-            let bottom = d[w] + fx * (d[w + 1] - d[w]);
-            return top + fy * (bottom - top);
+            return self.lerp_inside(x0, y0, x - x0 as f32, y - y0 as f32);
         }
         let x = x.clamp(0.0, (self.width - 1) as f32);
         let y = y.clamp(0.0, (self.height - 1) as f32);
@@ -216,6 +212,38 @@ impl GrayF32 {
         let top = self.data[row0 + x0] + fx * (self.data[row0 + x1] - self.data[row0 + x0]);
         let bottom = self.data[row1 + x0] + fx * (self.data[row1 + x1] - self.data[row1 + x0]);
         top + fy * (bottom - top)
+    }
+
+    /// The bilinear value in the cell whose top-left pixel is (x0, y0), both inside the image
+    /// but for the last column and row, at fractions (fx, fy).
+    #[inline(always)]
+    fn lerp_inside(&self, x0: usize, y0: usize, fx: f32, fy: f32) -> f32 {
+        let w = self.width;
+        let d = &self.data[y0 * w + x0..y0 * w + x0 + w + 2];
+        let top = d[0] + fx * (d[1] - d[0]);
+        let bottom = d[w] + fx * (d[w + 1] - d[w]);
+        top + fy * (bottom - top)
+    }
+
+    /// [`GrayF32::sample`] at every (xs[i], ys[j]), as an image of `xs.len() × ys.len()`: the
+    /// same values, with each column's and row's cell found once rather than per sample (an
+    /// axis-aligned resampling, as the landmark search's crop and the detector's input are).
+    pub fn sample_grid(&self, xs: &[f32], ys: &[f32]) -> GrayF32 {
+        // Per coordinate: its cell and fraction when it is inside (as `sample` tests it).
+        let cells = |coords: &[f32], n: usize| -> Vec<Option<(usize, f32)>> {
+            coords.iter().map(|&c| (c >= 0.0 && c < (n - 1) as f32).then(|| (c as usize, c - (c as usize) as f32))).collect()
+        };
+        let (columns, rows) = (cells(xs, self.width), cells(ys, self.height));
+        let mut out = GrayF32::new(xs.len(), ys.len());
+        for ((line, &y), row) in out.data.chunks_exact_mut(xs.len().max(1)).zip(ys).zip(&rows) {
+            for ((o, &x), column) in line.iter_mut().zip(xs).zip(&columns) {
+                *o = match (column, row) {
+                    (Some((x0, fx)), Some((y0, fy))) => self.lerp_inside(*x0, *y0, *fx, *fy),
+                    _ => self.sample(x, y),
+                };
+            }
+        }
+        out
     }
 
     /// Separable Gaussian blur with standard deviation `sigma` (kernel radius 3σ, borders clamped).
@@ -235,18 +263,22 @@ impl GrayF32 {
         let mut tmp = GrayF32::new(w, h);
         for y in 0..h {
             let row = &self.data[y * w..(y + 1) * w];
-            for x in 0..w {
-                let mut acc = 0.0;
-                if x >= r && x + r < w {
-                    for (k, &kv) in kernel.iter().enumerate() {
-                        acc += kv * row[x + k - r];
-                    }
-                } else {
-                    for (k, &kv) in kernel.iter().enumerate() {
-                        acc += kv * row[clamp(x as isize + k as isize - radius, w)];
+            let dst = &mut tmp.data[y * w..(y + 1) * w];
+            // The interior tap by tap across the row (vectorised), from zero in kernel order:
+            // each pixel's sum is the one a per-pixel loop makes.
+            if w > 2 * r {
+                for (k, &kv) in kernel.iter().enumerate() {
+                    for (o, v) in dst[r..w - r].iter_mut().zip(&row[k..w - 2 * r + k]) {
+                        *o += kv * v;
                     }
                 }
-                tmp.data[y * w + x] = acc;
+            }
+            for x in (0..w).filter(|&x| x < r || x + r >= w) {
+                let mut acc = 0.0;
+                for (k, &kv) in kernel.iter().enumerate() {
+                    acc += kv * row[clamp(x as isize + k as isize - radius, w)];
+                }
+                dst[x] = acc;
             }
         }
         // Row by row in kernel order: the same sums, in the same order, as per pixel.
@@ -278,7 +310,9 @@ impl GrayF32 {
     pub fn resize(&self, width: usize, height: usize) -> GrayF32 {
         let sx = self.width as f32 / width as f32;
         let sy = self.height as f32 / height as f32;
-        GrayF32::from_fn(width, height, |x, y| self.sample((x as f32 + 0.5) * sx - 0.5, (y as f32 + 0.5) * sy - 0.5))
+        let xs: Vec<f32> = (0..width).map(|x| (x as f32 + 0.5) * sx - 0.5).collect();
+        let ys: Vec<f32> = (0..height).map(|y| (y as f32 + 0.5) * sy - 0.5).collect();
+        self.sample_grid(&xs, &ys)
     }
 }
 
@@ -332,5 +366,38 @@ mod tests {
         let ramp = GrayF32::from_fn(9, 7, |x, _| x as f32);
         assert!((ramp.sample(2.25, 3.0) - 2.25).abs() < 1e-5);
         assert_eq!(ramp.downsample_half().width, 4);
+    }
+
+    #[test]
+    fn blur_is_the_clamped_convolution_pixel_by_pixel() {
+        let img = GrayF32::from_fn(23, 11, |x, y| ((x * 37 + y * 11) % 17) as f32 * 1.7);
+        for sigma in [0.5, 1.0, 2.0, 4.0] {
+            let radius = (3.0 * sigma as f32).ceil() as isize;
+            let mut kernel: Vec<f32> = (-radius..=radius).map(|i| (-(i * i) as f32 / (2.0 * sigma * sigma)).exp()).collect();
+            let sum: f32 = kernel.iter().sum();
+            kernel.iter_mut().for_each(|k| *k /= sum);
+            let at = |x: isize, y: isize| img.get(x.clamp(0, 22) as usize, y.clamp(0, 10) as usize);
+            let rows = GrayF32::from_fn(23, 11, |x, y| {
+                kernel.iter().enumerate().fold(0.0, |acc, (k, kv)| acc + kv * at(x as isize + k as isize - radius, y as isize))
+            });
+            let want = GrayF32::from_fn(23, 11, |x, y| {
+                let column = |k: usize| rows.get(x, (y as isize + k as isize - radius).clamp(0, 10) as usize);
+                kernel.iter().enumerate().fold(0.0, |acc, (k, kv)| acc + kv * column(k))
+            });
+            assert_eq!(img.gaussian_blur(sigma).data, want.data, "sigma {sigma}");
+        }
+    }
+
+    #[test]
+    fn a_grid_of_samples_is_sample_at_each_point() {
+        let img = GrayF32::from_fn(13, 9, |x, y| ((x * 31 + y * 17) % 11) as f32 * 2.3);
+        let xs: Vec<f32> = (0..20).map(|i| -1.3 + i as f32 * 0.77).collect();
+        let ys: Vec<f32> = (0..15).map(|j| -0.6 + j as f32 * 0.71).collect();
+        let grid = img.sample_grid(&xs, &ys);
+        for (j, &y) in ys.iter().enumerate() {
+            for (i, &x) in xs.iter().enumerate() {
+                assert_eq!(grid.get(i, j), img.sample(x, y), "({x}, {y})");
+            }
+        }
     }
 }

@@ -137,12 +137,12 @@ pub(crate) enum Sealing {
 
 impl Store {
     /// How `subject`'s vectors are stored, from its row's key id and wrapped data key.
-    pub(crate) fn sealing(&self, subject: &str, key_id: Option<String>, wrapped: Option<Vec<u8>>) -> Result<Sealing, StoreError> {
+    pub(crate) fn sealing(&self, subject: &str, key_id: Option<&str>, wrapped: Option<&[u8]>) -> Result<Sealing, StoreError> {
         let (Some(key_id), Some(wrapped)) = (key_id, wrapped) else {
             return Ok(Sealing::Plain);
         };
         let keys = self.keys.as_ref().ok_or_else(|| StoreError::NoKey { subject: subject.to_string() })?;
-        keys.unwrap(subject, &key_id, &wrapped)
+        keys.unwrap(subject, key_id, wrapped)
             .map(Sealing::Sealed)
             .map_err(|source| StoreError::DataKey { subject: subject.to_string(), source })
     }
@@ -234,21 +234,22 @@ pub(crate) fn open_vector(
 }
 
 /// A gallery row as stored (a template with its subject's key columns), before its vector is
-/// opened: what both the sqlx reads and SQLite's bulk scan ([`crate::sqlite_scan`]) hand to
-/// [`Store::group_by_subject`](crate::Store).
-pub(crate) struct StoredRow {
+/// opened, borrowed from the row it was read from: what both the sqlx reads and SQLite's bulk scan
+/// ([`crate::sqlite_scan`]) hand to [`Store::group_by_subject`](crate::Store), which copies only
+/// what it keeps.
+pub(crate) struct StoredRow<'r> {
     pub id: i64,
-    pub subject: String,
-    pub model_version: String,
+    pub subject: &'r str,
+    pub model_version: &'r str,
     pub dimension: i64,
-    pub vector: Vec<u8>,
-    pub key_id: Option<String>,
-    pub data_key: Option<Vec<u8>>,
+    pub vector: &'r [u8],
+    pub key_id: Option<&'r str>,
+    pub data_key: Option<&'r [u8]>,
 }
 
-impl StoredRow {
+impl<'r> StoredRow<'r> {
     /// The columns `id, subject_id, model_version, dimension, vector, key_id, data_key`.
-    pub fn of(row: &AnyRow) -> Result<StoredRow, sqlx::Error> {
+    pub fn of(row: &'r AnyRow) -> Result<StoredRow<'r>, sqlx::Error> {
         Ok(StoredRow {
             id: row.try_get("id")?,
             subject: row.try_get("subject_id")?,

@@ -223,6 +223,15 @@ pub struct RekeyReport {
 /// data key cannot be opened), and its templates so far or why they cannot be read.
 type SubjectReading = (String, Option<Sealing>, Result<Vec<Template>, StoreError>);
 
+/// Sets its flag when dropped: tells a blocking reader that its caller is gone.
+struct AbandonOnDrop(Arc<std::sync::atomic::AtomicBool>);
+
+impl Drop for AbandonOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
 /// The gallery read of `part` (the columns [`StoredRow::of`] takes), its parameters named by
 /// `placeholder` (`$n` for sqlx, `?n` for SQLite's C API): 1 the model version, 2 the lower bound
 /// ('' sorts before every id, and ids are never empty), 3 the upper bound, left out of the
@@ -398,11 +407,16 @@ impl Store {
         Ok(Some(templates))
     }
 
-    /// Every subject's templates made by `model_version`, handed to `each` one subject at a time
-    /// in subject id order (rows are streamed, so the whole gallery is never held twice). A
-    /// subject whose templates cannot be read is handed its error; the scan goes on.
-    pub async fn gallery(&self, model_version: &str, each: impl FnMut(&str, Result<Vec<Template>, StoreError>)) -> Result<(), StoreError> {
-        self.gallery_part(model_version, &GalleryPart::default(), each).await
+    /// Every subject's templates made by `model_version`, handed to `each` with `state` one
+    /// subject at a time in subject id order (rows are streamed, so the whole gallery is never
+    /// held twice); returns `state`. A subject whose templates cannot be read is handed its error;
+    /// the scan goes on.
+    pub async fn gallery<S, F>(&self, model_version: &str, state: S, each: F) -> Result<S, StoreError>
+    where
+        S: Send + 'static,
+        F: FnMut(&mut S, &str, Result<Vec<Template>, StoreError>) + Send + 'static,
+    {
+        self.gallery_part(model_version, &GalleryPart::default(), state, each).await
     }
 
     /// Subject ids that cut `model_version`'s templates into up to `parts` parts of about equal
@@ -428,37 +442,49 @@ impl Store {
     }
 
     /// [`Store::gallery`] for the subjects of one part only. On a SQLite file the rows are read
-    /// through SQLite's C API on a thread of their own ([`sqlite_scan`]), else through the pool.
-    pub async fn gallery_part(
-        &self,
-        model_version: &str,
-        part: &GalleryPart,
-        mut each: impl FnMut(&str, Result<Vec<Template>, StoreError>),
-    ) -> Result<(), StoreError> {
+    /// through SQLite's C API on a blocking thread, which also runs `each` (so `state` moves there
+    /// and back: no row crosses threads); else through the pool.
+    pub async fn gallery_part<S, F>(&self, model_version: &str, part: &GalleryPart, mut state: S, mut each: F) -> Result<S, StoreError>
+    where
+        S: Send + 'static,
+        F: FnMut(&mut S, &str, Result<Vec<Template>, StoreError>) + Send + 'static,
+    {
         if let Some(path) = &self.sqlite_file {
-            let (sender, mut batches) = tokio::sync::mpsc::channel(4);
-            let (file, version, part) = (path.clone(), model_version.to_string(), part.clone());
-            let reader = tokio::task::spawn_blocking(move || {
-                sqlite_scan::read_gallery_part(&file, &version, &part, |batch| sender.blocking_send(batch).is_ok())
-            });
-            let mut current = None;
-            while let Some(batch) = batches.recv().await {
-                for row in batch {
-                    self.group_by_subject(&mut current, row, &mut each);
+            // Set when this future is dropped, so that an abandoned load stops reading.
+            let abandoned = Arc::new(std::sync::atomic::AtomicBool::new(false));
+            let _abandon_on_drop = AbandonOnDrop(abandoned.clone());
+            let (store, file, version, part) = (self.clone(), path.clone(), model_version.to_string(), part.clone());
+            let read = tokio::task::spawn_blocking(move || {
+                let mut current = None;
+                let mut hand = |subject: &str, templates| each(&mut state, subject, templates);
+                sqlite_scan::read_gallery_part(&file, &version, &part, |row| {
+                    store.group_by_subject(&mut current, row, &mut hand);
+                    !abandoned.load(std::sync::atomic::Ordering::Relaxed)
+                })?;
+                if let Some((done, _, templates)) = current.take() {
+                    hand(&done, templates);
                 }
-            }
-            if let Some((done, _, templates)) = current.take() {
-                each(&done, templates);
-            }
-            let read = reader.await.expect("the SQLite gallery reader does not panic");
-            return read.map_err(|e| StoreError::Refused(format!("reading the gallery from {}: {e}", path.display())));
+                Ok(state)
+            })
+            .await
+            .expect("the SQLite gallery reader does not panic");
+            return read.map_err(|e: String| StoreError::Refused(format!("reading the gallery from {}: {e}", path.display())));
         }
         let statement = gallery_statement(part, |n| format!("${n}"));
         let mut query = sqlx::query(&statement).bind(model_version).bind(part.after.as_deref().unwrap_or(""));
         if let Some(through) = &part.through {
             query = query.bind(through.as_str());
         }
-        self.each_subject(query.fetch(&self.pool), each).await
+        let mut tx = self.pool.begin().await?;
+        if self.backend == Backend::Postgres {
+            // Read in the index's order (model version, subject, id): PostgreSQL's planner
+            // otherwise scans the whole table and sorts the part's rows, per part (docs/service.md,
+            // start-up: 64 s against 30 s at ten million).
+            sqlx::query("SET LOCAL enable_sort = off").execute(&mut *tx).await?;
+        }
+        self.each_subject(query.fetch(&mut *tx), |subject, templates| each(&mut state, subject, templates)).await?;
+        tx.commit().await.map_err(StoreError::of_commit)?;
+        Ok(state)
     }
 
     /// The templates of `model_version` of each of `subjects` that holds any, in subject id
@@ -508,20 +534,20 @@ impl Store {
     fn group_by_subject(
         &self,
         current: &mut Option<SubjectReading>,
-        row: StoredRow,
+        row: StoredRow<'_>,
         each: &mut impl FnMut(&str, Result<Vec<Template>, StoreError>),
     ) {
-        if current.as_ref().is_none_or(|(s, _, _)| *s != row.subject) {
+        if current.as_ref().is_none_or(|(s, _, _)| s != row.subject) {
             if let Some((done, _, templates)) = current.take() {
                 each(&done, templates);
             }
-            *current = Some(match self.sealing(&row.subject, row.key_id, row.data_key) {
-                Ok(sealing) => (row.subject, Some(sealing), Ok(Vec::new())),
-                Err(e) => (row.subject, None, Err(e)),
+            *current = Some(match self.sealing(row.subject, row.key_id, row.data_key) {
+                Ok(sealing) => (row.subject.to_string(), Some(sealing), Ok(Vec::new())),
+                Err(e) => (row.subject.to_string(), None, Err(e)),
             });
         }
         if let Some((subject, Some(sealing), templates @ Ok(_))) = current.as_mut() {
-            match open_vector(sealing, subject, row.id, row.dimension, row.model_version, &row.vector) {
+            match open_vector(sealing, subject, row.id, row.dimension, row.model_version.to_string(), row.vector) {
                 Ok(template) => templates.as_mut().expect("matched Ok").push(template),
                 Err(e) => *templates = Err(e),
             }

@@ -1,8 +1,9 @@
 //! The gallery's start-up read of a SQLite file through SQLite's C API (`libsqlite3-sys`, the
 //! library sqlx itself links): sqlx hands SQLite rows one at a time from its worker thread to the
 //! async caller, about 6 µs a row on this machine, a minute and a half for ten million templates.
-//! Here a blocking thread of its own steps the statement on a read-only connection and sends the
-//! rows in batches, which the caller groups by subject as it does sqlx's rows.
+//! Here the caller's blocking thread steps the statement on a read-only connection and hands each
+//! row, borrowed from SQLite, to the caller, which groups the rows by subject as it does sqlx's
+//! rows: nothing of a row is copied but what the gallery keeps.
 //!
 //! Only this read takes the path: every write, and every other read, goes through the pool.
 
@@ -14,9 +15,6 @@ use libsqlite3_sys as ffi;
 
 use crate::GalleryPart;
 use crate::codec::StoredRow;
-
-/// Rows per batch sent to the caller: one wake-up per batch rather than per row.
-pub(crate) const BATCH: usize = 2048;
 
 /// An open read-only connection, closed on drop.
 struct Connection(NonNull<ffi::sqlite3>);
@@ -98,34 +96,36 @@ impl Statement<'_> {
         unsafe { ffi::sqlite3_column_int64(self.raw.as_ptr(), column) }
     }
 
-    /// A TEXT or BLOB column's bytes (copied), `None` for NULL.
-    fn bytes(&self, column: c_int) -> Option<Vec<u8>> {
+    /// A TEXT or BLOB column's bytes, `None` for NULL; valid until the next step (which takes the
+    /// statement mutably, so the borrow cannot outlive it).
+    fn bytes(&self, column: c_int) -> Option<&[u8]> {
         let stmt = self.raw.as_ptr();
         // SAFETY: the statement is on a row; the pointer is valid for `len` bytes until the next
-        // step, and is copied at once (a NULL column has no pointer).
+        // step or finalisation, both of which need `&mut self` or ownership (a NULL column has
+        // no pointer).
         unsafe {
             if ffi::sqlite3_column_type(stmt, column) == ffi::SQLITE_NULL {
                 return None;
             }
             let data = ffi::sqlite3_column_blob(stmt, column).cast::<u8>();
             let len = ffi::sqlite3_column_bytes(stmt, column) as usize;
-            Some(if data.is_null() || len == 0 { Vec::new() } else { std::slice::from_raw_parts(data, len).to_vec() })
+            Some(if data.is_null() || len == 0 { &[] } else { std::slice::from_raw_parts(data, len) })
         }
     }
 
-    fn text(&self, column: c_int) -> Result<Option<String>, String> {
-        self.bytes(column).map(|b| String::from_utf8(b).map_err(|_| format!("column {column} is not UTF-8"))).transpose()
+    fn text(&self, column: c_int) -> Result<Option<&str>, String> {
+        self.bytes(column).map(|b| std::str::from_utf8(b).map_err(|_| format!("column {column} is not UTF-8"))).transpose()
     }
 }
 
 /// `part` of `model_version`'s gallery rows from the SQLite file at `path`, in subject id order,
-/// handed to `send` in batches of [`BATCH`]; stops early when `send` returns false (the reader
-/// is gone). Blocking: run it on a thread of its own.
+/// each handed to `each`; stops early when `each` returns false (the reader is gone). Blocking:
+/// run it on a thread of its own.
 pub(crate) fn read_gallery_part(
     path: &Path,
     model_version: &str,
     part: &GalleryPart,
-    mut send: impl FnMut(Vec<StoredRow>) -> bool,
+    mut each: impl FnMut(StoredRow<'_>) -> bool,
 ) -> Result<(), String> {
     let connection = Connection::open(path)?;
     let mut statement = connection.prepare(&crate::gallery_statement(part, |n| format!("?{n}")))?;
@@ -134,10 +134,9 @@ pub(crate) fn read_gallery_part(
     if let Some(through) = &part.through {
         statement.bind_text(3, through)?;
     }
-    let mut batch = Vec::with_capacity(BATCH);
     while statement.step()?.is_some() {
         let missing = |what: &str| format!("a template row without {what}");
-        batch.push(StoredRow {
+        let row = StoredRow {
             id: statement.int(0),
             subject: statement.text(1)?.ok_or_else(|| missing("subject"))?,
             model_version: statement.text(2)?.ok_or_else(|| missing("model version"))?,
@@ -145,13 +144,10 @@ pub(crate) fn read_gallery_part(
             vector: statement.bytes(4).ok_or_else(|| missing("vector"))?,
             key_id: statement.text(5)?,
             data_key: statement.bytes(6),
-        });
-        if batch.len() == BATCH && !send(std::mem::replace(&mut batch, Vec::with_capacity(BATCH))) {
-            return Ok(());
+        };
+        if !each(row) {
+            break;
         }
-    }
-    if !batch.is_empty() {
-        send(batch);
     }
     Ok(())
 }

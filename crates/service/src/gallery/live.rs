@@ -97,18 +97,16 @@ impl Live {
             .map(|part| {
                 let (store, version) = (self.store.clone(), version.clone());
                 tokio::spawn(async move {
-                    let mut gallery = Gallery::with_precision(&version, precision);
-                    let mut unreadable = Vec::new();
+                    let part_gallery = (Gallery::with_precision(&version, precision), Vec::new());
                     store
-                        .gallery_part(&version, &part, |subject, templates| match templates {
+                        .gallery_part(&version, &part, part_gallery, |(gallery, unreadable), subject, templates| match templates {
                             Ok(templates) => gallery.add(subject, &templates),
                             Err(e) => {
                                 unreadable.push((subject.to_string(), e.to_string()));
                                 gallery.mark_unreadable(subject, e.to_string());
                             }
                         })
-                        .await?;
-                    Ok::<_, StoreError>((gallery, unreadable))
+                        .await
                 })
             })
             .collect();

@@ -171,13 +171,12 @@ fn input_plane(gray: &GrayF32, placement: &Placement, width: usize, height: usiz
     let w = ((gray.width as f32 * placement.scale).round() as usize).min(width.saturating_sub(ox));
     let h = ((gray.height as f32 * placement.scale).round() as usize).min(height.saturating_sub(oy));
     let (sx, sy) = (src.width as f32 / (gray.width as f32 * placement.scale), src.height as f32 / (gray.height as f32 * placement.scale));
+    let xs: Vec<f32> = (0..w).map(|x| (x as f32 + 0.5) * sx - 0.5).collect();
+    let ys: Vec<f32> = (0..h).map(|y| (y as f32 + 0.5) * sy - 0.5).collect();
+    let placed = src.sample_grid(&xs, &ys);
     let mut plane = vec![0.0f32; width * height];
-    for y in 0..h {
-        let row = &mut plane[(oy + y) * width + ox..(oy + y) * width + ox + w];
-        let v = (y as f32 + 0.5) * sy - 0.5;
-        for (x, out) in row.iter_mut().enumerate() {
-            *out = src.sample((x as f32 + 0.5) * sx - 0.5, v);
-        }
+    for (y, line) in placed.data.chunks_exact(w.max(1)).enumerate() {
+        plane[(oy + y) * width + ox..(oy + y) * width + ox + w].copy_from_slice(line);
     }
     plane
 }

@@ -36,25 +36,23 @@ impl Frame {
     }
 
     /// Resample the image into the crop. When shrinking, each crop pixel averages a 2×2 grid of
-    /// bilinear samples so that the crop is not aliased.
+    /// bilinear samples so that the crop is not aliased. The frame is a scale and a shift, so each
+    /// sample's x depends on its column only and its y on its row only ([`GrayF32::sample_grid`]).
     pub fn crop(&self, img: &GrayF32, size: usize) -> GrayF32 {
         let step = 1.0 / self.scale;
-        let mut out = GrayF32::new(size, size);
-        let supersample = step > 1.5;
+        let axis = |origin: f32| -> Vec<f32> { (0..size).map(|i| i as f32 / self.scale + origin).collect() };
+        let (xs, ys) = (axis(self.origin[0]), axis(self.origin[1]));
+        if step <= 1.5 {
+            return img.sample_grid(&xs, &ys);
+        }
         let q = 0.25 * step;
-        for y in 0..size {
-            for x in 0..size {
-                let p = self.to_image([x as f32, y as f32]);
-                let v = if supersample {
-                    0.25 * (img.sample(p[0] - q, p[1] - q)
-                        + img.sample(p[0] + q, p[1] - q)
-                        + img.sample(p[0] - q, p[1] + q)
-                        + img.sample(p[0] + q, p[1] + q))
-                } else {
-                    img.sample(p[0], p[1])
-                };
-                out.data[y * size + x] = v;
-            }
+        let shifted = |axis: &[f32], by: f32| -> Vec<f32> { axis.iter().map(|v| v + by).collect() };
+        let (left, right, up, down) = (shifted(&xs, -q), shifted(&xs, q), shifted(&ys, -q), shifted(&ys, q));
+        let corners =
+            [img.sample_grid(&left, &up), img.sample_grid(&right, &up), img.sample_grid(&left, &down), img.sample_grid(&right, &down)];
+        let mut out = GrayF32::new(size, size);
+        for (i, o) in out.data.iter_mut().enumerate() {
+            *o = 0.25 * (corners[0].data[i] + corners[1].data[i] + corners[2].data[i] + corners[3].data[i]);
         }
         out
     }
