@@ -248,16 +248,17 @@ pub(crate) struct StoredRow<'r> {
 }
 
 impl<'r> StoredRow<'r> {
-    /// The columns `id, subject_id, model_version, dimension, vector, key_id, data_key`.
+    /// The columns `id, subject_id, model_version, dimension, vector, key_id, data_key`, in that
+    /// order (by position: a lookup by name per column and row showed in the start-up load's profile).
     pub fn of(row: &'r AnyRow) -> Result<StoredRow<'r>, sqlx::Error> {
         Ok(StoredRow {
-            id: row.try_get("id")?,
-            subject: row.try_get("subject_id")?,
-            model_version: row.try_get("model_version")?,
-            dimension: row.try_get("dimension")?,
-            vector: row.try_get("vector")?,
-            key_id: row.try_get("key_id")?,
-            data_key: row.try_get("data_key")?,
+            id: row.try_get(0)?,
+            subject: row.try_get(1)?,
+            model_version: row.try_get(2)?,
+            dimension: row.try_get(3)?,
+            vector: row.try_get(4)?,
+            key_id: row.try_get(5)?,
+            data_key: row.try_get(6)?,
         })
     }
 }

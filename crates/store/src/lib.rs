@@ -256,6 +256,9 @@ fn gallery_statement(part: &GalleryPart, placeholder: impl Fn(usize) -> String) 
 pub struct GalleryPart {
     pub after: Option<String>,
     pub through: Option<String>,
+    /// About how many templates the part holds (0: not known), so that its reader can reserve
+    /// its memory once rather than grow it by doubling.
+    pub expected_templates: usize,
 }
 
 impl GalleryPart {
@@ -264,7 +267,7 @@ impl GalleryPart {
     pub fn between(cuts: &[String]) -> Vec<GalleryPart> {
         let bounds: Vec<Option<String>> =
             std::iter::once(None).chain(cuts.iter().cloned().map(Some)).chain(std::iter::once(None)).collect();
-        bounds.windows(2).map(|w| GalleryPart { after: w[0].clone(), through: w[1].clone() }).collect()
+        bounds.windows(2).map(|w| GalleryPart { after: w[0].clone(), through: w[1].clone(), expected_templates: 0 }).collect()
     }
 }
 
@@ -438,7 +441,10 @@ impl Store {
                 cuts.push(cut);
             }
         }
-        Ok(GalleryPart::between(&cuts))
+        let mut parts = GalleryPart::between(&cuts);
+        let share = count.max(0) as usize / parts.len();
+        parts.iter_mut().for_each(|p| p.expected_templates = share);
+        Ok(parts)
     }
 
     /// [`Store::gallery`] for the subjects of one part only. On a SQLite file the rows are read

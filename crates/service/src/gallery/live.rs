@@ -97,7 +97,9 @@ impl Live {
             .map(|part| {
                 let (store, version) = (self.store.clone(), version.clone());
                 tokio::spawn(async move {
-                    let part_gallery = (Gallery::with_precision(&version, precision), Vec::new());
+                    let mut gallery = Gallery::with_precision(&version, precision);
+                    gallery.reserve(part.expected_templates);
+                    let part_gallery = (gallery, Vec::new());
                     store
                         .gallery_part(&version, &part, part_gallery, |(gallery, unreadable), subject, templates| match templates {
                             Ok(templates) => gallery.add(subject, &templates),

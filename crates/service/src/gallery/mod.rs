@@ -96,6 +96,15 @@ pub struct Gallery {
     unreadable: BTreeMap<String, String>,
 }
 
+/// Room for the values of `rows` more rows of `dimension` values held at `precision`.
+fn reserve_values(precision: Precision, dimension: usize, rows: usize, vectors: &mut Vec<f32>, codes: &mut Vec<u8>) {
+    match precision {
+        Precision::Exact => vectors.reserve(rows * dimension),
+        Precision::Quantised if dimension > 0 => codes.reserve(rows * codes::code_len(dimension)),
+        Precision::Quantised => {}
+    }
+}
+
 impl Gallery {
     /// An exact gallery of `model_version`'s templates.
     pub fn new(model_version: &str) -> Gallery {
@@ -117,6 +126,27 @@ impl Gallery {
             hasher: DefaultHashBuilder::default(),
             unreadable: BTreeMap::new(),
         }
+    }
+
+    /// Room for about `templates` more templates (of as many subjects), reserved at once: the
+    /// start-up load adds millions, and growing by doubling copied the arrays and re-hashed every
+    /// id at each step. The values' room is reserved with the first template, whose dimension
+    /// sets it.
+    pub fn reserve(&mut self, templates: usize) {
+        self.owners.reserve(templates);
+        self.ids.reserve(templates);
+        match self.precision {
+            Precision::Exact => self.inv_norms.reserve(templates),
+            Precision::Quantised => self.scales.reserve(templates),
+        }
+        let (ids, hasher) = (&self.ids, &self.hasher);
+        self.slot_of.reserve(templates, |&s| hasher.hash_one(&*ids[s as usize]));
+        self.reserve_values();
+    }
+
+    /// Room for the values of as many rows as `owners` has room for (once the dimension is known).
+    fn reserve_values(&mut self) {
+        reserve_values(self.precision, self.dimension, self.owners.capacity() - self.owners.len(), &mut self.vectors, &mut self.codes);
     }
 
     pub fn model_version(&self) -> &str {
@@ -168,6 +198,8 @@ impl Gallery {
         for template in current {
             if self.dimension == 0 {
                 self.dimension = template.vector.len();
+                let rows = self.owners.capacity() - self.owners.len();
+                reserve_values(self.precision, self.dimension, rows, &mut self.vectors, &mut self.codes);
             }
             if template.vector.len() != self.dimension || template.vector.is_empty() {
                 let message = format!("a template of {} values in a gallery of {}", template.vector.len(), self.dimension);
