@@ -85,8 +85,8 @@ pub struct QuantisedProbe {
 impl QuantisedProbe {
     pub fn new(p: &[f32]) -> QuantisedProbe {
         let padded = p.len().div_ceil(BLOCK) * BLOCK;
-        let max = p.iter().fold(0.0f32, |m, v| m.max(v.abs()));
-        let norm = p.iter().map(|v| v * v).sum::<f32>().sqrt();
+        let (max, squares) = max_abs_and_squares(p);
+        let norm = squares.sqrt();
         if max == 0.0 || !norm.is_finite() || norm == 0.0 {
             return QuantisedProbe { values: vec![0; padded], offset: 0, scale: 0.0 };
         }

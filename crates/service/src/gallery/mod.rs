@@ -96,7 +96,9 @@ pub struct Gallery {
     unreadable: BTreeMap<String, String>,
 }
 
-/// Room for the values of `rows` more rows of `dimension` values held at `precision`.
+/// Room for the values of `rows` more rows of `dimension` values held at `precision` (none for
+/// quantised rows until the dimension is known). A free function so that `Gallery::add` can call
+/// it while it borrows the model version.
 fn reserve_values(precision: Precision, dimension: usize, rows: usize, vectors: &mut Vec<f32>, codes: &mut Vec<u8>) {
     match precision {
         Precision::Exact => vectors.reserve(rows * dimension),
@@ -141,12 +143,8 @@ impl Gallery {
         }
         let (ids, hasher) = (&self.ids, &self.hasher);
         self.slot_of.reserve(templates, |&s| hasher.hash_one(&*ids[s as usize]));
-        self.reserve_values();
-    }
-
-    /// Room for the values of as many rows as `owners` has room for (once the dimension is known).
-    fn reserve_values(&mut self) {
-        reserve_values(self.precision, self.dimension, self.owners.capacity() - self.owners.len(), &mut self.vectors, &mut self.codes);
+        let rows = self.owners.capacity() - self.owners.len();
+        reserve_values(self.precision, self.dimension, rows, &mut self.vectors, &mut self.codes);
     }
 
     pub fn model_version(&self) -> &str {
