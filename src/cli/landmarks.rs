@@ -35,6 +35,10 @@ pub struct TrainAsmArgs {
     /// `dataset::imm_is_test_person`), for measurements.
     #[arg(long)]
     pub train_split: bool,
+    /// The profile model (`models/asm3d-profile.bin`): views from −90° to +90°, with each view's
+    /// visibility and the mean face's five detector points.
+    #[arg(long)]
+    pub profile: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -188,8 +192,10 @@ pub struct TrainAsm3dArgs {
     /// IMM folder with `NN-V*.jpg` photos and `.asf` annotations.
     #[arg(long)]
     pub imm: PathBuf,
-    #[arg(long, default_value = "models/asm3d.bin")]
-    pub out: PathBuf,
+    /// Where to write the model (default `models/asm3d.bin`, with `--profile`
+    /// `models/asm3d-profile.bin`).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
     /// Surrey Face Model folder (default: `FACEGATE_SFM` or `../shared/models/sfm`).
     #[arg(long)]
     pub sfm: Option<PathBuf>,
@@ -197,6 +203,10 @@ pub struct TrainAsm3dArgs {
     /// `dataset::imm_is_test_person`), for measurements.
     #[arg(long)]
     pub train_split: bool,
+    /// The profile model (`models/asm3d-profile.bin`): views from −90° to +90°, with each view's
+    /// visibility and the mean face's five detector points.
+    #[arg(long)]
+    pub profile: bool,
 }
 
 pub fn run_train_asm3d(args: TrainAsm3dArgs) -> anyhow::Result<ExitCode> {
@@ -209,15 +219,24 @@ pub fn run_train_asm3d(args: TrainAsm3dArgs) -> anyhow::Result<ExitCode> {
     let face_model = crate::morph::FaceModel::load(&args.sfm.clone().unwrap_or_else(crate::config::sfm_dir))?;
     let detector = load_detector();
     let bar = crate::cli::progress(samples.len() as u64, "train asm3d");
-    let options = crate::research::train_asm3d::Asm3dTrainOptions::default();
-    let model = crate::research::train_asm3d::train(&samples, &face_model, detector.as_ref(), &options, &|| bar.inc(1))?;
+    let out = args.out.clone().unwrap_or_else(|| PathBuf::from(if args.profile { "models/asm3d-profile.bin" } else { "models/asm3d.bin" }));
+    let landmarker = if args.profile {
+        let options = crate::research::train_asm3d::Asm3dTrainOptions::profile();
+        let profile = crate::research::train_asm3d::train_profile(&samples, &face_model, detector.as_ref(), &options, &|| bar.inc(1))?;
+        crate::core::model_file::write_model(&out, &profile).map_err(|e| anyhow::anyhow!("{}: {e}", out.display()))?;
+        asm3d::Asm3dLandmarker::from_profile(profile)
+    } else {
+        let options = crate::research::train_asm3d::Asm3dTrainOptions::default();
+        let model = crate::research::train_asm3d::train(&samples, &face_model, detector.as_ref(), &options, &|| bar.inc(1))?;
+        let landmarker = asm3d::Asm3dLandmarker::new(model);
+        landmarker.save(&out)?;
+        landmarker
+    };
     bar.finish();
-    let landmarker = asm3d::Asm3dLandmarker { model };
-    landmarker.save(&args.out)?;
     let m = &landmarker.model;
-    let size = std::fs::metadata(&args.out).map(|m| m.len()).unwrap_or(0);
+    let size = std::fs::metadata(&out).map(|m| m.len()).unwrap_or(0);
     eprintln!(
-        "trained on {} photos of {} persons ({} 3DMM fit failures); placement from {:?} boxes ({} detector misses); views {:?}; real photos per view {:?}; 3D PDM modes {:?}; wrote {} ({} kB)",
+        "trained on {} photos of {} persons ({} 3DMM fit failures); placement from {:?} boxes ({} detector misses); views {:?}; real photos per view {:?}; 3D PDM modes {:?}; hidden points per view {:?}; wrote {} ({} kB)",
         m.info.photos,
         m.info.persons.len(),
         m.info.fit_failures,
@@ -226,7 +245,8 @@ pub fn run_train_asm3d(args: TrainAsm3dArgs) -> anyhow::Result<ExitCode> {
         m.views.iter().map(|v| v.yaw).collect::<Vec<_>>(),
         m.views.iter().map(|v| v.real_photos).collect::<Vec<_>>(),
         m.views.iter().map(|v| v.pdm.modes()).collect::<Vec<_>>(),
-        args.out.display(),
+        landmarker.visible.iter().map(|v| v.iter().filter(|s| !**s).count()).collect::<Vec<_>>(),
+        out.display(),
         size / 1024
     );
     Ok(ExitCode::SUCCESS)

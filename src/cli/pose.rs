@@ -34,6 +34,10 @@ pub struct EvalPoseArgs {
     /// `landmarks`, `detector`, or `turned:T` (the detector's when its points show a turn ≥ T).
     #[arg(long)]
     pub keypoints: Option<String>,
+    /// The |yaw| of the detector's five points from which the 3D-ASM is seeded by them (degrees;
+    /// `off`: always the C-ASM, switched to the 3D-ASM by its own points).
+    #[arg(long)]
+    pub detector_seed: Option<String>,
     /// Also measure LFW's test persons and IMM's and ORL's held-out persons with the same
     /// pipeline (all pairs, one photo against one): the no-regression check.
     #[arg(long)]
@@ -70,6 +74,11 @@ pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
     let mut pipeline = Pipeline::load(&config)?;
     if let Some(k) = &args.keypoints {
         pipeline.finder.keypoints = keypoint_source(k)?;
+    }
+    match args.detector_seed.as_deref() {
+        None => {}
+        Some("off") => pipeline.finder.detector_seed_min_yaw = None,
+        Some(yaw) => pipeline.finder.detector_seed_min_yaw = Some(yaw.parse()?),
     }
     let threshold = pipeline.recognizer.operating_point(1e-3, 1).threshold;
     let readings = pose::read_photos(&pipeline, &photos, &args.synthetic_yaws, args.threads, &crate::cli::Bar::default());

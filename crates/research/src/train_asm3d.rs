@@ -20,7 +20,7 @@ use facegate_vision::morph::{Camera, FaceModel, Pose};
 #[derive(Debug, Clone)]
 pub struct Asm3dTrainOptions {
     pub params: SearchParams,
-    /// Yaw bin centres (thesis: 7 views, −45°…+45°).
+    /// Yaw bin centres (thesis: 7 views, −45°…+45°; [`Asm3dTrainOptions::profile`]: on to ±90°).
     pub yaws: Vec<f32>,
     /// Random 3DMM shapes the 3D PDM is built from.
     pub pdm_shapes: usize,
@@ -43,6 +43,14 @@ pub struct Asm3dTrainOptions {
     /// turned 0.0227, and the view refinement lost turned photos.
     pub renders_below_real: usize,
     pub seed: u64,
+}
+
+impl Asm3dTrainOptions {
+    /// The profile model's settings (`models/asm3d-profile.bin`): the views in 15° steps from
+    /// −90° to +90°; those beyond ±45° learn from renders alone (IMM's photos turn to about ±30°).
+    pub fn profile() -> Self {
+        Self { yaws: (-6..=6).map(|k| 15.0 * k as f32).collect(), ..Self::default() }
+    }
 }
 
 impl Default for Asm3dTrainOptions {
@@ -361,6 +369,22 @@ impl Renders<'_> {
             views[vi].add(&view.gray, &view.points, view.camera.scale, self.crop_px_per_mm, &options.params, self.neighbours);
         }
     }
+}
+
+/// The profile model: [`train`] with `options`' views (normally [`Asm3dTrainOptions::profile`]),
+/// each view's visibility and the mean face's five detector points.
+pub fn train_profile(
+    samples: &[ImmSample],
+    fm: &FaceModel,
+    detector: Option<&Detector>,
+    options: &Asm3dTrainOptions,
+    tick: &dyn Fn(),
+) -> Result<ProfileModel, LandmarkError> {
+    let asm3d = train(samples, fm, detector, options, tick)?;
+    let fits = fit_annotations(samples, fm)?;
+    let jaw = annotated_jaw_vertices(fm, &fits.iter().flatten().collect::<Vec<_>>());
+    let visible = options.yaws.iter().map(|&yaw| view_visibility(fm, &jaw, yaw)).collect();
+    Ok(ProfileModel { format: PROFILE_FORMAT, asm3d, visible, key_points: fm.key_point_vertices().map(|p| p.map(|c| c as f32)) })
 }
 
 /// Each view's own start placement (the medians over its photos, from the detector's boxes or,

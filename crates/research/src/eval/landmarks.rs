@@ -11,7 +11,9 @@ use serde::Serialize;
 use crate::dataset::{self, ImmSample, KeyPoints};
 use crate::train_asm as train;
 use facegate_core::geometry::{Rect, distance};
+use facegate_core::imaging::GrayF32;
 use facegate_vision::detect::Detector;
+use facegate_vision::detect::Face;
 use facegate_vision::landmarks::{BoxSource, Landmarker, Variant};
 
 use super::plot::{Chart, Scale, Series, cumulative, line_chart};
@@ -209,14 +211,14 @@ pub fn run_scaled(
     }
     let mut summaries: Vec<VariantSummary> = Variant::ALL.iter().map(|&v| measure(&landmarker, &photos, v)).collect();
     // The 3D-ASM beside them, and the head yaw of each photo for the per-view table.
-    let (yaws, crossover_rows) =
+    let (yaws, crossover_rows, profile_rows, pose_rows) =
         match measure_asm3d(&training, if halvings == 0 { &test } else { &[] }, detector, &photos, &landmarker, progress) {
             Some(m) => {
                 summaries.push(m.asm3d);
                 summaries.push(m.switch);
-                (m.yaws, m.crossover)
+                (m.yaws, m.crossover, m.profiles, m.poses)
             }
-            None => (vec![f32::NAN; photos.len()], Vec::new()),
+            None => (vec![f32::NAN; photos.len()], Vec::new(), Vec::new(), Vec::new()),
         };
 
     let boxes = match (detector, box_source) {
@@ -241,6 +243,18 @@ pub fn run_scaled(
     for (name, rows) in &crossover_rows {
         writeln!(report, "{name}:")?;
         print_crossover(rows, report)?;
+    }
+    writeln!(report, "renders of held-out faces to full profile, error of the shown points / eyes-to-mouth distance:")?;
+    for (name, rows) in &profile_rows {
+        writeln!(report, "{name}:")?;
+        super::profile::print_profiles(rows, report)?;
+    }
+    if !pose_rows.is_empty() {
+        writeln!(report, "pose on the same renders, mean |yaw error| (degrees):")?;
+        writeln!(report, "{:>6} {:>6} {:>12} {:>14} {:>22}", "|yaw|", "found", "five points", "3DMM to all 58", "3DMM, hidden weighted")?;
+        for r in &pose_rows {
+            writeln!(report, "{:>6.0} {:>6} {:>12.1} {:>14.1} {:>22.1}", r.yaw, r.found, r.five_points, r.landmarks, r.visible_landmarks)?;
+        }
     }
 
     std::fs::create_dir_all(out)?;
@@ -282,7 +296,7 @@ pub fn run_scaled(
         &chart("IMM held-out persons: mouth error", "mouth error / eyes-to-mouth distance"),
         &curves(&|e| e.d_mouth),
     )?;
-    let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries, "per_view": per_view, "yaw_of_annotation": yaws, "crossover": crossover_rows.iter().map(|(name, rows)| serde_json::json!({ "search": name, "rows": rows, "crossover_yaw": crossover_yaw(rows) })).collect::<Vec<_>>() });
+    let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries, "per_view": per_view, "yaw_of_annotation": yaws, "crossover": crossover_rows.iter().map(|(name, rows)| serde_json::json!({ "search": name, "rows": rows, "crossover_yaw": crossover_yaw(rows) })).collect::<Vec<_>>(), "profile_renders": profile_rows.iter().map(|(name, rows)| serde_json::json!({ "search": name, "rows": rows })).collect::<Vec<_>>(), "profile_poses": pose_rows });
     std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
     writeln!(report, "wrote {}", out.display())?;
     Ok(summaries)
@@ -344,6 +358,10 @@ struct Asm3dMeasurements {
     yaws: Vec<f32>,
     /// Crossover rows per search.
     crossover: Vec<(&'static str, Vec<CrossoverRow>)>,
+    /// Profile-render rows per search.
+    profiles: Vec<(&'static str, Vec<super::profile::ProfileRow>)>,
+    /// The pose on the profile renders.
+    poses: Vec<super::profile::ProfilePoseRow>,
 }
 
 /// The 3D-ASM beside the 2D variants: trained on the same training persons (needs the Surrey Face
@@ -377,17 +395,20 @@ fn measure_asm3d(
             }
         };
     progress.end();
-    let lm = asm3d::Asm3dLandmarker { model };
+    let lm = asm3d::Asm3dLandmarker::new(model);
     let fit = |g: &facegate_core::imaging::GrayF32, r: &Rect| lm.fit_with(g, r, asm3d::Refinement::Casm(&casm.model)).keypoints;
     let summary = measure_fn(photos, "asm3d", &fit);
-    let switch = |g: &facegate_core::imaging::GrayF32, r: &Rect| {
-        lm.switch(g, r, casm, casm.fit(g, r, Variant::Casm), asm3d::SERVICE_MIN_YAW).0.keypoints
+    let switch_points = |g: &facegate_core::imaging::GrayF32, r: &Rect| {
+        lm.switch(g, r, casm, casm.fit(g, r, Variant::Casm), asm3d::SERVICE_MIN_YAW).0.points
     };
+    let switch = |g: &facegate_core::imaging::GrayF32, r: &Rect| KeyPoints::from_imm(&switch_points(g, r));
     let switch_summary = measure_fn(photos, "switch", &switch);
     // The head yaw of every test photo, from the 3DMM fitted to its manual landmarks.
     let yaws =
         photos.iter().map(|(_, g, truth, _)| fm.fit(truth, g.width as u32, g.height as u32).map_or(f32::NAN, |f| f.pose.yaw)).collect();
     let mut rows = Vec::new();
+    let mut profiles = Vec::new();
+    let mut poses = Vec::new();
     if let Some(det) = detector.filter(|_| !test.is_empty()) {
         let searches: [(&'static str, KeypointSearch); 2] = [("3D-ASM (refined by C-ASM)", &fit), ("service switch", &switch)];
         for (name, search) in searches {
@@ -396,8 +417,46 @@ fn measure_asm3d(
                 Err(e) => progress.note(&format!("facegate: crossover not measured: {e}")),
             }
         }
+        // Up to full profile: the C-ASM switched by its own points (the service up to the
+        // detector seed) against the 3D-ASM seeded by the detector's five points, and the
+        // service's choice between them.
+        // The profile model, trained on the same persons.
+        progress.begin(training.len() as u64, "train asm3d --profile");
+        let options = crate::train_asm3d::Asm3dTrainOptions::profile();
+        let profile = match crate::train_asm3d::train_profile(training, &fm, detector, &options, &|| progress.step()) {
+            Ok(p) => asm3d::Asm3dLandmarker::from_profile(p),
+            Err(e) => {
+                progress.note(&format!("facegate: profile renders not measured: {e}"));
+                return Some(Asm3dMeasurements { asm3d: summary, switch: switch_summary, yaws, crossover: rows, profiles, poses });
+            }
+        };
+        progress.end();
+        let switched = |g: &GrayF32, f: &Face| switch_points(g, &facegate_vision::pipeline::seed_box(f));
+        let seeded = |g: &GrayF32, f: &Face| match &f.points {
+            Some(p) => profile.fit_from_detector(g, p, &casm.model).map_or_else(|| switched(g, f), |r| r.points),
+            None => switched(g, f),
+        };
+        let service = |g: &GrayF32, f: &Face| match &f.points {
+            Some(p) if profile.detector_yaw(p).is_some_and(|y| y.abs() >= asm3d::DETECTOR_SEED_MIN_YAW) => seeded(g, f),
+            _ => switched(g, f),
+        };
+        let searches: [(&'static str, super::profile::PointSearch); 3] = [
+            ("C-ASM switched to the 3D-ASM by its points", &switched),
+            ("3D-ASM seeded by the detector's points", &seeded),
+            ("service: the detector seed from DETECTOR_SEED_MIN_YAW", &service),
+        ];
+        for (name, search) in searches {
+            match super::profile::profile_renders(&fm, test, det, &profile, search) {
+                Ok(r) => profiles.push((name, r)),
+                Err(e) => progress.note(&format!("facegate: profile renders not measured: {e}")),
+            }
+        }
+        match super::profile::profile_poses(&fm, test, det, &profile, casm) {
+            Ok(r) => poses = r,
+            Err(e) => progress.note(&format!("facegate: profile poses not measured: {e}")),
+        }
     }
-    Some(Asm3dMeasurements { asm3d: summary, switch: switch_summary, yaws, crossover: rows })
+    Some(Asm3dMeasurements { asm3d: summary, switch: switch_summary, yaws, crossover: rows, profiles, poses })
 }
 
 /// Per IMM view group (frontal 1–2, turned 3–4, spot light and free 5–6) and per |yaw| band of the
@@ -471,42 +530,22 @@ pub fn crossover(
     casm: &Landmarker,
     asm3d: KeypointSearch,
 ) -> anyhow::Result<Vec<CrossoverRow>> {
-    use facegate_vision::landmarks::asm3d::{
-        annotation_offsets, background_colour, contour_jaw_vertices, photo_jaw_vertices, synthesise_view,
-    };
-    let mut bands: Vec<f32> = CROSSOVER_YAWS.iter().map(|y| y.abs()).collect();
-    bands.sort_by(f32::total_cmp);
-    bands.dedup();
+    let bands = super::profile::bands(&CROSSOVER_YAWS);
     // Per band: (C-ASM d_eye, 3D-ASM d_eye) per render, infinite for a detector miss.
     let mut errors: Vec<Vec<(f64, f64)>> = vec![Vec::new(); bands.len()];
     let mut misses = vec![0usize; bands.len()];
-    for sample in test {
-        let photo = facegate_core::imaging::open(&sample.image)?;
-        let truth = sample.landmarks()?;
-        let Ok(fit) = fm.fit(&truth, photo.width(), photo.height()) else { continue };
-        if fit.pose.yaw.abs() >= 10.0 {
-            continue;
-        }
-        let texture = fm.extract_texture(&photo.rgb, &fit, 512);
-        let offsets = annotation_offsets(fm, &fit, &truth);
-        // A near-frontal photo keeps its own fitted jaw vertices.
-        let jaw = photo_jaw_vertices(fm, &fit, &contour_jaw_vertices(fm));
-        let background = background_colour(&photo.rgb);
-        for &yaw in &CROSSOVER_YAWS {
-            let pose = facegate_vision::morph::Pose { yaw, pitch: fit.pose.pitch, roll: 0.0 };
-            let view = synthesise_view(fm, &fit, &texture, pose, background, 0.0, &jaw, &offsets);
-            let band = bands.iter().position(|&b| b == yaw.abs()).expect("a band per yaw");
-            let truth_k = KeyPoints::from_imm(&view.points);
-            let Some(rect) = detector.detect(&view.gray).first().map(facegate_vision::pipeline::seed_box) else {
-                misses[band] += 1;
-                errors[band].push((f64::INFINITY, f64::INFINITY));
-                continue;
-            };
-            let c = casm.fit(&view.gray, &rect, Variant::Casm).keypoints;
-            let a = asm3d(&view.gray, &rect);
-            errors[band].push((d_eye(&c, &truth_k), d_eye(&a, &truth_k)));
-        }
-    }
+    super::profile::for_each_render(fm, test, &CROSSOVER_YAWS, &mut |yaw, view| {
+        let band = bands.iter().position(|&b| b == yaw.abs()).expect("a band per yaw");
+        let truth_k = KeyPoints::from_imm(&view.points);
+        let Some(rect) = detector.detect(&view.gray).first().map(facegate_vision::pipeline::seed_box) else {
+            misses[band] += 1;
+            errors[band].push((f64::INFINITY, f64::INFINITY));
+            return;
+        };
+        let c = casm.fit(&view.gray, &rect, Variant::Casm).keypoints;
+        let a = asm3d(&view.gray, &rect);
+        errors[band].push((d_eye(&c, &truth_k), d_eye(&a, &truth_k)));
+    })?;
     let rows = bands
         .iter()
         .zip(errors)

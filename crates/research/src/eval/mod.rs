@@ -9,6 +9,7 @@ pub mod liveness;
 pub mod pairs;
 pub mod plot;
 pub mod pose;
+pub mod profile;
 pub mod protocol;
 pub mod quality;
 pub mod verification;

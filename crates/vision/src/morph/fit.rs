@@ -34,11 +34,22 @@ pub struct FitOptions {
     /// mean shape's normals, and full-weight jaw points pull the pose towards the shape prior
     /// (see docs/morph.md).
     pub jaw_weight: f64,
+    /// A weight per IMM point multiplying the others (`None`: 1 each): on a profile, the points
+    /// the head hides count for little (their positions are the landmark search's guesses).
+    pub point_weights: Option<[f64; IMM_POINTS]>,
 }
 
 impl Default for FitOptions {
     fn default() -> Self {
-        Self { iterations: 5, lambda: 30.0, landmark_sigma_px: 3f64.sqrt(), expressions: false, expression_lambda: 10.0, jaw_weight: 0.25 }
+        Self {
+            iterations: 5,
+            lambda: 30.0,
+            landmark_sigma_px: 3f64.sqrt(),
+            expressions: false,
+            expression_lambda: 10.0,
+            jaw_weight: 0.25,
+            point_weights: None,
+        }
     }
 }
 
@@ -156,7 +167,8 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
     let mut psi = vec![0.0f64; ne];
     let mut corr = model.imm_vertices;
     // First pass without the sliding jaw points (their vertices are unknown until a camera exists).
-    let mut weights = [1.0f64; IMM_POINTS];
+    let base = options.point_weights.unwrap_or([1.0; IMM_POINTS]);
+    let mut weights = base;
     for j in JAW {
         if j != 6 {
             weights[j] = 0.0;
@@ -174,7 +186,7 @@ pub fn fit_landmarks(model: &FaceModel, points: &[Point], options: &FitOptions) 
         if iteration == 0 || options.iterations > 1 {
             update_contour(model, &cam, &alpha, &psi, points, &mut corr);
             for j in JAW {
-                weights[j] = if j == 6 { 1.0 } else { options.jaw_weight };
+                weights[j] = base[j] * if j == 6 { 1.0 } else { options.jaw_weight };
             }
         }
         // Shape (and expression) coefficients given the camera.

@@ -5,6 +5,7 @@ use std::path::Path;
 use crate::landmarks::asm3d::*;
 use crate::landmarks::search::{self, Frame, Level, Workspace, from_level, pyramid, to_level};
 use crate::landmarks::{AsmModel, LandmarkError, Variant};
+use crate::morph::fit::estimate_camera;
 use crate::morph::{Camera, Pose};
 use facegate_core::face::{IMM_POINTS, KeyPoints};
 use facegate_core::geometry::{Point, Rect, centroid};
@@ -27,9 +28,16 @@ pub struct Asm3dLandmarks {
     pub view_yaw: f32,
 }
 
-/// The trained 3D-ASM, shareable across threads.
+/// The trained 3D-ASM, shareable across threads: the thesis's (`asm3d.bin`, every point counted)
+/// or the profile model (`asm3d-profile.bin`, with its views' visibility and the five points that
+/// seed it).
 pub struct Asm3dLandmarker {
     pub model: Asm3dModel,
+    /// Per view, per point, whether the view shows it; empty: every point counts.
+    pub visible: Vec<Vec<bool>>,
+    /// The mean face's five detector points (`ProfileModel::key_points`); `None` for the thesis's
+    /// model, which is not seeded by a detector's points.
+    pub key_points: Option<[[f32; 3]; 5]>,
 }
 
 /// Distinct views whose best start is searched on the coarse level (measured with the start
@@ -66,6 +74,57 @@ pub const SERVICE_MIN_YAW: f32 = 5.0;
 /// 0.0218 / 94.4%; the blind search 0.0218 / 100%).
 const SEEDED_VIEWS: usize = 2;
 
+/// Weight of a point its view hides in the 3D fit (`ProfileModel::visible`): its texture candidate is
+/// whatever surface stands in front of it.
+pub const HIDDEN_POINT_WEIGHT: f64 = 0.05;
+
+/// |yaw| (degrees) of the detector's five points from which the service seeds the profile model
+/// from them ([`Asm3dLandmarker::fit_from_detector`]) instead of taking the C-ASM's 58 points:
+/// the yaw from which the far eye and mouth corner are behind the nose and cheek, and the pose
+/// comes from the five points too (`morph::key_points::HIDDEN_SIDE_YAW`). Measured on renders of
+/// held-out faces (`facegate eval landmarks`): the seeded search wins from 60° on and is level at
+/// 45°; a 30° threshold did better at 60° but moved the points (and the fitted pose) of UMIST's
+/// 30–40° photos, where the two searches are level.
+pub const DETECTOR_SEED_MIN_YAW: f32 = crate::morph::key_points::HIDDEN_SIDE_YAW;
+
+/// |yaw| of the chosen view beyond which the refinement is the view's own 3D search on the fine
+/// level instead of a 2D model: the 2D models' texture suggestions for the points it hides pull
+/// the shape, where the 3D fit weights them by [`HIDDEN_POINT_WEIGHT`].
+pub const REFINE_3D_BEYOND_YAW: f32 = 45.0;
+
+/// The camera that maps `model` (five points, model mm) onto the detector's `points` (pixels):
+/// a scaled orthographic fit, repeated with the far eye and mouth corner at
+/// [`morph::key_points`](crate::morph::key_points)'s weight once the first fit shows the head
+/// turned past [`DETECTOR_SEED_MIN_YAW`] (the detector can only guess those two).
+pub fn key_point_camera(model: &[[f64; 3]; 5], points: &[Point; 5]) -> Option<Camera> {
+    if points.iter().any(|p| !p[0].is_finite() || !p[1].is_finite()) {
+        return None;
+    }
+    let mut weights = [1.0f64; 5];
+    let mut camera = estimate_camera(model, points, &weights).ok()?;
+    if camera.pose().yaw.abs() > DETECTOR_SEED_MIN_YAW {
+        let far_left = camera.project(model[0])[2] < camera.project(model[1])[2];
+        let (eye, mouth) = if far_left { (0, 3) } else { (1, 4) };
+        weights[eye] = 0.2;
+        weights[mouth] = 0.2;
+        camera = estimate_camera(model, points, &weights).ok()?;
+    }
+    (camera.scale.is_finite() && camera.scale > 0.0).then_some(camera)
+}
+
+/// Whether `model` has views, each with 58 points and a texture model per level and point.
+fn complete(model: &Asm3dModel) -> bool {
+    !model.views.is_empty()
+        && model.views.iter().all(|v| {
+            v.pdm.points() == IMM_POINTS
+                && v.textures.neighbours.len() == IMM_POINTS
+                && v.textures.sifts.len() == model.params.levels.max(1)
+                && v.textures.profiles.len() == model.params.levels.max(1)
+                && v.textures.sifts.iter().all(|l| l.len() == IMM_POINTS)
+                && v.textures.profiles.iter().all(|l| l.len() == IMM_POINTS)
+        })
+}
+
 /// The 2D model that refines the 3D search's coarse result (coarse to fine, `search::search_levels`).
 #[derive(Debug, Clone, Copy)]
 pub enum Refinement<'a> {
@@ -88,19 +147,48 @@ impl Asm3dLandmarker {
         let err = |message: String| LandmarkError::Model { path: path.display().to_string(), message };
         let model: Asm3dModel =
             facegate_core::model_file::read_model(path, "3D-ASM model", ASM3D_FORMAT, "facegate train asm3d").map_err(err)?;
-        let ok = !model.views.is_empty()
-            && model.views.iter().all(|v| {
-                v.pdm.points() == IMM_POINTS
-                    && v.textures.neighbours.len() == IMM_POINTS
-                    && v.textures.sifts.len() == model.params.levels.max(1)
-                    && v.textures.profiles.len() == model.params.levels.max(1)
-                    && v.textures.sifts.iter().all(|l| l.len() == IMM_POINTS)
-                    && v.textures.profiles.iter().all(|l| l.len() == IMM_POINTS)
-            });
-        if !ok {
+        if !complete(&model) {
             return Err(err("the model does not have 58 points and a texture model per level in every view".into()));
         }
-        Ok(Asm3dLandmarker { model })
+        Ok(Asm3dLandmarker::new(model))
+    }
+
+    /// The thesis's 3D-ASM: every point counts in the 3D fits.
+    pub fn new(model: Asm3dModel) -> Asm3dLandmarker {
+        Asm3dLandmarker { model, visible: Vec::new(), key_points: None }
+    }
+
+    /// The profile model, searched from a detector's five points ([`fit_from_detector`](Self::fit_from_detector)).
+    pub fn from_profile(profile: ProfileModel) -> Asm3dLandmarker {
+        Asm3dLandmarker { model: profile.asm3d, visible: profile.visible, key_points: Some(profile.key_points) }
+    }
+
+    /// Loads `models/asm3d-profile.bin`.
+    pub fn load_profile(path: &Path) -> Result<Asm3dLandmarker, LandmarkError> {
+        let err = |message: String| LandmarkError::Model { path: path.display().to_string(), message };
+        let profile: ProfileModel =
+            facegate_core::model_file::read_model(path, "3D-ASM profile model", PROFILE_FORMAT, "facegate train asm3d --profile")
+                .map_err(err)?;
+        if !complete(&profile.asm3d) {
+            return Err(err("the model does not have 58 points and a texture model per level in every view".into()));
+        }
+        if profile.visible.len() != profile.asm3d.views.len() || profile.visible.iter().any(|v| v.len() != IMM_POINTS) {
+            return Err(err("the model does not give every view's visibility of 58 points".into()));
+        }
+        Ok(Asm3dLandmarker::from_profile(profile))
+    }
+
+    /// Per point, its weight in view `view`'s 3D fit: 1, or [`HIDDEN_POINT_WEIGHT`] for a point
+    /// the view hides.
+    fn weights(&self, view: usize) -> Vec<f64> {
+        let shown = self.visible.get(view);
+        (0..IMM_POINTS).map(|i| if shown.and_then(|v| v.get(i)).copied().unwrap_or(true) { 1.0 } else { HIDDEN_POINT_WEIGHT }).collect()
+    }
+
+    /// View `view`'s 3D PDM fitted to `targets` (level-0 crop pixels) with its visibility
+    /// weights (all 1 for the thesis's model: the same fit as `Pdm3d::fit`).
+    fn fit_view(&self, view: usize, targets: &[Point]) -> Option<Fit3d> {
+        self.model.views[view].pdm.fit_weighted(targets, &self.weights(view), self.model.sigma_px as f64, 4)
     }
 
     pub fn save(&self, path: &Path) -> Result<(), LandmarkError> {
@@ -148,10 +236,10 @@ impl Asm3dLandmarker {
         let at_level: Vec<Point> = st.points.iter().map(|&p| to_level(p, level)).collect();
         let cost = search::suggest(&m.views[st.view].textures, &levels[level], level, &at_level, Variant::Casm, ws, suggested);
         let targets: Vec<Point> = suggested.iter().map(|&p| from_level(p, level)).collect();
-        let Some(mut fit) = m.views[st.view].pdm.fit(&targets, m.sigma_px as f64, 4) else { return (cost, true) };
+        let Some(mut fit) = self.fit_view(st.view, &targets) else { return (cost, true) };
         let view = nearest_view(&self.yaws(), fit.camera.pose().yaw);
         if view != st.view {
-            if let Some(f) = m.views[view].pdm.fit(&targets, m.sigma_px as f64, 4) {
+            if let Some(f) = self.fit_view(view, &targets) {
                 fit = f;
                 st.view = view;
             }
@@ -265,6 +353,76 @@ impl Asm3dLandmarker {
         self.refine(&levels, &frame, st, casm, &mut ws)
     }
 
+    /// The mean face's five detector points in double precision (profile model only).
+    fn key_point_model(&self) -> Option<[[f64; 3]; 5]> {
+        self.key_points.map(|k| k.map(|p| p.map(f64::from)))
+    }
+
+    /// The head's yaw (degrees) from the detector's five points: the mean face's posed onto them
+    /// ([`key_point_camera`]). `None` for degenerate points.
+    pub fn detector_yaw(&self, points: &[Point; 5]) -> Option<f32> {
+        key_point_camera(&self.key_point_model()?, points).map(|c| c.pose().yaw)
+    }
+
+    /// The 3D-ASM seeded by a multi-view detector's five points (`points`, image pixels: eyes,
+    /// nose tip, mouth corners), for heads turned too far for the C-ASM: the mean shapes of the
+    /// view nearest the points' yaw and of the next view on the turned side are posed onto them
+    /// ([`key_point_camera`]) in a crop at the model's fixed scale, each probed on the coarse level,
+    /// the one with the lower texture cost iterated on; then refined coarse to fine by `casm` when
+    /// the chosen view is within [`REFINE_3D_BEYOND_YAW`], else by the view's own 3D search on the
+    /// fine level. `None` when the points are degenerate.
+    pub fn fit_from_detector(&self, gray: &GrayF32, points: &[Point; 5], casm: &AsmModel) -> Option<Asm3dLandmarks> {
+        let m = &self.model;
+        if gray.width < 2 || gray.height < 2 || gray.data.len() != gray.width * gray.height {
+            return None;
+        }
+        let yaws = self.yaws();
+        let front = &m.views[nearest_view(&yaws, 0.0)];
+        let model = self.key_point_model()?;
+        let camera = key_point_camera(&model, points)?;
+        let yaw = camera.pose().yaw;
+        // The crop at the model's fixed pixels per mm, centred on the posed mean shape.
+        let posed = front.pdm.project(&vec![0.0; front.pdm.modes()], &camera);
+        let frame = crop_frame(m.crop_px_per_mm / camera.scale as f32, centroid(&posed), m.params.crop_size);
+        let in_crop: [Point; 5] = points.map(|p| frame.to_crop(p));
+        let near = nearest_view(&yaws, yaw);
+        let turned = (0..yaws.len())
+            .filter(|&v| v != near && (yaws[v] - yaws[near]) * yaw.signum() > 0.0)
+            .min_by(|&a, &b| (yaws[a] - yaws[near]).abs().total_cmp(&(yaws[b] - yaws[near]).abs()));
+        let seeded: Vec<State> = std::iter::once(near)
+            .chain(turned)
+            .filter_map(|vi| {
+                let view = &m.views[vi];
+                let camera = key_point_camera(&model, &in_crop)?;
+                let points = view.pdm.project(&vec![0.0; view.pdm.modes()], &camera);
+                Some(State { view: vi, points, camera })
+            })
+            .collect();
+        let levels = pyramid(frame.crop(gray, m.params.crop_size), m.params.levels);
+        let mut ws = Workspace::default();
+        let st = self.search_coarse(&levels, seeded, true, &mut ws)?;
+        if m.views[st.view].yaw.abs() <= REFINE_3D_BEYOND_YAW {
+            return Some(self.refine(&levels, &frame, st, casm, &mut ws));
+        }
+        Some(self.refine_3d(&levels, &frame, st, &mut ws))
+    }
+
+    /// `st` refined on the finer levels by the 3D search itself (candidates by the view's
+    /// textures, the 3D fit with hidden points weighted down), in image pixels.
+    fn refine_3d(&self, levels: &[Level], frame: &Frame, mut st: State, ws: &mut Workspace) -> Asm3dLandmarks {
+        let mut suggested = Vec::with_capacity(IMM_POINTS);
+        for level in (0..levels.len().saturating_sub(1)).rev() {
+            for _ in 0..self.model.params.max_iterations {
+                if self.iterate(levels, level, &mut st, ws, &mut suggested).1 {
+                    break;
+                }
+            }
+        }
+        let points: Vec<Point> = st.points.iter().map(|&p| frame.to_image(p)).collect();
+        let keypoints = KeyPoints::from_imm(&points);
+        Asm3dLandmarks { points, keypoints, pose: st.camera.pose(), view_yaw: self.model.views[st.view].yaw }
+    }
+
     /// [`fit`](Self::fit) with the 2D model of the refinement stage chosen by `refinement`.
     pub fn fit_with(&self, gray: &GrayF32, face: &Rect, refinement: Refinement) -> Asm3dLandmarks {
         let m = &self.model;
@@ -365,7 +523,7 @@ impl Asm3dLandmarker {
         let view = &self.model.views[st.view];
         st.points = search::search_levels(model2d, levels, &[st.points.clone()], Variant::Casm, ws);
         // The pose reported is the 3D PDM's fitted to the refined points.
-        if let Some(fit) = view.pdm.fit(&st.points, self.model.sigma_px as f64, 4) {
+        if let Some(fit) = self.fit_view(st.view, &st.points) {
             st.camera = fit.camera;
         }
         let points: Vec<Point> = st.points.iter().map(|&p| frame.to_image(p)).collect();

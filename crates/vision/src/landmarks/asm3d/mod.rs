@@ -27,6 +27,11 @@
 //!   trained on real photos, or the chosen view's own), and the 3D PDM fitted to them gives the
 //!   pose. The service switches to the 3D-ASM when the C-ASM's points are turned beyond
 //!   [`SERVICE_MIN_YAW`] ([`Asm3dLandmarker::switch`]).
+//! - **Profile model** ([`ProfileModel`], `models/asm3d-profile.bin`): the same search with 13
+//!   views from −90° to +90° (those beyond ±45° trained on renders alone), each view's visibility
+//!   (hidden points weighted down in its 3D fits) and the mean face's five detector points, from
+//!   which [`Asm3dLandmarker::fit_from_detector`] starts on heads turned past
+//!   [`DETECTOR_SEED_MIN_YAW`].
 
 mod jaw;
 mod landmarker;
@@ -43,6 +48,8 @@ use serde::{Deserialize, Serialize};
 use crate::landmarks::{AsmModel, BoxSource, Placement, SearchParams};
 
 pub const ASM3D_FORMAT: u32 = 3;
+/// Format of `models/asm3d-profile.bin` ([`ProfileModel`]).
+pub const PROFILE_FORMAT: u32 = 1;
 
 /// One view (yaw bin): its 3D PDM (jaw vertices for this yaw), its texture models and where its
 /// start goes relative to the face box.
@@ -98,6 +105,23 @@ pub struct Asm3dModel {
     /// Views by increasing yaw.
     pub views: Vec<View3d>,
     pub info: Asm3dInfo,
+}
+
+/// The 3D-ASM with views from −90° to +90° (`models/asm3d-profile.bin`), searched from a
+/// multi-view detector's five points on heads turned too far for the C-ASM
+/// ([`Asm3dLandmarker::fit_from_detector`]). Its views within ±45° are trained as the thesis's
+/// (`models/asm3d.bin`); those beyond learn from renders alone.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ProfileModel {
+    pub format: u32,
+    pub asm3d: Asm3dModel,
+    /// Per view, per point, whether the view shows it (`view_visibility`): a hidden point's
+    /// texture candidate is the surface in front of it, so the 3D fit weights it by
+    /// [`HIDDEN_POINT_WEIGHT`].
+    pub visible: Vec<Vec<bool>>,
+    /// The 3DMM mean face's points for a detector's five (`FaceModel::key_point_vertices`: eyes,
+    /// nose tip, mouth corners), model mm, in the 3D PDMs' frame: they pose the search's start.
+    pub key_points: [[f32; 3]; 5],
 }
 
 pub fn nearest_view(yaws: &[f32], yaw: f32) -> usize {

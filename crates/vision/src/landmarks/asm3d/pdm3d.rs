@@ -85,19 +85,25 @@ impl Pdm3d {
     /// least squares with the prior `σ²/λ_k` on each, then clamped to the constraint box).
     /// `None` when the targets are degenerate (collinear, non-finite).
     pub fn fit(&self, targets: &[Point], sigma_px: f64, iterations: usize) -> Option<Fit3d> {
+        self.fit_weighted(targets, &vec![1.0; self.points()], sigma_px, iterations)
+    }
+
+    /// [`fit`](Self::fit) with a weight per point in the camera and in the coefficients' least
+    /// squares: a point the view hides counts for little, since its texture candidate is the
+    /// surface in front of it.
+    pub fn fit_weighted(&self, targets: &[Point], weights: &[f64], sigma_px: f64, iterations: usize) -> Option<Fit3d> {
         let n = self.points();
-        if targets.len() != n || targets.iter().any(|p| !p[0].is_finite() || !p[1].is_finite()) {
+        if targets.len() != n || weights.len() != n || targets.iter().any(|p| !p[0].is_finite() || !p[1].is_finite()) {
             return None;
         }
         let k = self.modes();
         let dim = 3 * n;
-        let weights = vec![1.0f64; n];
         let mut b = vec![0.0f32; k];
         let mut lhs = DMatrix::<f64>::zeros(k, k);
         let mut rhs = DVector::<f64>::zeros(k);
         let (mut au, mut av) = (vec![0.0f64; k], vec![0.0f64; k]);
         for _ in 0..iterations.max(1) {
-            let cam = estimate_camera(&self.shape(&b), targets, &weights).ok()?;
+            let cam = estimate_camera(&self.shape(&b), targets, weights).ok()?;
             if k == 0 {
                 break;
             }
@@ -114,10 +120,11 @@ impl Pdm3d {
                     au[q] = cam.scale * (r0[0] * row[0] as f64 + r0[1] * row[1] as f64 + r0[2] * row[2] as f64);
                     av[q] = cam.scale * (r1[0] * row[0] as f64 + r1[1] * row[1] as f64 + r1[2] * row[2] as f64);
                 }
+                let w = weights[i];
                 for p in 0..k {
-                    rhs[p] += au[p] * ru + av[p] * rv;
+                    rhs[p] += w * (au[p] * ru + av[p] * rv);
                     for q in p..k {
-                        lhs[(p, q)] += au[p] * au[q] + av[p] * av[q];
+                        lhs[(p, q)] += w * (au[p] * au[q] + av[p] * av[q]);
                     }
                 }
             }
@@ -133,7 +140,7 @@ impl Pdm3d {
                 *slot = (sol[q] as f32).clamp(-lim, lim);
             }
         }
-        let camera = estimate_camera(&self.shape(&b), targets, &weights).ok()?;
+        let camera = estimate_camera(&self.shape(&b), targets, weights).ok()?;
         let points = self.project(&b, &camera);
         if points.iter().any(|p| !p[0].is_finite() || !p[1].is_finite()) {
             return None;

@@ -92,3 +92,31 @@ pub fn background_colour(rgb: &image::RgbImage) -> [u8; 3] {
     let count = (n * n).max(1);
     acc.map(|a| (a / count) as u8)
 }
+
+/// Which of the 58 points a view shows: the model's mean face turned to `yaw` (no pitch or roll),
+/// its points at the vertices the view's 3D PDM reads (`jaw` moved to the occluding outline as it
+/// turns away), each visible when it is the nearest surface at its pixel
+/// (`FaceModel::landmark_visibility`). Frontal views show all 58; a full profile hides the far eye,
+/// brow and mouth corner.
+pub fn view_visibility(fm: &FaceModel, jaw: &JawVertices, yaw: f32) -> Vec<bool> {
+    // 2 px per mm in a 600-px square: the depth test's tolerance (2 model mm) is a few pixels.
+    let camera = Camera::from_pose(Pose { yaw, pitch: 0.0, roll: 0.0 }, 2.0, 300.0, 300.0);
+    let vertices: Vec<[f32; 3]> = fm.shape.mean.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect();
+    let at = |v: u32| {
+        let p = vertices[v as usize];
+        [p[0] as f64, p[1] as f64, p[2] as f64]
+    };
+    let correspondence = view_correspondence(fm, &at, &camera, jaw);
+    let mean = crate::morph::FittedFace {
+        pose: camera.pose(),
+        residual_px: 0.0,
+        camera,
+        coefficients: vec![0.0; fm.shape.component_count()],
+        expression: Vec::new(),
+        correspondence,
+        vertices,
+        image_width: 600,
+        image_height: 600,
+    };
+    fm.landmark_visibility(&mean)
+}
