@@ -24,6 +24,18 @@ pub struct EvalPoseArgs {
     /// comma-separated), each a template the probe is scored against.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub synthetic_yaws: Vec<f32>,
+    /// With `--synthetic-yaws`: also score each probe against the enrolled head rendered at the
+    /// synthetic yaw nearest its own (and the enrolled photo), instead of the best of all renders.
+    #[arg(long)]
+    pub at_probe_pose: bool,
+    /// Also score with each photo's template made from its 3DMM frontal rendering when its fitted
+    /// |yaw| is at least each of these (degrees, comma-separated).
+    #[arg(long, value_delimiter = ',')]
+    pub frontal_beyond: Vec<f32>,
+    /// Also calibrate a threshold per pose band on the other persons (5 person folds) and report
+    /// the FMR and FNMR it gives on the persons left out, against one threshold for every pair.
+    #[arg(long)]
+    pub band_thresholds: bool,
     /// Write the match rate by probe photo number as an SVG chart.
     #[arg(long)]
     pub plot: Option<PathBuf>,
@@ -81,12 +93,23 @@ pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
         Some(yaw) => pipeline.finder.detector_seed_min_yaw = Some(yaw.parse()?),
     }
     let threshold = pipeline.recognizer.operating_point(1e-3, 1).threshold;
-    let readings = pose::read_photos(&pipeline, &photos, &args.synthetic_yaws, args.threads, &crate::cli::Bar::default());
+    let readings = pose::read_photos(
+        &pipeline,
+        &photos,
+        &args.synthetic_yaws,
+        !args.frontal_beyond.is_empty(),
+        args.threads,
+        &crate::cli::Bar::default(),
+    );
     let score = |p: &crate::recognize::Template, e: &[crate::recognize::Template]| pipeline.recognizer.score(p, e);
     let mut strategies = vec![Strategy::Own];
     if !args.synthetic_yaws.is_empty() {
         strategies.push(Strategy::WithSynthetic);
+        if args.at_probe_pose {
+            strategies.push(Strategy::AtProbePose);
+        }
     }
+    strategies.extend(args.frontal_beyond.iter().map(|&yaw| Strategy::FrontalBeyond(yaw)));
     let reports: Vec<pose::PoseReport> = strategies.iter().map(|&s| pose::report(&photos, &readings, s, threshold, &score)).collect();
     for r in &reports {
         if args.json {
@@ -99,9 +122,31 @@ pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
         let yaws: Vec<String> = reports[0].median_yaw_by_photo.iter().map(|y| y.map_or("–".into(), |y| format!("{y:.0}"))).collect();
         println!("median fitted |yaw| by photo 01–19: {}", yaws.join(" "));
     }
+    if args.band_thresholds {
+        let rows = pose::band_thresholds(&photos, &readings, 5, &score);
+        if args.json {
+            crate::cli::print_json_line(&serde_json::to_value(&rows)?);
+        } else {
+            println!("thresholds for FMR 1e-3 calibrated on the other persons (5 person folds), rates on the persons left out:\n");
+            println!("| pairs | genuine | impostor | per band: FMR / FNMR | one threshold: FMR / FNMR |");
+            println!("|---|---|---|---|---|");
+            for r in &rows {
+                println!(
+                    "| {} | {} | {} | {:.2}% / {:.2}% | {:.2}% / {:.2}% |",
+                    r.band,
+                    r.genuine,
+                    r.impostor,
+                    100.0 * r.fmr_band_threshold,
+                    100.0 * r.fnmr_band_threshold,
+                    100.0 * r.fmr_one_threshold,
+                    100.0 * r.fnmr_one_threshold
+                );
+            }
+        }
+    }
     if args.held_out {
         for (name, set) in pose::held_out_sets(&crate::config::shared_dir())? {
-            let readings = pose::read_photos(&pipeline, &set, &[], args.threads, &crate::cli::Bar::default());
+            let readings = pose::read_photos(&pipeline, &set, &[], false, args.threads, &crate::cli::Bar::default());
             let r = pose::held_out(name, &set, &readings, threshold, &score);
             if args.json {
                 crate::cli::print_json_line(&serde_json::to_value(&r)?);
@@ -125,7 +170,12 @@ pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
         let series: Vec<Series> = reports
             .iter()
             .map(|r| Series {
-                name: if r.strategy == "own" { "photo's own template" } else { "with synthetic views" },
+                name: match r.strategy.as_str() {
+                    "own" => "photo's own template",
+                    "synthetic" => "with synthetic views",
+                    "at-probe-pose" => "enrolled head rendered at the probe's pose",
+                    _ => "frontal rendering beyond a yaw",
+                },
                 points: r.match_rate_by_photo.iter().enumerate().map(|(i, &m)| ((i + 1) as f64, m)).collect(),
             })
             .collect();

@@ -80,4 +80,19 @@ impl Pipeline {
             })
             .collect()
     }
+
+    /// The deep template of the analysed face's 3DMM frontal rendering (the thesis's pose
+    /// correction, as the network's input): the 3DMM fitted to the face's landmarks, its texture
+    /// rendered from the front, embedded at the rendering's eye and mouth centres. `None` without
+    /// the 3D model, with the classical recognizer, or when the fit fails.
+    pub fn frontal_template(&self, photo: &Photo, analysis: &FaceAnalysis) -> Option<Template> {
+        let model = self.face_model.as_ref()?;
+        let fit = model.fit(&analysis.landmarks.points, photo.width(), photo.height()).ok()?;
+        let frontal = model.frontalize(photo, &fit).ok()?;
+        match &self.recognizer {
+            Recognizer::Deep(deep) => Some(deep.template_of_chip(&crate::embed::face_chip(&frontal.image, &frontal.keypoints))),
+            Recognizer::Embedding(recognizer, _) => Some(recognizer.embed(&frontal.image, &frontal.keypoints, None, None).template),
+            Recognizer::Classical(_) => None,
+        }
+    }
 }

@@ -60,8 +60,10 @@ pub struct PoseReading {
     pub template: Option<Template>,
     /// Degrees, from the 3DMM fit; `None` without a face or a fit.
     pub yaw: Option<f32>,
-    /// Templates of the fitted head rendered at other yaws (empty unless asked for).
-    pub synthetic: Vec<Template>,
+    /// Templates of the fitted head rendered at other yaws, with the yaw (empty unless asked for).
+    pub synthetic: Vec<(f32, Template)>,
+    /// The template of the 3DMM frontal rendering (unless not asked for).
+    pub frontal: Option<Template>,
 }
 
 /// Reads every photo through `pipeline` on `threads` threads.
@@ -69,6 +71,7 @@ pub fn read_photos(
     pipeline: &Pipeline,
     photos: &[PosePhoto],
     synthetic_yaws: &[f32],
+    frontal: bool,
     threads: usize,
     progress: &dyn Progress,
 ) -> Vec<PoseReading> {
@@ -82,9 +85,10 @@ pub fn read_photos(
                 let synthetic = if synthetic_yaws.is_empty() {
                     Vec::new()
                 } else {
-                    pipeline.synthetic_templates(&photo, &analysis, synthetic_yaws).into_iter().map(|s| s.template).collect()
+                    pipeline.synthetic_templates(&photo, &analysis, synthetic_yaws).into_iter().map(|s| (s.yaw, s.template)).collect()
                 };
-                PoseReading { template: Some(analysis.template), yaw: analysis.pose.map(|p| p.yaw), synthetic }
+                let frontal = if frontal { pipeline.frontal_template(&photo, &analysis) } else { None };
+                PoseReading { template: Some(analysis.template), yaw: analysis.pose.map(|p| p.yaw), synthetic, frontal }
             }
             Err(_) => PoseReading::default(),
         }
@@ -92,12 +96,30 @@ pub fn read_photos(
 }
 
 /// How enrolled templates are scored against a probe.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Strategy {
     /// The enrolled photo's own template only (the service without synthesis).
     Own,
     /// The enrolled photo's template and its synthetic views: the best of them.
     WithSynthetic,
+    /// The enrolled photo's template and its one synthetic view nearest the probe's fitted yaw
+    /// (the enrolled head rendered at the probe's pose): the better of the two.
+    AtProbePose,
+    /// Each photo's template made from its 3DMM frontal rendering when its fitted |yaw| is at
+    /// least this many degrees, from the photo itself otherwise.
+    FrontalBeyond(f32),
+}
+
+impl Strategy {
+    /// The report's name of the strategy.
+    pub fn name(&self) -> String {
+        match self {
+            Strategy::Own => "own".into(),
+            Strategy::WithSynthetic => "synthetic".into(),
+            Strategy::AtProbePose => "at-probe-pose".into(),
+            Strategy::FrontalBeyond(yaw) => format!("frontal-beyond-{yaw}"),
+        }
+    }
 }
 
 /// One band of probe photos and its rates.
@@ -143,11 +165,23 @@ fn pair_score(
     let (Some(e), Some(p)) = (&readings[enrolled].template, &readings[probe].template) else {
         return MISSED_SCORE;
     };
+    let own = || score(p, std::slice::from_ref(e));
     match strategy {
-        Strategy::Own => score(p, std::slice::from_ref(e)),
+        Strategy::Own => own(),
         Strategy::WithSynthetic => {
-            let own = score(p, std::slice::from_ref(e));
-            readings[enrolled].synthetic.iter().map(|s| score(p, std::slice::from_ref(s))).fold(own, f32::max)
+            readings[enrolled].synthetic.iter().map(|(_, s)| score(p, std::slice::from_ref(s))).fold(own(), f32::max)
+        }
+        Strategy::AtProbePose => {
+            let at_pose = readings[probe]
+                .yaw
+                .and_then(|yaw| readings[enrolled].synthetic.iter().min_by(|a, b| (a.0 - yaw).abs().total_cmp(&(b.0 - yaw).abs())));
+            at_pose.map_or_else(own, |(_, s)| own().max(score(p, std::slice::from_ref(s))))
+        }
+        Strategy::FrontalBeyond(limit) => {
+            let template = |r: &PoseReading, own: &Template| {
+                r.frontal.as_ref().filter(|_| r.yaw.is_some_and(|y| y.abs() >= limit)).unwrap_or(own).clone()
+            };
+            score(&template(&readings[probe], p), &[template(&readings[enrolled], e)])
         }
     }
 }
@@ -228,11 +262,79 @@ pub fn report(
             Some(v[v.len() / 2])
         })
         .collect();
-    let strategy = match strategy {
-        Strategy::Own => "own",
-        Strategy::WithSynthetic => "synthetic",
-    };
-    PoseReport { strategy: strategy.to_string(), found_by_photo, median_yaw_by_photo, bands, match_rate_by_photo }
+    PoseReport { strategy: strategy.name(), found_by_photo, median_yaw_by_photo, bands, match_rate_by_photo }
+}
+
+/// One pose band's observed rates on persons left out, at a threshold for FMR 1e-3 calibrated on
+/// the other persons' impostor pairs: of that band alone, and of every pair together.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct BandThresholdResult {
+    pub band: String,
+    pub genuine: usize,
+    pub impostor: usize,
+    pub fmr_band_threshold: f64,
+    pub fnmr_band_threshold: f64,
+    pub fmr_one_threshold: f64,
+    pub fnmr_one_threshold: f64,
+}
+
+/// Thresholds per pose band against one threshold, by person folds (the photos' own templates):
+/// fold `k` holds out the persons whose rank is `k` modulo `folds`; its thresholds come from the
+/// impostor pairs among the other persons (per band, and over every pair), and are applied to the
+/// pairs with a held-out person. Rates pooled over the folds.
+pub fn band_thresholds(
+    photos: &[PosePhoto],
+    readings: &[PoseReading],
+    folds: usize,
+    score: &(dyn Fn(&Template, &[Template]) -> f32 + Sync),
+) -> Vec<BandThresholdResult> {
+    let mut persons: Vec<&str> = photos.iter().map(|p| p.person.as_str()).collect();
+    persons.sort_unstable();
+    persons.dedup();
+    let fold_of = |person: &str| persons.iter().position(|&q| q == person).unwrap_or(0) % folds.max(1);
+    let mut pairs: Vec<(usize, usize, bool, f32)> = Vec::new();
+    for i in 0..photos.len() {
+        for j in i + 1..photos.len() {
+            let (e, p) = if photos[j].index > photos[i].index { (j, i) } else { (i, j) };
+            pairs.push((e, p, photos[e].person == photos[p].person, pair_score(readings, e, p, Strategy::Own, score)));
+        }
+    }
+    let in_any = |&(lo, hi): &(u32, u32), e: usize, p: usize| in_band((lo, hi), photos[e].index, photos[p].index);
+    BANDS
+        .iter()
+        .map(|&(name, lo, hi)| {
+            // (genuine, impostor) × (band threshold, one threshold): [accepted, total].
+            let mut counts = [[0usize; 2]; 4];
+            for k in 0..folds.max(1) {
+                let held = |i: usize| fold_of(&photos[i].person) == k;
+                let calibration = |band: Option<(u32, u32)>| -> Vec<f32> {
+                    let inside = |&&(e, p, same, _): &&(usize, usize, bool, f32)| {
+                        !same && !held(e) && !held(p) && band.is_none_or(|b| in_any(&b, e, p))
+                    };
+                    pairs.iter().filter(inside).map(|x| x.3).collect()
+                };
+                let band_t = fnmr_at_fmr(&[], &calibration(Some((lo, hi))), 1e-3).1;
+                let one_t = fnmr_at_fmr(&[], &calibration(None), 1e-3).1;
+                for &(_, _, same, s) in pairs.iter().filter(|&&(e, p, _, _)| (held(e) || held(p)) && in_any(&(lo, hi), e, p)) {
+                    let row = if same { 0 } else { 2 };
+                    for (slot, t) in [(row, band_t), (row + 1, one_t)] {
+                        counts[slot][0] += (s >= t) as usize;
+                        counts[slot][1] += 1;
+                    }
+                }
+            }
+            let rate = |c: [usize; 2]| c[0] as f64 / c[1].max(1) as f64;
+            BandThresholdResult {
+                band: name.to_string(),
+                genuine: counts[0][1],
+                impostor: counts[2][1],
+                fmr_band_threshold: rate(counts[2]),
+                fnmr_band_threshold: 1.0 - rate(counts[0]),
+                fmr_one_threshold: rate(counts[3]),
+                fnmr_one_threshold: 1.0 - rate(counts[1]),
+            }
+        })
+        .collect()
 }
 
 impl PoseReport {
@@ -274,7 +376,7 @@ mod tests {
     }
 
     fn reading(v: [f32; 2]) -> PoseReading {
-        PoseReading { template: Some(Template::new("t", v.to_vec())), yaw: Some(0.0), synthetic: Vec::new() }
+        PoseReading { template: Some(Template::new("t", v.to_vec())), yaw: Some(0.0), synthetic: Vec::new(), frontal: None }
     }
 
     fn cosine(p: &Template, e: &[Template]) -> f32 {
@@ -299,12 +401,48 @@ mod tests {
     fn synthetic_views_score_by_the_best_template() {
         let photos = [photo("a", 19), photo("a", 2)];
         let mut frontal = reading([1.0, 0.0]);
-        frontal.synthetic = vec![Template::new("t", vec![0.0, 1.0])];
+        frontal.synthetic = vec![(30.0, Template::new("t", vec![0.0, 1.0]))];
         let readings = [frontal, reading([0.0, 1.0])];
         let own = report(&photos, &readings, Strategy::Own, 0.5, &cosine);
         let synth = report(&photos, &readings, Strategy::WithSynthetic, 0.5, &cosine);
         assert_eq!(own.bands[0].fnmr_at_service_threshold, 1.0);
         assert_eq!(synth.bands[0].fnmr_at_service_threshold, 0.0);
+    }
+
+    /// The enrolled head rendered at the probe's pose scores by the one render nearest the probe's
+    /// yaw, not the best of all; frontal templates replace a photo's own beyond the yaw given.
+    #[test]
+    fn the_probes_pose_picks_one_render_and_frontalising_follows_the_yaw() {
+        let photos = [photo("a", 19), photo("a", 2)];
+        let mut enrolled = reading([1.0, 0.0]);
+        enrolled.synthetic = vec![(-60.0, Template::new("t", vec![0.0, 1.0])), (60.0, Template::new("t", vec![1.0, 0.0]))];
+        let mut probe = reading([0.0, 1.0]);
+        probe.yaw = Some(70.0);
+        let readings = [enrolled.clone(), probe.clone()];
+        assert_eq!(report(&photos, &readings, Strategy::WithSynthetic, 0.5, &cosine).bands[0].fnmr_at_service_threshold, 0.0);
+        assert_eq!(report(&photos, &readings, Strategy::AtProbePose, 0.5, &cosine).bands[0].fnmr_at_service_threshold, 1.0);
+        probe.yaw = Some(-70.0);
+        let readings = [enrolled.clone(), probe.clone()];
+        assert_eq!(report(&photos, &readings, Strategy::AtProbePose, 0.5, &cosine).bands[0].fnmr_at_service_threshold, 0.0);
+        probe.frontal = Some(Template::new("t", vec![1.0, 0.0]));
+        let readings = [enrolled, probe];
+        assert_eq!(report(&photos, &readings, Strategy::FrontalBeyond(60.0), 0.5, &cosine).bands[0].fnmr_at_service_threshold, 0.0);
+        assert_eq!(report(&photos, &readings, Strategy::FrontalBeyond(80.0), 0.5, &cosine).bands[0].fnmr_at_service_threshold, 1.0);
+    }
+
+    /// Thresholds come from the persons outside each fold: an impostor pair among the held-out
+    /// persons scoring above every calibration impostor is a false match.
+    #[test]
+    fn band_thresholds_are_calibrated_on_other_persons() {
+        let photos: Vec<PosePhoto> = ["a", "b", "c", "d"].iter().flat_map(|p| [photo(p, 19), photo(p, 12)]).collect();
+        let angle = |deg: f32| reading([deg.to_radians().cos(), deg.to_radians().sin()]);
+        // Each person's two photos 5° apart, persons 30° apart.
+        let readings: Vec<PoseReading> = (0..4).flat_map(|k| [angle(30.0 * k as f32), angle(30.0 * k as f32 + 5.0)]).collect();
+        let rows = band_thresholds(&photos, &readings, 2, &cosine);
+        let all = &rows[0];
+        assert_eq!(all.genuine, 4);
+        assert_eq!((all.fnmr_band_threshold, all.fnmr_one_threshold), (0.0, 0.0));
+        assert!(all.fmr_band_threshold > 0.0, "impostors 25° apart against a threshold from pairs 55° apart and more");
     }
 
     #[test]
