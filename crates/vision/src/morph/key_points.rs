@@ -8,7 +8,7 @@ use facegate_core::face::{EYE_IMAGE_LEFT, EYE_IMAGE_RIGHT, IMM_POINTS};
 use facegate_core::geometry::Point;
 
 use super::fit::estimate_camera;
-use super::{FaceModel, FittedFace, MorphError};
+use super::{Camera, FaceModel, FittedFace, MorphError};
 
 /// IMM points of the image-left and image-right mouth corners.
 const MOUTH_CORNERS: [usize; 2] = [39, 43];
@@ -18,6 +18,25 @@ pub const HIDDEN_SIDE_YAW: f32 = 40.0;
 
 /// Weight of a guessed, hidden point in the second fit.
 const HIDDEN_WEIGHT: f64 = 0.2;
+
+/// The scaled orthographic camera that maps `model` (a face's five key points, model mm, in the
+/// detector's order) onto the detector's `points`; on a head turned past [`HIDDEN_SIDE_YAW`] the
+/// far side's eye and mouth corner count for [`HIDDEN_WEIGHT`] in a second fit. The pipeline's
+/// five-point pose and the profile landmark search's start both use it.
+pub fn key_point_camera(model: &[[f64; 3]; 5], points: &[Point; 5]) -> Result<Camera, MorphError> {
+    let mut weights = [1.0f64; 5];
+    let mut camera = estimate_camera(model, points, &weights)?;
+    let yaw = camera.pose().yaw;
+    if yaw.abs() > HIDDEN_SIDE_YAW {
+        // Which side is far: the one whose eye the camera sees deeper (smaller depth).
+        let far_left = camera.project(model[0])[2] < camera.project(model[1])[2];
+        let (eye, mouth) = if far_left { (0, 3) } else { (1, 4) };
+        weights[eye] = HIDDEN_WEIGHT;
+        weights[mouth] = HIDDEN_WEIGHT;
+        camera = estimate_camera(model, points, &weights)?;
+    }
+    Ok(camera)
+}
 
 impl FaceModel {
     /// The mean face's points for the detector's five, in its order (image-left eye, image-right
@@ -51,17 +70,7 @@ impl FaceModel {
             return Err(MorphError::Input("non-finite key point coordinates".into()));
         }
         let model = self.key_point_vertices();
-        let mut weights = [1.0f64; 5];
-        let mut camera = estimate_camera(&model, points, &weights)?;
-        let yaw = camera.pose().yaw;
-        if yaw.abs() > HIDDEN_SIDE_YAW {
-            // Which side is far: the one whose eye the camera sees deeper (smaller depth).
-            let far_left = camera.project(model[0])[2] < camera.project(model[1])[2];
-            let (eye, mouth) = if far_left { (0, 3) } else { (1, 4) };
-            weights[eye] = HIDDEN_WEIGHT;
-            weights[mouth] = HIDDEN_WEIGHT;
-            camera = estimate_camera(&model, points, &weights)?;
-        }
+        let camera = key_point_camera(&model, points)?;
         let residual = model.iter().zip(points).map(|(m, p)| {
             let q = camera.project(*m);
             (q[0] - p[0] as f64).powi(2) + (q[1] - p[1] as f64).powi(2)

@@ -5,7 +5,6 @@ use std::path::Path;
 use crate::landmarks::asm3d::*;
 use crate::landmarks::search::{self, Frame, Level, Workspace, from_level, pyramid, to_level};
 use crate::landmarks::{AsmModel, LandmarkError, Variant};
-use crate::morph::fit::estimate_camera;
 use crate::morph::{Camera, Pose};
 use facegate_core::face::{IMM_POINTS, KeyPoints};
 use facegate_core::geometry::{Point, Rect, centroid};
@@ -92,23 +91,14 @@ pub const DETECTOR_SEED_MIN_YAW: f32 = crate::morph::key_points::HIDDEN_SIDE_YAW
 /// the shape, where the 3D fit weights them by [`HIDDEN_POINT_WEIGHT`].
 pub const REFINE_3D_BEYOND_YAW: f32 = 45.0;
 
-/// The camera that maps `model` (five points, model mm) onto the detector's `points` (pixels):
-/// a scaled orthographic fit, repeated with the far eye and mouth corner at
-/// [`morph::key_points`](crate::morph::key_points)'s weight once the first fit shows the head
-/// turned past [`DETECTOR_SEED_MIN_YAW`] (the detector can only guess those two).
-pub fn key_point_camera(model: &[[f64; 3]; 5], points: &[Point; 5]) -> Option<Camera> {
+/// The camera of [`morph::key_points::key_point_camera`](crate::morph::key_points::key_point_camera)
+/// (the far eye and mouth corner down-weighted past 40°), `None` for non-finite points or a
+/// degenerate camera.
+fn key_point_camera(model: &[[f64; 3]; 5], points: &[Point; 5]) -> Option<Camera> {
     if points.iter().any(|p| !p[0].is_finite() || !p[1].is_finite()) {
         return None;
     }
-    let mut weights = [1.0f64; 5];
-    let mut camera = estimate_camera(model, points, &weights).ok()?;
-    if camera.pose().yaw.abs() > DETECTOR_SEED_MIN_YAW {
-        let far_left = camera.project(model[0])[2] < camera.project(model[1])[2];
-        let (eye, mouth) = if far_left { (0, 3) } else { (1, 4) };
-        weights[eye] = 0.2;
-        weights[mouth] = 0.2;
-        camera = estimate_camera(model, points, &weights).ok()?;
-    }
+    let camera = crate::morph::key_points::key_point_camera(model, points).ok()?;
     (camera.scale.is_finite() && camera.scale > 0.0).then_some(camera)
 }
 
@@ -385,17 +375,16 @@ impl Asm3dLandmarker {
         let posed = front.pdm.project(&vec![0.0; front.pdm.modes()], &camera);
         let frame = crop_frame(m.crop_px_per_mm / camera.scale as f32, centroid(&posed), m.params.crop_size);
         let in_crop: [Point; 5] = points.map(|p| frame.to_crop(p));
+        let camera = key_point_camera(&model, &in_crop)?;
         let near = nearest_view(&yaws, yaw);
         let turned = (0..yaws.len())
             .filter(|&v| v != near && (yaws[v] - yaws[near]) * yaw.signum() > 0.0)
             .min_by(|&a, &b| (yaws[a] - yaws[near]).abs().total_cmp(&(yaws[b] - yaws[near]).abs()));
         let seeded: Vec<State> = std::iter::once(near)
             .chain(turned)
-            .filter_map(|vi| {
-                let view = &m.views[vi];
-                let camera = key_point_camera(&model, &in_crop)?;
-                let points = view.pdm.project(&vec![0.0; view.pdm.modes()], &camera);
-                Some(State { view: vi, points, camera })
+            .map(|vi| {
+                let pdm = &m.views[vi].pdm;
+                State { view: vi, points: pdm.project(&vec![0.0; pdm.modes()], &camera), camera }
             })
             .collect();
         let levels = pyramid(frame.crop(gray, m.params.crop_size), m.params.levels);
