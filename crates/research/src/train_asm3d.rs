@@ -218,6 +218,18 @@ pub fn train(
     options: &Asm3dTrainOptions,
     tick: &dyn Fn(),
 ) -> Result<Asm3dModel, LandmarkError> {
+    train_with_jaw(samples, fm, detector, options, tick).map(|(model, _)| model)
+}
+
+/// [`train`], with the jaw vertices learnt from the photos' 3DMM fits (the profile model's
+/// visibility reads the views' points at them).
+fn train_with_jaw(
+    samples: &[ImmSample],
+    fm: &FaceModel,
+    detector: Option<&Detector>,
+    options: &Asm3dTrainOptions,
+    tick: &dyn Fn(),
+) -> Result<(Asm3dModel, JawVertices), LandmarkError> {
     if samples.len() < 3 {
         return Err(LandmarkError::Training(format!("{} annotated photos; at least 3 are needed", samples.len())));
     }
@@ -304,7 +316,7 @@ pub fn train(
     persons.dedup();
     let info = TrainInfo { images: samples.len(), persons: persons.clone(), box_source, detector_misses: misses };
     let out_views = finish_views(views, pdms, &own, &start_scales, &neighbours, options, &info)?;
-    Ok(Asm3dModel {
+    let model = Asm3dModel {
         format: ASM3D_FORMAT,
         params: p.clone(),
         crop_px_per_mm,
@@ -319,7 +331,8 @@ pub fn train(
             pdm_shapes: options.pdm_shapes,
             seed: options.seed,
         },
-    })
+    };
+    Ok((model, jaw))
 }
 
 /// The 3DMM fitted to every photo's annotated landmarks (`None` where the fit fails).
@@ -380,9 +393,7 @@ pub fn train_profile(
     options: &Asm3dTrainOptions,
     tick: &dyn Fn(),
 ) -> Result<ProfileModel, LandmarkError> {
-    let asm3d = train(samples, fm, detector, options, tick)?;
-    let fits = fit_annotations(samples, fm)?;
-    let jaw = annotated_jaw_vertices(fm, &fits.iter().flatten().collect::<Vec<_>>());
+    let (asm3d, jaw) = train_with_jaw(samples, fm, detector, options, tick)?;
     let visible = options.yaws.iter().map(|&yaw| view_visibility(fm, &jaw, yaw)).collect();
     Ok(ProfileModel { format: PROFILE_FORMAT, asm3d, visible, key_points: fm.key_point_vertices().map(|p| p.map(|c| c as f32)) })
 }

@@ -71,11 +71,7 @@ impl Pipeline {
                     None => exact.keypoints,
                 };
                 let points = found.and_then(|f| f.points);
-                let template = match &self.recognizer {
-                    Recognizer::Deep(deep) => deep.template_of_chip(&crate::embed::face_chip(&view.rgb, &keypoints)),
-                    Recognizer::Embedding(recognizer, _) => recognizer.embed(&view.rgb, &keypoints, points.as_ref(), None).template,
-                    Recognizer::Classical(_) => return None,
-                };
+                let template = self.deep_template(&view.rgb, &keypoints, points.as_ref())?;
                 Some(SyntheticTemplate { yaw, template })
             })
             .collect()
@@ -89,9 +85,16 @@ impl Pipeline {
         let model = self.face_model.as_ref()?;
         let fit = model.fit(&analysis.landmarks.points, photo.width(), photo.height()).ok()?;
         let frontal = model.frontalize(photo, &fit).ok()?;
+        self.deep_template(&frontal.image, &frontal.keypoints, None)
+    }
+
+    /// The deep recognizer's template of `rgb` with its eye and mouth centres at `keypoints` (and
+    /// the detector's five points, for a network aligned by them); `None` for the classical
+    /// recognizer.
+    fn deep_template(&self, rgb: &image::RgbImage, keypoints: &KeyPoints, points: Option<&[Point; 5]>) -> Option<Template> {
         match &self.recognizer {
-            Recognizer::Deep(deep) => Some(deep.template_of_chip(&crate::embed::face_chip(&frontal.image, &frontal.keypoints))),
-            Recognizer::Embedding(recognizer, _) => Some(recognizer.embed(&frontal.image, &frontal.keypoints, None, None).template),
+            Recognizer::Deep(deep) => Some(deep.template_of_chip(&crate::embed::face_chip(rgb, keypoints))),
+            Recognizer::Embedding(recognizer, _) => Some(recognizer.embed(rgb, keypoints, points, None).template),
             Recognizer::Classical(_) => None,
         }
     }

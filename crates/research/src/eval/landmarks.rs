@@ -445,11 +445,9 @@ fn measure_asm3d(
             ("3D-ASM seeded by the detector's points", &seeded),
             ("service: the detector seed from DETECTOR_SEED_MIN_YAW", &service),
         ];
-        for (name, search) in searches {
-            match super::profile::profile_renders(&fm, test, det, &profile, search) {
-                Ok(r) => profiles.push((name, r)),
-                Err(e) => progress.note(&format!("facegate: profile renders not measured: {e}")),
-            }
+        match super::profile::profile_renders(&fm, test, det, &profile, &searches) {
+            Ok(r) => profiles = r,
+            Err(e) => progress.note(&format!("facegate: profile renders not measured: {e}")),
         }
         match super::profile::profile_poses(&fm, test, det, &profile, casm) {
             Ok(r) => poses = r,

@@ -36,55 +36,65 @@ pub struct ProfileRow {
 
 /// Landmark searches on renders of held-out faces from frontal to full profile: every
 /// near-frontal photo (|yaw| < 10°, 3DMM fitted to its manual landmarks) of `test` is fitted,
-/// textured and rendered at each of [`PROFILE_YAWS`] (as [`crossover`](super::landmarks::crossover)); the detector runs on the
-/// render and `search` gets its largest face. The error counts only the points the view shows
-/// (the profile model `asm3d`'s view of that yaw), since a hidden point has no position to find in
-/// the photo.
+/// textured and rendered at each of [`PROFILE_YAWS`] (as [`crossover`](super::landmarks::crossover)); the detector runs on each
+/// render once and every one of `searches` gets its largest face. The error counts only the points
+/// the view shows (the profile model `asm3d`'s view of that yaw), since a hidden point has no
+/// position to find in the photo. Rows per search, in the order given.
 pub fn profile_renders(
     fm: &facegate_vision::morph::FaceModel,
     test: &[ImmSample],
     detector: &Detector,
     asm3d: &facegate_vision::landmarks::asm3d::Asm3dLandmarker,
-    search: PointSearch,
-) -> anyhow::Result<Vec<ProfileRow>> {
+    searches: &[(&'static str, PointSearch)],
+) -> anyhow::Result<Vec<(&'static str, Vec<ProfileRow>)>> {
     use facegate_vision::landmarks::asm3d::nearest_view;
     let view_yaws: Vec<f32> = asm3d.model.views.iter().map(|v| v.yaw).collect();
     let bands = bands(&PROFILE_YAWS);
-    let mut errors: Vec<Vec<f64>> = vec![Vec::new(); bands.len()];
+    // [search][band]: the error per render, infinite for a detector miss.
+    let mut errors: Vec<Vec<Vec<f64>>> = vec![vec![Vec::new(); bands.len()]; searches.len()];
     let mut misses = vec![0usize; bands.len()];
     for_each_render(fm, test, &PROFILE_YAWS, &mut |yaw, view| {
         let band = bands.iter().position(|&b| b == yaw.abs()).expect("a band per yaw");
         let Some(face) = detector.detect(&view.gray).first().copied() else {
             misses[band] += 1;
-            errors[band].push(f64::INFINITY);
+            errors.iter_mut().for_each(|e| e[band].push(f64::INFINITY));
             return;
         };
-        let found = search(&view.gray, &face);
         let visible = &asm3d.visible[nearest_view(&view_yaws, yaw)];
         let k = KeyPoints::from_imm(&view.points);
         let mid = [0.5 * (k.left_eye[0] + k.right_eye[0]), 0.5 * (k.left_eye[1] + k.right_eye[1])];
         let size = distance(mid, k.mouth).max(1e-6) as f64;
-        let shown: Vec<f64> = (0..view.points.len())
-            .filter(|&i| visible.get(i).copied().unwrap_or(true))
-            .map(|i| distance(found[i], view.points[i]) as f64)
-            .collect();
-        errors[band].push(shown.iter().sum::<f64>() / shown.len().max(1) as f64 / size);
+        for ((_, search), e) in searches.iter().zip(errors.iter_mut()) {
+            let found = search(&view.gray, &face);
+            let shown: Vec<f64> = (0..view.points.len())
+                .filter(|&i| visible.get(i).copied().unwrap_or(true))
+                .map(|i| distance(found[i], view.points[i]) as f64)
+                .collect();
+            e[band].push(shown.iter().sum::<f64>() / shown.len().max(1) as f64 / size);
+        }
     })?;
-    Ok(bands
+    Ok(searches
         .iter()
         .zip(errors)
-        .zip(misses)
-        .map(|((&yaw, e), detector_misses)| {
-            let share = |t: f64| e.iter().filter(|&&x| x < t).count() as f64 / e.len().max(1) as f64;
-            let finite: Vec<f64> = e.iter().copied().filter(|x| x.is_finite()).collect();
-            ProfileRow {
-                yaw,
-                renders: e.len(),
-                detector_misses,
-                mean_error: finite.iter().sum::<f64>() / finite.len().max(1) as f64,
-                error_01: share(0.1),
-                error_02: share(0.2),
-            }
+        .map(|(&(name, _), by_band)| {
+            let rows = bands
+                .iter()
+                .zip(by_band)
+                .zip(&misses)
+                .map(|((&yaw, e), &detector_misses)| {
+                    let share = |t: f64| e.iter().filter(|&&x| x < t).count() as f64 / e.len().max(1) as f64;
+                    let finite: Vec<f64> = e.iter().copied().filter(|x| x.is_finite()).collect();
+                    ProfileRow {
+                        yaw,
+                        renders: e.len(),
+                        detector_misses,
+                        mean_error: finite.iter().sum::<f64>() / finite.len().max(1) as f64,
+                        error_01: share(0.1),
+                        error_02: share(0.2),
+                    }
+                })
+                .collect();
+            (name, rows)
         })
         .collect())
 }

@@ -443,10 +443,17 @@ impl FaceModel {
     /// the nearest surface at its pixel (the model's own depth buffer, 2 mm of tolerance), so the
     /// far eye, brow and jaw of a turned head come out hidden.
     pub fn landmark_visibility(&self, fit: &FittedFace) -> Vec<bool> {
-        let projected = self.project(&fit.vertices, &fit.camera);
-        let depth = render::DepthBuffer::render(&projected, &self.shape.triangles, fit.image_width as usize, fit.image_height as usize);
-        let tolerance = ((2.0 * fit.camera.scale) as f32).max(0.5);
-        fit.correspondence
+        self.vertex_visibility(&fit.vertices, &fit.camera, &fit.correspondence, fit.image_width as usize, fit.image_height as usize)
+    }
+
+    /// [`landmark_visibility`](Self::landmark_visibility) for any shape (`vertices`, model mm)
+    /// under `camera` in a `width` × `height` image: whether each of the vertices `points` is the
+    /// nearest surface at its pixel.
+    pub fn vertex_visibility(&self, vertices: &[[f32; 3]], camera: &Camera, points: &[u32], width: usize, height: usize) -> Vec<bool> {
+        let projected = self.project(vertices, camera);
+        let depth = render::DepthBuffer::render(&projected, &self.shape.triangles, width, height);
+        let tolerance = ((2.0 * camera.scale) as f32).max(0.5);
+        points
             .iter()
             .map(|&v| {
                 let p = projected[v as usize];

@@ -96,7 +96,7 @@ pub fn background_colour(rgb: &image::RgbImage) -> [u8; 3] {
 /// Which of the 58 points a view shows: the model's mean face turned to `yaw` (no pitch or roll),
 /// its points at the vertices the view's 3D PDM reads (`jaw` moved to the occluding outline as it
 /// turns away), each visible when it is the nearest surface at its pixel
-/// (`FaceModel::landmark_visibility`). Frontal views show all 58; a full profile hides the far eye,
+/// (`FaceModel::vertex_visibility`). Frontal views show all 58; a full profile hides the far eye,
 /// brow and mouth corner.
 pub fn view_visibility(fm: &FaceModel, jaw: &JawVertices, yaw: f32) -> Vec<bool> {
     // 2 px per mm in a 600-px square: the depth test's tolerance (2 model mm) is a few pixels.
@@ -107,16 +107,5 @@ pub fn view_visibility(fm: &FaceModel, jaw: &JawVertices, yaw: f32) -> Vec<bool>
         [p[0] as f64, p[1] as f64, p[2] as f64]
     };
     let correspondence = view_correspondence(fm, &at, &camera, jaw);
-    let mean = crate::morph::FittedFace {
-        pose: camera.pose(),
-        residual_px: 0.0,
-        camera,
-        coefficients: vec![0.0; fm.shape.component_count()],
-        expression: Vec::new(),
-        correspondence,
-        vertices,
-        image_width: 600,
-        image_height: 600,
-    };
-    fm.landmark_visibility(&mean)
+    fm.vertex_visibility(&vertices, &camera, &correspondence, 600, 600)
 }
