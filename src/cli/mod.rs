@@ -55,6 +55,9 @@ pub enum Command {
     Backup(store::BackupArgs),
     /// Replace the template database with a backup.
     Restore(store::RestoreArgs),
+    /// Measure the deployment's own impostor thresholds from its enrolled subjects and store them
+    /// (the service raises its thresholds to them at start-up).
+    Calibrate(store::CalibrateArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -148,6 +151,7 @@ pub fn main() -> ExitCode {
         Command::Embed(args) => embed::run_embed(args),
         Command::Rekey(args) => store::run_rekey(args),
         Command::Backup(args) => store::run_backup(args),
+        Command::Calibrate(args) => store::run_calibrate(args),
         Command::Restore(args) => store::run_restore(args),
         Command::Train(TrainCommand::Deep(args)) => embed::run_train_deep(args),
         Command::Eval(EvalCommand::Deep(args)) => embed::run_eval_deep(args),

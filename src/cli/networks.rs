@@ -389,6 +389,7 @@ pub fn run_eval_calibration(args: EvalCalibrationArgs) -> anyhow::Result<ExitCod
         calibration: CalibrationPersons::Disjoint,
         rows: by_domain,
     });
+    reports.push(cal::report_with_site_calibration(&samples, &templates, model.calibration_for(1)));
     println!("{} ({}); grey photos: {} of {}", model.version, model.provenance.trained_on, grey.iter().filter(|g| **g).count(), grey.len());
     for r in &reports {
         if args.json {

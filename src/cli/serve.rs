@@ -43,6 +43,22 @@ pub fn run(args: ServeArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// The site calibration in use, and the default operating point it gives against the model's.
+fn log_site_calibration(pipeline: &Pipeline) {
+    let fmr = crate::recognize::DEFAULT_FMR;
+    let model = pipeline.recognizer.operating_point(fmr, 1).threshold;
+    match &pipeline.site_calibration {
+        Some(site) => tracing::info!(
+            subjects = site.subjects,
+            impostor_pairs = site.impostor_pairs,
+            model_threshold = model,
+            threshold = pipeline.operating_point(fmr, 1).threshold,
+            "site calibration (facegate calibrate): thresholds at FMR {fmr:e} raised to the deployment's own impostors where they are higher"
+        ),
+        None => tracing::info!(threshold = model, "no site calibration (facegate calibrate): the model's thresholds"),
+    }
+}
+
 async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyhow::Result<()> {
     // The store and its keys first: a database the keys cannot read stops the start-up before the
     // models are loaded.
@@ -72,13 +88,26 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
         args.configure_liveness(&mut pipeline)?;
         Ok(pipeline)
     });
-    let pipeline = match configured {
+    let mut pipeline = match configured {
         Ok(pipeline) => pipeline,
         Err(e) => {
             store.close().await;
             return Err(e);
         }
     };
+    match store.site_calibration(pipeline.recognizer.model_version()).await {
+        // The classical recognizer's score is no plain cosine of two templates: the site's pair
+        // cosines do not apply to it.
+        Ok(Some(_)) if matches!(pipeline.recognizer, crate::recognize::Recognizer::Classical(_)) => {
+            tracing::warn!("the site calibration is for cosine-scored recognizers; the classical one keeps its own thresholds")
+        }
+        Ok(site) => pipeline.site_calibration = site,
+        Err(e) => {
+            store.close().await;
+            return Err(e).context("cannot read the site calibration");
+        }
+    }
+    log_site_calibration(&pipeline);
     tracing::info!(model_version = pipeline.recognizer.model_version(), with_3dmm = pipeline.face_model.is_some(), "pipeline loaded");
     match &pipeline.liveness {
         Some(model) => tracing::info!(

@@ -44,6 +44,23 @@ pub struct RestoreArgs {
     pub force: bool,
 }
 
+#[derive(clap::Args, Debug)]
+pub struct CalibrateArgs {
+    #[command(flatten)]
+    pub database: DatabaseArgs,
+    #[command(flatten)]
+    pub key: TemplateKeyArgs,
+    /// Only this model version (default: every version the stored templates were made by).
+    #[arg(long)]
+    pub model_version: Option<String>,
+    /// Measure and print; store nothing.
+    #[arg(long)]
+    pub dry_run: bool,
+    /// Remove the stored site calibration instead (the service then uses the model's thresholds).
+    #[arg(long, conflicts_with = "dry_run")]
+    pub clear: bool,
+}
+
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_current_thread().enable_all().build().context("cannot start the async runtime")
 }
@@ -73,6 +90,45 @@ pub fn run_rekey(args: RekeyArgs) -> anyhow::Result<ExitCode> {
         }));
         Ok(ExitCode::SUCCESS)
     })
+}
+
+/// The site calibration (facegate_vision::recognize::site) of each model version in the store:
+/// measured from the enrolled subjects' impostor pairs and stored (or removed with `--clear`).
+/// One JSON line per model version. The service reads it at start-up.
+pub fn run_calibrate(args: CalibrateArgs) -> anyhow::Result<ExitCode> {
+    let keys = args.key.key_ring()?;
+    runtime()?.block_on(async {
+        let store =
+            Store::connect(&args.database.database, keys).await.with_context(|| format!("cannot open {}", args.database.database))?;
+        let result = calibrate(&store, &args).await;
+        store.close().await;
+        result
+    })
+}
+
+async fn calibrate(store: &Store, args: &CalibrateArgs) -> anyhow::Result<ExitCode> {
+    let versions = match &args.model_version {
+        Some(v) => vec![v.clone()],
+        None => store.model_versions().await?,
+    };
+    if versions.is_empty() {
+        anyhow::bail!("the database holds no templates: enrol the deployment's subjects first");
+    }
+    for version in versions {
+        if args.clear {
+            let removed = store.clear_site_calibration(&version).await?;
+            super::print_json_line(&serde_json::json!({ "model_version": version, "removed": removed }));
+            continue;
+        }
+        let site = store.measure_site_calibration(&version).await?;
+        if !args.dry_run {
+            store.set_site_calibration(&site).await?;
+        }
+        let mut line = serde_json::to_value(&site)?;
+        line["stored"] = serde_json::Value::Bool(!args.dry_run);
+        super::print_json_line(&line);
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 /// A consistent copy of the database while the service keeps running (SQLite; PostgreSQL has pg_dump).

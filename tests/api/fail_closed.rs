@@ -32,10 +32,10 @@ fn ring(text: &str) -> KeyRing {
 }
 
 /// A temporary folder, removed when dropped.
-struct Scratch(PathBuf);
+pub(crate) struct Scratch(pub(crate) PathBuf);
 
 impl Scratch {
-    fn new(name: &str) -> Scratch {
+    pub(crate) fn new(name: &str) -> Scratch {
         static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
         let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let dir = std::env::temp_dir().join(format!("facegate-fail-closed-{name}-{}-{n}", std::process::id()));
@@ -44,11 +44,11 @@ impl Scratch {
         Scratch(dir)
     }
 
-    fn path(&self, name: &str) -> String {
+    pub(crate) fn path(&self, name: &str) -> String {
         self.0.join(name).display().to_string()
     }
 
-    fn url(&self, name: &str) -> String {
+    pub(crate) fn url(&self, name: &str) -> String {
         format!("sqlite://{}", self.path(name))
     }
 
@@ -121,14 +121,14 @@ fn serve_is_refused(database: &str, extra: &[&str], expected: &[&str]) -> String
 }
 
 /// `facegate serve` on `database` with `extra` arguments, running until dropped.
-struct Served {
-    base: String,
+pub(crate) struct Served {
+    pub(crate) base: String,
     process: std::process::Child,
     log: PathBuf,
 }
 
 impl Served {
-    async fn start(database: &str, extra: &[&str], log: PathBuf) -> Served {
+    pub(crate) async fn start(database: &str, extra: &[&str], log: PathBuf) -> Served {
         let port = free_port();
         let mut args = vec!["serve".to_string(), "--bind".into(), format!("127.0.0.1:{port}"), "--database".into(), database.into()];
         args.extend(["--workers".into(), "1".into()]);
@@ -157,7 +157,7 @@ impl Served {
         }
     }
 
-    fn log(&self) -> String {
+    pub(crate) fn log(&self) -> String {
         std::fs::read_to_string(&self.log).unwrap_or_default()
     }
 }

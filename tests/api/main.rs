@@ -37,6 +37,7 @@ mod pipeline;
 mod postgres;
 mod recognizers;
 mod replicas;
+mod site_calibration;
 mod store_backends;
 mod store_cli;
 mod store_outage;

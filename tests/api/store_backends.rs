@@ -35,8 +35,38 @@ on_both_backends!(
     a_failed_enrollment_stores_nothing,
     sealed_round_trip_and_tampered_rows_refused,
     rekey_seals_then_rotates,
-    the_gallery_reads_in_parts_and_by_subject
+    the_gallery_reads_in_parts_and_by_subject,
+    the_site_calibration_is_measured_on_sealed_templates_and_stored_per_version
 );
+
+/// The site calibration scores the pairs of different subjects' templates of one model version,
+/// sealed ones too, and is stored, replaced and removed per version.
+async fn the_site_calibration_is_measured_on_sealed_templates_and_stored_per_version(url: String) {
+    let store = Store::connect(&url, Some(KeyRing::parse(K1).unwrap())).await.unwrap();
+    assert!(store.model_versions().await.unwrap().is_empty());
+    // 40 subjects of two templates under "v1" (80 templates: 3,160 pairs, 40 of them genuine), and
+    // one under "v2" that is no part of it.
+    for s in 0..40 {
+        let t = |k: f32| Template::new("v1", (0..8).map(|i| ((i * 3 + s) as f32 + k).sin()).collect());
+        store.enroll(&SubjectId::parse(&format!("s{s}")).unwrap(), &[t(0.0), t(0.1)]).await.unwrap();
+    }
+    store.enroll(&SubjectId::parse("other").unwrap(), &[Template::new("v2", vec![1.0; 8])]).await.unwrap();
+    assert_eq!(store.model_versions().await.unwrap(), ["v1", "v2"]);
+    let site = store.measure_site_calibration("v1").await.unwrap();
+    assert_eq!((site.subjects, site.templates, site.impostor_pairs), (40, 80, 80 * 79 / 2 - 40));
+    assert_eq!(site.points.iter().map(|p| p.fmr).collect::<Vec<_>>(), [1e-2]);
+    assert_eq!(store.site_calibration("v1").await.unwrap(), None);
+    store.set_site_calibration(&site).await.unwrap();
+    let mut raised = site.clone();
+    raised.points[0].threshold += 0.1;
+    store.set_site_calibration(&raised).await.unwrap();
+    assert_eq!(store.site_calibration("v1").await.unwrap(), Some(raised));
+    assert_eq!(store.site_calibration("v2").await.unwrap(), None);
+    assert!(store.clear_site_calibration("v1").await.unwrap());
+    assert!(!store.clear_site_calibration("v1").await.unwrap());
+    assert_eq!(store.site_calibration("v1").await.unwrap(), None);
+    store.close().await;
+}
 
 pub struct TempDir(std::path::PathBuf);
 

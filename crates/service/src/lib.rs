@@ -85,7 +85,7 @@ impl Matcher for Pipeline {
         self.recognizer.score(probe, enrolled)
     }
     fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
-        self.recognizer.operating_point(fmr, enrolled)
+        Pipeline::operating_point(self, fmr, enrolled)
     }
     fn max_cosine_scoring(&self) -> bool {
         // The deep recognizers' score is the best cosine (`DeepRecognizer::score`); the classical

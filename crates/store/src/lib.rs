@@ -33,11 +33,12 @@
 //! both backends share, and the migrators; `sqlite` holds what is only about SQLite's files
 //! (connection settings, checkpoint, backup, [`restore`]); `feed` the change counter and the
 //! change feed (PostgreSQL's `LISTEN`/`NOTIFY`); `codec` how a template's vector is stored, plain
-//! or sealed; [`cipher`] the sealing itself.
+//! or sealed; [`cipher`] the sealing itself; `site` the site calibration per model version.
 
 pub mod cipher;
 mod codec;
 mod feed;
+mod site;
 mod sqlite;
 mod sqlite_scan;
 

@@ -4,7 +4,9 @@
 //! it (LFW calibration persons with the IMM and ORL held-out persons, so the lab check there is on
 //! the calibration persons themselves), the raw cosine calibrated on persons disjoint from every
 //! checked one (LFW calibration persons with the IMM and ORL *training* persons), and cohort score
-//! normalisation (S-norm, AS-norm) against the training persons, calibrated the disjoint way.
+//! normalisation (S-norm, AS-norm) against the training persons, calibrated the disjoint way, and
+//! the model's thresholds raised by a site calibration on each checked set's own other persons
+//! (what `facegate calibrate` does with a deployment's enrolled subjects).
 
 use serde::Serialize;
 
@@ -15,6 +17,8 @@ use facegate_core::vector::dot;
 use facegate_vision::recognize::Calibration;
 use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
 use facegate_vision::recognize::score_norm::{Cohort, CohortStats, s_norm};
+use facegate_vision::recognize::site::impostor_scores;
+use facegate_vision::recognize::{OperatingPoint, SiteCalibration};
 
 /// How a comparison is scored.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -22,6 +26,9 @@ pub enum Scoring {
     Cosine,
     /// The cosine, with a threshold table per probe domain (grey or colour photo).
     CosineByProbeDomain,
+    /// The cosine, the model's thresholds raised by a site calibration on the checked set's own
+    /// other persons (`facegate calibrate`, [`SiteCalibration`]).
+    CosineWithSiteCalibration,
     /// S-norm (`top_k` 0) or AS-norm over the `top_k` most similar cohort members.
     CohortNorm {
         top_k: usize,
@@ -67,6 +74,17 @@ pub struct CandidateReport {
     pub scoring: Scoring,
     pub calibration: CalibrationPersons,
     pub rows: Vec<Observed>,
+}
+
+/// Each checked set's site: the persons a deployment of such photos would have enrolled before
+/// the checked ones, disjoint from them (LFW's calibration persons; the IMM and ORL training
+/// persons; both).
+pub fn sites() -> [fn(&Sample) -> bool; 3] {
+    [
+        |s| s.set == Set::Lfw && s.split == Split::Calibration,
+        |s| s.set != Set::Lfw && s.split == Split::Train,
+        |s| CalibrationPersons::Disjoint.takes(s),
+    ]
 }
 
 /// The checked sets: LFW test persons, IMM and ORL held-out persons, and both pooled.
@@ -139,21 +157,55 @@ pub fn report(
     for (set, keep) in checked_sets() {
         let (g, i) = pair_scores(samples, templates, stats, &keep);
         for &fmr in &CALIBRATED_FMRS {
-            let t = table.operating_point(fmr).threshold;
-            let false_matches = i.iter().filter(|&&s| s >= t).count();
-            let observed = false_matches as f64 / i.len().max(1) as f64;
-            let fnmr = g.iter().filter(|&&s| s < t).count() as f64 / g.len().max(1) as f64;
-            // A set of fewer than 1/fmr impostor comparisons cannot show the rate itself: there it
-            // holds unless it shows more false matches than twice the rate allows (at least one).
-            let holds = if (i.len() as f64) * fmr >= 1.0 {
-                (0.5..=2.0).contains(&(observed / fmr))
-            } else {
-                false_matches as f64 <= (2.0 * fmr * i.len() as f64).max(1.0)
-            };
-            rows.push(Observed { set, stated: fmr, observed, false_matches, impostors: i.len(), fnmr, holds });
+            rows.push(observed(set, fmr, &g, &i, table.operating_point(fmr).threshold));
         }
     }
     CandidateReport { scoring, calibration, rows }
+}
+
+/// One threshold check of a set: observed FMR and FNMR at `threshold` (per stated FMR).
+fn observed(set: &'static str, fmr: f64, genuine: &[f32], impostor: &[f32], threshold: f32) -> Observed {
+    let false_matches = impostor.iter().filter(|&&s| s >= threshold).count();
+    let observed = false_matches as f64 / impostor.len().max(1) as f64;
+    let fnmr = genuine.iter().filter(|&&s| s < threshold).count() as f64 / genuine.len().max(1) as f64;
+    // A set of fewer than 1/fmr impostor comparisons cannot show the rate itself: there it holds
+    // unless it shows more false matches than twice the rate allows (at least one).
+    let holds = if (impostor.len() as f64) * fmr >= 1.0 {
+        (0.5..=2.0).contains(&(observed / fmr))
+    } else {
+        false_matches as f64 <= (2.0 * fmr * impostor.len() as f64).max(1.0)
+    };
+    Observed { set, stated: fmr, observed, false_matches, impostors: impostor.len(), fnmr, holds }
+}
+
+/// The shipped thresholds (`shipped`: one photo against one) raised by each checked set's site
+/// calibration ([`sites`]) the way the service raises them: the site's templates' impostor pairs
+/// ([`impostor_scores`]) give [`SiteCalibration::from_impostor_scores`], and
+/// [`SiteCalibration::raise`] the threshold.
+pub fn report_with_site_calibration(samples: &[Sample], templates: &[Option<Vec<f32>>], shipped: &Calibration) -> CandidateReport {
+    let mut rows = Vec::new();
+    for ((set, keep), site_persons) in checked_sets().into_iter().zip(sites()) {
+        let site = kept(samples, templates, &site_persons);
+        let mut slots: std::collections::HashMap<&str, u32> = std::collections::HashMap::new();
+        let owners: Vec<u32> = site
+            .iter()
+            .map(|(_, label, _)| {
+                let next = slots.len() as u32;
+                *slots.entry(label).or_insert(next)
+            })
+            .collect();
+        let dimension = site.first().map_or(0, |(_, _, t)| t.len());
+        let values: Vec<f32> = site.iter().flat_map(|(_, _, t)| t.iter().copied()).collect();
+        let scores = impostor_scores(&values, dimension, &owners);
+        let calibration = SiteCalibration::from_impostor_scores("research", slots.len(), site.len(), &scores);
+        let (g, i) = pair_scores(samples, templates, None, &keep);
+        for &fmr in &CALIBRATED_FMRS {
+            let point: OperatingPoint = shipped.operating_point(fmr);
+            let threshold = calibration.raise(point, point.threshold).threshold;
+            rows.push(observed(set, fmr, &g, &i, threshold));
+        }
+    }
+    CandidateReport { scoring: Scoring::CosineWithSiteCalibration, calibration: CalibrationPersons::Disjoint, rows }
 }
 
 /// Whether a photo is grey: no pixel's channels differ by more than 3 grey levels (a grey JPEG or

@@ -15,6 +15,7 @@ pub mod features;
 pub mod normalize;
 mod recognizer;
 pub mod score_norm;
+pub mod site;
 pub mod template;
 
 use std::path::Path;
@@ -30,6 +31,7 @@ pub use dlda::{Dlda, DldaParams};
 pub use features::{FeatureKind, Region};
 pub use normalize::{NormalizeParams, Photometric};
 pub use score_norm::{Cohort, CohortStats};
+pub use site::SiteCalibration;
 pub use template::{Combine, Template};
 
 pub use deep::DeepRecognizer;

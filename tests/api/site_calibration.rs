@@ -1,0 +1,86 @@
+//! `facegate calibrate`: the real binary measures the enrolled subjects' impostor pairs and stores
+//! the site calibration; `facegate serve` raises its thresholds to it, and `--clear` takes it back.
+
+use facegate::recognize::Template;
+use facegate::service::SubjectId;
+use facegate::store::Store;
+use serde_json::{Value, json};
+
+use crate::fail_closed::{Scratch, Served};
+use crate::support::{base64, imm};
+
+/// Run `facegate` with `args`: whether it succeeded and its JSON lines.
+fn facegate(args: &[&str]) -> (bool, Vec<Value>) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_facegate")).args(args).output().unwrap();
+    assert!(out.status.success(), "facegate {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    (out.status.success(), String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect())
+}
+
+/// Verify IMM 01's second photo against alice: (threshold, match).
+async fn verify_alice(served: &Served) -> (f64, bool) {
+    let r = reqwest::Client::new()
+        .post(format!("{}/verify", served.base))
+        .json(&json!({"subject": "alice", "image": base64(&imm("01-2m.jpg"))}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200, "{}", served.log());
+    let v: Value = r.json().await.unwrap();
+    (v["threshold"].as_f64().unwrap(), v["match"].as_bool().unwrap())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_site_calibration_raises_the_served_threshold_and_clear_takes_it_back() {
+    let dir = Scratch::new("site-calibration");
+    let database = dir.url("facegate.db");
+    let served = Served::start(&database, &[], dir.0.join("serve-1.log")).await;
+    let r = reqwest::Client::new()
+        .post(format!("{}/enroll", served.base))
+        .json(&json!({"subject": "alice", "image": base64(&imm("01-1m.jpg"))}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201, "{}", served.log());
+    let (model_threshold, matched) = verify_alice(&served).await;
+    assert!(matched, "the same person, the model's threshold");
+    assert!(served.log().contains("no site calibration"), "{}", served.log());
+    drop(served);
+
+    // 150 subjects whose templates all lie close together (cosines about 0.97): a deployment whose
+    // impostors look far more alike than the model's calibration persons.
+    let store = Store::connect(&database, None).await.unwrap();
+    let alice = store.templates(&SubjectId::parse("alice").unwrap()).await.unwrap().unwrap();
+    let (version, dims) = (alice[0].model_version.clone(), alice[0].vector.len());
+    for s in 0..150 {
+        let vector: Vec<f32> = (0..dims).map(|i| 1.0 + 0.25 * ((i * 7 + s * 13) as f32).sin()).collect();
+        store.enroll(&SubjectId::parse(&format!("lookalike-{s}")).unwrap(), &[Template::new(&version, vector)]).await.unwrap();
+    }
+    store.close().await;
+
+    let (_, lines) = facegate(&["calibrate", "--database", &database, "--dry-run"]);
+    assert_eq!((lines.len(), lines[0]["stored"].as_bool()), (1, Some(false)));
+    let (_, lines) = facegate(&["calibrate", "--database", &database]);
+    let site = &lines[0];
+    assert_eq!(
+        (site["model_version"].as_str(), site["subjects"].as_u64(), site["stored"].as_bool()),
+        (Some(version.as_str()), Some(151), Some(true))
+    );
+    assert_eq!(site["impostor_pairs"].as_u64(), Some(151 * 150 / 2));
+    // 11,325 pairs show 1e-2 and 1e-3 (at least ten false matches each), not 1e-4.
+    let points: Vec<f64> = site["points"].as_array().unwrap().iter().map(|p| p["fmr"].as_f64().unwrap()).collect();
+    assert_eq!(points, [1e-2, 1e-3]);
+    let site_threshold = site["points"][1]["threshold"].as_f64().unwrap();
+    assert!(site_threshold > model_threshold + 0.05, "site {site_threshold} against the model's {model_threshold}");
+
+    let served = Served::start(&database, &[], dir.0.join("serve-2.log")).await;
+    let (threshold, _) = verify_alice(&served).await;
+    assert!((threshold - site_threshold).abs() < 1e-5, "one template: the site's threshold, {threshold} against {site_threshold}");
+    assert!(served.log().contains("site calibration (facegate calibrate)"), "{}", served.log());
+    drop(served);
+
+    let (_, lines) = facegate(&["calibrate", "--database", &database, "--clear"]);
+    assert_eq!(lines[0]["removed"].as_bool(), Some(true));
+    let served = Served::start(&database, &[], dir.0.join("serve-3.log")).await;
+    assert_eq!(verify_alice(&served).await, (model_threshold, true));
+    drop(served);
+}
