@@ -16,6 +16,12 @@ fn facegate(args: &[&str]) -> (bool, Vec<Value>) {
     (out.status.success(), String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect())
 }
 
+/// `/health`'s `site_calibration` (null when absent).
+async fn health_site(served: &Served) -> Value {
+    let health: Value = reqwest::get(format!("{}/health", served.base)).await.unwrap().json().await.unwrap();
+    health["site_calibration"].clone()
+}
+
 /// Verify IMM 01's second photo against alice: (threshold, match).
 async fn verify_alice(served: &Served) -> (f64, bool) {
     let r = reqwest::Client::new()
@@ -44,6 +50,7 @@ async fn a_site_calibration_raises_the_served_threshold_and_clear_takes_it_back(
     let (model_threshold, matched) = verify_alice(&served).await;
     assert!(matched, "the same person, the model's threshold");
     assert!(served.log().contains("no site calibration"), "{}", served.log());
+    assert_eq!(health_site(&served).await, Value::Null);
     drop(served);
 
     // 150 subjects whose templates all lie close together (cosines about 0.97): a deployment whose
@@ -76,11 +83,18 @@ async fn a_site_calibration_raises_the_served_threshold_and_clear_takes_it_back(
     let (threshold, _) = verify_alice(&served).await;
     assert!((threshold - site_threshold).abs() < 1e-5, "one template: the site's threshold, {threshold} against {site_threshold}");
     assert!(served.log().contains("site calibration (facegate calibrate)"), "{}", served.log());
+    let in_use = health_site(&served).await;
+    // The same points (as f32: the command prints them through f64, the service as f32).
+    let points = |v: &Value| -> Vec<(f64, f32)> {
+        v["points"].as_array().unwrap().iter().map(|p| (p["fmr"].as_f64().unwrap(), p["threshold"].as_f64().unwrap() as f32)).collect()
+    };
+    assert_eq!((in_use["impostor_pairs"].as_u64(), points(&in_use)), (Some(151 * 150 / 2), points(site)));
     drop(served);
 
     let (_, lines) = facegate(&["calibrate", "--database", &database, "--clear"]);
     assert_eq!(lines[0]["removed"].as_bool(), Some(true));
     let served = Served::start(&database, &[], dir.0.join("serve-3.log")).await;
     assert_eq!(verify_alice(&served).await, (model_threshold, true));
+    assert_eq!(health_site(&served).await, Value::Null);
     drop(served);
 }

@@ -24,6 +24,7 @@ use facegate_vision::liveness::Liveness;
 use facegate_vision::morph::Pose;
 use facegate_vision::pipeline::StageTimings;
 use facegate_vision::quality::Quality;
+use facegate_vision::recognize::SiteCalibration;
 
 /// Milliseconds spent on one photo, stage by stage: decoding, then the pipeline's stages.
 #[derive(Debug, Clone, Copy, Serialize)]
@@ -406,6 +407,10 @@ pub struct Health {
     /// with an accepted key, like the counts.
     #[serde(skip_serializing_if = "Option::is_none")]
     subjects_on_older_keys: Option<u64>,
+    /// The site calibration raising the thresholds (`facegate calibrate`); with an accepted key,
+    /// like the counts (its subject count is the gallery's).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    site_calibration: Option<SiteCalibration>,
 }
 
 /// `GET /health`: the database answers and the models are loaded. The service started only if its
@@ -436,6 +441,7 @@ async fn health_of(state: &AppState, headers: &HeaderMap) -> Result<Json<Health>
         template_key_id: store.template_key_id().filter(|_| admitted).map(String::from),
         subjects_unencrypted: sealing.map(|s| s.plain),
         subjects_on_older_keys: sealing.map(|s| s.other_keys),
+        site_calibration: health.site_calibration.filter(|_| admitted),
     }))
 }
 

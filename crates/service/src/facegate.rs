@@ -15,7 +15,7 @@ use facegate_store::{Backend, Store, StoreError, SubjectDetail, SubjectSummary};
 use facegate_vision::morph::AvatarFormat;
 use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PipelineError};
 use facegate_vision::quality::{Failure, QualityPolicy};
-use facegate_vision::recognize::{OperatingPoint, Template};
+use facegate_vision::recognize::{OperatingPoint, SiteCalibration, Template};
 
 use crate::gallery::{LiveGallery, Precision, UnreadableTemplates};
 use crate::inspect::{self, Analysis, InspectError};
@@ -255,6 +255,8 @@ pub struct Health {
     /// Whether template vectors are sealed at rest.
     pub templates_encrypted: bool,
     pub store_backend: Backend,
+    /// The site calibration in use (`facegate calibrate`), if any.
+    pub site_calibration: Option<SiteCalibration>,
 }
 
 /// How long requests that need the database are refused at once after it could not be reached,
@@ -503,6 +505,7 @@ impl Facegate {
             templates,
             templates_encrypted: self.0.store.encrypts(),
             store_backend: self.0.store.backend(),
+            site_calibration: self.0.engine.site_calibration().cloned(),
         })
     }
 

@@ -23,7 +23,7 @@ use facegate_core::imaging::Photo;
 use facegate_vision::morph::AvatarFormat;
 use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline, PipelineError};
 use facegate_vision::quality::{Failure, Quality, QualityPolicy};
-use facegate_vision::recognize::{ClassicalRecognizer, OperatingPoint, Recognizer, Template};
+use facegate_vision::recognize::{ClassicalRecognizer, OperatingPoint, Recognizer, SiteCalibration, Template};
 
 pub use facegate::{
     AnalyzedPhoto, Enrollment, Facegate, FramesMismatch, Health, Identification, PhotoError, PreparedEnrollment, ServiceConfig,
@@ -46,6 +46,10 @@ pub trait Matcher {
     /// gallery scores from its matrix ([`gallery::Gallery::search`]); otherwise it calls `score`.
     fn max_cosine_scoring(&self) -> bool {
         false
+    }
+    /// The site calibration that raises [`Matcher::operating_point`]'s thresholds, if one is in use.
+    fn site_calibration(&self) -> Option<&SiteCalibration> {
+        None
     }
 }
 
@@ -91,6 +95,9 @@ impl Matcher for Pipeline {
         // The deep recognizers' score is the best cosine (`DeepRecognizer::score`); the classical
         // one may S-normalise against a cohort and average, so it keeps its own `score`.
         matches!(self.recognizer, Recognizer::Deep(_) | Recognizer::Embedding(..))
+    }
+    fn site_calibration(&self) -> Option<&SiteCalibration> {
+        self.site_calibration.as_ref()
     }
 }
 
