@@ -96,9 +96,9 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
         }
     };
     match store.site_calibration(pipeline.recognizer.model_version()).await {
-        // The classical recognizer's score is no plain cosine of two templates: the site's pair
-        // cosines do not apply to it.
-        Ok(Some(_)) if matches!(pipeline.recognizer, crate::recognize::Recognizer::Classical(_)) => {
+        // The site's thresholds are on pair cosines: a recognizer whose score is no best cosine
+        // (the classical one) keeps its own.
+        Ok(Some(_)) if !crate::service::Matcher::max_cosine_scoring(&pipeline) => {
             tracing::warn!("the site calibration is for cosine-scored recognizers; the classical one keeps its own thresholds")
         }
         Ok(site) => pipeline.site_calibration = site,

@@ -22,15 +22,21 @@ async fn health_site(served: &Served) -> Value {
     health["site_calibration"].clone()
 }
 
-/// Verify IMM 01's second photo against alice: (threshold, match).
-async fn verify_alice(served: &Served) -> (f64, bool) {
+/// POST alice with the IMM photo `photo` to `path`: the answer, its status checked to be `status`.
+async fn post_alice(served: &Served, path: &str, photo: &str, status: u16) -> reqwest::Response {
     let r = reqwest::Client::new()
-        .post(format!("{}/verify", served.base))
-        .json(&json!({"subject": "alice", "image": base64(&imm("01-2m.jpg"))}))
+        .post(format!("{}{path}", served.base))
+        .json(&json!({"subject": "alice", "image": base64(&imm(photo))}))
         .send()
         .await
         .unwrap();
-    assert_eq!(r.status(), 200, "{}", served.log());
+    assert_eq!(r.status(), status, "{}", served.log());
+    r
+}
+
+/// Verify IMM 01's second photo against alice: (threshold, match).
+async fn verify_alice(served: &Served) -> (f64, bool) {
+    let r = post_alice(served, "/verify", "01-2m.jpg", 200).await;
     let v: Value = r.json().await.unwrap();
     (v["threshold"].as_f64().unwrap(), v["match"].as_bool().unwrap())
 }
@@ -40,13 +46,7 @@ async fn a_site_calibration_raises_the_served_threshold_and_clear_takes_it_back(
     let dir = Scratch::new("site-calibration");
     let database = dir.url("facegate.db");
     let served = Served::start(&database, &[], dir.0.join("serve-1.log")).await;
-    let r = reqwest::Client::new()
-        .post(format!("{}/enroll", served.base))
-        .json(&json!({"subject": "alice", "image": base64(&imm("01-1m.jpg"))}))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 201, "{}", served.log());
+    post_alice(&served, "/enroll", "01-1m.jpg", 201).await;
     let (model_threshold, matched) = verify_alice(&served).await;
     assert!(matched, "the same person, the model's threshold");
     assert!(served.log().contains("no site calibration"), "{}", served.log());

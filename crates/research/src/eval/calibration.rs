@@ -15,10 +15,10 @@ use crate::dataset::Split;
 use crate::train_deep::{Sample, Set};
 use facegate_core::vector::dot;
 use facegate_vision::recognize::Calibration;
+use facegate_vision::recognize::SiteCalibration;
 use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
 use facegate_vision::recognize::score_norm::{Cohort, CohortStats, s_norm};
 use facegate_vision::recognize::site::impostor_scores;
-use facegate_vision::recognize::{OperatingPoint, SiteCalibration};
 
 /// How a comparison is scored.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -168,14 +168,19 @@ fn observed(set: &'static str, fmr: f64, genuine: &[f32], impostor: &[f32], thre
     let false_matches = impostor.iter().filter(|&&s| s >= threshold).count();
     let observed = false_matches as f64 / impostor.len().max(1) as f64;
     let fnmr = genuine.iter().filter(|&&s| s < threshold).count() as f64 / genuine.len().max(1) as f64;
-    // A set of fewer than 1/fmr impostor comparisons cannot show the rate itself: there it holds
-    // unless it shows more false matches than twice the rate allows (at least one).
-    let holds = if (impostor.len() as f64) * fmr >= 1.0 {
-        (0.5..=2.0).contains(&(observed / fmr))
-    } else {
-        false_matches as f64 <= (2.0 * fmr * impostor.len() as f64).max(1.0)
-    };
+    let holds = holds(fmr, false_matches, impostor.len());
     Observed { set, stated: fmr, observed, false_matches, impostors: impostor.len(), fnmr, holds }
+}
+
+/// Does `false_matches` of `impostors` hold the stated `fmr` (0.5–2×)? A set of fewer than 1/fmr
+/// impostor comparisons cannot show the rate itself: there it holds unless it shows more false
+/// matches than twice the rate allows (at least one).
+fn holds(fmr: f64, false_matches: usize, impostors: usize) -> bool {
+    if (impostors as f64) * fmr >= 1.0 {
+        (0.5..=2.0).contains(&(false_matches as f64 / impostors as f64 / fmr))
+    } else {
+        false_matches as f64 <= (2.0 * fmr * impostors as f64).max(1.0)
+    }
 }
 
 /// The shipped thresholds (`shipped`: one photo against one) raised by each checked set's site
@@ -200,7 +205,7 @@ pub fn report_with_site_calibration(samples: &[Sample], templates: &[Option<Vec<
         let calibration = SiteCalibration::from_impostor_scores("research", slots.len(), site.len(), &scores);
         let (g, i) = pair_scores(samples, templates, None, &keep);
         for &fmr in &CALIBRATED_FMRS {
-            let point: OperatingPoint = shipped.operating_point(fmr);
+            let point = shipped.operating_point(fmr);
             let threshold = calibration.raise(point, point.threshold).threshold;
             rows.push(observed(set, fmr, &g, &i, threshold));
         }
@@ -257,20 +262,14 @@ pub fn report_by_probe_domain(
                 fnm += g.iter().filter(|&&s| s < t).count();
                 gen_ += g.len();
             }
-            let observed = fm as f64 / imp.max(1) as f64;
-            let holds = if (imp as f64) * fmr >= 1.0 {
-                (0.5..=2.0).contains(&(observed / fmr))
-            } else {
-                fm as f64 <= (2.0 * fmr * imp as f64).max(1.0)
-            };
             rows.push(Observed {
                 set,
                 stated: fmr,
-                observed,
+                observed: fm as f64 / imp.max(1) as f64,
                 false_matches: fm,
                 impostors: imp,
                 fnmr: fnm as f64 / gen_.max(1) as f64,
-                holds,
+                holds: holds(fmr, fm, imp),
             });
         }
     }
