@@ -3,7 +3,8 @@
 # Fails (exit 1, naming file:line) when
 #   - README.md or any docs/**/*.md holds a git conflict marker line (<<<<<<< , =======, >>>>>>> ),
 #   - README.md is longer than 220 lines,
-#   - README.md, docs/, scripts/, models/ or the sources hold work-log residue ("session N", "round N", "stop N").
+#   - README.md, docs/, scripts/, models/ or the sources hold work-log residue ("session N", "round N", "stop N",
+#     "issue N", "issue #N", "(#N)"): the tracker's history lives in git, the text says what is.
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -46,7 +47,7 @@ if ((lines > readme_limit)); then
 fi
 
 # Work-log residue (case-insensitive; binary files skipped).
-residue='session[- ][0-9]|round [0-9]|\bstop [0-9]+\b'
+residue='session[- ][0-9]|round [0-9]|\bstop [0-9]+\b|\bissues? #?[0-9]+|\(#[0-9]+[),]'
 if grep_hits -rnHiIE "$residue" -- README.md docs scripts models crates src tests; then
     while IFS= read -r hit; do
         fail "$(cut -d: -f1,2 <<<"$hit"): work-log residue: $(cut -d: -f3- <<<"$hit")"

@@ -12,7 +12,8 @@ use crate::config::{LogFormat, Settings};
 use crate::http::server::{self, ServerLimits, Stopped};
 use crate::http::{self, ApiConfig, AppState};
 use crate::pipeline::Pipeline;
-use crate::service::LivenessPolicy;
+use crate::service::site::SiteStatus;
+use crate::service::{Facegate, LivenessPolicy, Matcher};
 use crate::store::{KeyCheck, Store};
 
 #[derive(clap::Args, Debug)]
@@ -44,18 +45,23 @@ pub fn run(args: ServeArgs) -> anyhow::Result<ExitCode> {
 }
 
 /// The site calibration in use, and the default operating point it gives against the model's.
-fn log_site_calibration(pipeline: &Pipeline) {
+fn log_site_calibration(facegate: &Facegate, status: &SiteStatus) {
     let fmr = crate::recognize::DEFAULT_FMR;
-    let model = pipeline.recognizer.operating_point(fmr, 1).threshold;
-    match &pipeline.site_calibration {
-        Some(site) => tracing::info!(
+    let matcher = facegate.matcher();
+    let model = matcher.inner.operating_point(fmr, 1).threshold;
+    match status {
+        SiteStatus::InUse(site) => tracing::info!(
             subjects = site.subjects,
             impostor_pairs = site.impostor_pairs,
+            duplicate_pairs_left_out = site.duplicate_pairs_left_out,
             model_threshold = model,
-            threshold = pipeline.operating_point(fmr, 1).threshold,
+            threshold = matcher.operating_point(fmr, 1).threshold,
             "site calibration (facegate calibrate): thresholds at FMR {fmr:e} raised to the deployment's own impostors where they are higher"
         ),
-        None => tracing::info!(threshold = model, "no site calibration (facegate calibrate): the model's thresholds"),
+        SiteStatus::NotForThisMatcher => {
+            tracing::warn!("the site calibration is for cosine-scored recognizers; the classical one keeps its own thresholds")
+        }
+        SiteStatus::None => tracing::info!(threshold = model, "no site calibration (facegate calibrate): the model's thresholds"),
     }
 }
 
@@ -88,26 +94,13 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
         args.configure_liveness(&mut pipeline)?;
         Ok(pipeline)
     });
-    let mut pipeline = match configured {
+    let pipeline = match configured {
         Ok(pipeline) => pipeline,
         Err(e) => {
             store.close().await;
             return Err(e);
         }
     };
-    match store.site_calibration(pipeline.recognizer.model_version()).await {
-        // The site's thresholds are on pair cosines: a recognizer whose score is no best cosine
-        // (the classical one) keeps its own.
-        Ok(Some(_)) if !crate::service::Matcher::max_cosine_scoring(&pipeline) => {
-            tracing::warn!("the site calibration is for cosine-scored recognizers; the classical one keeps its own thresholds")
-        }
-        Ok(site) => pipeline.site_calibration = site,
-        Err(e) => {
-            store.close().await;
-            return Err(e).context("cannot read the site calibration");
-        }
-    }
-    log_site_calibration(&pipeline);
     tracing::info!(model_version = pipeline.recognizer.model_version(), with_3dmm = pipeline.face_model.is_some(), "pipeline loaded");
     match &pipeline.liveness {
         Some(model) => tracing::info!(
@@ -122,12 +115,24 @@ async fn serve(args: Settings, config: ApiConfig, limits: ServerLimits) -> anyho
     }
     tracing::info!(workers = config.workers, queue = config.queue_depth, enroll_queue = config.enroll_queue_depth, "bounded work pool");
     let state = AppState::new(Arc::new(pipeline), store.clone(), config);
+    let site = state.facegate().load_site_calibration().await.context("cannot read the site calibration")?;
+    log_site_calibration(state.facegate(), &site);
     let loading = std::time::Instant::now();
     for (subject, why) in state.facegate().load_gallery().await? {
         tracing::error!(subject, "templates cannot be read; /identify refuses until the subject is erased: {why}");
     }
     let (subjects, templates) = state.facegate().gallery_size();
     tracing::info!(subjects, templates, load_ms = loading.elapsed().as_millis() as u64, backend = ?store.backend(), "identify gallery loaded");
+    let (enrolled, _) = store.counts().await.context("cannot count the enrolled subjects")?;
+    if (subjects as u64) < enrolled {
+        tracing::warn!(
+            subjects_current_model = subjects,
+            subjects = enrolled,
+            model_version = state.facegate().model_version(),
+            "{} subject(s) have no template of the current model version: verify answers model-mismatch and identify does not search them until they enrol again",
+            enrolled - subjects as u64
+        );
+    }
     let listener = tokio::net::TcpListener::bind(&args.bind).await.with_context(|| format!("cannot listen on {}", args.bind))?;
     tracing::info!(
         max_connections = limits.max_connections,

@@ -7,7 +7,13 @@ use std::process::ExitCode;
 use anyhow::Context;
 
 use crate::config::{DEFAULT_DATABASE, TemplateKeyArgs};
+use crate::pipeline::{Pipeline, PipelineConfig};
+use crate::recognize::RecognizerKind;
+use crate::service::Matcher;
+use crate::service::site::{self, SiteCalibration};
 use crate::store::{self, Store};
+
+use crate::choices::Recognizer;
 
 /// The database the command works on.
 #[derive(clap::Args, Debug)]
@@ -59,6 +65,13 @@ pub struct CalibrateArgs {
     /// Remove the stored site calibration instead (the service then uses the model's thresholds).
     #[arg(long, conflicts_with = "dry_run")]
     pub clear: bool,
+    /// The trained models, as `facegate serve --models`: the recognizer's thresholds tell which
+    /// pairs of ids score like one person (suspected duplicates, left out of the calibration).
+    #[arg(long, env = "FACEGATE_MODELS")]
+    pub models: Option<PathBuf>,
+    /// The recognizer, as `facegate serve --recognizer`: its model version is the one calibrated.
+    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = Recognizer::from(RecognizerKind::default()))]
+    pub recognizer: Recognizer,
 }
 
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
@@ -92,43 +105,80 @@ pub fn run_rekey(args: RekeyArgs) -> anyhow::Result<ExitCode> {
     })
 }
 
-/// The site calibration (facegate_vision::recognize::site) of each model version in the store:
-/// measured from the enrolled subjects' impostor pairs and stored (or removed with `--clear`).
-/// One JSON line per model version. The service reads it at start-up.
+/// The site calibration (`facegate_service::site`) of the recognizer's model version: measured from
+/// the enrolled subjects' impostor pairs, suspected duplicate identities left out and named, and
+/// stored (or removed with `--clear`). One JSON line per model version. The service reads it at
+/// start-up. The database must exist: a mistyped path is refused, never created.
 pub fn run_calibrate(args: CalibrateArgs) -> anyhow::Result<ExitCode> {
     let keys = args.key.key_ring()?;
     runtime()?.block_on(async {
-        let store =
-            Store::connect(&args.database.database, keys).await.with_context(|| format!("cannot open {}", args.database.database))?;
-        let result = calibrate(&store, &args).await;
+        let url = &args.database.database;
+        let store = Store::connect_existing(url, keys).await.with_context(|| format!("cannot open {url}"))?;
+        let result = if args.clear { clear(&store, &args).await } else { calibrate(&store, &args).await };
         store.close().await;
         result
     })
 }
 
-async fn calibrate(store: &Store, args: &CalibrateArgs) -> anyhow::Result<ExitCode> {
+/// `--clear`: the named version, or every version with a stored calibration.
+async fn clear(store: &Store, args: &CalibrateArgs) -> anyhow::Result<ExitCode> {
     let versions = match &args.model_version {
         Some(v) => vec![v.clone()],
-        None => store.model_versions().await?,
+        None => store.calibrated_versions().await?,
     };
-    if versions.is_empty() {
-        anyhow::bail!("the database holds no templates: enrol the deployment's subjects first");
-    }
     for version in versions {
-        if args.clear {
-            let removed = store.clear_site_calibration(&version).await?;
-            super::print_json_line(&serde_json::json!({ "model_version": version, "removed": removed }));
-            continue;
-        }
-        let site = store.measure_site_calibration(&version).await?;
-        if !args.dry_run {
-            store.set_site_calibration(&site).await?;
-        }
-        let mut line = serde_json::to_value(&site)?;
-        line["stored"] = serde_json::Value::Bool(!args.dry_run);
-        super::print_json_line(&line);
+        let removed = store.clear_site_calibration(&version).await?;
+        super::print_json_line(&serde_json::json!({ "model_version": version, "removed": removed }));
     }
     Ok(ExitCode::SUCCESS)
+}
+
+async fn calibrate(store: &Store, args: &CalibrateArgs) -> anyhow::Result<ExitCode> {
+    let stored = store.model_versions().await?;
+    if stored.is_empty() {
+        anyhow::bail!("the database holds no templates: enrol the deployment's subjects first");
+    }
+    let config = PipelineConfig { recognizer: args.recognizer.into(), ..crate::config::pipeline_config() };
+    let config = PipelineConfig { models_dir: args.models.clone().unwrap_or(config.models_dir), ..config };
+    let pipeline = tokio::task::spawn_blocking(move || Pipeline::load(&config)).await?.context("cannot load the recognizer")?;
+    let version = pipeline.recognizer.model_version().to_string();
+    anyhow::ensure!(
+        Matcher::max_cosine_scoring(&pipeline),
+        "the site calibration is for cosine-scored recognizers; {} keeps its own thresholds",
+        version
+    );
+    if let Some(asked) = args.model_version.as_ref().filter(|asked| **asked != version) {
+        anyhow::bail!("--model-version {asked} is not the recognizer's ({version}): pass the --recognizer (and --models) that make it");
+    }
+    for other in stored.iter().filter(|v| **v != version) {
+        let why = "no template of the current recognizer; its subjects must enrol again";
+        super::print_json_line(&serde_json::json!({ "model_version": other, "stored": false, "skipped": why }));
+    }
+    let site = site::measure(store, &pipeline).await?;
+    if !args.dry_run {
+        site::save(store, &site).await?;
+    }
+    warn_of_duplicates(&site);
+    let mut line = serde_json::to_value(&site)?;
+    line["stored"] = serde_json::Value::Bool(!args.dry_run);
+    super::print_json_line(&line);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Suspected duplicate identities on standard error, for the operator to merge or erase.
+fn warn_of_duplicates(site: &SiteCalibration) {
+    if site.suspected_duplicates.is_empty() {
+        return;
+    }
+    eprintln!(
+        "warning: {} pair(s) of ids score like one person (at or above {:.4}); their {} template pair(s) were left out of the calibration:",
+        site.suspected_duplicates.len(),
+        site.duplicate_threshold.unwrap_or(f32::INFINITY),
+        site.duplicate_pairs_left_out
+    );
+    for d in site.suspected_duplicates.iter().take(20) {
+        eprintln!("  {} and {} ({:.4})", d.subjects[0], d.subjects[1], d.score);
+    }
 }
 
 /// A consistent copy of the database while the service keeps running (SQLite; PostgreSQL has pg_dump).

@@ -1,4 +1,4 @@
-//! `/verify` of a capture (issue #27): a probe and up to four further frames of the same capture,
+//! `/verify` of a capture: a probe and up to four further frames of the same capture,
 //! through the real app, pipeline and `models/liveness.bin` on NUAA frames of subject 0004. The
 //! probe alone is matched; every frame must show a face of the probe's person (else 422 `no-face`
 //! or `frames-mismatch`, naming the frame); the liveness is fused over the probe and the frames

@@ -36,7 +36,12 @@ async fn post_alice(served: &Served, path: &str, photo: &str, status: u16) -> re
 
 /// Verify IMM 01's second photo against alice: (threshold, match).
 async fn verify_alice(served: &Served) -> (f64, bool) {
-    let r = post_alice(served, "/verify", "01-2m.jpg", 200).await;
+    verify_alice_at(served, "/verify").await
+}
+
+/// [`verify_alice`] through `path` (e.g. with `?fmr=`).
+async fn verify_alice_at(served: &Served, path: &str) -> (f64, bool) {
+    let r = post_alice(served, path, "01-2m.jpg", 200).await;
     let v: Value = r.json().await.unwrap();
     (v["threshold"].as_f64().unwrap(), v["match"].as_bool().unwrap())
 }
@@ -51,18 +56,47 @@ async fn a_site_calibration_raises_the_served_threshold_and_clear_takes_it_back(
     assert!(matched, "the same person, the model's threshold");
     assert!(served.log().contains("no site calibration"), "{}", served.log());
     assert_eq!(health_site(&served).await, Value::Null);
+
+    // The model's duplicate threshold: its impostor tail a decade past 1e-4.
+    let (at_1e4, _) = verify_alice_at(&served, "/verify?fmr=0.0001").await;
+    let duplicate = at_1e4 + (at_1e4 - model_threshold);
     drop(served);
 
-    // 150 subjects whose templates all lie close together (cosines about 0.97): a deployment whose
-    // impostors look far more alike than the model's calibration persons.
+    // 150 subjects whose templates are all equally alike, well above the model's threshold but
+    // below its duplicate threshold: a deployment whose impostors look far more alike than the
+    // model's calibration persons. And alice enrolled a second time, under another id.
+    let lookalike = (model_threshold + 0.6 * (duplicate - model_threshold)) as f32;
     let store = Store::connect(&database, None).await.unwrap();
     let alice = store.templates(&SubjectId::parse("alice").unwrap()).await.unwrap().unwrap();
     let (version, dims) = (alice[0].model_version.clone(), alice[0].vector.len());
+    assert!(dims > 160, "{dims} dimensions");
     for s in 0..150 {
-        let vector: Vec<f32> = (0..dims).map(|i| 1.0 + 0.25 * ((i * 7 + s * 13) as f32).sin()).collect();
+        // sqrt(c)·u + sqrt(1 - c)·e_s, with u spread over the dimensions past the 150 e_s: any
+        // two have cosine c.
+        let u = (1.0 / (dims - 150) as f32).sqrt();
+        let vector: Vec<f32> = (0..dims)
+            .map(|i| {
+                if i == s {
+                    (1.0 - lookalike).sqrt()
+                } else if i >= 150 {
+                    lookalike.sqrt() * u
+                } else {
+                    0.0
+                }
+            })
+            .collect();
         store.enroll(&SubjectId::parse(&format!("lookalike-{s}")).unwrap(), &[Template::new(&version, vector)]).await.unwrap();
     }
+    store.enroll(&SubjectId::parse("alice-again").unwrap(), &alice).await.unwrap();
     store.close().await;
+
+    // A mistyped database path is refused, and no database is left there.
+    let missing = dir.0.join("missing.db");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_facegate"))
+        .args(["calibrate", "--database", &format!("sqlite://{}", missing.display())])
+        .output()
+        .unwrap();
+    assert!(!out.status.success() && !missing.exists(), "{}", String::from_utf8_lossy(&out.stderr));
 
     let (_, lines) = facegate(&["calibrate", "--database", &database, "--dry-run"]);
     assert_eq!((lines.len(), lines[0]["stored"].as_bool()), (1, Some(false)));
@@ -70,14 +104,20 @@ async fn a_site_calibration_raises_the_served_threshold_and_clear_takes_it_back(
     let site = &lines[0];
     assert_eq!(
         (site["model_version"].as_str(), site["subjects"].as_u64(), site["stored"].as_bool()),
-        (Some(version.as_str()), Some(151), Some(true))
+        (Some(version.as_str()), Some(152), Some(true))
     );
-    assert_eq!(site["impostor_pairs"].as_u64(), Some(151 * 150 / 2));
-    // 11,325 pairs show 1e-2 and 1e-3 (at least ten false matches each), not 1e-4.
+    // alice and alice-again are one person: their pair is left out, and named.
+    assert_eq!(site["impostor_pairs"].as_u64(), Some(152 * 151 / 2 - 1));
+    assert_eq!(site["duplicate_pairs_left_out"].as_u64(), Some(1));
+    assert_eq!(site["suspected_duplicates"][0]["subjects"], json!(["alice", "alice-again"]));
+    // 11,475 pairs show 1e-2 and 1e-3 (at least ten false matches each), not 1e-4.
     let points: Vec<f64> = site["points"].as_array().unwrap().iter().map(|p| p["fmr"].as_f64().unwrap()).collect();
     assert_eq!(points, [1e-2, 1e-3]);
     let site_threshold = site["points"][1]["threshold"].as_f64().unwrap();
-    assert!(site_threshold > model_threshold + 0.05, "site {site_threshold} against the model's {model_threshold}");
+    assert!(
+        site_threshold > model_threshold + 0.5 * (duplicate - model_threshold) && site_threshold < duplicate,
+        "site {site_threshold} against the model's {model_threshold} (duplicates from {duplicate})"
+    );
 
     let served = Served::start(&database, &[], dir.0.join("serve-2.log")).await;
     let (threshold, _) = verify_alice(&served).await;
@@ -88,7 +128,7 @@ async fn a_site_calibration_raises_the_served_threshold_and_clear_takes_it_back(
     let points = |v: &Value| -> Vec<(f64, f32)> {
         v["points"].as_array().unwrap().iter().map(|p| (p["fmr"].as_f64().unwrap(), p["threshold"].as_f64().unwrap() as f32)).collect()
     };
-    assert_eq!((in_use["impostor_pairs"].as_u64(), points(&in_use)), (Some(151 * 150 / 2), points(site)));
+    assert_eq!((in_use["impostor_pairs"].as_u64(), points(&in_use)), (Some(152 * 151 / 2 - 1), points(site)));
     drop(served);
 
     let (_, lines) = facegate(&["calibrate", "--database", &database, "--clear"]);

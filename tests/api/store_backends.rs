@@ -4,8 +4,9 @@
 
 use std::time::Duration;
 
-use facegate::recognize::Template;
-use facegate::service::SubjectId;
+use facegate::recognize::{OperatingPoint, Template};
+use facegate::service::site::{self, SiteCalibration, SiteStatus};
+use facegate::service::{Matcher, SubjectId};
 use facegate::store::{Backend, CipherError, KeyRing, RekeyReport, Store, StoreChange, StoreError, VersionCount};
 use sqlx::AnyPool;
 
@@ -39,32 +40,80 @@ on_both_backends!(
     the_site_calibration_is_measured_on_sealed_templates_and_stored_per_version
 );
 
+/// A matcher with a fixed threshold table (1e-2: 0.5, 1e-3: 0.7, 1e-4: 0.8, so duplicates at 0.9).
+struct Table;
+
+impl Matcher for Table {
+    fn model_version(&self) -> &str {
+        "v1"
+    }
+    fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
+        enrolled.iter().map(|t| probe.cosine(t)).fold(f32::NEG_INFINITY, f32::max)
+    }
+    fn operating_point(&self, fmr: f64, _enrolled: usize) -> OperatingPoint {
+        let threshold = if fmr >= 1e-2 {
+            0.5
+        } else if fmr >= 1e-3 {
+            0.7
+        } else {
+            0.8
+        };
+        OperatingPoint { fmr, threshold }
+    }
+    fn max_cosine_scoring(&self) -> bool {
+        true
+    }
+}
+
 /// The site calibration scores the pairs of different subjects' templates of one model version,
-/// sealed ones too, and is stored, replaced and removed per version.
+/// sealed ones too, leaves out the pairs of ids that score like one person (naming them), and is
+/// stored, replaced and removed per version.
 async fn the_site_calibration_is_measured_on_sealed_templates_and_stored_per_version(url: String) {
+    use rand::SeedableRng;
+    use rand_distr::Distribution;
     let store = Store::connect(&url, Some(KeyRing::parse(K1).unwrap())).await.unwrap();
     assert!(store.model_versions().await.unwrap().is_empty());
-    // 40 subjects of two templates under "v1" (80 templates: 3,160 pairs, 40 of them genuine), and
-    // one under "v2" that is no part of it.
+    // 40 subjects of two templates under "v1" (random 32-dimensional faces: two photos of one
+    // differ a little), 5 of them enrolled again as "dup{s}" with the same templates, and one
+    // subject under "v2" that is no part of it.
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let normal = rand_distr::StandardNormal;
+    let mut faces = Vec::new();
     for s in 0..40 {
-        let t = |k: f32| Template::new("v1", (0..8).map(|i| ((i * 3 + s) as f32 + k).sin()).collect());
-        store.enroll(&SubjectId::parse(&format!("s{s}")).unwrap(), &[t(0.0), t(0.1)]).await.unwrap();
+        let face: Vec<f32> = (0..32).map(|_| normal.sample(&mut rng)).collect();
+        let again: Vec<f32> = face.iter().map(|v| v + 0.1 * Distribution::<f32>::sample(&normal, &mut rng)).collect();
+        let templates = [Template::new("v1", face), Template::new("v1", again)];
+        store.enroll(&SubjectId::parse(&format!("s{s:02}")).unwrap(), &templates).await.unwrap();
+        faces.push(templates);
     }
-    store.enroll(&SubjectId::parse("other").unwrap(), &[Template::new("v2", vec![1.0; 8])]).await.unwrap();
+    for (s, templates) in faces.iter().enumerate().take(5) {
+        store.enroll(&SubjectId::parse(&format!("dup{s}")).unwrap(), templates).await.unwrap();
+    }
+    store.enroll(&SubjectId::parse("other").unwrap(), &[Template::new("v2", vec![1.0; 32])]).await.unwrap();
     assert_eq!(store.model_versions().await.unwrap(), ["v1", "v2"]);
-    let site = store.measure_site_calibration("v1").await.unwrap();
-    assert_eq!((site.subjects, site.templates, site.impostor_pairs), (40, 80, 80 * 79 / 2 - 40));
+    let site = site::measure(&store, &Table).await.unwrap();
+    // 90 templates: 4,005 pairs, 45 within a subject, 5 × 4 of the duplicates left out.
+    assert_eq!((site.subjects, site.templates, site.impostor_pairs), (45, 90, 90 * 89 / 2 - 45 - 20));
+    assert_eq!(site.duplicate_pairs_left_out, 20);
+    assert!((site.duplicate_threshold.unwrap() - 0.9).abs() < 1e-6, "0.8 + (0.8 - 0.7): {:?}", site.duplicate_threshold);
+    let mut named: Vec<[String; 2]> = site.suspected_duplicates.iter().map(|d| d.subjects.clone()).collect();
+    named.sort();
+    assert_eq!(named, (0..5).map(|s| [format!("dup{s}"), format!("s{s:02}")]).collect::<Vec<_>>());
     assert_eq!(site.points.iter().map(|p| p.fmr).collect::<Vec<_>>(), [1e-2]);
-    assert_eq!(store.site_calibration("v1").await.unwrap(), None);
-    store.set_site_calibration(&site).await.unwrap();
+    assert!(site.points[0].threshold < 0.9, "no pair kept reaches the duplicate threshold");
+    assert_eq!(site::load(&store, &Table).await.unwrap(), SiteStatus::None);
+    site::save(&store, &site).await.unwrap();
     let mut raised = site.clone();
     raised.points[0].threshold += 0.1;
-    store.set_site_calibration(&raised).await.unwrap();
-    assert_eq!(store.site_calibration("v1").await.unwrap(), Some(raised));
+    site::save(&store, &raised).await.unwrap();
+    // Stored without the suspected ids: a calibration names no subject.
+    let stored = SiteCalibration { suspected_duplicates: Vec::new(), ..raised };
+    assert_eq!(site::load(&store, &Table).await.unwrap(), SiteStatus::InUse(std::sync::Arc::new(stored)));
     assert_eq!(store.site_calibration("v2").await.unwrap(), None);
+    assert_eq!(store.calibrated_versions().await.unwrap(), ["v1"]);
     assert!(store.clear_site_calibration("v1").await.unwrap());
     assert!(!store.clear_site_calibration("v1").await.unwrap());
-    assert_eq!(store.site_calibration("v1").await.unwrap(), None);
+    assert_eq!(site::load(&store, &Table).await.unwrap(), SiteStatus::None);
     store.close().await;
 }
 

@@ -1,15 +1,17 @@
 //! What every facegate crate shares: geometry, the grey image (one blur, one resample), the face
-//! types, subject ids and the model-file reader. Plain data and pure functions: no I/O beyond
-//! reading a model file.
+//! types, subject ids, templates and operating points, and the model-file reader. Plain data and
+//! pure functions: no I/O beyond reading a model file.
 
 pub mod face;
 pub mod geometry;
 pub mod imaging;
 pub mod model_file;
 pub mod subject;
+pub mod template;
 pub mod vector;
 
 pub use subject::{InvalidSubjectId, MAX_SUBJECT_LEN, SubjectId};
+pub use template::{OperatingPoint, Template};
 
 use std::time::Instant;
 

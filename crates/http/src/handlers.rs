@@ -17,6 +17,7 @@ use super::timeout::CommitPoint;
 use super::{AppState, OPENAPI_YAML};
 use facegate_core::elapsed_ms;
 use facegate_service::AnalyzedPhoto;
+use facegate_service::site::SiteCalibration;
 use facegate_store::{Backend, SubjectDetail, SubjectSummary};
 use facegate_vision::detect::Face;
 use facegate_vision::landmarks::Landmarks;
@@ -24,7 +25,6 @@ use facegate_vision::liveness::Liveness;
 use facegate_vision::morph::Pose;
 use facegate_vision::pipeline::StageTimings;
 use facegate_vision::quality::Quality;
-use facegate_vision::recognize::SiteCalibration;
 
 /// Milliseconds spent on one photo, stage by stage: decoding, then the pipeline's stages.
 #[derive(Debug, Clone, Copy, Serialize)]
@@ -410,7 +410,12 @@ pub struct Health {
     /// The site calibration raising the thresholds (`facegate calibrate`); with an accepted key,
     /// like the counts (its subject count is the gallery's).
     #[serde(skip_serializing_if = "Option::is_none")]
-    site_calibration: Option<SiteCalibration>,
+    site_calibration: Option<std::sync::Arc<SiteCalibration>>,
+    /// Subjects with a template of the current model version, those verify and identify can find
+    /// (with an accepted key, like the counts). Fewer than `subjects` after a model upgrade: the
+    /// others must enrol again.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    subjects_current_model: Option<u64>,
 }
 
 /// `GET /health`: the database answers and the models are loaded. The service started only if its
@@ -442,6 +447,7 @@ async fn health_of(state: &AppState, headers: &HeaderMap) -> Result<Json<Health>
         subjects_unencrypted: sealing.map(|s| s.plain),
         subjects_on_older_keys: sealing.map(|s| s.other_keys),
         site_calibration: health.site_calibration.filter(|_| admitted),
+        subjects_current_model: admitted.then_some(health.subjects_current_model),
     }))
 }
 

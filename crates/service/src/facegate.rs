@@ -3,7 +3,7 @@
 //! on the bounded [`WorkPool`], the store commit last). HTTP handlers and the command line call
 //! these and only translate requests and results.
 
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
@@ -11,16 +11,17 @@ use bytes::Bytes;
 use facegate_core::SubjectId;
 use facegate_core::elapsed_ms;
 use facegate_core::imaging::{DecodeError, DecodeLimits};
+use facegate_core::template::{OperatingPoint, Template};
 use facegate_store::{Backend, Store, StoreError, SubjectDetail, SubjectSummary};
 use facegate_vision::morph::AvatarFormat;
 use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PipelineError};
 use facegate_vision::quality::{Failure, QualityPolicy};
-use facegate_vision::recognize::{OperatingPoint, SiteCalibration, Template};
 
 use crate::gallery::{LiveGallery, Precision, UnreadableTemplates};
 use crate::inspect::{self, Analysis, InspectError};
 use crate::liveness::{LivenessPolicy, PresentationAttack};
-use crate::{Candidate, Decision, FaceEngine, PoolError, VerifyError, WorkPool};
+use crate::site::{CalibratedMatcher, SiteCalibration, SiteStatus};
+use crate::{Candidate, Decision, FaceEngine, Matcher, PoolError, VerifyError, WorkPool};
 
 /// The service's policies (made from the binary's settings, where the defaults are).
 #[derive(Debug, Clone)]
@@ -256,7 +257,10 @@ pub struct Health {
     pub templates_encrypted: bool,
     pub store_backend: Backend,
     /// The site calibration in use (`facegate calibrate`), if any.
-    pub site_calibration: Option<SiteCalibration>,
+    pub site_calibration: Option<Arc<SiteCalibration>>,
+    /// Subjects with a template of the current model version: those verify and identify can
+    /// find (the others were enrolled under another model and must enrol again).
+    pub subjects_current_model: u64,
 }
 
 /// How long requests that need the database are refused at once after it could not be reached,
@@ -310,6 +314,9 @@ struct Inner {
     pool: WorkPool,
     config: ServiceConfig,
     circuit: StoreCircuit,
+    /// The site calibration raising the engine's thresholds (`facegate calibrate`), read from the
+    /// store at start-up by [`Facegate::load_site_calibration`].
+    site: RwLock<Option<Arc<SiteCalibration>>>,
 }
 
 /// The service: the face engine, the store, the identification gallery and the work pool behind
@@ -323,7 +330,23 @@ impl Facegate {
         // other matcher scores every subject from floats held in memory.
         let precision = if engine.max_cosine_scoring() { Precision::Quantised } else { Precision::Exact };
         let gallery = LiveGallery::new(store.clone(), engine.model_version(), precision);
-        Facegate(Arc::new(Inner { engine, store, gallery, pool, config, circuit: StoreCircuit::default() }))
+        let site = RwLock::new(None);
+        Facegate(Arc::new(Inner { engine, store, gallery, pool, config, circuit: StoreCircuit::default(), site }))
+    }
+
+    /// The engine's scores held to its operating points raised by the site calibration in use:
+    /// what every decision is made with.
+    pub fn matcher(&self) -> CalibratedMatcher<dyn FaceEngine> {
+        let site = self.0.site.read().unwrap_or_else(|e| e.into_inner()).clone();
+        CalibratedMatcher { site, inner: self.0.engine.clone() }
+    }
+
+    /// Read the site calibration of the current model version from the store and decide with it
+    /// from now on (it changes with `facegate calibrate` and takes effect at the next start).
+    pub async fn load_site_calibration(&self) -> Result<SiteStatus, ServiceError> {
+        let status = self.read_store(crate::site::load(&self.0.store, self.0.engine.as_ref())).await?;
+        *self.0.site.write().unwrap_or_else(|e| e.into_inner()) = status.calibration().cloned();
+        Ok(status)
     }
 
     /// The version stamped on every template the current model makes.
@@ -413,15 +436,15 @@ impl Facegate {
         let fmr = self.fmr(fmr);
         let enrolled =
             self.read_store(self.0.store.templates(subject)).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))?;
-        let engine = &self.0.engine;
-        let comparable = crate::comparable_templates(engine.as_ref(), subject, enrolled)?;
+        let matcher = self.matcher();
+        let comparable = crate::comparable_templates(&matcher, subject, enrolled)?;
         let (photo, frames, frame_scores) = if frames.is_empty() {
             (self.analyze_probe(image).await?, Vec::new(), Vec::new())
         } else {
             self.analyze_capture(image, frames, fmr).await?
         };
         let start = Instant::now();
-        let decision = crate::decide(engine.as_ref(), &photo.analysis.template, &comparable, fmr);
+        let decision = crate::decide(&matcher, &photo.analysis.template, &comparable, fmr);
         Ok(Verification { decision, photo, frames, frame_scores, match_ms: elapsed_ms(start) })
     }
 
@@ -436,13 +459,12 @@ impl Facegate {
         let start = Instant::now();
         self.with_store(gallery.load()).await?;
         gallery.wait_until_applied(store_version).await;
-        let (matcher, probe) = (self.0.engine.clone(), photo.analysis.template.clone());
+        let (matcher, probe) = (self.matcher(), photo.analysis.template.clone());
         // Scanning the whole gallery is CPU work too: it runs on the pool.
-        let searching = gallery.clone();
-        let (found, subjects_searched) = self.0.pool.run(move || searching.search(matcher.as_ref(), &probe, fmr, k)).await??;
-        let engine = self.0.engine.as_ref();
-        let candidates = self.read_store(gallery.rerank(engine, &photo.analysis.template, found, fmr, k)).await?;
-        let operating_point = self.0.engine.operating_point(fmr, 1);
+        let (searching, scoring) = (gallery.clone(), matcher.clone());
+        let (found, subjects_searched) = self.0.pool.run(move || searching.search(&scoring, &probe, fmr, k)).await??;
+        let candidates = self.read_store(gallery.rerank(&matcher, &photo.analysis.template, found, fmr, k)).await?;
+        let operating_point = matcher.operating_point(fmr, 1);
         Ok(Identification { candidates, operating_point, subjects_searched, photo, match_ms: elapsed_ms(start) })
     }
 
@@ -464,8 +486,8 @@ impl Facegate {
         frames: Vec<Bytes>,
         fmr: f64,
     ) -> Result<(AnalyzedPhoto, Vec<AnalyzedPhoto>, Vec<f32>), ServiceError> {
-        let (engine, limits, policy) = (self.0.engine.clone(), self.0.config.decode_limits, self.0.config.liveness);
-        let (mut probe, frames) = self.0.pool.run(move || capture_photos(engine.as_ref(), &image, &frames, &limits, fmr)).await??;
+        let (matcher, limits, policy) = (self.matcher(), self.0.config.decode_limits, self.0.config.liveness);
+        let (mut probe, frames) = self.0.pool.run(move || capture_photos(&matcher, &image, &frames, &limits, fmr)).await??;
         let point = self.0.engine.liveness_point();
         let each: Option<Vec<_>> = std::iter::once(&probe).chain(&frames).map(|p| p.analysis.liveness.clone()).collect();
         let mut fused = match (each.as_deref(), point.as_ref()) {
@@ -499,13 +521,20 @@ impl Facegate {
     /// The database answers and the models are loaded.
     pub async fn health(&self) -> Result<Health, ServiceError> {
         let (subjects, templates) = self.read_store(self.0.store.counts()).await?;
+        // The gallery holds the current model version's subjects once loaded (at start-up);
+        // before that the store counts them.
+        let subjects_current_model = match self.0.gallery.is_loaded() {
+            true => self.0.gallery.size().0 as u64,
+            false => self.read_store(self.0.store.subjects_of_version(self.model_version())).await?,
+        };
         Ok(Health {
             model_version: self.model_version().to_string(),
             subjects,
             templates,
             templates_encrypted: self.0.store.encrypts(),
             store_backend: self.0.store.backend(),
-            site_calibration: self.0.engine.site_calibration().cloned(),
+            site_calibration: self.matcher().site,
+            subjects_current_model,
         })
     }
 
@@ -558,17 +587,18 @@ impl Facegate {
 /// the first frame with no usable face or whose face is not the probe's person at `fmr`'s
 /// operating point (the recognizer's own score and threshold, for a subject of one template).
 fn capture_photos(
-    engine: &dyn FaceEngine,
+    matcher: &CalibratedMatcher<dyn FaceEngine>,
     image: &[u8],
     frames: &[Bytes],
     limits: &DecodeLimits,
     fmr: f64,
 ) -> Result<(AnalyzedPhoto, Vec<AnalyzedPhoto>), ServiceError> {
+    let engine = matcher.inner.as_ref();
     let probe = analyze_photo(engine, image, limits)?;
     let mut analyzed = Vec::with_capacity(frames.len());
     for (index, bytes) in frames.iter().enumerate() {
         let frame = analyze_photo(engine, bytes, limits).map_err(|e| e.at_frame(index))?;
-        let same = crate::decide(engine, &frame.analysis.template, std::slice::from_ref(&probe.analysis.template), fmr);
+        let same = crate::decide(matcher, &frame.analysis.template, std::slice::from_ref(&probe.analysis.template), fmr);
         if !same.is_match {
             return Err(ServiceError::FramesMismatch(FramesMismatch { frame: index, score: same.score, threshold: same.threshold }));
         }

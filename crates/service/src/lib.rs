@@ -16,14 +16,16 @@ pub mod gallery;
 pub mod inspect;
 pub mod liveness;
 pub mod pool;
+pub mod site;
 
 use serde::Serialize;
 
 use facegate_core::imaging::Photo;
+use facegate_core::template::{OperatingPoint, Template};
 use facegate_vision::morph::AvatarFormat;
 use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline, PipelineError};
 use facegate_vision::quality::{Failure, Quality, QualityPolicy};
-use facegate_vision::recognize::{ClassicalRecognizer, OperatingPoint, Recognizer, SiteCalibration, Template};
+use facegate_vision::recognize::{ClassicalRecognizer, Recognizer};
 
 pub use facegate::{
     AnalyzedPhoto, Enrollment, Facegate, FramesMismatch, Health, Identification, PhotoError, PreparedEnrollment, ServiceConfig,
@@ -46,10 +48,6 @@ pub trait Matcher {
     /// gallery scores from its matrix ([`gallery::Gallery::search`]); otherwise it calls `score`.
     fn max_cosine_scoring(&self) -> bool {
         false
-    }
-    /// The site calibration that raises [`Matcher::operating_point`]'s thresholds, if one is in use.
-    fn site_calibration(&self) -> Option<&SiteCalibration> {
-        None
     }
 }
 
@@ -89,15 +87,27 @@ impl Matcher for Pipeline {
         self.recognizer.score(probe, enrolled)
     }
     fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
-        Pipeline::operating_point(self, fmr, enrolled)
+        self.recognizer.operating_point(fmr, enrolled)
+    }
+    fn max_cosine_scoring(&self) -> bool {
+        Matcher::max_cosine_scoring(&self.recognizer)
+    }
+}
+
+impl Matcher for Recognizer {
+    fn model_version(&self) -> &str {
+        Recognizer::model_version(self)
+    }
+    fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
+        Recognizer::score(self, probe, enrolled)
+    }
+    fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
+        Recognizer::operating_point(self, fmr, enrolled)
     }
     fn max_cosine_scoring(&self) -> bool {
         // The deep recognizers' score is the best cosine (`DeepRecognizer::score`); the classical
         // one may S-normalise against a cohort and average, so it keeps its own `score`.
-        matches!(self.recognizer, Recognizer::Deep(_) | Recognizer::Embedding(..))
-    }
-    fn site_calibration(&self) -> Option<&SiteCalibration> {
-        self.site_calibration.as_ref()
+        matches!(self, Recognizer::Deep(_) | Recognizer::Embedding(..))
     }
 }
 

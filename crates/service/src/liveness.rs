@@ -1,4 +1,4 @@
-//! What the service does with a face's liveness (presentation-attack detection, issue #27): the
+//! What the service does with a face's liveness (presentation-attack detection): the
 //! operator's [`LivenessPolicy`] and the one check of it, [`check_liveness`], applied to every
 //! enrolment photo and every verify or identify probe. The score itself is the pipeline's
 //! (`facegate_vision::liveness`); `/analyze` reports it and never refuses. A verification may

@@ -6,7 +6,7 @@
 use std::path::PathBuf;
 
 use facegate_core::SubjectId;
-use facegate_vision::recognize::Template;
+use facegate_core::template::Template;
 
 use crate::{KeyRing, Store, StoreError, restore, vector_to_blob};
 

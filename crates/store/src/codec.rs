@@ -11,7 +11,7 @@ use serde::Serialize;
 use sqlx::any::AnyRow;
 use sqlx::{AnyConnection, Row};
 
-use facegate_vision::recognize::Template;
+use facegate_core::template::Template;
 
 use crate::cipher::{CipherError, DataKey, KeyRing};
 use crate::{Store, StoreError};

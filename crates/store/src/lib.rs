@@ -60,7 +60,7 @@ use sqlx::postgres::PgConnectOptions;
 use sqlx::{AnyPool, Row};
 
 use facegate_core::SubjectId;
-use facegate_vision::recognize::Template;
+use facegate_core::template::Template;
 
 use codec::{Sealing, StoredRow, encode_vector, open_vector, seal_subject, template_from_row};
 
@@ -319,6 +319,18 @@ impl Store {
             Backend::Postgres => None,
         };
         Ok(Store { pool, backend, listen, keys: keys.map(Arc::new), sqlite_file })
+    }
+
+    /// [`Store::connect`] to a database that must already exist: an SQLite file that is not there
+    /// is refused, never created (an operator command on a mistyped path must not leave an empty
+    /// database behind).
+    pub async fn connect_existing(url: &str, keys: Option<KeyRing>) -> Result<Store, StoreError> {
+        if Backend::of(url)? == Backend::Sqlite
+            && let Some(file) = sqlite::file_of(url)?.filter(|file| !file.exists())
+        {
+            return Err(StoreError::Refused(format!("there is no database at {}", file.display())));
+        }
+        Store::connect(url, keys).await
     }
 
     /// Which database this is.

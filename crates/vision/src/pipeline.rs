@@ -20,8 +20,7 @@ use crate::morph::key_points::HIDDEN_SIDE_YAW;
 use crate::morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, FittedFace, Pose};
 use crate::quality::{Components, Quality, QualityModel};
 use crate::recognize::{
-    ClassicalRecognizer, DeepRecognizer, EmbeddingRecognizer, Normalization, OperatingPoint, Recognizer, RecognizerKind, SiteCalibration,
-    Template, Views,
+    ClassicalRecognizer, DeepRecognizer, EmbeddingRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views,
 };
 use facegate_core::face::KeyPoints;
 use facegate_core::geometry::{Point, Rect};
@@ -334,9 +333,6 @@ pub struct Pipeline {
     /// The liveness model (`liveness.bin`); `None` when the file is missing, or when the caller
     /// has no use for it (the service with liveness off drops it: no time is spent on it).
     pub liveness: Option<LivenessModel>,
-    /// The deployment's own impostor thresholds ([`crate::recognize::site`]), which raise the
-    /// recognizer's where its photos' impostors look more alike; `None`: the recognizer's alone.
-    pub site_calibration: Option<SiteCalibration>,
 }
 
 impl Pipeline {
@@ -360,17 +356,7 @@ impl Pipeline {
         let quality = QualityModel::load(&config.models_dir.join(crate::quality::FILE))?;
         let liveness_path = config.models_dir.join(crate::liveness::FILE);
         let liveness = if liveness_path.exists() { Some(LivenessModel::load(&liveness_path)?) } else { None };
-        Ok(Pipeline { finder, face_model, recognizer, quality, liveness, site_calibration: None })
-    }
-
-    /// The operating point decisions are held to: the recognizer's calibrated one closest to
-    /// `fmr` for a subject of `enrolled` templates, raised by the site calibration when one is set.
-    pub fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
-        let point = self.recognizer.operating_point(fmr, enrolled);
-        match &self.site_calibration {
-            Some(site) => site.raise(point, self.recognizer.operating_point(point.fmr, 1).threshold),
-            None => point,
-        }
+        Ok(Pipeline { finder, face_model, recognizer, quality, liveness })
     }
 
     /// Detect, landmark, pose-correct and template the largest face of `photo`.

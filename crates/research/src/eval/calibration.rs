@@ -14,11 +14,10 @@ use super::protocol::all_pairs_by;
 use crate::dataset::Split;
 use crate::train_deep::{Sample, Set};
 use facegate_core::vector::dot;
+use facegate_service::site::{self, SiteCalibration, SiteRows};
 use facegate_vision::recognize::Calibration;
-use facegate_vision::recognize::SiteCalibration;
 use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
 use facegate_vision::recognize::score_norm::{Cohort, CohortStats, s_norm};
-use facegate_vision::recognize::site::impostor_scores;
 
 /// How a comparison is scored.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -122,6 +121,24 @@ fn kept<'a>(samples: &'a [Sample], templates: &'a [Option<Vec<f32>>], keep: &dyn
         .collect()
 }
 
+/// The service's site calibration of `site`'s templates, each person one enrolled subject.
+fn site_calibration(site: &[(usize, &str, &[f32])], duplicate_threshold: f32) -> SiteCalibration {
+    let mut persons: Vec<(&str, Vec<&[f32]>)> = Vec::new();
+    let mut slots: std::collections::HashMap<&str, usize> = std::collections::HashMap::new();
+    for &(_, label, template) in site {
+        let slot = *slots.entry(label).or_insert_with(|| {
+            persons.push((label, Vec::new()));
+            persons.len() - 1
+        });
+        persons[slot].1.push(template);
+    }
+    let mut rows = SiteRows::default();
+    for (label, templates) in persons {
+        rows.push_subject(label, templates);
+    }
+    rows.calibrate("research", duplicate_threshold)
+}
+
 /// Genuine and impostor scores of every pair of the samples `keep` takes.
 fn pair_scores(
     samples: &[Sample],
@@ -184,25 +201,14 @@ fn holds(fmr: f64, false_matches: usize, impostors: usize) -> bool {
 }
 
 /// The shipped thresholds (`shipped`: one photo against one) raised by each checked set's site
-/// calibration ([`sites`]) the way the service raises them: the site's templates' impostor pairs
-/// ([`impostor_scores`]) give [`SiteCalibration::from_impostor_scores`], and
-/// [`SiteCalibration::raise`] the threshold.
+/// calibration ([`sites`]) the way the service raises them: the site's templates, each person a
+/// subject, give [`SiteRows::calibrate`] (suspected duplicates left out at the shipped model's
+/// [`site::extrapolated_duplicate_threshold`]), and [`SiteCalibration::raise`] the threshold.
 pub fn report_with_site_calibration(samples: &[Sample], templates: &[Option<Vec<f32>>], shipped: &Calibration) -> CandidateReport {
     let mut rows = Vec::new();
+    let duplicate_threshold = site::extrapolated_duplicate_threshold(|fmr| shipped.operating_point(fmr));
     for ((set, keep), site_persons) in checked_sets().into_iter().zip(sites()) {
-        let site = kept(samples, templates, &site_persons);
-        let mut slots: std::collections::HashMap<&str, u32> = std::collections::HashMap::new();
-        let owners: Vec<u32> = site
-            .iter()
-            .map(|(_, label, _)| {
-                let next = slots.len() as u32;
-                *slots.entry(label).or_insert(next)
-            })
-            .collect();
-        let dimension = site.first().map_or(0, |(_, _, t)| t.len());
-        let values: Vec<f32> = site.iter().flat_map(|(_, _, t)| t.iter().copied()).collect();
-        let scores = impostor_scores(&values, dimension, &owners);
-        let calibration = SiteCalibration::from_impostor_scores("research", slots.len(), site.len(), &scores);
+        let calibration = site_calibration(&kept(samples, templates, &site_persons), duplicate_threshold);
         let (g, i) = pair_scores(samples, templates, None, &keep);
         for &fmr in &CALIBRATED_FMRS {
             let point = shipped.operating_point(fmr);

@@ -264,6 +264,11 @@ impl LiveGallery {
         *self.0.follower.lock().expect("follower lock") = Some(task.abort_handle());
     }
 
+    /// Has [`LiveGallery::load`] read the store?
+    pub fn is_loaded(&self) -> bool {
+        self.0.loaded.initialized()
+    }
+
     /// Stop following the change feed (before the store is closed: the feed holds a connection).
     pub fn stop_following(&self) {
         self.0.stop_following();

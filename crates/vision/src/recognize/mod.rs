@@ -15,7 +15,6 @@ pub mod features;
 pub mod normalize;
 mod recognizer;
 pub mod score_norm;
-pub mod site;
 pub mod template;
 
 use std::path::Path;
@@ -28,10 +27,10 @@ use facegate_core::imaging::GrayF32;
 
 pub use calibration::{Calibration, DEFAULT_FMR, EnrolledCalibration, MAX_CALIBRATED_ENROLLMENT};
 pub use dlda::{Dlda, DldaParams};
+pub use facegate_core::template::OperatingPoint;
 pub use features::{FeatureKind, Region};
 pub use normalize::{NormalizeParams, Photometric};
 pub use score_norm::{Cohort, CohortStats};
-pub use site::SiteCalibration;
 pub use template::{Combine, Template};
 
 pub use deep::DeepRecognizer;
@@ -57,13 +56,6 @@ impl std::fmt::Display for Normalization {
             Normalization::Morph => "3dmm",
         })
     }
-}
-
-/// A decision threshold at a false match rate.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct OperatingPoint {
-    pub fmr: f64,
-    pub threshold: f32,
 }
 
 /// A face as each normalisation path of a model sees it. A fused model has two paths (its
@@ -130,8 +122,6 @@ pub enum RecognizeError {
     Views { expected: usize, found: usize },
     #[error("no templates to compare against")]
     NoTemplates,
-    #[error("malformed template bytes: {0}")]
-    TemplateFormat(String),
 }
 
 /// Where a model's training and calibration data came from.
