@@ -83,7 +83,7 @@ value_enum! {
 
 value_enum! {
     /// Where the keypoints of a photo come from.
-    Keypoints => facegate_research::train_dlda::KeypointSource {
+    Keypoints => facegate_research::train_dlda::KeypointOrigin {
         /// IMM `.asf` annotations where present, else the automatic front end (detector + ASM, or
         /// detector-box keypoints while the ASM is not available).
         Annotated,

@@ -190,9 +190,9 @@ pub fn run_eval_deep(args: EvalDeepArgs) -> anyhow::Result<ExitCode> {
         println!("{set:?}: {n} photos, face found in {found}, frontal rendering for {frontal}");
     }
     if args.renders {
-        use crate::research::train_dlda::{FrontEnd, KeypointSource, list_faces};
+        use crate::research::train_dlda::{FrontEnd, KeypointOrigin, list_faces};
         let models = crate::config::models_dir();
-        let front = FrontEnd::load(KeypointSource::Pipeline, &models, Some(&crate::config::sfm_dir()));
+        let front = FrontEnd::load(KeypointOrigin::Pipeline, &models, Some(&crate::config::sfm_dir()));
         let imm = list_faces(&[crate::config::shared_dir().join("data/imm")])?;
         let table = deep_eval::turned_render_rank1(&front, &embed::load(&models)?, &imm, &[-45.0, -30.0, 30.0, 45.0])?;
         println!("rank-1 of 3DMM renders of the IMM held-out view 1 (gallery: view 2 of {} persons):", table.gallery);

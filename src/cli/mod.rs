@@ -18,7 +18,7 @@ pub mod serve;
 pub mod store;
 
 #[derive(Parser, Debug)]
-#[command(name = "facegate", version, about = "Face verification: detection, C-ASM landmarks, 3DMM pose correction, Direct LDA")]
+#[command(name = "facegate", version, about = "Face verification: YuNet detection, C-ASM / 3D-ASM landmarks, 3DMM pose, dlib's ResNet and SFace fused, calibrated thresholds, liveness")]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,

@@ -244,7 +244,7 @@ pub fn attach_reposed_crops(
 pub struct TrainingPhotos {
     /// Labelled folders ([`list_faces`]).
     pub data: Vec<PathBuf>,
-    pub keypoints: KeypointSource,
+    pub keypoints: KeypointOrigin,
     /// Leave the training persons' IMM rotated views (3, 4) out.
     pub frontal_only: bool,
     /// (yaw, pitch) offsets in degrees of the 3DMM re-posed copies of the training photos

@@ -16,7 +16,7 @@ use facegate_vision::recognize::Normalization;
 /// Where the keypoints of a photo come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
-pub enum KeypointSource {
+pub enum KeypointOrigin {
     /// IMM `.asf` annotations where present, else the automatic front end (detector + ASM, or
     /// detector-box keypoints while the ASM is not available).
     Annotated,
@@ -60,7 +60,7 @@ fn default_threads() -> usize {
 /// service's [`recognition_input`] (3DMM fit and frontal rendering). Crops are thereby made as the
 /// service makes them.
 pub struct FrontEnd {
-    pub source: KeypointSource,
+    pub source: KeypointOrigin,
     /// The service's face finder; `None` when its models cannot be loaded (annotations only).
     pub finder: Option<FaceFinder>,
     pub face_model: Option<FaceModel>,
@@ -76,13 +76,13 @@ impl FrontEnd {
     /// Annotations only (no automatic front end, no 3DMM).
     pub fn annotations_only() -> FrontEnd {
         let threads = default_threads();
-        FrontEnd { source: KeypointSource::Annotated, finder: None, face_model: None, models_dir: None, sfm_dir: None, threads }
+        FrontEnd { source: KeypointOrigin::Annotated, finder: None, face_model: None, models_dir: None, sfm_dir: None, threads }
     }
 
     /// The service's face finder from `models_dir` and the 3DMM from `sfm_dir`, each when it loads;
     /// a missing part only matters for the photos that need it. Photos are prepared on as many
     /// threads as the machine runs at once ([`FrontEnd::with_threads`] to choose).
-    pub fn load(source: KeypointSource, models_dir: &Path, sfm_dir: Option<&Path>) -> FrontEnd {
+    pub fn load(source: KeypointOrigin, models_dir: &Path, sfm_dir: Option<&Path>) -> FrontEnd {
         let finder = FaceFinder::load(models_dir).map_err(|e| tracing::info!("automatic front end unavailable: {e}")).ok();
         let models_dir = finder.as_ref().map(|_| models_dir.to_path_buf());
         let face_model = load_face_model(sfm_dir);
@@ -110,7 +110,7 @@ impl FrontEnd {
 
     /// The 58 landmarks of a photo from the configured source, and which source gave them.
     pub(crate) fn landmarks(&self, face: &FaceImage, photo: &imaging::Photo) -> Result<(Landmarks, &'static str), FrontEndError> {
-        if let (KeypointSource::Annotated, Some(asf)) = (self.source, &face.asf) {
+        if let (KeypointOrigin::Annotated, Some(asf)) = (self.source, &face.asf) {
             let shape = dataset::read_asf(asf, photo.width() as f32, photo.height() as f32)?;
             if shape.points.len() == IMM_POINTS {
                 let points = shape.xy();
