@@ -23,7 +23,7 @@ use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::quality::QualityPolicy;
 use crate::recognize::DEFAULT_FMR;
 use crate::recognize::RecognizerKind;
-use crate::service::LivenessPolicy;
+use crate::service::{LivenessPolicy, ServiceConfig};
 use crate::store::KeyRing;
 use anyhow::Context;
 
@@ -276,13 +276,6 @@ impl Settings {
         anyhow::ensure!(self.max_images >= 1, "--max-images must be at least 1");
         Ok(ApiConfig {
             max_body_bytes: self.max_body_mb << 20,
-            // The largest side is the decoder's own limit.
-            decode_limits: DecodeLimits {
-                max_pixels: self.max_pixels,
-                max_alloc_bytes: self.max_decode_mb << 20,
-                ..DecodeLimits::default()
-            },
-            max_images: self.max_images,
             request_timeout: timeout,
             body_timeout,
             workers: self.workers.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2)).max(1),
@@ -291,10 +284,19 @@ impl Settings {
             admission_wait: Duration::from_millis(self.admission_wait_ms),
             max_buffered_bytes: self.max_buffered_mb << 20,
             api_keys: self.api_keys()?,
-            default_fmr: DEFAULT_FMR,
             console: self.console,
-            quality_policy: self.quality_policy(),
-            liveness: self.liveness.into(),
+            service: ServiceConfig {
+                // The largest side is the decoder's own limit.
+                decode_limits: DecodeLimits {
+                    max_pixels: self.max_pixels,
+                    max_alloc_bytes: self.max_decode_mb << 20,
+                    ..DecodeLimits::default()
+                },
+                max_images: self.max_images,
+                quality_policy: self.quality_policy(),
+                default_fmr: DEFAULT_FMR,
+                liveness: self.liveness.into(),
+            },
         })
     }
 
@@ -469,11 +471,11 @@ mod tests {
             assert_eq!(parsed, Settings::default());
         }
         let api = Settings::default().api_config().unwrap();
-        assert_eq!((api.max_body_bytes, api.max_images, api.queue_depth, api.default_fmr), (16 << 20, 16, 64, 1e-3));
-        assert_eq!(api.decode_limits.max_alloc_bytes, 256 << 20);
+        assert_eq!((api.max_body_bytes, api.service.max_images, api.queue_depth, api.service.default_fmr), (16 << 20, 16, 64, 1e-3));
+        assert_eq!(api.service.decode_limits.max_alloc_bytes, 256 << 20);
         assert!(Settings { timeout_secs: 0.0, ..Settings::default() }.api_config().is_err());
         assert!(Settings { body_timeout_secs: 60.0, ..Settings::default() }.api_config().is_err());
-        assert_eq!(api.liveness, LivenessPolicy::Report);
+        assert_eq!(api.service.liveness, LivenessPolicy::Report);
         let server = Settings::default().server_limits().unwrap();
         assert_eq!(
             (server.max_connections, server.header_timeout, server.shutdown_grace),
@@ -569,7 +571,7 @@ mod tests {
             let error = with(Liveness::Report, Some(bad)).api_config().unwrap_err().to_string();
             assert!(error.contains("--liveness-threshold") && error.contains("between 0 and 1"), "{bad}: {error}");
         }
-        assert_eq!(with(Liveness::Enforce, Some(0.5)).api_config().unwrap().liveness, LivenessPolicy::Enforce);
+        assert_eq!(with(Liveness::Enforce, Some(0.5)).api_config().unwrap().service.liveness, LivenessPolicy::Enforce);
     }
 
     #[test]

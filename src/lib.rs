@@ -1,5 +1,6 @@
 //! facegate: face verification after D. Zhou's thesis (2011). This package is the binary: its
-//! settings ([`config`], the one place that reads the environment) and its command line ([`cli`]).
+//! settings ([`config`], the one place that reads the environment), the composition root that
+//! builds the service from them ([`startup`]) and its command line ([`cli`]).
 //!
 //! The work lives in the workspace's crates, whose dependency graph is the architecture
 //! (docs/architecture.md): `facegate-core` ← `facegate-vision` (the stages and the pipeline) ←
@@ -18,3 +19,4 @@ pub use facegate_vision::{detect, embed, landmarks, liveness, morph, pipeline, q
 pub mod choices;
 pub mod cli;
 pub mod config;
+pub mod startup;

@@ -6,17 +6,19 @@ use std::time::{Duration, Instant};
 
 use facegate::core::imaging::DecodeLimits;
 use facegate::http::ApiConfig;
+use facegate::service::ServiceConfig;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
 use crate::support::*;
 
 fn config() -> ApiConfig {
+    let defaults = facegate::config::Settings::default().api_config().unwrap();
     ApiConfig {
         max_body_bytes: 2 << 20,
-        decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() },
         admission_wait: Duration::ZERO,
-        ..facegate::config::Settings::default().api_config().unwrap()
+        service: ServiceConfig { decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() }, ..defaults.service },
+        ..defaults
     }
 }
 

@@ -15,9 +15,10 @@ use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use facegate::http::{self, ApiConfig, AppState};
+use facegate::http::ApiConfig;
 use facegate::recognize::Template;
 use facegate::service::SubjectId;
+use facegate::startup::Application;
 use facegate::store::{KeyCheck, KeyRing, Store};
 use serde_json::Value;
 
@@ -291,16 +292,18 @@ async fn a_delete_says_what_it_erases(db: Db) {
     }
 }
 
-/// The app on an existing `store`, as `facegate serve` runs it (without the document checks of
-/// [`TestApp`], which always starts on a fresh database).
-async fn serve_store(store: Store) -> (String, tokio::task::JoinHandle<()>) {
-    let app = http::router(AppState::new(StandInEngine::new("v1"), store, config()));
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let base = format!("http://{}", listener.local_addr().unwrap());
-    let limits = facegate::config::Settings::default().server_limits().unwrap();
-    let server = tokio::spawn(async move {
-        http::server::serve(listener, app, limits, std::future::pending()).await;
-    });
+/// The app on `store`, opened on `database`, as `facegate serve` builds and runs it (without the
+/// document checks of [`TestApp`], which always starts on a fresh database).
+async fn serve_store(database: &str, store: Store) -> (String, tokio::task::JoinHandle<()>) {
+    let app = Application::builder(crate::support::settings(database))
+        .store(store)
+        .engine(StandInEngine::new("v1"))
+        .api_config(config())
+        .build()
+        .await
+        .unwrap();
+    let base = format!("http://{}", app.address());
+    let server = tokio::spawn(app.run_until_stopped(std::future::pending()));
     (base, server)
 }
 
@@ -343,7 +346,7 @@ async fn a_backup_from_before_a_delete_brings_the_subject_back_until_the_key_is_
     assert_eq!(facegate_ok(&["restore", &backup, "--database", &restored])["subjects"], 2);
     let store = Store::connect(&restored, Some(ring(K1))).await.unwrap();
     assert_eq!(store.check_template_keys().await.unwrap(), KeyCheck::Opens { sealed_subjects: 2 });
-    let (base, server) = serve_store(store.clone()).await;
+    let (base, server) = serve_store(&restored, store.clone()).await;
     let (status, answer) = verify(&base, "alice", &alice).await;
     assert_eq!((status, answer["match"].as_bool()), (200, Some(true)), "{answer}");
     server.abort();

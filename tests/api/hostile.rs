@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 use facegate::core::imaging::DecodeLimits;
 use facegate::http::ApiConfig;
 use facegate::http::server::ServerLimits;
+use facegate::service::ServiceConfig;
 use serde_json::{Value, json};
 use sha2::Digest as _;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -17,11 +18,12 @@ use tokio::net::TcpStream;
 use crate::support::*;
 
 fn config() -> ApiConfig {
+    let defaults = facegate::config::Settings::default().api_config().unwrap();
     ApiConfig {
         max_body_bytes: 2 << 20,
-        decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() },
         admission_wait: Duration::ZERO,
-        ..facegate::config::Settings::default().api_config().unwrap()
+        service: ServiceConfig { decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() }, ..defaults.service },
+        ..defaults
     }
 }
 

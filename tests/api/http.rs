@@ -7,6 +7,7 @@ use std::time::Duration;
 
 use facegate::core::imaging::DecodeLimits;
 use facegate::http::ApiConfig;
+use facegate::service::ServiceConfig;
 use serde_json::json;
 use sqlx::Connection;
 
@@ -14,13 +15,17 @@ use crate::on_both_backends;
 use crate::support::*;
 
 fn config() -> ApiConfig {
+    let defaults = facegate::config::Settings::default().api_config().unwrap();
     ApiConfig {
         max_body_bytes: 2 << 20,
-        decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() },
-        max_images: 4,
         // Overload tests expect a full queue to refuse at once.
         admission_wait: Duration::ZERO,
-        ..facegate::config::Settings::default().api_config().unwrap()
+        service: ServiceConfig {
+            decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() },
+            max_images: 4,
+            ..defaults.service
+        },
+        ..defaults
     }
 }
 
@@ -175,8 +180,9 @@ async fn every_analyzed_face_has_quality_and_enrollment_refuses_a_photo_below_th
     // There is no opt-out: the policy is the operator's setting.
     app.post_form("/enroll?quality=off", Some("erin"), std::slice::from_ref(&dark)).await.assert_problem(400, "malformed-request");
     // A server configured without a brightness floor enrols it.
-    let lenient =
-        ApiConfig { quality_policy: facegate::quality::QualityPolicy { min_brightness: None, ..config().quality_policy }, ..config() };
+    let strict = config();
+    let quality_policy = facegate::quality::QualityPolicy { min_brightness: None, ..strict.service.quality_policy };
+    let lenient = ApiConfig { service: ServiceConfig { quality_policy, ..strict.service }, ..strict };
     let relaxed = app.restarted_with(StandInEngine::new("stand-in-1"), lenient).await;
     assert_eq!(relaxed.post_form("/enroll", Some("erin"), std::slice::from_ref(&dark)).await.status, 201);
 
@@ -251,7 +257,7 @@ async fn templates_of_another_model_version_are_not_compared(db: Db) {
 }
 
 #[tokio::test]
-async fn api_keys_guard_everything_but_health_and_openapi() {
+async fn api_keys_guard_everything_but_health_livez_and_openapi() {
     let keyed = ApiConfig { api_keys: vec!["s3cret".into(), "other".into()], ..config() };
     let app = TestApp::start(StandInEngine::new("v1"), keyed).await;
     app.get("/subjects").await.assert_problem(401, "unauthorized");
@@ -261,7 +267,7 @@ async fn api_keys_guard_everything_but_health_and_openapi() {
     app.post_form("/verify", Some("x"), &[vec![1, 2, 3]]).await.assert_problem(401, "unauthorized");
     assert_eq!(app.send(app.client.get(app.url("/subjects")).bearer_auth("s3cret")).await.status, 200);
     assert_eq!(app.send(app.client.get(app.url("/subjects")).header("x-api-key", "other")).await.status, 200);
-    for open in ["/health", "/openapi.yaml"] {
+    for open in ["/health", "/livez", "/openapi.yaml"] {
         assert_eq!(app.get(open).await.status, 200, "{open}");
     }
     app.get("/metrics").await.assert_problem(401, "unauthorized");

@@ -5,6 +5,7 @@
 use std::sync::atomic::Ordering;
 
 use facegate::http::ApiConfig;
+use facegate::service::ServiceConfig;
 use serde_json::json;
 
 use crate::support::*;
@@ -39,7 +40,7 @@ fn detail(r: &Reply) -> String {
 #[tokio::test]
 async fn millions_of_tiny_photos_are_refused_at_the_cap() {
     let config = defaults();
-    assert_eq!(config.max_images, 16);
+    assert_eq!(config.service.max_images, 16);
     let engine = StandInEngine::new("v1");
     let app = TestApp::start(engine.clone(), config.clone()).await;
     // 3,000,000 one-byte photos (`"AA"`), 15 MB: under the 16 MiB body limit.
@@ -78,7 +79,11 @@ async fn a_body_at_the_cap_reaches_the_operations_count() {
     assert_eq!(detail(&r), "at most 16 photos per request (field images), got more than 16");
 
     // The cap is the setting: with `max_images` 3, three real photos enrol and a fourth is refused.
-    let app = TestApp::start(StandInEngine::new("v1"), ApiConfig { max_images: 3, ..defaults() }).await;
+    let app = TestApp::start(
+        StandInEngine::new("v1"),
+        ApiConfig { service: ServiceConfig { max_images: 3, ..defaults().service }, ..defaults() },
+    )
+    .await;
     let photos: Vec<String> = (0..4).map(|seed| base64(&pattern_jpeg(320, 240, seed))).collect();
     let r = app.post_json("/enroll", &json!({"subject": "ada", "images": photos[..3]})).await;
     assert_eq!((r.status, r.json()["added"].as_u64()), (201, Some(3)), "{}", String::from_utf8_lossy(&r.body));

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use facegate::core::imaging::DecodeLimits;
 use facegate::http::ApiConfig;
-use facegate::store::Store;
+use facegate::service::ServiceConfig;
 use tokio::net::{TcpListener, TcpStream};
 
 use crate::support::*;
@@ -68,12 +68,12 @@ async fn a_lost_database_is_refused_fast_and_the_service_recovers() {
     let proxied = url.replacen(&authority, &format!("127.0.0.1:{}", proxy.port), 1);
     assert_ne!(proxied, url, "{url}");
     let _ = name;
-    let store = Store::connect(&proxied, None).await.unwrap();
+    let defaults = facegate::config::Settings::default().api_config().unwrap();
     let config = ApiConfig {
-        decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() },
-        ..facegate::config::Settings::default().api_config().unwrap()
+        service: ServiceConfig { decode_limits: DecodeLimits { max_pixels: 1_000_000, ..DecodeLimits::default() }, ..defaults.service },
+        ..defaults
     };
-    let app = TestApp::start_on_store(StandInEngine::new("v1"), store, proxied, config).await;
+    let app = TestApp::start_on_database(StandInEngine::new("v1"), proxied, config).await;
     let photo = pattern_jpeg(320, 240, 4);
     assert_eq!(app.post_form("/enroll", Some("ana"), std::slice::from_ref(&photo)).await.status, 201);
 
@@ -90,6 +90,9 @@ async fn a_lost_database_is_refused_fast_and_the_service_recovers() {
         let health = app.get("/health").await;
         assert!(start.elapsed() < Duration::from_millis(1500), "health took {:?}", start.elapsed());
         health.assert_problem(503, "store-unavailable");
+        // The liveness probe's route asks no database: a replica whose database is down is alive.
+        let alive = app.get("/livez").await;
+        assert_eq!((alive.status, alive.json()["status"].as_str()), (200, Some("alive")));
         let enroll = app.post_form("/enroll", Some("ben"), std::slice::from_ref(&photo)).await;
         enroll.assert_problem(503, "store-unavailable");
         refused += 1;

@@ -1,6 +1,6 @@
-//! Starting the real app on a random port with a fresh database, a client that checks every
-//! response against `openapi.yaml`, test photos, and a stand-in face engine for the HTTP-layer
-//! tests.
+//! Starting the real app (built by the composition root `facegate serve` uses) on a random port
+//! with a fresh database, a client that checks every response against `openapi.yaml`, test
+//! photos, and a stand-in face engine for the HTTP-layer tests.
 
 use std::io::Cursor;
 use std::path::PathBuf;
@@ -8,18 +8,20 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
+use facegate::config::Settings;
 use facegate::core::face::KeyPoints;
 use facegate::core::geometry::Rect;
 use facegate::core::imaging::Photo;
 use facegate::detect::Face;
 use facegate::http::server::ServerLimits;
-use facegate::http::{self, ApiConfig, AppState, FaceEngine};
+use facegate::http::{self, ApiConfig, FaceEngine};
 use facegate::landmarks::Landmarks;
 use facegate::morph::AvatarFormat;
 use facegate::pipeline::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, PipelineError, StageTimings};
 use facegate::quality::Quality;
 use facegate::recognize::{OperatingPoint, Template};
 use facegate::service::{LivenessPoint, Matcher};
+use facegate::startup::{Application, ApplicationBuilder};
 use facegate::store::{KeyRing, Store};
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
@@ -97,7 +99,12 @@ impl Reply {
 
 /// The connection loop's limits as `facegate serve` has them by default.
 fn default_limits() -> ServerLimits {
-    facegate::config::Settings::default().server_limits().unwrap()
+    Settings::default().server_limits().unwrap()
+}
+
+/// The serve defaults on `database_url`, listening on a free loopback port.
+pub fn settings(database_url: &str) -> Settings {
+    Settings { bind: "127.0.0.1:0".into(), database: database_url.into(), ..Settings::default() }
 }
 
 impl TestApp {
@@ -128,16 +135,17 @@ impl TestApp {
             Db::Sqlite => format!("sqlite://{}", dir.join("facegate.db").display()),
             Db::Postgres => crate::postgres::fresh_database().expect("the caller checked that PostgreSQL is available"),
         };
-        let store = Store::connect(&url, keys).await.unwrap();
-        Self::serve(engine, store, url, config, limits, dir).await
+        let app = Application::builder(settings(&url)).template_keys(keys);
+        Self::serve(app, engine, url, config, limits, dir).await
     }
 
-    /// An app on a store the caller opened (on `database_url`).
-    pub async fn start_on_store(engine: Arc<dyn FaceEngine>, store: Store, database_url: String, config: ApiConfig) -> TestApp {
+    /// An app on the database at `database_url` (an existing one, or one behind a proxy).
+    pub async fn start_on_database(engine: Arc<dyn FaceEngine>, database_url: String, config: ApiConfig) -> TestApp {
         static N: AtomicUsize = AtomicUsize::new(0);
         let dir = std::env::temp_dir().join(format!("facegate-api-store-{}-{}", std::process::id(), N.fetch_add(1, Ordering::Relaxed)));
         std::fs::create_dir_all(&dir).unwrap();
-        Self::serve(engine, store, database_url, config, default_limits(), dir).await
+        let app = Application::builder(settings(&database_url));
+        Self::serve(app, engine, database_url, config, default_limits(), dir).await
     }
 
     /// A second app on this one's database with another engine (a service restarted with another
@@ -145,24 +153,24 @@ impl TestApp {
     pub async fn restarted_with(&self, engine: Arc<dyn FaceEngine>, config: ApiConfig) -> TestApp {
         let scratch = self.dir.join(format!("restart-{}", std::process::id()));
         std::fs::create_dir_all(&scratch).unwrap();
-        Self::serve(engine, self.store.clone(), self.database_url.clone(), config, default_limits(), scratch).await
+        let app = Application::builder(settings(&self.database_url)).store(self.store.clone());
+        Self::serve(app, engine, self.database_url.clone(), config, default_limits(), scratch).await
     }
 
-    /// The app behind the service's own connection loop (`http::server`), as `facegate serve` runs it.
+    /// The app `facegate serve` runs (the composition root, `facegate::startup`) with `engine`,
+    /// `config` and `limits`, behind the service's own connection loop.
     async fn serve(
+        app: ApplicationBuilder,
         engine: Arc<dyn FaceEngine>,
-        store: Store,
         database_url: String,
         config: ApiConfig,
         limits: ServerLimits,
         dir: PathBuf,
     ) -> TestApp {
-        let app = http::router(AppState::new(engine, store.clone(), config));
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let base = format!("http://{}", listener.local_addr().unwrap());
-        let server = tokio::spawn(async move {
-            http::server::serve(listener, app, limits, std::future::pending()).await;
-        });
+        let app = app.engine(engine).api_config(config).server_limits(limits).build().await.unwrap();
+        let base = format!("http://{}", app.address());
+        let store = app.state().store().clone();
+        let server = tokio::spawn(app.run_until_stopped(std::future::pending()));
         TestApp { base, client: reqwest::Client::new(), store, database_url, dir, server }
     }
 

@@ -9,15 +9,14 @@ use axum::body::Bytes;
 use axum::extract::State;
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 
 use super::AppState;
 use super::input::{Params, Upload};
 use super::problem::Problem;
+use super::responses::AnalyzeResponse;
 use facegate_core::elapsed_ms;
-use facegate_vision::detect::Face;
-use facegate_vision::landmarks::Landmarks;
-use facegate_vision::morph::{AvatarFormat, Pose};
+use facegate_vision::morph::AvatarFormat;
 use facegate_vision::pipeline::FaceChoice;
 
 #[derive(Debug, Deserialize)]
@@ -36,50 +35,6 @@ pub(crate) struct AvatarParams {
     format: Option<AvatarFormat>,
 }
 
-#[derive(Debug, Serialize)]
-struct FaceTimings {
-    landmarks_ms: f64,
-    morph_ms: f64,
-}
-
-/// The landmarks with, per point, whether the fitted head shows it to the camera.
-#[derive(Debug, Serialize)]
-struct SeenLandmarks {
-    #[serde(flatten)]
-    landmarks: Landmarks,
-    /// Null when the 3DMM is not loaded or could not be fitted.
-    visible: Option<Vec<bool>>,
-}
-
-#[derive(Debug, Serialize)]
-struct AnalyzedFace {
-    face: Face,
-    landmarks: SeenLandmarks,
-    /// Null when the 3DMM is not loaded or could not be fitted.
-    pose: Option<Pose>,
-    fit_residual_px: Option<f32>,
-    /// Face image quality: the components and the unified score (0–100).
-    quality: facegate_vision::quality::Quality,
-    /// Live face or presentation attack (reported, never refused here); absent when liveness is off.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    liveness: Option<facegate_vision::liveness::Liveness>,
-    timings: FaceTimings,
-}
-
-#[derive(Debug, Serialize)]
-struct AnalyzeTimings {
-    decode_ms: f64,
-    detect_ms: f64,
-    total_ms: f64,
-}
-
-#[derive(Debug, Serialize)]
-struct AnalyzeResponse {
-    faces_found: usize,
-    faces: Vec<AnalyzedFace>,
-    timings: AnalyzeTimings,
-}
-
 /// The one photo of an `/analyze`, `/avatar` or `/frontalize` request (no subject).
 fn single_photo(upload: Upload) -> Result<Bytes, Problem> {
     upload.refuse_subject("this operation takes no subject, only the photo (field image)")?;
@@ -93,22 +48,7 @@ pub async fn analyze(State(state): State<AppState>, Params(params): Params<Analy
     let start = Instant::now();
     let image = single_photo(upload)?;
     let analysis = state.facegate().analyze(image, params.faces.unwrap_or_default()).await?;
-    let reading = analysis.reading;
-    let faces = reading
-        .faces
-        .into_iter()
-        .map(|f| AnalyzedFace {
-            face: f.face,
-            landmarks: SeenLandmarks { landmarks: f.landmarks, visible: f.visible },
-            pose: f.pose,
-            fit_residual_px: f.fit_residual_px,
-            quality: f.quality,
-            liveness: f.liveness,
-            timings: FaceTimings { landmarks_ms: f.landmarks_ms, morph_ms: f.morph_ms },
-        })
-        .collect();
-    let timings = AnalyzeTimings { decode_ms: analysis.decode_ms, detect_ms: reading.detect_ms, total_ms: elapsed_ms(start) };
-    Ok(Json(AnalyzeResponse { faces_found: reading.faces_found, faces, timings }).into_response())
+    Ok(Json(AnalyzeResponse::new(analysis, elapsed_ms(start))).into_response())
 }
 
 /// `POST /avatar?format=glb|obj`: the largest face's textured 3D head, `model/gltf-binary` (or

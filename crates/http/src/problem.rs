@@ -10,6 +10,8 @@ use serde::Serialize;
 use facegate_core::imaging::DecodeError;
 use facegate_service::{FramesMismatch, PhotoError, PoolError, PresentationAttack, ServiceError};
 
+use super::responses::QualityFailure;
+
 /// The base of every problem type URI.
 pub const PROBLEM_BASE: &str = "https://facegate.dev/problems/";
 
@@ -219,8 +221,8 @@ struct ProblemBody<'a> {
     image: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     frame: Option<usize>,
-    #[serde(skip_serializing_if = "<[_]>::is_empty")]
-    failures: &'a [facegate_vision::quality::Failure],
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    failures: Vec<QualityFailure>,
     #[serde(skip_serializing_if = "Option::is_none")]
     score: Option<f32>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -301,7 +303,7 @@ impl Problem {
             detail: &self.detail,
             image: self.image,
             frame: self.frame,
-            failures: &self.failures,
+            failures: self.failures.iter().map(QualityFailure::from).collect(),
             score: self.attack.as_ref().map(|a| a.score),
             threshold: self.attack.as_ref().map(|a| a.threshold),
             operating_point: self.attack.as_ref().map(|a| a.operating_point.as_str()),

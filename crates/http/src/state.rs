@@ -1,0 +1,104 @@
+//! What every handler is handed: the service ([`Facegate`]) and the HTTP layer's settings
+//! ([`ApiConfig`]), with what the router derives from them once (the API keys' digests, the body
+//! budget, the metrics).
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use facegate_service::{FaceEngine, Facegate, ServiceConfig, WorkPool};
+use facegate_store::Store;
+
+use super::admission::BodyBudget;
+use super::{ApiKeys, Metrics};
+
+/// Limits and settings of the API (made from `config::Settings`, where the defaults are).
+#[derive(Debug, Clone)]
+pub struct ApiConfig {
+    /// Largest request body accepted, in bytes.
+    pub max_body_bytes: usize,
+    /// Whole-request deadline (queueing and reading the body included); exceeded → 504.
+    pub request_timeout: Duration,
+    /// Time from admission to the end of the body; exceeded → 408 (the client's fault).
+    pub body_timeout: Duration,
+    /// Photos analysed at once on the blocking pool.
+    pub workers: usize,
+    /// Probe requests (verify, identify, inspection) that may wait for a worker; beyond → 503.
+    pub queue_depth: usize,
+    /// Enrollments that may wait for a worker, a queue of their own; beyond → 503.
+    pub enroll_queue_depth: usize,
+    /// How long a request waits for a place when its queue is full, before the 503 (its body
+    /// still unread). Zero refuses at once.
+    pub admission_wait: Duration,
+    /// Request bodies held in memory at once, in bytes (each admitted request counts its
+    /// Content-Length, or the body limit without one); beyond → 503.
+    pub max_buffered_bytes: usize,
+    /// Accepted API keys; empty means the API is open (`config` refuses keys under 16 characters).
+    pub api_keys: Vec<String>,
+    /// Serve the web console at `/` (pages only; the API is the same either way).
+    pub console: bool,
+    /// The use cases' policies: decode limits, most photos per enrolment (which also bounds a
+    /// JSON body's `images` as it is read), the enrolment quality policy, the default false match
+    /// rate and the liveness policy. Handed to the service as they are.
+    pub service: ServiceConfig,
+}
+
+/// The shared part of [`AppState`]. Its fields are the crate's: the admission layer reads the
+/// settings, the pool, the body budget and the rejection counter directly.
+pub(crate) struct Shared {
+    pub(crate) facegate: Facegate,
+    pub(crate) config: ApiConfig,
+    pub(crate) keys: ApiKeys,
+    pub(crate) body_budget: BodyBudget,
+    pub(crate) metrics: Arc<Metrics>,
+}
+
+/// Everything a handler needs: the service and the HTTP layer's own settings; cheap to clone.
+#[derive(Clone)]
+pub struct AppState(pub(crate) Arc<Shared>);
+
+impl AppState {
+    /// The service over `engine` and `store`, with the policies of `config.service` and a work
+    /// pool sized by `config`, counted in the API's metrics.
+    pub fn new(engine: Arc<dyn FaceEngine>, store: Store, config: ApiConfig) -> AppState {
+        let metrics = Arc::new(Metrics::new());
+        let pool = WorkPool::new(
+            config.workers,
+            config.queue_depth,
+            config.enroll_queue_depth,
+            metrics.queue_rejections.clone(),
+            metrics.jobs_in_flight.clone(),
+        );
+        // The service owns its policies; the state keeps the whole configuration it was made from.
+        let facegate = Facegate::new(engine, store, pool, config.service.clone());
+        let keys = ApiKeys::new(&config.api_keys);
+        let body_budget = BodyBudget::new(config.max_buffered_bytes, config.max_body_bytes);
+        AppState(Arc::new(Shared { facegate, config, keys, body_budget, metrics }))
+    }
+
+    /// The use cases.
+    pub fn facegate(&self) -> &Facegate {
+        &self.0.facegate
+    }
+
+    pub fn store(&self) -> &Store {
+        self.0.facegate.store()
+    }
+
+    pub fn metrics(&self) -> &Arc<Metrics> {
+        &self.0.metrics
+    }
+
+    /// The settings the state was made from.
+    pub fn config(&self) -> &ApiConfig {
+        &self.0.config
+    }
+
+    pub(crate) fn keys(&self) -> &ApiKeys {
+        &self.0.keys
+    }
+
+    /// The most photos one enrolment takes (`ServiceConfig::max_images`).
+    pub(crate) fn max_images(&self) -> usize {
+        self.0.config.service.max_images
+    }
+}
