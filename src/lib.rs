@@ -10,6 +10,7 @@
 
 pub use facegate_core as core;
 pub use facegate_http as http;
+pub use facegate_nn as nn;
 pub use facegate_research as research;
 pub use facegate_service as service;
 pub use facegate_store as store;

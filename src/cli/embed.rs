@@ -9,7 +9,8 @@ use std::process::ExitCode;
 use anyhow::Context;
 use sha2::Digest;
 
-use crate::embed::{self, CHIP_SIZE, FaceChip, weights::Provenance};
+use crate::embed::{self, CHIP_SIZE, FaceChip};
+use crate::nn::weights::{self, Provenance};
 use crate::pipeline::{FaceFinder, Pipeline};
 use crate::recognize::deep::{DeepModel, DeepProvenance};
 use crate::research::dataset::Split;
@@ -389,7 +390,7 @@ pub struct TrainDeepArgs {
 /// size on the calibration persons (LFW's calibration split and the IMM/ORL held-out persons).
 pub fn run_train_deep(args: TrainDeepArgs) -> anyhow::Result<ExitCode> {
     let (samples, embeddings) = samples_and_embeddings(&args.data)?;
-    let network = embed::read_file(&crate::config::models_dir().join(embed::weights::FILE))?;
+    let network = embed::read_file(&crate::config::models_dir().join(weights::FILE))?;
     let train = pick(&samples, &embeddings, false, &|s| s.split == Split::Train);
     let (projection, trained_on) = match args.projection {
         ProjectionArg::None => (None, "no projection (the embedding's cosine)".to_string()),
