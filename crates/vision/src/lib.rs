@@ -12,9 +12,12 @@ pub mod detect;
 pub mod embed;
 pub mod landmarks;
 pub mod liveness;
-pub mod morph;
 pub mod quality;
 pub mod recognize;
+
+/// The 3D morphable model ([`facegate_morph`]): the pipeline's types name it, so its paths stay
+/// `facegate_vision::morph::…` as well.
+pub use facegate_morph as morph;
 
 pub mod pipeline;
 pub mod synthetic;

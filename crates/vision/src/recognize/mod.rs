@@ -2,12 +2,13 @@
 //!
 //! A face comes in as a grey image and its eye and mouth centres
 //! ([`KeyPoints`](facegate_core::face::KeyPoints)); [`normalize`] aligns and relights it into a
-//! small crop, [`features`] turns the crop into a vector, [`dlda`] projects it, and the unit projection is the [`Template`]. Templates compare by cosine
-//! similarity; a decision uses a threshold calibrated at a false match rate ([`calibration`]).
-//! Everything a template depends on is in one model file, `models/dlda.bin` (postcard), whose
-//! content hash is the model version carried by every template: the [`classical`] model and its
-//! recognizer. Beside it, the [`deep`] and [`embedding`] recognizers, and [`Recognizer`], the one
-//! the pipeline runs; here, what they share (normalisation paths, operating points, views, errors).
+//! small crop, [`features`] turns the crop into a vector, [`dlda`] projects it, and the unit
+//! projection is the [`Template`]. Templates compare by cosine similarity; a decision uses a
+//! threshold calibrated at a false match rate ([`calibration`]). Everything a template depends on
+//! is in one model file, `models/dlda.bin` (postcard), whose content hash is the model version
+//! carried by every template: the [`classical`] model and its recognizer. Beside it, the [`deep`]
+//! and [`embedding`] recognizers, and [`Recognizer`], the one the pipeline runs; here, what they
+//! share (normalisation paths, operating points, views, errors).
 
 pub mod calibration;
 pub mod classical;
