@@ -4,6 +4,7 @@
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
 
+use crate::asm3d_synth::*;
 use crate::dataset::{self, ImmSample};
 use facegate_core::face::{IMM_POINTS, JAW};
 use facegate_core::geometry::{Point, Rect, centroid};

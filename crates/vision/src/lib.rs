@@ -2,8 +2,8 @@
 //! them: a decoded photo → [`detect`] (face boxes) → [`landmarks`] (58 IMM points) → [`morph`]
 //! (3D morphable model fit, frontal rendering, avatar) → [`embed`] (the face-embedding network) and
 //! [`recognize`] (normalization, Direct LDA, templates, scores, calibration) → [`quality`] (face
-//! image quality) and [`liveness`] (a live face or a printed photo), assembled once in [`pipeline`]; [`synthetic`] renders an enrolled head at other
-//! yaws for templates a turned probe can meet.
+//! image quality) and [`liveness`] (a live face or a printed photo), assembled once in
+//! [`pipeline`]. The networks run in `facegate-nn`, the 3D morphable model is `facegate-morph`.
 //!
 //! Runtime code: it never prints, reads the environment or shows progress (the workspace's clippy
 //! lints); models are loaded from paths it is handed.
@@ -20,4 +20,3 @@ pub mod recognize;
 pub use facegate_morph as morph;
 
 pub mod pipeline;
-pub mod synthetic;
