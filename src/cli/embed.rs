@@ -182,7 +182,7 @@ pub struct EvalDeepArgs {
 /// The deep embedding's scoring variants: cross-validation over the training persons, then the
 /// held-out persons of each set, for the photo's chip and the 3DMM frontal rendering's chip.
 pub fn run_eval_deep(args: EvalDeepArgs) -> anyhow::Result<ExitCode> {
-    use crate::recognize::DldaParams;
+    use crate::research::dlda::DldaParams;
     let (samples, embeddings) = samples_and_embeddings(&args.data)?;
     for set in [Set::Imm, Set::Orl, Set::Lfw] {
         let all = samples.iter().zip(&embeddings).filter(|(s, _)| s.set == set);
@@ -395,7 +395,7 @@ pub fn run_train_deep(args: TrainDeepArgs) -> anyhow::Result<ExitCode> {
     let (projection, trained_on) = match args.projection {
         ProjectionArg::None => (None, "no projection (the embedding's cosine)".to_string()),
         ProjectionArg::Dlda => {
-            let params = crate::recognize::DldaParams { max_dims: 127, regularization: 0.1, pca_dims: 0 };
+            let params = crate::research::dlda::DldaParams { max_dims: 127, regularization: 0.1, pca_dims: 0 };
             let what = format!("DLDA on {} photos of the training persons (IMM, ORL, LFW training split)", train.len());
             (Some(deep_eval::train_dlda(&train, &params)?), what)
         }
