@@ -9,13 +9,14 @@
 //! and the benches.
 
 pub use facegate_core as core;
+pub use facegate_detect as detect;
 pub use facegate_http as http;
 pub use facegate_morph as morph;
 pub use facegate_nn as nn;
 pub use facegate_research as research;
 pub use facegate_service as service;
 pub use facegate_store as store;
-pub use facegate_vision::{detect, embed, landmarks, liveness, pipeline, quality, recognize};
+pub use facegate_vision::{embed, landmarks, liveness, pipeline, quality, recognize};
 
 pub mod choices;
 pub mod cli;

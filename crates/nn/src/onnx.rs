@@ -6,6 +6,9 @@ use std::sync::Arc;
 
 use tract_onnx::prelude::*;
 
+/// tract's result, which [`OnnxNet`] answers with.
+pub use tract_onnx::prelude::TractResult;
+
 use crate::chain::ChainNet;
 use crate::conv::Arithmetic;
 

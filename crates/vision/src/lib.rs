@@ -3,20 +3,22 @@
 //! (3D morphable model fit, frontal rendering, avatar) → [`embed`] (the face-embedding network) and
 //! [`recognize`] (normalization, Direct LDA, templates, scores, calibration) → [`quality`] (face
 //! image quality) and [`liveness`] (a live face or a printed photo), assembled once in
-//! [`pipeline`]. The networks run in `facegate-nn`, the 3D morphable model is `facegate-morph`.
+//! [`pipeline`]. The detectors are `facegate-detect`, the networks run in `facegate-nn`, the 3D
+//! morphable model is `facegate-morph`.
 //!
 //! Runtime code: it never prints, reads the environment or shows progress (the workspace's clippy
 //! lints); models are loaded from paths it is handed.
 
-pub mod detect;
 pub mod embed;
 pub mod landmarks;
 pub mod liveness;
 pub mod quality;
 pub mod recognize;
 
-/// The 3D morphable model ([`facegate_morph`]): the pipeline's types name it, so its paths stay
+/// Face detection ([`facegate_detect`]) and the 3D morphable model ([`facegate_morph`]): the
+/// pipeline's types name them, so their paths stay `facegate_vision::detect::…` and
 /// `facegate_vision::morph::…` as well.
+pub use facegate_detect as detect;
 pub use facegate_morph as morph;
 
 pub mod pipeline;

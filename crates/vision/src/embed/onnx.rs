@@ -245,7 +245,7 @@ impl OnnxEmbedder {
     }
 
     /// One run of the network on `chip`: the raw output.
-    fn run(&self, chip: &FaceChip) -> tract_onnx::prelude::TractResult<Vec<f32>> {
+    fn run(&self, chip: &FaceChip) -> facegate_nn::onnx::TractResult<Vec<f32>> {
         let m = &self.manifest;
         let side = chip.size;
         let plane = side * side;
