@@ -2,7 +2,8 @@
 //! settings ([`config`], the one place that reads the environment) and its command line ([`cli`]).
 //!
 //! The work lives in the workspace's crates, whose dependency graph is the architecture
-//! (docs/architecture.md): `facegate-core` ← `facegate-vision` (the stages and the pipeline) ←
+//! (docs/architecture.md): `facegate-core` ← `facegate-detect`, `facegate-morph` (and
+//! `facegate-nn`, the networks) ← `facegate-vision` (the stages and the pipeline) ←
 //! `facegate-store` ← `facegate-service` (the use cases) ← `facegate-http`; `facegate-research`
 //! (data sets, training, evaluation) depends on vision and is never depended on by the runtime.
 //! They are re-exported here under their module names for the command line, the integration tests
