@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The layout rules no compiler checks (docs/architecture.md): no Rust source file over 800 lines,
-# no module of the binary outside src/cli importing the command line, and no runtime crate (core, vision, store, service, http) depending on what the runtime must not
+# no module of the binary outside src/cli importing the command line, and no runtime crate (core, detect, nn, morph, vision, store, service, http) depending on what the runtime must not
 # reach — the research crate, the binary, the settings' paths, clap or indicatif. Function length,
 # printing and environment reads are clippy's (the workspace lints; CI runs clippy on the runtime).
 set -euo pipefail
@@ -24,7 +24,7 @@ for path in sorted(pathlib.Path("src").glob("**/*.rs")):
         if "crate::cli" in line and not line.lstrip().startswith("//"):
             failures.append(f"{path}:{number}: imports the command line (take plain values or a callback instead)")
 
-runtime = {"facegate-core", "facegate-vision", "facegate-store", "facegate-service", "facegate-http"}
+runtime = {"facegate-core", "facegate-nn", "facegate-morph", "facegate-detect", "facegate-vision", "facegate-store", "facegate-service", "facegate-http"}
 forbidden = {"facegate", "facegate-research", "facegate-paths", "clap", "indicatif"}
 meta = json.loads(subprocess.run(["cargo", "metadata", "--format-version", "1", "--no-deps"], check=True,
                                  capture_output=True, text=True).stdout)

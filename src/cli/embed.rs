@@ -9,7 +9,8 @@ use std::process::ExitCode;
 use anyhow::Context;
 use sha2::Digest;
 
-use crate::embed::{self, CHIP_SIZE, FaceChip, weights::Provenance};
+use crate::embed::{self, CHIP_SIZE, FaceChip};
+use crate::nn::weights::{self, Provenance};
 use crate::pipeline::{FaceFinder, Pipeline};
 use crate::recognize::deep::{DeepModel, DeepProvenance};
 use crate::research::dataset::Split;
@@ -181,7 +182,7 @@ pub struct EvalDeepArgs {
 /// The deep embedding's scoring variants: cross-validation over the training persons, then the
 /// held-out persons of each set, for the photo's chip and the 3DMM frontal rendering's chip.
 pub fn run_eval_deep(args: EvalDeepArgs) -> anyhow::Result<ExitCode> {
-    use crate::recognize::DldaParams;
+    use crate::research::dlda::DldaParams;
     let (samples, embeddings) = samples_and_embeddings(&args.data)?;
     for set in [Set::Imm, Set::Orl, Set::Lfw] {
         let all = samples.iter().zip(&embeddings).filter(|(s, _)| s.set == set);
@@ -389,12 +390,12 @@ pub struct TrainDeepArgs {
 /// size on the calibration persons (LFW's calibration split and the IMM/ORL held-out persons).
 pub fn run_train_deep(args: TrainDeepArgs) -> anyhow::Result<ExitCode> {
     let (samples, embeddings) = samples_and_embeddings(&args.data)?;
-    let network = embed::read_file(&crate::config::models_dir().join(embed::weights::FILE))?;
+    let network = embed::read_file(&crate::config::models_dir().join(weights::FILE))?;
     let train = pick(&samples, &embeddings, false, &|s| s.split == Split::Train);
     let (projection, trained_on) = match args.projection {
         ProjectionArg::None => (None, "no projection (the embedding's cosine)".to_string()),
         ProjectionArg::Dlda => {
-            let params = crate::recognize::DldaParams { max_dims: 127, regularization: 0.1, pca_dims: 0 };
+            let params = crate::research::dlda::DldaParams { max_dims: 127, regularization: 0.1, pca_dims: 0 };
             let what = format!("DLDA on {} photos of the training persons (IMM, ORL, LFW training split)", train.len());
             (Some(deep_eval::train_dlda(&train, &params)?), what)
         }

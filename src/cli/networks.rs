@@ -170,7 +170,7 @@ fn identities(networks: &[Network]) -> anyhow::Result<Vec<(String, String)>> {
         .iter()
         .map(|n| match n {
             Network::Dlib => {
-                let sha = facegate_vision::embed::read_file(&models.join(facegate_vision::embed::weights::FILE))?.provenance.sha256;
+                let sha = facegate_vision::embed::read_file(&models.join(facegate_nn::weights::FILE))?.provenance.sha256;
                 Ok((sha, DLIB_PREPROCESSING.to_string()))
             }
             Network::Onnx(name) => {

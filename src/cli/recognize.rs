@@ -9,8 +9,9 @@ use crate::choices;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::calibration::DEFAULT_FMR;
 use crate::recognize::{
-    ClassicalModel, ClassicalRecognizer, DldaParams, FeatureKind, Normalization, NormalizeParams, Photometric, RecognizerKind, Template,
+    ClassicalModel, ClassicalRecognizer, FeatureKind, Normalization, NormalizeParams, Photometric, RecognizerKind, Template,
 };
+use crate::research::dlda::DldaParams;
 use crate::research::eval::identification;
 use crate::research::eval::pairs::{read_pairs, score_pairs};
 use crate::research::eval::verification::{self, summarize};

@@ -4,8 +4,8 @@
 //! - `FACEGATE_MODELS`: the project's trained models (default `models` in the working directory,
 //!   or the repository's own `models/` when that does not exist).
 //!
-//! The binary's settings and the research commands use it; the runtime crates (core, vision,
-//! store, service, http) depend on it only for their tests, so they are always handed paths.
+//! The binary's settings and the research commands use it; the runtime crates (core, detect, nn,
+//! morph, vision, store, service, http) depend on it only for their tests, so they are always handed paths.
 
 use std::path::PathBuf;
 

@@ -2,10 +2,14 @@
 //! write files and report progress (through a [`Progress`] the caller hands down); the runtime
 //! (stages, pipeline, service, store, http) never imports it.
 
+pub mod asm3d_synth;
 pub mod cache;
 pub mod convert;
 pub mod dataset;
+pub mod dlda;
 pub mod eval;
+pub mod landmark_models;
+pub mod synthetic;
 pub mod train_asm;
 pub mod train_asm3d;
 pub mod train_deep;

@@ -4,11 +4,11 @@
 //! same model, byte for byte.
 
 use crate::dataset::{self, INTERNAL, ImmSample, JAW};
+use crate::landmark_models::{train_full_gaussian, train_pca_gaussian, train_shape_model};
 use facegate_core::geometry::{Point, Rect, Similarity};
 use facegate_core::imaging::{self, GrayF32};
 use facegate_vision::detect::Detector;
 
-use facegate_vision::landmarks::mahalanobis::{FullGaussian, PcaGaussian};
 use facegate_vision::landmarks::pdm::ShapeModel;
 use facegate_vision::landmarks::search::{Frame, normals, pyramid, to_level};
 use facegate_vision::landmarks::{
@@ -122,12 +122,12 @@ pub fn train(
     let p = &options.params;
     let shapes: Vec<Vec<Point>> =
         samples.iter().map(|s| s.landmarks()).collect::<Result<_, _>>().map_err(|e| LandmarkError::Training(e.to_string()))?;
-    let full = ShapeModel::train(&shapes, p.ref_width, options.shape_variance, options.constrain);
+    let full = train_shape_model(&shapes, p.ref_width, options.shape_variance, options.constrain);
     // The group models are aligned in their own right, at the scale the full model gives them.
     let group = |range: std::ops::Range<usize>| {
         let sub: Vec<Vec<Point>> = shapes.iter().map(|s| s[range.clone()].to_vec()).collect();
         let (x0, x1) = full.mean[range].iter().fold((f32::MAX, f32::MIN), |(a, b), q| (a.min(q[0]), b.max(q[0])));
-        ShapeModel::train(&sub, x1 - x0, options.shape_variance, options.constrain)
+        train_shape_model(&sub, x1 - x0, options.shape_variance, options.constrain)
     };
     let contour = group(JAW);
     let internal = group(INTERNAL);
@@ -179,8 +179,8 @@ pub fn train(
     if starts.is_empty() {
         return Err(LandmarkError::Training("fewer than 3 photos with a face box".into()));
     }
-    let profiles = profile_samples.iter().map(|lv| lv.iter().map(|s| FullGaussian::train(s, options.profile_ridge)).collect()).collect();
-    let sifts = sift_samples.iter().map(|lv| lv.iter().map(|s| PcaGaussian::train(s, options.sift_modes)).collect()).collect();
+    let profiles = profile_samples.iter().map(|lv| lv.iter().map(|s| train_full_gaussian(s, options.profile_ridge)).collect()).collect();
+    let sifts = sift_samples.iter().map(|lv| lv.iter().map(|s| train_pca_gaussian(s, options.sift_modes)).collect()).collect();
     let mut persons: Vec<u32> = samples.iter().map(|s| s.person).collect();
     persons.dedup();
     Ok(AsmModel {

@@ -4,14 +4,14 @@
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
 
+use crate::asm3d_synth::*;
 use crate::dataset::{self, ImmSample};
+use crate::landmark_models::{train_full_gaussian, train_pca_gaussian, train_pdm3d, train_shape_model};
 use facegate_core::face::{IMM_POINTS, JAW};
 use facegate_core::geometry::{Point, Rect, centroid};
 use facegate_core::imaging::{self, GrayF32};
 use facegate_vision::detect::Detector;
 use facegate_vision::landmarks::asm3d::*;
-use facegate_vision::landmarks::mahalanobis::{FullGaussian, PcaGaussian};
-use facegate_vision::landmarks::pdm::ShapeModel;
 use facegate_vision::landmarks::search::{normals, pyramid, to_level};
 use facegate_vision::landmarks::{AsmModel, BoxSource, LandmarkError, Placement, SearchParams, TrainInfo, profile, sift};
 use facegate_vision::morph::{Camera, FaceModel, Pose};
@@ -101,7 +101,7 @@ pub fn train_pdms(fm: &FaceModel, yaws: &[f32], jaw: &JawVertices, count: usize,
             slot.push(corr.iter().map(|&v| vertex(v)).map(|p| [p[0] as f32, p[1] as f32, p[2] as f32]).collect());
         }
     }
-    per_view.iter().map(|shapes| Pdm3d::train(shapes, variance, constrain)).collect()
+    per_view.iter().map(|shapes| train_pdm3d(shapes, variance, constrain)).collect()
 }
 
 /// Per-view texture statistics accumulated during training.
@@ -162,19 +162,19 @@ fn neighbours(sample: &ImmSample) -> Result<Vec<[u16; 2]>, LandmarkError> {
 
 /// A view's texture models (and its 2D shape models) from its samples, as a 2D C-ASM model.
 fn view_textures(v: &ViewSamples, p: &SearchParams, neighbours: &[[u16; 2]], options: &Asm3dTrainOptions, info: &TrainInfo) -> AsmModel {
-    let full = ShapeModel::train(&v.shapes, p.ref_width, options.shape_variance, options.constrain);
+    let full = train_shape_model(&v.shapes, p.ref_width, options.shape_variance, options.constrain);
     let group = |range: std::ops::Range<usize>| {
         let sub: Vec<Vec<Point>> = v.shapes.iter().map(|s| s[range.clone()].to_vec()).collect();
         let (x0, x1) = full.mean[range].iter().fold((f32::MAX, f32::MIN), |(a, b), q| (a.min(q[0]), b.max(q[0])));
-        ShapeModel::train(&sub, x1 - x0, options.shape_variance, options.constrain)
+        train_shape_model(&sub, x1 - x0, options.shape_variance, options.constrain)
     };
     let (contour, internal) = (group(JAW), group(dataset::INTERNAL));
-    let profiles = v.profiles.iter().map(|lv| lv.iter().map(|s| FullGaussian::train(s, options.profile_ridge)).collect()).collect();
+    let profiles = v.profiles.iter().map(|lv| lv.iter().map(|s| train_full_gaussian(s, options.profile_ridge)).collect()).collect();
     let sifts = v
         .sifts
         .iter()
         .map(|lv| {
-            lv.iter().enumerate().map(|(i, s)| PcaGaussian::train(s, if JAW.contains(&i) { 1 } else { options.sift_modes })).collect()
+            lv.iter().enumerate().map(|(i, s)| train_pca_gaussian(s, if JAW.contains(&i) { 1 } else { options.sift_modes })).collect()
         })
         .collect();
     AsmModel {

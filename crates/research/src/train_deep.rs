@@ -88,7 +88,7 @@ impl FrontEndModels {
 
     /// The files [`FrontEndModels::load`] reads: the key of a cache of what they compute.
     pub fn files(models_dir: &Path, sfm_dir: &Path) -> ModelFiles {
-        ModelFiles::new().finder(models_dir).model(models_dir, facegate_vision::embed::weights::FILE).sfm(sfm_dir)
+        ModelFiles::new().finder(models_dir).model(models_dir, facegate_nn::weights::FILE).sfm(sfm_dir)
     }
 
     pub fn deep(&self) -> DeepFrontEnd<'_> {

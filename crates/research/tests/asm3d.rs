@@ -1,6 +1,7 @@
 use facegate_core::face::{IMM_POINTS, JAW, KeyPoints};
 use facegate_core::geometry::{Point, Rect, centroid};
 use facegate_core::imaging::{self, GrayF32};
+use facegate_research::asm3d_synth::*;
 use facegate_research::dataset::list_imm;
 use facegate_research::dataset::{self, ImmSample};
 use facegate_research::train_asm3d::*;

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use facegate_core::face::KeyPoints;
 use facegate_core::geometry::Similarity;
+use facegate_nn::weights;
 use facegate_research::convert::convert_dlib;
 use facegate_research::dataset::list_imm;
 use facegate_vision::embed::*;

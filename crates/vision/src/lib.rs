@@ -2,19 +2,23 @@
 //! them: a decoded photo → [`detect`] (face boxes) → [`landmarks`] (58 IMM points) → [`morph`]
 //! (3D morphable model fit, frontal rendering, avatar) → [`embed`] (the face-embedding network) and
 //! [`recognize`] (normalization, Direct LDA, templates, scores, calibration) → [`quality`] (face
-//! image quality) and [`liveness`] (a live face or a printed photo), assembled once in [`pipeline`]; [`synthetic`] renders an enrolled head at other
-//! yaws for templates a turned probe can meet.
+//! image quality) and [`liveness`] (a live face or a printed photo), assembled once in
+//! [`pipeline`]. The detectors are `facegate-detect`, the networks run in `facegate-nn`, the 3D
+//! morphable model is `facegate-morph`.
 //!
 //! Runtime code: it never prints, reads the environment or shows progress (the workspace's clippy
 //! lints); models are loaded from paths it is handed.
 
-pub mod detect;
 pub mod embed;
 pub mod landmarks;
 pub mod liveness;
-pub mod morph;
 pub mod quality;
 pub mod recognize;
 
+/// Face detection ([`facegate_detect`]) and the 3D morphable model ([`facegate_morph`]): the
+/// pipeline's types name them, so their paths stay `facegate_vision::detect::…` and
+/// `facegate_vision::morph::…` as well.
+pub use facegate_detect as detect;
+pub use facegate_morph as morph;
+
 pub mod pipeline;
-pub mod synthetic;

@@ -10,7 +10,7 @@
 //! an exponent (integers); a string is its length and its bytes; a bool is the character `0` or `1`;
 //! a tensor (version 2) is its four dimensions and raw little-endian f32 values.
 
-use facegate_vision::embed::weights::{Conv, Layer};
+use facegate_nn::weights::{Conv, Layer};
 
 #[derive(Debug, thiserror::Error)]
 pub enum DlibError {

@@ -6,7 +6,7 @@ pub mod onnx_embedding;
 pub mod wheel;
 pub mod yunet;
 
-use facegate_vision::embed::weights::{self, NetworkFile};
+use facegate_nn::weights::{self, NetworkFile};
 
 /// Converts dlib's serialised network into the project's weight file.
 pub fn convert_dlib(bytes: &[u8], provenance: weights::Provenance) -> Result<NetworkFile, dlib::DlibError> {

@@ -8,14 +8,15 @@ use sha2::Digest;
 use super::protocol::{all_pairs_by, enrollment_scores_by};
 use super::verification::{VerificationSummary, summarize};
 use crate::dataset::Split;
+use crate::dlda::DldaParams;
 use crate::train_deep::{PhotoEmbeddings, Sample, Set};
 use facegate_core::vector::{dot, unit};
 use facegate_vision::embed::{CHIP_SIZE, Embedder, Embedding, chip};
 use facegate_vision::pipeline::FaceFinder;
+use facegate_vision::recognize::Dlda;
 use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
 use facegate_vision::recognize::deep::DeepModel;
 use facegate_vision::recognize::template::Combine;
-use facegate_vision::recognize::{Dlda, DldaParams};
 
 /// How two embeddings are scored (higher: more alike).
 #[derive(Debug, Clone)]
@@ -54,14 +55,14 @@ impl Scoring {
 }
 
 /// Trains DLDA over embeddings of the given (label, embedding) pairs.
-pub fn train_dlda(items: &[(&str, &[f32])], params: &DldaParams) -> Result<Dlda, facegate_vision::recognize::dlda::DldaError> {
+pub fn train_dlda(items: &[(&str, &[f32])], params: &DldaParams) -> Result<Dlda, crate::dlda::DldaError> {
     let mut labels: Vec<&str> = items.iter().map(|(l, _)| *l).collect();
     labels.sort_unstable();
     labels.dedup();
     let index = |l: &str| labels.binary_search(&l).expect("label listed");
     let samples: Vec<Vec<f32>> = items.iter().map(|(_, e)| e.to_vec()).collect();
     let ids: Vec<usize> = items.iter().map(|(l, _)| index(l)).collect();
-    Dlda::train(&samples, &ids, params)
+    crate::dlda::train(&samples, &ids, params)
 }
 
 /// Genuine and impostor scores of all pairs among `items` (label, embedding).

@@ -517,7 +517,7 @@ pub struct CrossoverRow {
 /// C-ASM against the 3D-ASM on turned renders of held-out faces: every near-frontal photo
 /// (|yaw| < 10° by the 3DMM fitted to its manual landmarks) of `test` is fitted by the 3DMM,
 /// textured and rendered at each of [`CROSSOVER_YAWS`] (its pitch, no roll, no lighting change) by
-/// the 3D-ASM training's renderer (`asm3d::synthesise_view`, landmarks = projected model points
+/// the 3D-ASM training's renderer (`asm3d_synth::synthesise_view`, landmarks = projected model points
 /// moved by the photo's annotation residual); both searches start from the detector's box on the
 /// render. Rows by |yaw|. (The renders favour the 3D-ASM, whose view models were trained on
 /// renders of other persons.)

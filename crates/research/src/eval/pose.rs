@@ -85,9 +85,12 @@ pub fn read_photos(
                 let synthetic = if synthetic_yaws.is_empty() {
                     Vec::new()
                 } else {
-                    pipeline.synthetic_templates(&photo, &analysis, synthetic_yaws).into_iter().map(|s| (s.yaw, s.template)).collect()
+                    crate::synthetic::synthetic_templates(pipeline, &photo, &analysis, synthetic_yaws)
+                        .into_iter()
+                        .map(|s| (s.yaw, s.template))
+                        .collect()
                 };
-                let frontal = if frontal { pipeline.frontal_template(&photo, &analysis) } else { None };
+                let frontal = if frontal { crate::synthetic::frontal_template(pipeline, &photo, &analysis) } else { None };
                 PoseReading { template: Some(analysis.template), yaw: analysis.pose.map(|p| p.yaw), synthetic, frontal }
             }
             Err(_) => PoseReading::default(),
@@ -541,7 +544,7 @@ pub fn render_curve(
             let model = pipeline.face_model.as_ref()?;
             let fit = model.fit(&analysis.landmarks.points, photo.width(), photo.height()).ok()?;
             let poses: Vec<_> = yaws.iter().map(|&yaw| facegate_vision::morph::Pose { yaw, ..fit.pose }).collect();
-            let views = facegate_vision::synthetic::render_at(model, &photo, &fit, &analysis.landmarks.points, &poses);
+            let views = crate::synthetic::render_at(model, &photo, &fit, &analysis.landmarks.points, &poses);
             Some(
                 views
                     .iter()

@@ -115,11 +115,9 @@ pub(super) fn for_each_render(
     fm: &facegate_vision::morph::FaceModel,
     test: &[ImmSample],
     yaws: &[f32],
-    each: &mut dyn FnMut(f32, &facegate_vision::landmarks::asm3d::SyntheticView),
+    each: &mut dyn FnMut(f32, &crate::asm3d_synth::SyntheticView),
 ) -> anyhow::Result<()> {
-    use facegate_vision::landmarks::asm3d::{
-        annotation_offsets, background_colour, contour_jaw_vertices, photo_jaw_vertices, synthesise_view,
-    };
+    use crate::asm3d_synth::{annotation_offsets, background_colour, contour_jaw_vertices, photo_jaw_vertices, synthesise_view};
     for sample in test {
         let photo = facegate_core::imaging::open(&sample.image)?;
         let truth = sample.landmarks()?;

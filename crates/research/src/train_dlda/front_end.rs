@@ -136,7 +136,7 @@ impl FrontEnd {
             .iter()
             .map(|&(yaw, pitch)| Pose { yaw: fit.pose.yaw + yaw, pitch: fit.pose.pitch + pitch, roll: fit.pose.roll })
             .collect();
-        Ok(facegate_vision::synthetic::render_at(model, &photo, &fit, &landmarks.points, &poses))
+        Ok(crate::synthetic::render_at(model, &photo, &fit, &landmarks.points, &poses))
     }
 
     /// The image and keypoints the recognizer normalises, as the service's pipeline makes them.

@@ -11,10 +11,11 @@ use std::collections::BTreeMap;
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
+use crate::dlda::DldaParams;
 use crate::eval::verification::{VerificationSummary, eer, summarize};
 use facegate_core::imaging::GrayF32;
 use facegate_vision::recognize::calibration::{CALIBRATED_FMRS, Calibration, EnrolledCalibration, MAX_CALIBRATED_ENROLLMENT};
-use facegate_vision::recognize::dlda::{Dlda, DldaParams};
+use facegate_vision::recognize::dlda::Dlda;
 use facegate_vision::recognize::features::{self, FeatureKind, Region};
 use facegate_vision::recognize::normalize::{self, NormalizeParams};
 use facegate_vision::recognize::template::{Combine, Template};
@@ -193,12 +194,12 @@ fn project_path(
             ys.push(y);
         }
     }
-    let whole = Dlda::train(&xs, &ys, &config.dlda)?;
+    let whole = crate::dlda::train(&xs, &ys, &config.dlda)?;
     let parts = part_indices
         .iter()
         .map(|indices| {
             let local: Vec<Vec<f32>> = xs.iter().map(|x| features::gather(x, indices)).collect();
-            Dlda::train(&local, &ys, &config.dlda)
+            crate::dlda::train(&local, &ys, &config.dlda)
         })
         .collect::<Result<Vec<_>, _>>()?;
     Ok((whole, parts))

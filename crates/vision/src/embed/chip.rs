@@ -11,6 +11,9 @@ use image::RgbImage;
 
 use facegate_core::geometry::{Point, Similarity};
 
+/// The chip type is the networks' input, so it lives with them.
+pub use facegate_nn::FaceChip;
+
 /// dlib's mean face shape (points 36–59 of the 68-point iBUG template, in the unit square of the
 /// face; `dlib/image_transforms/interpolation.h`, Boost Software License): x then y.
 const MEAN_RIGHT_EYE: [[f32; 2]; 6] =
@@ -34,37 +37,6 @@ const MEAN_OUTER_LIPS: [[f32; 2]; 12] = [
 
 /// dlib's chip padding around the mean shape, as a fraction of the face.
 const PADDING: f32 = 0.25;
-
-/// A square RGB chip, row-major, 3 bytes a pixel.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FaceChip {
-    pub size: usize,
-    pub rgb: Vec<u8>,
-}
-
-impl FaceChip {
-    pub fn to_image(&self) -> RgbImage {
-        RgbImage::from_raw(self.size as u32, self.size as u32, self.rgb.clone()).expect("size × size × 3 bytes")
-    }
-
-    /// The chip mirrored left to right.
-    pub fn mirrored(&self) -> FaceChip {
-        let mut rgb = self.rgb.clone();
-        for row in rgb.chunks_exact_mut(self.size * 3) {
-            for x in 0..self.size / 2 {
-                let y = self.size - 1 - x;
-                for k in 0..3 {
-                    row.swap(x * 3 + k, y * 3 + k);
-                }
-            }
-        }
-        FaceChip { size: self.size, rgb }
-    }
-
-    pub fn from_image(img: &RgbImage) -> Option<FaceChip> {
-        (img.width() == img.height()).then(|| FaceChip { size: img.width() as usize, rgb: img.as_raw().clone() })
-    }
-}
 
 fn mean(points: &[[f32; 2]]) -> Point {
     let n = points.len() as f32;
@@ -173,15 +145,6 @@ mod tests {
         assert!((l[1] - r[1]).abs() < 1e-3);
         assert!(((l[0] + r[0]) / 2.0 - m[0]).abs() < 0.5);
         assert!(l[0] < r[0] && m[1] > l[1] + 40.0);
-    }
-
-    #[test]
-    fn mirroring_swaps_columns_and_twice_is_identity() {
-        let img = RgbImage::from_fn(4, 4, |x, y| image::Rgb([x as u8, y as u8, 9]));
-        let chip = FaceChip::from_image(&img).unwrap();
-        let m = chip.mirrored();
-        assert_eq!(&m.rgb[..3], &[3, 0, 9]);
-        assert_eq!(m.mirrored(), chip);
     }
 
     #[test]

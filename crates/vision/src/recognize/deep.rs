@@ -101,7 +101,7 @@ impl DeepRecognizer {
     /// another network than the one in the folder.
     pub fn load(models_dir: &Path) -> Result<DeepRecognizer, RecognizeError> {
         let model = DeepModel::load(&models_dir.join(FILE))?;
-        let path = models_dir.join(crate::embed::weights::FILE);
+        let path = models_dir.join(facegate_nn::weights::FILE);
         let fail = |message: String| RecognizeError::Model { path: path.display().to_string(), message };
         let file = crate::embed::read_file(&path).map_err(|e| fail(e.to_string()))?;
         if file.provenance.sha256 != model.network_sha256 {

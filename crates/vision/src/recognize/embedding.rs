@@ -206,7 +206,7 @@ fn load_member(models_dir: &Path, member: &Member) -> Result<MemberNetwork, Reco
     };
     match &member.network {
         Network::Dlib => {
-            let path = models_dir.join(crate::embed::weights::FILE);
+            let path = models_dir.join(facegate_nn::weights::FILE);
             let fail = |message: String| RecognizeError::Model { path: path.display().to_string(), message };
             let file = crate::embed::read_file(&path).map_err(|e| fail(e.to_string()))?;
             if file.provenance.sha256 != member.sha256 {

@@ -13,7 +13,7 @@
 //!   texture set (SIFT for the 45 internal points, grey-level profiles for the 13 jaw points, two
 //!   pyramid levels), searched by the C-ASM candidate search `search::suggest`; the bin used at each
 //!   iteration is the one nearest to the current yaw of the 3D fit.
-//! - **Synthetic training views** ([`synth`]; trained by `research::train_asm3d`): each annotated training photo is fitted by the 3DMM with its
+//! - **Synthetic training views** (`research::asm3d_synth`, for `research::train_asm3d`): each annotated training photo is fitted by the 3DMM with its
 //!   manual landmarks, its texture extracted (symmetry completed), and the textured shape rendered at
 //!   every bin's yaw (with a random horizontal illumination gradient); the landmarks of the renders
 //!   are the projected model points, exact by construction. The photo itself also trains the bin of
@@ -33,15 +33,11 @@
 //!   which [`Asm3dLandmarker::fit_from_detector`] starts on heads turned past
 //!   [`DETECTOR_SEED_MIN_YAW`].
 
-mod jaw;
 mod landmarker;
 mod pdm3d;
-mod synth;
 
-pub use jaw::*;
 pub use landmarker::*;
 pub use pdm3d::*;
-pub use synth::*;
 
 use serde::{Deserialize, Serialize};
 

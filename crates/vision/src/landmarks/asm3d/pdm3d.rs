@@ -3,7 +3,6 @@
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
-use crate::landmarks::pdm::principal_modes;
 use crate::morph::{Camera, fit::estimate_camera};
 use facegate_core::geometry::Point;
 
@@ -28,31 +27,6 @@ pub struct Fit3d {
 }
 
 impl Pdm3d {
-    /// PCA of 3D point sets (no alignment: all are in the 3DMM's frame), keeping `variance` of the
-    /// total.
-    pub fn train(shapes: &[Vec<[f32; 3]>], variance: f64, constrain: f32) -> Pdm3d {
-        let n = shapes[0].len();
-        let dim = 3 * n;
-        let count = shapes.len() as f64;
-        let mut mean = vec![0.0f64; dim];
-        for s in shapes {
-            for (i, p) in s.iter().enumerate() {
-                for d in 0..3 {
-                    mean[3 * i + d] += p[d] as f64 / count;
-                }
-            }
-        }
-        let (basis, eigenvalues) = principal_modes(dim, shapes, variance, |s: &Vec<[f32; 3]>, x| {
-            for (i, p) in s.iter().enumerate() {
-                for d in 0..3 {
-                    x[3 * i + d] = p[d] as f64 - mean[3 * i + d];
-                }
-            }
-        });
-        let mean = mean.chunks_exact(3).map(|c| [c[0] as f32, c[1] as f32, c[2] as f32]).collect();
-        Pdm3d { mean, basis, eigenvalues, constrain }
-    }
-
     pub fn points(&self) -> usize {
         self.mean.len()
     }

@@ -7,7 +7,7 @@
 //! folded into the convolution or dense layer before it (or, after a PReLU, into the dense layer
 //! after the flatten), the input's scalar Sub/Mul into the input conversion, and the flatten's
 //! channel-first order into the dense layer's rows. Activations are channels-last; a convolution is
-//! one matrix product ([`super::net::conv`], shared with dlib's network), a depthwise convolution a
+//! one matrix product ([`crate::conv::conv`], shared with dlib's network), a depthwise convolution a
 //! loop over taps whose inner loop runs along the channels. A graph with anything else is not
 //! taken ([`ChainNet::from_onnx`] answers `None`) and runs in tract.
 
@@ -18,9 +18,9 @@ use faer::linalg::matmul::matmul;
 use faer::{Accum, MatMut, MatRef, Par};
 use tract_onnx::pb::{GraphProto, NodeProto, TensorProto};
 
-use super::int8::{self, Epilogue, Int8Weights, Quantisation};
-use super::net::{Act, Arithmetic, Cols, FoldedConv, conv, int8_weights};
-use super::weights::Conv;
+use crate::conv::{Act, Arithmetic, Cols, FoldedConv, conv, int8_weights};
+use crate::int8::{self, Epilogue, Int8Weights, Quantisation};
+use crate::weights::Conv;
 
 /// A convolution as the ONNX file gives it (filters × channels/group × k × k), before folding.
 struct RawConv {

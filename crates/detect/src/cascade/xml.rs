@@ -5,7 +5,7 @@
 use std::path::Path;
 
 use super::{Cascade, Feature, Node, Stage, Weak, model_error};
-use crate::detect::DetectError;
+use crate::DetectError;
 
 impl Cascade {
     pub fn load(path: &Path) -> Result<Cascade, DetectError> {

@@ -7,17 +7,17 @@
 //!
 //! The integer sums are exact, so the VNNI kernel and the portable one ([`matmul_portable`], the
 //! tests' reference) give the same bits. A CPU without VNNI keeps the float path
-//! ([`super::net::Arithmetic::detect`]); the two differ by the quantisation only (measured in
+//! ([`crate::Arithmetic::detect`]); the two differ by the quantisation only (measured in
 //! docs/speed.md: same EER, cosine to the float embedding above 0.99).
 
 /// Filters per block: one 512-bit register of `i32` sums.
 const LANES: usize = 16;
 
 /// A convolution's `(k·k·c) × filters` weights in `i8`, laid out for the kernel.
-pub(super) struct Int8Weights {
+pub(crate) struct Int8Weights {
     filters: usize,
     /// The product's depth, `k·k·c` rounded up to a multiple of 4 (the padding is zero).
-    pub(super) depth: usize,
+    pub(crate) depth: usize,
     /// `[block][depth / 4][LANES][4]`: for one block of 16 filters, four consecutive depths of
     /// each filter are one `i32` lane, as `vpdpbusd` takes them.
     packed: Vec<i8>,
@@ -29,7 +29,7 @@ pub(super) struct Int8Weights {
 
 impl Int8Weights {
     /// Quantises `rhs` (`depth × filters`, row-major, as the float product takes it).
-    pub(super) fn new(rhs: &[f32], depth: usize, filters: usize) -> Int8Weights {
+    pub(crate) fn new(rhs: &[f32], depth: usize, filters: usize) -> Int8Weights {
         assert_eq!(rhs.len(), depth * filters);
         let blocks = filters.div_ceil(LANES);
         let padded_depth = depth.div_ceil(4) * 4;
@@ -62,16 +62,16 @@ impl Int8Weights {
 
 /// How a tensor's floats became bytes: `value ≈ (byte − zero) · step`.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub(super) struct Quantisation {
-    pub(super) step: f32,
-    pub(super) zero: u8,
+pub(crate) struct Quantisation {
+    pub(crate) step: f32,
+    pub(crate) zero: u8,
 }
 
 impl Quantisation {
     /// The quantisation of values in `data`: their range, widened to hold 0 (zero padding is then
     /// exactly the zero point), over the 256 byte values.
     #[inline(always)]
-    pub(super) fn of(data: &[f32]) -> Quantisation {
+    pub(crate) fn of(data: &[f32]) -> Quantisation {
         let (lo, hi) = range(data);
         let (lo, hi) = (lo.min(0.0), hi.max(0.0));
         let step = if hi > lo { (hi - lo) / 255.0 } else { 1.0 };
@@ -81,7 +81,7 @@ impl Quantisation {
     /// The quantisation of `data` and its bytes in `out`, resized to `len` (at least the data's
     /// length; the rest zero: the padding a product's depth may need).
     #[inline(always)]
-    pub(super) fn into_bytes(data: &[f32], out: &mut Vec<u8>, len: usize) -> Quantisation {
+    pub(crate) fn into_bytes(data: &[f32], out: &mut Vec<u8>, len: usize) -> Quantisation {
         let quantisation = Quantisation::of(data);
         out.resize(len, 0);
         out[data.len()..].fill(0);
@@ -90,7 +90,7 @@ impl Quantisation {
     }
 
     /// Writes the bytes of `data` into `out`.
-    pub(super) fn apply(&self, data: &[f32], out: &mut [u8]) {
+    pub(crate) fn apply(&self, data: &[f32], out: &mut [u8]) {
         let (inv, zero) = (1.0 / self.step, self.zero as f32 + 0.5);
         #[cfg(target_arch = "x86_64")]
         if vnni() {
@@ -131,15 +131,15 @@ fn range(data: &[f32]) -> (f32, f32) {
 }
 
 /// What turns a row's `i32` sums into the layer's output floats.
-pub(super) struct Epilogue<'a> {
-    pub(super) input: Quantisation,
-    pub(super) bias: &'a [f32],
-    pub(super) relu: bool,
+pub(crate) struct Epilogue<'a> {
+    pub(crate) input: Quantisation,
+    pub(crate) bias: &'a [f32],
+    pub(crate) relu: bool,
 }
 
 /// `out[r][o] = epilogue(Σ_d rows[r][d] · w[d][o])` for `rows` (`m × w.depth` bytes, row-major)
 /// and `out` (`m × filters` floats), on this CPU's fastest kernel.
-pub(super) fn matmul(rows: &[u8], m: usize, w: &Int8Weights, e: &Epilogue, out: &mut [f32]) {
+pub(crate) fn matmul(rows: &[u8], m: usize, w: &Int8Weights, e: &Epilogue, out: &mut [f32]) {
     assert!(rows.len() >= m * w.depth && out.len() >= m * w.filters && e.bias.len() >= w.filters);
     #[cfg(target_arch = "x86_64")]
     if vnni() {
@@ -150,7 +150,7 @@ pub(super) fn matmul(rows: &[u8], m: usize, w: &Int8Weights, e: &Epilogue, out: 
 }
 
 /// The same product, one multiply-add at a time.
-pub(super) fn matmul_portable(rows: &[u8], m: usize, w: &Int8Weights, e: &Epilogue, out: &mut [f32]) {
+pub(crate) fn matmul_portable(rows: &[u8], m: usize, w: &Int8Weights, e: &Epilogue, out: &mut [f32]) {
     for r in 0..m {
         let row = &rows[r * w.depth..(r + 1) * w.depth];
         for o in 0..w.filters {
@@ -187,7 +187,7 @@ mod x86 {
 
     /// [`super::quantise`], sixteen values at a time (the float-to-byte cast does not vectorise).
     #[target_feature(enable = "avx512f,avx512bw,fma")]
-    pub(super) unsafe fn quantise_avx512(data: &[f32], out: &mut [u8], inv: f32, zero: f32) {
+    pub(crate) unsafe fn quantise_avx512(data: &[f32], out: &mut [u8], inv: f32, zero: f32) {
         let n = data.len().min(out.len());
         let (vi, vz, lo, hi) = (_mm512_set1_ps(inv), _mm512_set1_ps(zero), _mm512_setzero_ps(), _mm512_set1_ps(255.0));
         let mut i = 0;
@@ -204,7 +204,7 @@ mod x86 {
     }
 
     #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
-    pub(super) unsafe fn matmul_vnni(rows: &[u8], m: usize, w: &Int8Weights, e: &Epilogue, out: &mut [f32]) {
+    pub(crate) unsafe fn matmul_vnni(rows: &[u8], m: usize, w: &Int8Weights, e: &Epilogue, out: &mut [f32]) {
         // Tiles of six rows × blocks of 16 filters (at most 24 sums held in registers), then the
         // rows left one at a time.
         let mut r = 0;

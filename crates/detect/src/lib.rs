@@ -48,10 +48,10 @@ pub const YUNET_MODEL: &str = "yunet.onnx";
 
 /// Copies compiled into the binary, used when the models folder does not hold the files (so the
 /// service and the CLI work from any directory).
-pub const EMBEDDED_FRONTAL: &str = include_str!("../../../../models/cascades/haarcascade_frontalface_alt2.xml");
-pub const EMBEDDED_PROFILE: &str = include_str!("../../../../models/cascades/haarcascade_profileface.xml");
-pub const EMBEDDED_SEETA: &[u8] = include_bytes!("../../../../models/cascades/seeta_fd_frontal_v1.0.bin");
-pub const EMBEDDED_YUNET: &[u8] = include_bytes!("../../../../models/yunet.onnx");
+pub const EMBEDDED_FRONTAL: &str = include_str!("../../../models/cascades/haarcascade_frontalface_alt2.xml");
+pub const EMBEDDED_PROFILE: &str = include_str!("../../../models/cascades/haarcascade_profileface.xml");
+pub const EMBEDDED_SEETA: &[u8] = include_bytes!("../../../models/cascades/seeta_fd_frontal_v1.0.bin");
+pub const EMBEDDED_YUNET: &[u8] = include_bytes!("../../../models/yunet.onnx");
 
 /// Which detector to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]

@@ -178,7 +178,7 @@ pub fn complete_symmetry(reference: &[u32], mean: &[f32]) -> Vec<u32> {
 
 /// The committed, data-derived correspondence (`models/imm_to_sfm.txt`, written by
 /// `facegate train imm-sfm`): one `imm_index vertex_id` per line for the fixed IMM points.
-pub const DERIVED_TABLE: &str = include_str!("../../../../models/imm_to_sfm.txt");
+pub const DERIVED_TABLE: &str = include_str!("../../../models/imm_to_sfm.txt");
 
 /// Parse a correspondence table over `fallback` (the geometric anchors resolved on the mean).
 pub fn parse_table(text: &str, vertex_count: usize, fallback: [u32; IMM_POINTS]) -> Result<[u32; IMM_POINTS], String> {

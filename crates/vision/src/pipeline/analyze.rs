@@ -1,0 +1,312 @@
+//! The pipeline proper: the stages assembled, from a photo to a template, its quality and liveness
+//! ([`Pipeline::analyze`]), or to every face's reading without a template ([`Pipeline::read_faces`]).
+
+use std::time::Instant;
+
+use facegate_core::elapsed_ms;
+use facegate_core::imaging::Photo;
+use serde::Serialize;
+
+use super::finder::FaceFinder;
+use super::input::{RecognitionInput, load_face_model, quality_components, recognition_input, reconstruct};
+use super::{PipelineConfig, PipelineError, TWO_D_MODEL_FILE};
+use crate::detect::Face;
+use crate::landmarks::Landmarks;
+use crate::liveness::{Liveness, LivenessModel};
+use crate::morph::key_points::HIDDEN_SIDE_YAW;
+use crate::morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, FittedFace, Pose};
+use crate::quality::{Quality, QualityModel};
+use crate::recognize::{
+    ClassicalRecognizer, DeepRecognizer, EmbeddingRecognizer, Normalization, Recognizer, RecognizerKind,
+    Template, Views,
+};
+
+/// Milliseconds spent in each stage of one analysis.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct StageTimings {
+    pub detect_ms: f64,
+    pub landmarks_ms: f64,
+    pub morph_ms: f64,
+    pub template_ms: f64,
+    pub quality_ms: f64,
+    pub liveness_ms: f64,
+}
+
+/// Everything the pipeline learnt about the face it used.
+#[derive(Debug, Clone)]
+pub struct FaceAnalysis {
+    /// The face used: the largest one found.
+    pub face: Face,
+    /// How many faces the detector found.
+    pub faces_found: usize,
+    pub landmarks: Landmarks,
+    /// Head pose from the 3DMM fit, when the model is loaded.
+    pub pose: Option<Pose>,
+    pub template: Template,
+    /// The face image quality components and unified score.
+    pub quality: Quality,
+    /// Live face or printed photo; `None` when no liveness model is loaded.
+    pub liveness: Option<Liveness>,
+    pub timings: StageTimings,
+}
+
+/// Which faces of a photo [`Pipeline::read_faces`] reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FaceChoice {
+    /// The largest face only.
+    #[default]
+    Largest,
+    /// Every face found, largest first.
+    All,
+}
+
+/// One face read in full: where it is, its landmarks, and the 3DMM fit's pose and residual.
+#[derive(Debug, Clone)]
+pub struct FaceReading {
+    pub face: Face,
+    pub landmarks: Landmarks,
+    /// Head pose from the 3DMM fit; `None` when the model is not loaded or the fit failed.
+    pub pose: Option<Pose>,
+    /// RMS distance in pixels between the landmarks and the fitted model's points.
+    pub fit_residual_px: Option<f32>,
+    /// Per landmark, whether the fitted head shows it to the camera (`None` without a fit).
+    pub visible: Option<Vec<bool>>,
+    pub quality: Quality,
+    /// Live face or printed photo; `None` when no liveness model is loaded.
+    pub liveness: Option<Liveness>,
+    pub landmarks_ms: f64,
+    pub morph_ms: f64,
+}
+
+/// What [`Pipeline::read_faces`] found in a photo.
+#[derive(Debug, Clone)]
+pub struct PhotoReading {
+    pub faces_found: usize,
+    /// Largest first: one face or all of them, as asked.
+    pub faces: Vec<FaceReading>,
+    pub detect_ms: f64,
+}
+
+/// The stages assembled: photo → face → landmarks → (3DMM pose correction) → template.
+pub struct Pipeline {
+    pub finder: FaceFinder,
+    /// `None` when the Surrey Face Model is not available: 2D alignment only.
+    pub face_model: Option<FaceModel>,
+    pub recognizer: Recognizer,
+    /// The unified quality score's model (`quality.bin`).
+    pub quality: QualityModel,
+    /// The liveness model (`liveness.bin`); `None` when the file is missing, or when the caller
+    /// has no use for it (the service with liveness off drops it: no time is spent on it).
+    pub liveness: Option<LivenessModel>,
+}
+
+impl Pipeline {
+    /// Load every stage. The deep recognizer is `deep.bin` over `embedding.bin`. The classical
+    /// one is `dlda.bin`; when it was trained on 3DMM frontal renderings and the Surrey Face Model
+    /// is unavailable, the 2D model `dlda-2d.bin` is used instead (with a warning), so that
+    /// templates are never scored against thresholds calibrated for the other normalisation. Every
+    /// model's templates carry its own version, so subjects enrolled under one model are not
+    /// compared with probes of another.
+    pub fn load(config: &PipelineConfig) -> Result<Pipeline, PipelineError> {
+        let finder = FaceFinder::load_with(&config.models_dir, config.detector)?;
+        let face_model = load_face_model(config.sfm_dir.as_deref());
+        let recognizer = match config.recognizer {
+            RecognizerKind::Deep => Recognizer::Deep(Box::new(DeepRecognizer::load(&config.models_dir)?)),
+            RecognizerKind::Classical => Recognizer::Classical(load_classical(config, face_model.is_some())?),
+            kind @ (RecognizerKind::Sface | RecognizerKind::Fusion | RecognizerKind::Custom) => {
+                let file = kind.embedding_model_file().expect("an embedding recognizer");
+                Recognizer::Embedding(Box::new(EmbeddingRecognizer::load(&config.models_dir, file)?), kind)
+            }
+        };
+        let quality = QualityModel::load(&config.models_dir.join(crate::quality::FILE))?;
+        let liveness_path = config.models_dir.join(crate::liveness::FILE);
+        let liveness = if liveness_path.exists() { Some(LivenessModel::load(&liveness_path)?) } else { None };
+        Ok(Pipeline { finder, face_model, recognizer, quality, liveness })
+    }
+
+    /// Detect, landmark, pose-correct and template the largest face of `photo`.
+    pub fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
+        let mut timings = StageTimings::default();
+        let t = Instant::now();
+        let faces = self.finder.detect(&photo.gray);
+        timings.detect_ms = elapsed_ms(t);
+        let face = *faces.first().ok_or(PipelineError::NoFace)?;
+
+        let t = Instant::now();
+        let landmarks = self.finder.landmarks_of(&photo.gray, &face);
+        timings.landmarks_ms = elapsed_ms(t);
+
+        let (template, pose, quality) = match &self.recognizer {
+            Recognizer::Classical(recognizer) => self.classical_template(recognizer, photo, &landmarks, &mut timings)?,
+            _ => self.embedding_template(photo, &face, &landmarks, &mut timings)?,
+        };
+        let t = Instant::now();
+        let liveness = self.liveness_of(photo, &landmarks);
+        timings.liveness_ms = elapsed_ms(t);
+        Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, template, quality, liveness, timings })
+    }
+
+    /// The deep recognizers' template (dlib's network, SFace, their fusion, a user's network)
+    /// with the head pose and the quality.
+    fn embedding_template(
+        &self,
+        photo: &Photo,
+        face: &Face,
+        landmarks: &Landmarks,
+        timings: &mut StageTimings,
+    ) -> Result<(Template, Option<Pose>, Quality), PipelineError> {
+        // The networks see the photo itself (the 3DMM frontal rendering measured worse as the
+        // dlib network's input: docs/recognition.md); the fit still reports the head pose.
+        let t = Instant::now();
+        let mut input = recognition_input(self.face_model.as_ref(), photo, landmarks, Normalization::TwoD)?;
+        if let Some(fit) = self.profile_fit(photo, face) {
+            (input.pose, input.fit_residual_px) = (Some(fit.pose), Some(fit.residual_px));
+        }
+        timings.morph_ms = elapsed_ms(t);
+        let t = Instant::now();
+        // The quality components are measured on dlib's chip whichever network embeds.
+        let chip = crate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
+        let (template, mirror) = match &self.recognizer {
+            Recognizer::Embedding(recognizer, _) => {
+                let embedded = recognizer.embed(&photo.rgb, &landmarks.keypoints, face.points.as_ref(), Some(&chip));
+                (embedded.template, embedded.dlib_pair)
+            }
+            Recognizer::Deep(deep) => {
+                let (template, mirror) = deep.template_and_mirror_pair(&chip);
+                (template, Some(mirror))
+            }
+            Recognizer::Classical(recognizer) => return self.classical_template(recognizer, photo, landmarks, timings),
+        };
+        timings.template_ms = elapsed_ms(t);
+        let t = Instant::now();
+        let components = crate::quality::components(&chip, &landmarks.keypoints, input.pose, input.fit_residual_px);
+        let components = match &mirror {
+            Some(mirror) => components.with_mirror(mirror),
+            None => components,
+        };
+        let quality = self.quality.assess(components);
+        timings.quality_ms = elapsed_ms(t);
+        Ok((template, input.pose, quality))
+    }
+
+    /// Every face of `photo` (or the largest) with its landmarks and 3DMM fit; no template is made.
+    pub fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError> {
+        let t = Instant::now();
+        let faces = self.finder.detect(&photo.gray);
+        let detect_ms = elapsed_ms(t);
+        if faces.is_empty() {
+            return Err(PipelineError::NoFace);
+        }
+        let wanted = if choice == FaceChoice::All { faces.len() } else { 1 };
+        let readings = faces[..wanted]
+            .iter()
+            .map(|&face| {
+                let t = Instant::now();
+                let landmarks = self.finder.landmarks_of(&photo.gray, &face);
+                let landmarks_ms = elapsed_ms(t);
+                let t = Instant::now();
+                let fit = self
+                    .profile_fit(photo, &face)
+                    .or_else(|| self.face_model.as_ref().and_then(|m| m.fit(&landmarks.points, photo.width(), photo.height()).ok()));
+                let morph_ms = elapsed_ms(t);
+                let (pose, fit_residual_px) = (fit.as_ref().map(|f| f.pose), fit.as_ref().map(|f| f.residual_px));
+                let visible = self.face_model.as_ref().zip(fit.as_ref()).map(|(m, f)| m.landmark_visibility(f));
+                let quality = self.quality.assess(quality_components(photo, &landmarks, pose, fit_residual_px).1);
+                let liveness = self.liveness_of(photo, &landmarks);
+                FaceReading { face, landmarks, pose, fit_residual_px, visible, quality, liveness, landmarks_ms, morph_ms }
+            })
+            .collect();
+        Ok(PhotoReading { faces_found: faces.len(), faces: readings, detect_ms })
+    }
+
+    /// On a head the detector's five points show turned past [`HIDDEN_SIDE_YAW`] whose landmarks
+    /// are the C-ASM's (no profile model loaded), the mean face fitted to those points: there the
+    /// C-ASM's 58 points, and the fit to them, are unreliable. With the profile model's landmarks
+    /// the 3DMM fit to them stands: on renders of held-out faces its yaw was 7–18° off at 60–90°,
+    /// the five-point fit's 18–33° (`facegate eval landmarks`, docs/pose.md).
+    fn profile_fit(&self, photo: &Photo, face: &Face) -> Option<FittedFace> {
+        if self.finder.profile_seeded(face) {
+            return None;
+        }
+        let fit = self.face_model.as_ref()?.fit_key_points(face.points.as_ref()?, photo.width(), photo.height()).ok()?;
+        (fit.pose.yaw.abs() >= HIDDEN_SIDE_YAW).then_some(fit)
+    }
+
+    /// The liveness of the face with `landmarks`, measured where the recognizer cuts its chip.
+    fn liveness_of(&self, photo: &Photo, landmarks: &Landmarks) -> Option<Liveness> {
+        self.liveness.as_ref().map(|model| model.assess(&photo.rgb, &landmarks.keypoints))
+    }
+
+    fn face_model(&self) -> Result<&FaceModel, PipelineError> {
+        self.face_model.as_ref().ok_or(PipelineError::NoFaceModel)
+    }
+
+    /// The textured 3D head of the largest face as a glTF binary file, or the OBJ files zipped: the
+    /// bytes `facegate reconstruct --out avatar.glb` (or the files `--out avatar.obj`) writes for
+    /// the same photo ([`reconstruct`]).
+    pub fn avatar(&self, photo: &Photo, format: AvatarFormat) -> Result<Vec<u8>, PipelineError> {
+        let model = self.face_model()?;
+        let avatar = reconstruct(&self.finder, model, photo, &FitOptions::default(), AVATAR_TEXTURE_SIZE)?;
+        model.avatar_file(&avatar, format).map_err(PipelineError::PoseCorrection)
+    }
+
+    /// The frontal rendering of the largest face as PNG: the bytes `facegate frontalize --out X.png`
+    /// writes for the same photo.
+    pub fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
+        let model = self.face_model()?;
+        let located = self.finder.locate(&photo.gray)?;
+        let fitted = model.fit(&located.landmarks.points, photo.width(), photo.height()).map_err(PipelineError::PoseCorrection)?;
+        Ok(model.frontal_png(photo, &fitted, FRONTAL_VIEW_SIZE).map_err(PipelineError::PoseCorrection)?.1)
+    }
+
+    /// The classical recognizer's template: the 3DMM frontal rendering and/or the 2D-aligned photo,
+    /// normalised, projected.
+    fn classical_template(
+        &self,
+        recognizer: &ClassicalRecognizer,
+        photo: &Photo,
+        landmarks: &Landmarks,
+        timings: &mut StageTimings,
+    ) -> Result<(Template, Option<Pose>, Quality), PipelineError> {
+        let t = Instant::now();
+        let input = recognition_input(self.face_model.as_ref(), photo, landmarks, recognizer.normalization())?;
+        timings.morph_ms = elapsed_ms(t);
+
+        let t = Instant::now();
+        let crop = |input: &RecognitionInput| recognizer.normalized_crop(&input.gray, &input.keypoints);
+        let template = match recognizer.paths().get(1) {
+            // A fused model also sees the face on its second path (2D: the photo itself, no fit).
+            Some(&second) => {
+                let other =
+                    recognition_input(self.face_model.as_ref().filter(|_| second == Normalization::Morph), photo, landmarks, second)?;
+                recognizer.template(Views::Fused { primary: &crop(&input), secondary: &crop(&other) })?
+            }
+            None => recognizer.template(Views::Single(&crop(&input)))?,
+        };
+        timings.template_ms = elapsed_ms(t);
+        // Quality is measured on the deep recognizer's chip here too (one scale for both paths).
+        let t = Instant::now();
+        let quality = self.quality.assess(quality_components(photo, landmarks, input.pose, input.fit_residual_px).1);
+        timings.quality_ms = elapsed_ms(t);
+        Ok((template, input.pose, quality))
+    }
+}
+
+/// `dlda.bin`, or `dlda-2d.bin` when the former needs the 3DMM and it is not loaded.
+fn load_classical(config: &PipelineConfig, have_face_model: bool) -> Result<ClassicalRecognizer, PipelineError> {
+    let mut recognizer = ClassicalRecognizer::load(&config.models_dir)?;
+    if recognizer.normalization() == Normalization::Morph && !have_face_model {
+        let fallback = config.models_dir.join(TWO_D_MODEL_FILE);
+        recognizer = ClassicalRecognizer::load_file(&fallback)?;
+        if recognizer.normalization() != Normalization::TwoD {
+            return Err(PipelineError::NoTwoDModel(fallback.display().to_string()));
+        }
+        tracing::warn!(
+            "recognition uses the 2D model {} ({}): templates enrolled with the 3DMM model are not comparable",
+            fallback.display(),
+            recognizer.model_version()
+        );
+    }
+    Ok(recognizer)
+}
