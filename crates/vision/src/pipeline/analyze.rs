@@ -17,8 +17,7 @@ use crate::morph::key_points::HIDDEN_SIDE_YAW;
 use crate::morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, FittedFace, Pose};
 use crate::quality::{Quality, QualityModel};
 use crate::recognize::{
-    ClassicalRecognizer, DeepRecognizer, EmbeddingRecognizer, Normalization, Recognizer, RecognizerKind,
-    Template, Views,
+    ClassicalRecognizer, DeepRecognizer, EmbeddingRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views,
 };
 
 /// Milliseconds spent in each stage of one analysis.

@@ -27,10 +27,10 @@ use sha2::{Digest, Sha256};
 pub use calibration::{Calibration, DEFAULT_FMR, EnrolledCalibration, MAX_CALIBRATED_ENROLLMENT};
 pub use classical::{ClassicalModel, ClassicalRecognizer, LocalPart, MODEL_FILE, Provenance, SecondaryPath};
 pub use dlda::Dlda;
+pub use facegate_core::template::OperatingPoint;
 pub use features::{FeatureKind, Region};
 pub use normalize::{NormalizeParams, Photometric};
 pub use score_norm::{Cohort, CohortStats};
-pub use facegate_core::template::OperatingPoint;
 pub use template::{Combine, Template};
 
 pub use deep::DeepRecognizer;
