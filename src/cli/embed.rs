@@ -12,7 +12,7 @@ use sha2::Digest;
 use crate::embed::{self, CHIP_SIZE, FaceChip};
 use crate::nn::weights::{self, Provenance};
 use crate::pipeline::{FaceFinder, Pipeline};
-use crate::recognize::deep::{DeepModel, DeepProvenance};
+use crate::recognize::dlib::{DeepProvenance, DlibModel};
 use crate::research::dataset::Split;
 use crate::research::eval::deep::{self as deep_eval, ChipVariant, Scoring};
 use crate::research::eval::verification::VerificationSummary;
@@ -408,7 +408,7 @@ pub fn run_train_deep(args: TrainDeepArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-fn print_calibration(model: &DeepModel) {
+fn print_calibration(model: &DlibModel) {
     for (k, cal) in std::iter::once((1, &model.calibration)).chain(model.enrolled_calibration.iter().map(|t| (t.enrolled, &t.calibration)))
     {
         let points: Vec<String> = cal
@@ -427,7 +427,7 @@ fn print_calibration(model: &DeepModel) {
 /// and ORL held-out): EER and FNMR at FMR 1e-2 / 1e-3, and FNMR / FMR at the model's own
 /// calibrated FMR-1e-3 threshold, one photo enrolled and three.
 pub fn run_eval_verify_deep(model_path: &Path, data: &DeepDataArgs, json: bool) -> anyhow::Result<ExitCode> {
-    let model = DeepModel::load(model_path)?;
+    let model = DlibModel::load(model_path)?;
     let (samples, embeddings) = samples_and_embeddings(data)?;
     if !json {
         println!("{} ({}; calibrated on {})", model.version, model.provenance.trained_on, model.calibration.source);

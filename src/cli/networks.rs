@@ -13,7 +13,7 @@ use crate::research::eval::verification::VerificationSummary;
 use crate::research::train_deep::{self, Sample, Set};
 use crate::research::train_embedding::{self as train, OnnxVariant};
 use facegate_vision::embed::onnx::{Alignment, Channels, Manifest, OnnxEmbedder, Source};
-use facegate_vision::recognize::deep::DeepProvenance;
+use facegate_vision::recognize::dlib::DeepProvenance;
 use facegate_vision::recognize::embedding::{Member, Network};
 
 #[derive(clap::Args, Debug)]

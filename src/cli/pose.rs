@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Args;
 
 use crate::choices;
-use crate::pipeline::{KeypointSource, Pipeline, PipelineConfig};
+use crate::pipeline::{ChipCentres, Pipeline, PipelineConfig};
 use crate::research::eval::plot::{Chart, Scale, Series, line_chart};
 use crate::research::eval::pose::{self, Strategy};
 
@@ -62,12 +62,12 @@ pub struct EvalPoseArgs {
     pub threads: usize,
 }
 
-fn keypoint_source(text: &str) -> anyhow::Result<KeypointSource> {
+fn keypoint_source(text: &str) -> anyhow::Result<ChipCentres> {
     Ok(match text {
-        "landmarks" => KeypointSource::Landmarks,
-        "detector" => KeypointSource::Detector,
+        "landmarks" => ChipCentres::Landmarks,
+        "detector" => ChipCentres::Detector,
         _ => match text.strip_prefix("turned:") {
-            Some(t) => KeypointSource::DetectorWhenTurned(t.parse()?),
+            Some(t) => ChipCentres::DetectorWhenTurned(t.parse()?),
             None => anyhow::bail!("--keypoints: landmarks, detector or turned:T, not {text}"),
         },
     })

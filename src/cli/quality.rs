@@ -7,7 +7,7 @@ use std::process::ExitCode;
 
 use crate::config::Settings;
 use crate::quality::{FEATURE_NAMES, QualityModel};
-use crate::recognize::deep::DeepModel;
+use crate::recognize::dlib::DlibModel;
 use crate::research::eval::plot::{Chart, Scale, Series, line_chart};
 use crate::research::eval::quality::{
     self as research, EdcPoint, Measured, UNIFIED, VARIANTS, edc, genuine_cosine_stats, genuine_match_rates, genuine_pairs, is_held_out,
@@ -110,13 +110,13 @@ fn samples_and_measurements(data: &QualityDataArgs) -> anyhow::Result<(Vec<Sampl
 }
 
 /// The deep model's threshold at FMR 1e-3, one photo enrolled: the service's decision threshold.
-fn threshold(model: &DeepModel) -> f32 {
+fn threshold(model: &DlibModel) -> f32 {
     model.operating_point(1e-3, 1).threshold
 }
 
 pub fn run_train(args: TrainQualityArgs) -> anyhow::Result<ExitCode> {
     let (samples, measured) = samples_and_measurements(&args.data)?;
-    let deep = DeepModel::load(&crate::config::models_dir().join(crate::recognize::deep::FILE))?;
+    let deep = DlibModel::load(&crate::config::models_dir().join(crate::recognize::dlib::FILE))?;
     let photos = scored(&samples, &measured, &deep, &is_training);
     let t = threshold(&deep);
     let trained_on = format!(
@@ -144,7 +144,7 @@ fn discard_shares() -> Vec<f64> {
 pub fn run_eval(args: EvalQualityArgs) -> anyhow::Result<ExitCode> {
     let (samples, measured) = samples_and_measurements(&args.data)?;
     let models = crate::config::models_dir();
-    let deep = DeepModel::load(&models.join(crate::recognize::deep::FILE))?;
+    let deep = DlibModel::load(&models.join(crate::recognize::dlib::FILE))?;
     let model = QualityModel::load(&args.model.clone().unwrap_or_else(|| models.join(crate::quality::FILE)))?;
     let t = threshold(&deep);
     println!("{} at its FMR 1e-3 threshold {t}; unified score: {}", deep.version, model.trained_on);
@@ -200,7 +200,7 @@ pub fn run_eval(args: EvalQualityArgs) -> anyhow::Result<ExitCode> {
 /// out-of-fold scores on LFW's training persons, beside each single component's on the same photos.
 pub fn run_eval_cv(args: EvalQualityCvArgs) -> anyhow::Result<ExitCode> {
     let (samples, measured) = samples_and_measurements(&args.data)?;
-    let deep = DeepModel::load(&crate::config::models_dir().join(crate::recognize::deep::FILE))?;
+    let deep = DlibModel::load(&crate::config::models_dir().join(crate::recognize::dlib::FILE))?;
     let t = threshold(&deep);
     // IMM's and ORL's training persons first, then LFW's: the characteristic is read on LFW's.
     let mut photos = scored(&samples, &measured, &deep, &|s| is_training(s) && s.set != Set::Lfw);

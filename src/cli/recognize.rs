@@ -434,7 +434,7 @@ const ENROLLED_PHOTOS: [usize; 4] = [1, 2, 3, 5];
 
 pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
     if RecognizerKind::from(args.recognizer) == RecognizerKind::Deep {
-        let path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::deep::FILE));
+        let path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::dlib::FILE));
         return crate::cli::embed::run_eval_verify_deep(&path, &args.deep, args.json);
     }
     if let Some(file) = RecognizerKind::from(args.recognizer).embedding_model_file() {

@@ -1,10 +1,10 @@
 //! The deep recognizer's data and calibration: IMM, ORL and LFW with a person-disjoint split
 //! (LFW split by a hash of the name), the embeddings of every photo through the service's own
-//! front end ([`FaceFinder`], then [`facegate_vision::embed::face_embedding`] as [`DeepRecognizer`]
+//! front end ([`FaceFinder`], then [`facegate_vision::embed::face_embedding`] as [`DlibRecognizer`]
 //! computes them), kept in the research cache ([`crate::cache`]), and the threshold tables per
 //! enrolment size that `facegate train deep` writes into the model.
 //!
-//! [`DeepRecognizer`]: facegate_vision::recognize::DeepRecognizer
+//! [`DlibRecognizer`]: facegate_vision::recognize::DlibRecognizer
 
 use std::path::{Path, PathBuf};
 
@@ -18,7 +18,7 @@ use facegate_vision::embed::{Embedder, face_embedding};
 use facegate_vision::morph::FaceModel;
 use facegate_vision::pipeline::{FaceFinder, load_face_model};
 use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
-use facegate_vision::recognize::deep::{ChipSource, DeepModel, DeepProvenance, FORMAT};
+use facegate_vision::recognize::dlib::{ChipSource, DeepProvenance, DlibModel, FORMAT};
 use facegate_vision::recognize::template::Combine;
 use facegate_vision::recognize::{Calibration, Dlda, EnrolledCalibration, MAX_CALIBRATED_ENROLLMENT};
 
@@ -184,9 +184,9 @@ pub fn train(
     projection: Option<Dlda>,
     network_sha256: &str,
     provenance: DeepProvenance,
-) -> DeepModel {
-    let version = DeepModel::version_of(projection.as_ref(), ChipSource::Photo, network_sha256);
-    let mut model = DeepModel {
+) -> DlibModel {
+    let version = DlibModel::version_of(projection.as_ref(), ChipSource::Photo, network_sha256);
+    let mut model = DlibModel {
         format: FORMAT,
         version,
         network_sha256: network_sha256.to_string(),

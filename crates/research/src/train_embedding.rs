@@ -15,7 +15,7 @@ use super::eval::verification::{VerificationSummary, summarize};
 use super::train_deep::{PhotoEmbeddings, Sample, Set, cache_id, is_calibration};
 use facegate_vision::embed::onnx::OnnxEmbedder;
 use facegate_vision::pipeline::FaceFinder;
-use facegate_vision::recognize::deep::DeepProvenance;
+use facegate_vision::recognize::dlib::DeepProvenance;
 use facegate_vision::recognize::embedding::{EmbeddingModel, FORMAT, Member, Network, fuse};
 
 /// One photo through an ONNX network: the unit embedding of the face aligned by the detector's

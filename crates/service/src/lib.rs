@@ -105,7 +105,7 @@ impl Matcher for Recognizer {
         Recognizer::operating_point(self, fmr, enrolled)
     }
     fn max_cosine_scoring(&self) -> bool {
-        // The deep recognizers' score is the best cosine (`DeepRecognizer::score`); the classical
+        // The deep recognizers' score is the best cosine (`DlibRecognizer::score`); the classical
         // one may S-normalise against a cohort and average, so it keeps its own `score`.
         matches!(self, Recognizer::Deep(_) | Recognizer::Embedding(..))
     }

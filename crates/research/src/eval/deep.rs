@@ -15,7 +15,7 @@ use facegate_vision::embed::{CHIP_SIZE, Embedder, Embedding, chip};
 use facegate_vision::pipeline::FaceFinder;
 use facegate_vision::recognize::Dlda;
 use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
-use facegate_vision::recognize::deep::DeepModel;
+use facegate_vision::recognize::dlib::DlibModel;
 use facegate_vision::recognize::template::Combine;
 
 /// How two embeddings are scored (higher: more alike).
@@ -206,7 +206,7 @@ pub fn held_out_sets() -> [(&'static str, Box<dyn Fn(&Sample) -> bool>); 6] {
 
 /// The deep model on each held-out set (LFW test persons, IMM and ORL held-out persons): one photo
 /// against one, and `k` = 3 photos enrolled per person (the best of the set).
-pub fn held_out_report(model: &DeepModel, samples: &[Sample], embeddings: &[PhotoEmbeddings]) -> Vec<HeldOutLine> {
+pub fn held_out_report(model: &DlibModel, samples: &[Sample], embeddings: &[PhotoEmbeddings]) -> Vec<HeldOutLine> {
     let templates: Vec<Option<Vec<f32>>> = embeddings
         .iter()
         .map(|e| e.photo.as_ref().map(|v| model.template(&Embedding(v.as_slice().try_into().expect("128"))).vector))

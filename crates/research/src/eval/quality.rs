@@ -100,7 +100,7 @@ pub struct Scored<'a> {
 pub fn scored<'a>(
     samples: &'a [Sample],
     measured: &[Option<Measured>],
-    model: &facegate_vision::recognize::deep::DeepModel,
+    model: &facegate_vision::recognize::dlib::DlibModel,
     keep: &dyn Fn(&Sample) -> bool,
 ) -> Vec<Scored<'a>> {
     samples

@@ -17,7 +17,7 @@ use crate::morph::key_points::HIDDEN_SIDE_YAW;
 use crate::morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, FittedFace, Pose};
 use crate::quality::{Quality, QualityModel};
 use crate::recognize::{
-    ClassicalRecognizer, DeepRecognizer, EmbeddingRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views,
+    ClassicalRecognizer, DlibRecognizer, EmbeddingRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views,
 };
 
 /// Milliseconds spent in each stage of one analysis.
@@ -111,7 +111,7 @@ impl Pipeline {
         let finder = FaceFinder::load_with(&config.models_dir, config.detector)?;
         let face_model = load_face_model(config.sfm_dir.as_deref());
         let recognizer = match config.recognizer {
-            RecognizerKind::Deep => Recognizer::Deep(Box::new(DeepRecognizer::load(&config.models_dir)?)),
+            RecognizerKind::Deep => Recognizer::Deep(Box::new(DlibRecognizer::load(&config.models_dir)?)),
             RecognizerKind::Classical => Recognizer::Classical(load_classical(config, face_model.is_some())?),
             kind @ (RecognizerKind::Sface | RecognizerKind::Fusion | RecognizerKind::Custom) => {
                 let file = kind.embedding_model_file().expect("an embedding recognizer");

@@ -26,7 +26,7 @@ pub struct FaceFinder {
     /// missing.
     pub profile: Option<Asm3dLandmarker>,
     /// Where the eye and mouth centres the chip is cut at come from.
-    pub keypoints: KeypointSource,
+    pub keypoints: ChipCentres,
     /// |yaw| (degrees) of the detector's five points from which the 3D-ASM is seeded by them
     /// ([`Asm3dLandmarker::fit_from_detector`]) instead of by the C-ASM; `None`: never.
     pub detector_seed_min_yaw: Option<f32>,
@@ -35,7 +35,7 @@ pub struct FaceFinder {
 /// Where the recognizer's eye and mouth centres come from, for a face whose detector gave its own
 /// five points (YuNet); faces without them always take the landmarks'.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub enum KeypointSource {
+pub enum ChipCentres {
     /// The 58 landmarks' eye and mouth centres.
     Landmarks,
     /// The detector's eyes and the middle of its mouth corners.
@@ -45,9 +45,9 @@ pub enum KeypointSource {
     DetectorWhenTurned(f32),
 }
 
-impl Default for KeypointSource {
+impl Default for ChipCentres {
     fn default() -> Self {
-        KeypointSource::Landmarks
+        ChipCentres::Landmarks
     }
 }
 
@@ -108,7 +108,7 @@ impl FaceFinder {
             landmarker,
             asm3d,
             profile,
-            keypoints: KeypointSource::default(),
+            keypoints: ChipCentres::default(),
             detector_seed_min_yaw: Some(DETECTOR_SEED_MIN_YAW),
         })
     }
@@ -145,9 +145,9 @@ impl FaceFinder {
         }
         if let Some(points) = &face.points {
             let use_detector = match self.keypoints {
-                KeypointSource::Landmarks => false,
-                KeypointSource::Detector => true,
-                KeypointSource::DetectorWhenTurned(turn) => detector_turn(points).abs() >= turn,
+                ChipCentres::Landmarks => false,
+                ChipCentres::Detector => true,
+                ChipCentres::DetectorWhenTurned(turn) => detector_turn(points).abs() >= turn,
             };
             if use_detector {
                 landmarks.keypoints = detector_keypoints(points);

@@ -12,7 +12,7 @@ use image::RgbImage;
 use serde::{Deserialize, Serialize};
 
 use super::calibration::{Calibration, EnrolledCalibration};
-use super::deep::DeepProvenance;
+use super::dlib::DeepProvenance;
 use super::template::Combine;
 use super::{OperatingPoint, RecognizeError, Template};
 use crate::embed::onnx::OnnxEmbedder;

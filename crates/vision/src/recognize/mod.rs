@@ -12,8 +12,8 @@
 
 pub mod calibration;
 pub mod classical;
-pub mod deep;
 pub mod dlda;
+pub mod dlib;
 pub mod embedding;
 pub mod features;
 pub mod normalize;
@@ -33,7 +33,7 @@ pub use normalize::{NormalizeParams, Photometric};
 pub use score_norm::{Cohort, CohortStats};
 pub use template::{Combine, Template};
 
-pub use deep::DeepRecognizer;
+pub use dlib::DlibRecognizer;
 pub use embedding::EmbeddingRecognizer;
 pub use recognizer::{Recognizer, RecognizerKind};
 

@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{ClassicalRecognizer, DeepRecognizer, EmbeddingRecognizer, OperatingPoint, Template};
+use super::{ClassicalRecognizer, DlibRecognizer, EmbeddingRecognizer, OperatingPoint, Template};
 
 /// Which recognizer makes the templates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -38,7 +38,7 @@ impl RecognizerKind {
 /// (the model version on templates, the score, the calibrated operating point).
 pub enum Recognizer {
     Classical(ClassicalRecognizer),
-    Deep(Box<DeepRecognizer>),
+    Deep(Box<DlibRecognizer>),
     /// SFace, the fusion, or a user's networks; `kind` is the value it was loaded as.
     Embedding(Box<EmbeddingRecognizer>, RecognizerKind),
 }

@@ -1,7 +1,8 @@
-//! The deep recognizer's model (`models/deep.bin`): which chip feeds the embedding network, the
-//! Direct LDA projection trained over embeddings, the calibrated thresholds per enrolment size,
-//! and the model version its templates carry. The network itself is `models/embedding.bin`
-//! ([`crate::embed`]); this file is bound to it by the SHA-256 of the package file it came from.
+//! dlib's network as a recognizer alone (`--recognizer deep`, `models/deep.bin`): which chip feeds
+//! the network, the Direct LDA projection trained over its embeddings, the calibrated thresholds
+//! per enrolment size, and the model version its templates carry. The network itself is
+//! `models/embedding.bin` ([`crate::embed`]); this file is bound to it by the SHA-256 of the
+//! package file it came from.
 
 use std::path::Path;
 
@@ -36,7 +37,7 @@ pub struct DeepProvenance {
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct DeepModel {
+pub struct DlibModel {
     pub format: u32,
     /// `deep-` and the first 12 hex digits of the SHA-256 of the projection and chip source:
     /// templates of different versions are never compared.
@@ -53,15 +54,15 @@ pub struct DeepModel {
     pub provenance: DeepProvenance,
 }
 
-impl DeepModel {
+impl DlibModel {
     /// The version string of a projection and chip source.
     pub fn version_of(projection: Option<&Dlda>, chip_source: ChipSource, network_sha256: &str) -> String {
         super::model_version("deep", &postcard::to_stdvec(&(projection, chip_source, network_sha256)).expect("serialisable"))
     }
 
-    pub fn load(path: &Path) -> Result<DeepModel, RecognizeError> {
+    pub fn load(path: &Path) -> Result<DlibModel, RecognizeError> {
         let fail = |message: String| RecognizeError::Model { path: path.display().to_string(), message };
-        let model: DeepModel =
+        let model: DlibModel =
             read_model(path, "deep recognition model", FORMAT, "facegate train deep (see models/deep.md)").map_err(fail)?;
         if model.projection.as_ref().is_some_and(|d| !d.accepts(crate::embed::EMBEDDING_DIMS)) {
             return Err(fail("the projection does not take 128-value embeddings".into()));
@@ -91,16 +92,16 @@ impl DeepModel {
 /// The deep recognizer: the embedding network and its model, with what makes a template of a
 /// photo: the chip cut at the landmarks' eye and mouth centres, the mirror-averaged embedding, the
 /// model's projection (none by default), a unit vector tagged with the model version.
-pub struct DeepRecognizer {
-    pub model: DeepModel,
+pub struct DlibRecognizer {
+    pub model: DlibModel,
     pub network: Embedder,
 }
 
-impl DeepRecognizer {
+impl DlibRecognizer {
     /// `deep.bin` and `embedding.bin` of `models_dir`; refused when the model was calibrated on
     /// another network than the one in the folder.
-    pub fn load(models_dir: &Path) -> Result<DeepRecognizer, RecognizeError> {
-        let model = DeepModel::load(&models_dir.join(FILE))?;
+    pub fn load(models_dir: &Path) -> Result<DlibRecognizer, RecognizeError> {
+        let model = DlibModel::load(&models_dir.join(FILE))?;
         let path = models_dir.join(facegate_nn::weights::FILE);
         let fail = |message: String| RecognizeError::Model { path: path.display().to_string(), message };
         let file = crate::embed::read_file(&path).map_err(|e| fail(e.to_string()))?;
@@ -111,7 +112,7 @@ impl DeepRecognizer {
             )));
         }
         let network = Embedder::new(&file).map_err(|e| fail(e.to_string()))?;
-        Ok(DeepRecognizer { model, network })
+        Ok(DlibRecognizer { model, network })
     }
 
     pub fn template(&self, photo: &RgbImage, keypoints: &KeyPoints) -> Template {
