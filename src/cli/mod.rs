@@ -18,7 +18,11 @@ pub mod serve;
 pub mod store;
 
 #[derive(Parser, Debug)]
-#[command(name = "facegate", version, about = "Face verification: YuNet detection, C-ASM / 3D-ASM landmarks, 3DMM pose, dlib's ResNet and SFace fused, calibrated thresholds, liveness")]
+#[command(
+    name = "facegate",
+    version,
+    about = "Face verification: YuNet detection, C-ASM / 3D-ASM landmarks, 3DMM pose, dlib's ResNet and SFace fused, calibrated thresholds, liveness"
+)]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
