@@ -54,6 +54,9 @@ const DEFAULT_ENROLL_QUEUE: usize = 16;
 const DEFAULT_ADMISSION_WAIT_MS: u64 = 1000;
 const DEFAULT_MAX_BUFFERED_MB: usize = 128;
 const DEFAULT_BODY_TIMEOUT_SECS: f64 = 15.0;
+const DEFAULT_BODY_GRACE_SECS: f64 = 5.0;
+const DEFAULT_MIN_BODY_RATE_KIB: u64 = 8;
+const DEFAULT_MAX_UPLOADS_PER_ADDRESS: usize = 16;
 const DEFAULT_HEADER_TIMEOUT_SECS: f64 = 10.0;
 const DEFAULT_MAX_CONNECTIONS: usize = 1024;
 const DEFAULT_SHUTDOWN_GRACE_SECS: f64 = 10.0;
@@ -124,8 +127,9 @@ pub struct Settings {
     /// Enrolments that may wait for a worker (a queue of their own) before the service answers 503.
     #[arg(long = "enrol-queue", visible_alias = "enroll-queue", value_name = "ENROL_QUEUE", env = "FACEGATE_ENROL_QUEUE", default_value_t = DEFAULT_ENROLL_QUEUE)]
     pub enroll_queue: usize,
-    /// Milliseconds a request waits (its body unread, in arrival order) for a place in a full
-    /// queue before the 503; 0 refuses at once.
+    /// Milliseconds a request waits (in arrival order) before the 503: for room in a full queue
+    /// (its body unread), for a place among its address's arriving bodies, and for its place in
+    /// the queue once its body has arrived; 0 refuses at once.
     #[arg(long, env = "FACEGATE_ADMISSION_WAIT_MS", default_value_t = DEFAULT_ADMISSION_WAIT_MS)]
     pub admission_wait_ms: u64,
     /// Request bodies held in memory at once, in MiB; a request that would exceed it gets 503.
@@ -146,10 +150,21 @@ pub struct Settings {
     /// Request timeout in seconds (answered with 504).
     #[arg(long, env = "FACEGATE_TIMEOUT_SECS", default_value_t = DEFAULT_TIMEOUT_SECS)]
     pub timeout_secs: f64,
-    /// Seconds from admission for the request body to arrive (answered with 408); at most the
-    /// request timeout.
+    /// Seconds from the start of the request body for all of it to arrive (answered with 408); at
+    /// most the request timeout.
     #[arg(long, env = "FACEGATE_BODY_TIMEOUT_SECS", default_value_t = DEFAULT_BODY_TIMEOUT_SECS)]
     pub body_timeout_secs: f64,
+    /// Seconds a request body may take before --min-body-rate-kib applies.
+    #[arg(long, env = "FACEGATE_BODY_GRACE_SECS", default_value_t = DEFAULT_BODY_GRACE_SECS)]
+    pub body_grace_secs: f64,
+    /// Least average rate of a request body after the grace period, KiB/s (answered with 408 when
+    /// slower); 0 checks no rate.
+    #[arg(long, env = "FACEGATE_MIN_BODY_RATE_KIB", default_value_t = DEFAULT_MIN_BODY_RATE_KIB)]
+    pub min_body_rate_kib: u64,
+    /// Request bodies arriving at once from one client address (IPv6: its /64); more wait up to
+    /// the admission wait, then get 503.
+    #[arg(long, env = "FACEGATE_MAX_UPLOADS_PER_ADDRESS", default_value_t = DEFAULT_MAX_UPLOADS_PER_ADDRESS)]
+    pub max_uploads_per_address: usize,
     /// Seconds for a connection to send a complete request head; also the longest a keep-alive
     /// connection stays idle. The connection is closed after it.
     #[arg(long, env = "FACEGATE_HEADER_TIMEOUT_SECS", default_value_t = DEFAULT_HEADER_TIMEOUT_SECS)]
@@ -243,6 +258,9 @@ impl Default for Settings {
             max_images: DEFAULT_MAX_IMAGES,
             timeout_secs: DEFAULT_TIMEOUT_SECS,
             body_timeout_secs: DEFAULT_BODY_TIMEOUT_SECS,
+            body_grace_secs: DEFAULT_BODY_GRACE_SECS,
+            min_body_rate_kib: DEFAULT_MIN_BODY_RATE_KIB,
+            max_uploads_per_address: DEFAULT_MAX_UPLOADS_PER_ADDRESS,
             header_timeout_secs: DEFAULT_HEADER_TIMEOUT_SECS,
             max_connections: DEFAULT_MAX_CONNECTIONS,
             shutdown_grace_secs: DEFAULT_SHUTDOWN_GRACE_SECS,
@@ -274,10 +292,14 @@ impl Settings {
         let body_timeout = seconds("--body-timeout-secs", self.body_timeout_secs)?;
         anyhow::ensure!(body_timeout <= timeout, "--body-timeout-secs must not exceed --timeout-secs");
         anyhow::ensure!(self.max_images >= 1, "--max-images must be at least 1");
+        anyhow::ensure!(self.max_uploads_per_address >= 1, "--max-uploads-per-address must be at least 1");
         Ok(ApiConfig {
             max_body_bytes: self.max_body_mb << 20,
             request_timeout: timeout,
             body_timeout,
+            body_grace: seconds("--body-grace-secs", self.body_grace_secs)?,
+            min_body_rate: self.min_body_rate_kib.saturating_mul(1024),
+            max_uploads_per_address: self.max_uploads_per_address,
             workers: self.workers.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2)).max(1),
             queue_depth: self.queue,
             enroll_queue_depth: self.enroll_queue,
@@ -453,7 +475,7 @@ mod tests {
         if !["BIND", "DATABASE_URL", "MODELS", "SFM", "API_KEYS", "WORKERS", "QUEUE", "MAX_BODY_MB", "MAX_PIXELS", "MAX_DECODE_MB"]
             .iter()
             .chain(&["MAX_IMAGES", "TIMEOUT_SECS", "CONSOLE", "API_KEYS_FILE", "ENROL_QUEUE", "MAX_BUFFERED_MB", "BODY_TIMEOUT_SECS"])
-            .chain(&["ADMISSION_WAIT_MS"])
+            .chain(&["ADMISSION_WAIT_MS", "BODY_GRACE_SECS", "MIN_BODY_RATE_KIB", "MAX_UPLOADS_PER_ADDRESS"])
             .chain(&["HEADER_TIMEOUT_SECS", "MAX_CONNECTIONS", "SHUTDOWN_GRACE_SECS", "LOG_FORMAT", "TEMPLATE_KEY_FILE"])
             .chain(&[
                 "MIN_QUALITY",
@@ -475,6 +497,9 @@ mod tests {
         assert_eq!(api.service.decode_limits.max_alloc_bytes, 256 << 20);
         assert!(Settings { timeout_secs: 0.0, ..Settings::default() }.api_config().is_err());
         assert!(Settings { body_timeout_secs: 60.0, ..Settings::default() }.api_config().is_err());
+        assert_eq!((api.body_grace, api.min_body_rate, api.max_uploads_per_address), (Duration::from_secs(5), 8192, 16));
+        assert!(Settings { body_grace_secs: 0.0, ..Settings::default() }.api_config().is_err());
+        assert!(Settings { max_uploads_per_address: 0, ..Settings::default() }.api_config().is_err());
         assert_eq!(api.service.liveness, LivenessPolicy::Report);
         let server = Settings::default().server_limits().unwrap();
         assert_eq!(

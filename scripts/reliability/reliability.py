@@ -26,6 +26,18 @@ checks its target and prints one result line; the script exits non-zero if any f
               one body (<= 50 MB plus
               the four bodies themselves, which the body budget counts, for the 4 at once), and
               /health (asked every 50 ms meanwhile) answered within 1 s
+  trickle     8 connections that each send a `POST /verify` head declaring 16 MiB (the body limit)
+              and then one byte a second, each opened again once answered, for 20 s, while a client
+              verifies IMM 01-2m against the enrolled 01-1m one request after another (waiting the
+              Retry-After second after a 503): >= 95 % of the
+              verifications answered 200; then the same with the trickles on /enroll while the
+              client alternates verifications and enrolments of new subjects: >= 95 % of each
+              answered 200 / 201; then 66 trickles declaring 125,000 bytes on /verify (as many as
+              the default queue has places) from another address, 127.0.0.2: >= 95 % of the
+              verifications answered 200
+  part-flood  one multipart body of a subject and 150,000 one-byte `image` parts (11 MB) POSTed to /enroll:
+              answered 4xx, the server's peak RSS growth (VmHWM, reset first, - VmRSS before)
+              <= 50 MB, and /health 200 afterwards
   fail-closed the binary with `--api-keys ",,"`, with an --api-keys-file of comment lines only, and
               on a database sealed under one template key started without a key and with another:
               each exits non-zero within 30 s and never prints "listening on" (the control: the
@@ -47,6 +59,7 @@ checks its target and prints one result line; the script exits non-zero if any f
 
   scripts/reliability/reliability.py                      # all but overload
   scripts/reliability/reliability.py stalled-heads db-down
+  scripts/reliability/reliability.py trickle --bin /path/to/another/facegate
   scripts/reliability/reliability.py overload --bin target/release/facegate
   scripts/reliability/reliability.py overload --bin target/release/facegate --serve-flag=--admission-wait-ms=0
 Needs the IMM photos at $FACEGATE_SHARED/data/imm (default ../shared); `overload` needs hey;
@@ -134,8 +147,9 @@ class Server:
                     return int(line.split()[1]) / 1024
         return float("nan")
 
-    def connect(self):
-        return socket.create_connection(("127.0.0.1", self.port), timeout=30)
+    def connect(self, source="127.0.0.1"):
+        """A connection to the server from the loopback address `source` (any of 127.0.0.0/8)."""
+        return socket.create_connection(("127.0.0.1", self.port), timeout=30, source_address=(source, 0))
 
     def request(self, method, path, body=None, headers=None, timeout=120):
         conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=timeout)
@@ -458,6 +472,14 @@ def problem_slug(data):
         return ""
 
 
+def problem_detail(data):
+    """The `detail` of a problem+json answer ("" when the body is not one)."""
+    try:
+        return str(json.loads(data).get("detail", ""))
+    except (ValueError, AttributeError):
+        return ""
+
+
 # The default body limit (16 MiB), and the routes the 125,000-byte stalled heads cycle through.
 BODY_LIMIT = 16 << 20
 STALLED_ROUTES = ["/verify", "/enroll", "/identify", "/analyze"]
@@ -640,6 +662,170 @@ def json_flood(args, work):
                 f"(+{growth_one:.0f} MB), after the 4 at once {hwm_after:.0f} MB (+{growth:.0f} MB); "
                 f"{len(health_latencies)} /health meanwhile, statuses {sorted(set(s for s, _ in health_latencies), key=str)}, "
                 f"the slowest {slowest_health:.2f} s")
+
+
+class Trickles:
+    """`n` connections from the loopback address `source`, each a `POST route` head declaring
+    `length` bytes followed by one byte a second, opened again once the server answers (or closes)
+    them, until stopped."""
+
+    def __init__(self, server, route, length, n, source="127.0.0.1"):
+        self.server, self.n, self.source = server, n, source
+        self.head = (f"POST {route} HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+                     f"Content-Length: {length}\r\n\r\n").encode()
+        self.selector = selectors.DefaultSelector()
+        self.answers = {}  # status (or "closed") -> [seconds from the head to the answer]
+        self.opened = 0
+        self.running = threading.Event()
+        self.running.set()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _open(self):
+        s = self.server.connect(self.source)
+        s.sendall(self.head + b"-")
+        s.setblocking(False)
+        self.selector.register(s, selectors.EVENT_READ, [time.monotonic(), b""])
+        self.opened += 1
+
+    def _answered(self, key):
+        s, state = key.fileobj, key.data
+        try:
+            chunk = s.recv(4096)
+        except BlockingIOError:
+            return
+        except OSError:
+            chunk = b""
+        state[1] += chunk
+        if chunk and b"\r\n" not in state[1]:
+            return
+        line = state[1].split(b"\r\n", 1)[0].decode(errors="replace")
+        status = line.split(" ")[1] if line.startswith("HTTP/1.1 ") else "closed"
+        self.answers.setdefault(status, []).append(time.monotonic() - state[0])
+        self.selector.unregister(s)
+        s.close()
+        if self.running.is_set():
+            self._open()
+
+    def _run(self):
+        for _ in range(self.n):
+            self._open()
+        tick = time.monotonic() + 1.0
+        while self.running.is_set():
+            for key, _ in self.selector.select(timeout=max(0.0, min(0.1, tick - time.monotonic()))):
+                self._answered(key)
+            if time.monotonic() >= tick:
+                tick += 1.0
+                for key in list(self.selector.get_map().values()):
+                    try:
+                        key.fileobj.send(b"-")
+                    except OSError:
+                        pass
+
+    def start(self):
+        self.thread.start()
+
+    def stop(self):
+        self.running.clear()
+        self.thread.join()
+        for key in list(self.selector.get_map().values()):
+            key.fileobj.close()
+        self.selector.close()
+
+    def summary(self):
+        parts = [f"{status} x{len(times)} after {min(times):.1f}-{max(times):.1f} s" for status, times in sorted(self.answers.items())]
+        return f"{self.opened} heads in all, answered: {', '.join(parts) or 'none'}"
+
+
+def trickle(args, work):
+    runs = [trickle_run(args, work, "/verify", 8, BODY_LIMIT, "127.0.0.1"), trickle_run(args, work, "/enroll", 8, BODY_LIMIT, "127.0.0.1"),
+            trickle_run(args, work, "/verify", 66, 125_000, "127.0.0.2")]
+    return all(ok for ok, _ in runs), "; ".join(line for _, line in runs)
+
+
+def trickle_run(args, work, route, n, length, source):
+    attack_s = 20.0
+    server = Server(args.bin, work)
+    trickles = None
+    tally = {"verify": {}, "enroll": {}}
+    mismatches = 0
+    try:
+        body, ctype = multipart([("subject", None, b"imm01"), ("image", "p.jpg", photo("01-1m.jpg"))])
+        status, _ = server.request("POST", "/enroll", body, {"Content-Type": ctype})
+        assert status == 201, f"enrolling IMM 01-1m: {status}"
+        probe, ctype = verify_multipart("imm01", "01-2m.jpg")
+        enrol_photo = photo("01-1m.jpg")
+        trickles = Trickles(server, route, length, n, source)
+        trickles.start()
+        time.sleep(1.5)  # the trickles have begun their bodies
+        start = time.monotonic()
+        i = 0
+        while time.monotonic() - start < attack_s:
+            # With the trickles on /enroll, every other request is an enrolment of a new subject.
+            kind = "enroll" if route == "/enroll" and i % 2 else "verify"
+            if kind == "verify":
+                request = ("POST", "/verify", probe, {"Content-Type": ctype})
+            else:
+                enrolment, enrol_type = multipart([("subject", None, f"new-{i}".encode()), ("image", "p.jpg", enrol_photo)])
+                request = ("POST", "/enroll", enrolment, {"Content-Type": enrol_type})
+            try:
+                status, data = server.request(*request, timeout=30)
+                mismatches += kind == "verify" and status == 200 and json.loads(data).get("match") is not True
+                answer = f"{status} {problem_slug(data)}".strip()
+            except OSError as e:
+                status, answer = None, type(e).__name__
+            tally[kind][answer] = tally[kind].get(answer, 0) + 1
+            i += 1
+            if status == 503:
+                time.sleep(1.0)  # the Retry-After of every 503
+        trickles.stop()
+        trickles_done = trickles.summary()
+        trickles = None
+        health, _ = server.request("GET", "/health")
+    finally:
+        if trickles is not None:
+            trickles.stop()
+        server.stop()
+
+    def share(kind, ok_status):
+        total = sum(tally[kind].values())
+        return tally[kind].get(ok_status, 0), total
+
+    verified, verifications = share("verify", "200")
+    enrolled, enrolments = share("enroll", "201")
+    ok = (verifications >= 10 and verified >= 0.95 * verifications and mismatches == 0 and health == 200
+          and (route != "/enroll" or (enrolments >= 5 and enrolled >= 0.95 * enrolments)))
+    legit = f"{verified}/{verifications} verifications answered 200 ({mismatches} no match; {tally['verify']})"
+    if route == "/enroll":
+        legit += f", {enrolled}/{enrolments} enrolments answered 201 ({tally['enroll']})"
+    return ok, (f"{n} trickles from {source} on {route} (a head declaring {length:,} bytes, then 1 byte/s, opened again when "
+                f"answered) for {attack_s:.0f} s: {legit}; trickles: {trickles_done}; /health then {health}")
+
+
+def part_flood(args, work):
+    n = 150_000
+    part = b'--b\r\nContent-Disposition: form-data; name="image"; filename="p.jpg"\r\n\r\nx\r\n'
+    subject = b'--b\r\nContent-Disposition: form-data; name="subject"\r\n\r\nmany\r\n'
+    body = subject + part * n + b"--b--\r\n"
+    assert len(body) < BODY_LIMIT
+    server = Server(args.bin, work)
+    try:
+        server.reset_peak_rss()
+        rss_before = server.rss_mb()
+        started = time.monotonic()
+        try:
+            status, data = server.request("POST", "/enroll", body, {"Content-Type": "multipart/form-data; boundary=b"}, timeout=60)
+            answer, detail = f"{status} {problem_slug(data)}", problem_detail(data)
+        except OSError as e:
+            status, answer, detail = None, type(e).__name__, ""
+        took = time.monotonic() - started
+        growth = server.peak_rss_mb() - rss_before
+        health, _ = server.request("GET", "/health")
+    finally:
+        server.stop()
+    ok = status is not None and 400 <= status < 500 and growth <= 50 and health == 200
+    return ok, (f"a {len(body) / 1e6:.1f} MB multipart body of {n:,} one-byte image parts to /enroll: answered {answer} "
+                f"(\"{detail}\") in {took:.2f} s; peak RSS growth +{growth:.0f} MB (RSS before {rss_before:.0f} MB); "
+                f"/health then {health}")
 
 
 def run_to_exit(binary, work, database, *flags, timeout=30.0):
@@ -964,9 +1150,11 @@ def db_down_verdict(records, present, t_stop, t_down, t_start, t_up, up_s, down_
 
 SCENARIOS = {
     "slowloris": slowloris, "slow-body": slow_body, "kill9": kill9, "sigterm": sigterm, "stalled-heads": stalled_heads,
-    "json-flood": json_flood, "fail-closed": fail_closed, "db-down": db_down, "overload": overload,
+    "json-flood": json_flood, "trickle": trickle, "part-flood": part_flood, "fail-closed": fail_closed, "db-down": db_down,
+    "overload": overload,
 }
-DEFAULT = ["slowloris", "slow-body", "kill9", "sigterm", "stalled-heads", "json-flood", "fail-closed", "db-down"]
+DEFAULT = ["slowloris", "slow-body", "kill9", "sigterm", "stalled-heads", "json-flood", "trickle", "part-flood", "fail-closed",
+           "db-down"]
 
 
 def main():

@@ -1,14 +1,19 @@
-//! Admission that idle clients cannot hold: a declared body over the limit is refused from the
-//! head, heads whose bodies never begin hold no queue place and no body budget, and the request
-//! deadline never answers 504 for an enrollment that is stored.
+//! Admission that idle and slow clients cannot hold: a declared body over the limit is refused
+//! from the head, heads whose bodies never begin hold no queue place and no body budget, bodies
+//! that trickle hold no queue place and only the budget of what they sent, are cut after the grace
+//! period and are capped per client address, and the request deadline never answers 504 for an
+//! enrollment that is stored.
 
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use facegate::core::imaging::DecodeLimits;
 use facegate::http::ApiConfig;
 use facegate::service::ServiceConfig;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
+use tokio::net::{TcpSocket, TcpStream};
 
 use crate::support::*;
 
@@ -72,6 +77,132 @@ async fn stalled_heads_hold_no_queue_place_and_no_body_budget() {
     assert_eq!(ok, 20, "legitimate verifications answered 200 while 70 heads stalled");
     assert_eq!(app.post_form("/enroll", Some("ben"), std::slice::from_ref(&photo)).await.status, 201);
     drop(attackers);
+}
+
+/// A connection to `app` from the loopback address `from` (127.0.0.1 is the other clients').
+async fn connect_from(app: &TestApp, from: [u8; 4]) -> TcpStream {
+    let socket = TcpSocket::new_v4().unwrap();
+    socket.bind(SocketAddr::from((from, 0))).unwrap();
+    socket.connect(app.base.trim_start_matches("http://").parse().unwrap()).await.unwrap()
+}
+
+/// Trickle uploads from `from` until `stop`: each a head of `path` declaring `length` bytes, then
+/// one byte every 100 ms, opened again once answered; the answers' status lines are counted.
+fn trickle(app: &TestApp, from: [u8; 4], path: &'static str, length: usize, stop: Arc<AtomicBool>) -> tokio::task::JoinHandle<Vec<String>> {
+    let base = app.base.clone();
+    tokio::spawn(async move {
+        let app_addr: SocketAddr = base.trim_start_matches("http://").parse().unwrap();
+        let mut answers = Vec::new();
+        while !stop.load(Ordering::Relaxed) {
+            let socket = TcpSocket::new_v4().unwrap();
+            socket.bind(SocketAddr::from((from, 0))).unwrap();
+            let Ok(mut s) = socket.connect(app_addr).await else { continue };
+            let _ = s.write_all(&stalled_head(path, length)).await;
+            let mut reply = [0u8; 512];
+            loop {
+                if s.write_all(b"-").await.is_err() {
+                    break;
+                }
+                match tokio::time::timeout(Duration::from_millis(100), s.read(&mut reply)).await {
+                    Ok(Ok(n)) => {
+                        let line = String::from_utf8_lossy(&reply[..n]).lines().next().unwrap_or("closed").to_string();
+                        answers.push(if line.is_empty() { "closed".into() } else { line });
+                        break;
+                    }
+                    Ok(Err(_)) => break,
+                    Err(_) if stop.load(Ordering::Relaxed) => break,
+                    Err(_) => {}
+                }
+            }
+        }
+        answers
+    })
+}
+
+#[tokio::test]
+async fn trickled_bodies_hold_no_queue_place_and_only_the_budget_of_what_arrived() {
+    // Two workers, two waiting places per queue, a body budget of four full bodies; the trickles
+    // are cut once they fall below 8 KiB/s after 0.5 s. Before, eight trickles declaring the
+    // limit took the whole budget, and four took every place, until the body timeout.
+    let tight = ApiConfig {
+        workers: 2,
+        queue_depth: 2,
+        enroll_queue_depth: 2,
+        max_buffered_bytes: 8 << 20,
+        body_grace: Duration::from_millis(500),
+        ..config()
+    };
+    let app = TestApp::start(StandInEngine::new("v1"), tight).await;
+    let photo = pattern_jpeg(320, 240, 4);
+    assert_eq!(app.post_form("/enroll", Some("ana"), std::slice::from_ref(&photo)).await.status, 201);
+    let stop = Arc::new(AtomicBool::new(false));
+    // Eight from this client's own address (within its cap of 16), on both queues.
+    let trickles: Vec<_> =
+        (0..8).map(|i| trickle(&app, [127, 0, 0, 1], if i % 2 == 0 { "/verify" } else { "/enroll" }, 2 << 20, stop.clone())).collect();
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let started = Instant::now();
+    let mut ok = 0;
+    for i in 0..20 {
+        ok += usize::from(app.post_form("/verify", Some("ana"), std::slice::from_ref(&photo)).await.status == 200);
+        if i % 5 == 0 {
+            ok += usize::from(app.post_form("/enroll", Some(&format!("e{i}")), std::slice::from_ref(&photo)).await.status == 201);
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let took = started.elapsed();
+    stop.store(true, Ordering::Relaxed);
+    let mut answers = Vec::new();
+    for t in trickles {
+        answers.extend(t.await.unwrap());
+    }
+    assert_eq!(ok, 24, "verifications and enrolments answered 200/201 while the bodies trickled (in {took:?})");
+    // The trickles were cut by the rate (408), opened again and cut again meanwhile.
+    let cut = answers.iter().filter(|a| a.starts_with("HTTP/1.1 408")).count();
+    assert!(cut >= 8 && cut == answers.len(), "{answers:?}");
+}
+
+#[tokio::test]
+async fn a_client_address_has_at_most_its_cap_of_bodies_arriving() {
+    let capped = ApiConfig { max_uploads_per_address: 4, body_grace: Duration::from_millis(600), ..config() };
+    let app = TestApp::start(StandInEngine::new("v1"), capped).await;
+    let photo = pattern_jpeg(320, 240, 4);
+    assert_eq!(app.post_form("/enroll", Some("ana"), std::slice::from_ref(&photo)).await.status, 201);
+    let mut held = Vec::new();
+    for _ in 0..4 {
+        let mut s = connect_from(&app, [127, 0, 0, 2]).await;
+        s.write_all(&stalled_head("/verify", 100_000)).await.unwrap();
+        s.write_all(b"--b\r\n").await.unwrap();
+        held.push(s);
+    }
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    // A fifth from that address is refused at once; another address is served meanwhile.
+    let mut fifth = connect_from(&app, [127, 0, 0, 2]).await;
+    fifth.write_all(&stalled_head("/verify", 100_000)).await.unwrap();
+    fifth.write_all(b"--b\r\n").await.unwrap();
+    let refused = read_to_close(&mut fifth).await;
+    assert!(refused.starts_with("HTTP/1.1 503") && refused.to_ascii_lowercase().contains("retry-after: 1"), "{refused}");
+    assert!(refused.contains("overloaded") && refused.contains("already has 4 request bodies arriving"), "{refused}");
+    assert_eq!(app.post_form("/verify", Some("ana"), std::slice::from_ref(&photo)).await.status, 200);
+    // The four fall below 8 KiB/s once the grace period is over: 408, which names the rate.
+    for s in &mut held {
+        let cut = read_to_close(s).await;
+        assert!(cut.starts_with("HTTP/1.1 408") && cut.contains("request-timeout"), "{cut}");
+        assert!(cut.contains("slower than 8 KiB/s after its first 0.6 s"), "{cut}");
+    }
+    // Then the address has its places again.
+    let mut again = connect_from(&app, [127, 0, 0, 2]).await;
+    let body = "--b\r\nContent-Disposition: form-data; name=\"subject\"\r\n\r\nana\r\n--b--\r\n";
+    let head = "POST /verify HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: multipart/form-data; boundary=b\r\n";
+    again.write_all(format!("{head}Content-Length: {}\r\n\r\n{body}", body.len()).as_bytes()).await.unwrap();
+    let answered = read_to_close(&mut again).await;
+    assert!(answered.starts_with("HTTP/1.1 400") && answered.contains("the photo is missing"), "{answered}");
+}
+
+/// What arrives on `s` until the server closes it (at most 5 s).
+async fn read_to_close(s: &mut TcpStream) -> String {
+    let mut out = Vec::new();
+    let _ = tokio::time::timeout(Duration::from_secs(5), s.read_to_end(&mut out)).await;
+    String::from_utf8_lossy(&out).into_owned()
 }
 
 #[tokio::test]

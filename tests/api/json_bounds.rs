@@ -1,6 +1,7 @@
-//! JSON bodies of many photos: the `images` array is counted while it is parsed and refused at
-//! the first entry past the most photos any operation takes (`max_images`), before anything of it
-//! is copied or decoded; a body at that bound still reaches the operation's own count.
+//! Bodies of many photos: the JSON `images` array and the multipart `image` parts are counted
+//! while they are parsed and refused at the first one past the most photos any operation takes
+//! (`max_images`), before anything of it is copied or decoded; a body at that bound still reaches
+//! the operation's own count. And one JSON shape: an object, `null` the same as a field left out.
 
 use std::sync::atomic::Ordering;
 
@@ -58,6 +59,57 @@ async fn millions_of_tiny_photos_are_refused_at_the_cap() {
     assert_eq!(detail(&r), "at most 16 photos per request (field images), got more than 16");
     assert_eq!(engine.calls.load(Ordering::SeqCst), 0, "no photo reached the engine");
     assert_eq!(app.get("/health").await.status, 200);
+}
+
+/// A multipart body of `n` `image` parts of one byte each (boundary `b`), and its Content-Type.
+fn many_parts(n: usize) -> Vec<u8> {
+    let mut body = Vec::with_capacity(n * 60 + 8);
+    for _ in 0..n {
+        body.extend_from_slice(b"--b\r\nContent-Disposition: form-data; name=\"image\"\r\n\r\nx\r\n");
+    }
+    body.extend_from_slice(b"--b--\r\n");
+    body
+}
+
+#[tokio::test]
+async fn a_hundred_and_fifty_thousand_multipart_photos_are_refused_at_the_cap() {
+    let engine = StandInEngine::new("v1");
+    let app = TestApp::start(engine.clone(), defaults()).await;
+    let body = many_parts(150_000);
+    assert!(body.len() > 7_000_000 && body.len() < 16 << 20, "{}", body.len());
+    for path in ["/enroll", "/verify", "/analyze"] {
+        let started = std::time::Instant::now();
+        let request = app.client.post(app.url(path)).header("content-type", "multipart/form-data; boundary=b").body(body.clone());
+        let r = app.send(request).await;
+        r.assert_problem(400, "malformed-request");
+        assert_eq!(detail(&r), "at most 16 photos per request (field image), got more than 16", "{path}");
+        assert!(started.elapsed() < std::time::Duration::from_secs(5), "{path}: {:?}", started.elapsed());
+    }
+    // Sixteen parts still reach the operation's own count.
+    let request = app.client.post(app.url("/analyze")).header("content-type", "multipart/form-data; boundary=b").body(many_parts(16));
+    let r = app.send(request).await;
+    r.assert_problem(400, "malformed-request");
+    assert_eq!(detail(&r), "exactly one photo is expected, got 16");
+    assert_eq!(engine.calls.load(Ordering::SeqCst), 0, "no photo reached the engine");
+}
+
+#[tokio::test]
+async fn one_json_shape_an_object_with_null_as_absent() {
+    let app = TestApp::start(StandInEngine::new("v1"), defaults()).await;
+    let photo = base64(&pattern_jpeg(320, 240, 4));
+    let r = app.post_json("/enroll", &json!({"subject": "ada", "image": photo, "images": null})).await;
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    // `frames: null` is no frames, as `images: null` is no further photos.
+    let r = app.post_json("/verify", &json!({"subject": "ada", "image": photo, "frames": null})).await;
+    assert_eq!((r.status, r.json()["match"].as_bool()), (200, Some(true)), "{}", String::from_utf8_lossy(&r.body));
+    // The same fields as an array, which serde's derive would take for the struct: malformed.
+    for (path, array) in
+        [("/verify", json!(["ada", photo])), ("/enroll", json!(["ada", photo, null])), ("/verify", json!(["ada", photo, null, null]))]
+    {
+        let r = post_raw(&app, path, array.to_string()).await;
+        r.assert_problem(400, "malformed-request");
+        assert!(detail(&r).starts_with("invalid JSON body: invalid type: sequence"), "{path}: {}", detail(&r));
+    }
 }
 
 #[tokio::test]

@@ -1,71 +1,51 @@
-//! Admission before work: a request to a route that runs photo work takes its place in the work
-//! queue ([`WorkPool::admit`]) and its share of the body-memory budget once its body has begun
-//! to arrive, and before the body is read on. A head that declares a body over the size limit is
-//! refused at once (413), and a head whose body does not begin within [`FIRST_BYTE_WAIT`] gets 408
-//! holding nothing: a client that sends request heads and stalls cannot take the queue's places
-//! or the body budget from others. A refusal (503 `overloaded`, `Retry-After`) therefore costs no body buffering,
-//! no multipart parse and no database query (what the client already sent is discarded, bounded,
-//! so that the answer is not lost to a connection reset), which keeps the successful throughput
-//! near its peak when far more clients arrive than the workers can serve.
+//! Admission before work, by the bytes that arrive rather than the bytes declared. A request to a
+//! route that runs photo work:
 //!
-//! The body must then arrive within the body timeout (counted from admission): a stalled upload
-//! is the client's fault and is answered 408 `request-timeout` ([`BodyDeadline`], applied where
-//! the body is read, `input::read_upload`).
+//! 1. is refused from its head (413) when it declares a body over the size limit;
+//! 2. waits at most [`FIRST_BYTE_WAIT`] for its body to begin, else 408 holding nothing;
+//! 3. is refused (503 `overloaded`, `Retry-After`, its body unread) when its queue stays full for
+//!    the admission wait — it only looks: no place is kept while the body arrives;
+//! 4. takes a place among the bodies arriving from its client address (`--max-uploads-per-address`,
+//!    the same wait, else 503);
+//! 5. receives its body ([`intake::receive`]): the body budget charged as the bytes arrive (503
+//!    when it is spent), a minimum rate after a grace period and the body timeout (408), the body
+//!    limit (413);
+//! 6. only then takes its place in the work queue ([`WorkPool::admit_within`], the admission wait,
+//!    else 503) and runs with the body in memory.
+//!
+//! So a client that trickles its body holds no queue place and budget only for what it has sent,
+//! is cut after the grace period, and can open only so many such requests from one address. A
+//! refusal answers at once and discards (never keeps) what the client sends meanwhile, bounded, so
+//! that the answer is not lost to a connection reset; a refusal under a flood waits the admission
+//! wait first, which keeps the successful throughput near its peak when far more clients arrive
+//! than the workers can serve.
 
-use std::sync::Arc;
+use std::net::SocketAddr;
 use std::time::Duration;
 
 use axum::body::Body;
-use axum::extract::{Request, State};
-use axum::http::header;
+use axum::extract::{ConnectInfo, Request, State};
+use axum::http::{HeaderValue, header};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use futures_util::StreamExt as _;
 use http_body_util::BodyExt;
-use tokio::sync::Semaphore;
-use tokio::time::Instant;
 
 use super::AppState;
+use super::intake::{self, Cut, Pace};
 use super::problem::{Problem, ProblemKind};
 use facegate_service::{PoolError, WorkClass};
+
+pub use super::intake::BodyBudget;
 
 /// Longest a request head waits for the first bytes of its body before it is answered 408 (at
 /// most the body timeout). Clients send the body right behind the head (or right after hyper's
 /// `100 Continue`, which reading the body triggers), so a longer gap is a stalled client.
 pub const FIRST_BYTE_WAIT: Duration = Duration::from_secs(5);
 
-/// The instant by which the request body must have been read (a request extension).
-#[derive(Debug, Clone, Copy)]
-pub struct BodyDeadline(pub Instant);
-
-/// Bytes of request bodies held in memory at once, in KiB permits (a semaphore counts `u32`s).
-#[derive(Debug, Clone)]
-pub struct BodyBudget {
-    kib: Arc<Semaphore>,
-    max_body_bytes: usize,
-}
-
-impl BodyBudget {
-    pub fn new(max_buffered_bytes: usize, max_body_bytes: usize) -> BodyBudget {
-        BodyBudget { kib: Arc::new(Semaphore::new(kib(max_buffered_bytes).min(Semaphore::MAX_PERMITS))), max_body_bytes }
-    }
-
-    /// The share a request needs: its declared length, or the body limit when it declares none.
-    fn take(&self, request: &Request) -> Option<tokio::sync::OwnedSemaphorePermit> {
-        let declared = declared_length(request).map_or(self.max_body_bytes, |n| usize::try_from(n).unwrap_or(usize::MAX));
-        let bytes = declared.min(self.max_body_bytes);
-        let share = u32::try_from(kib(bytes)).unwrap_or(u32::MAX);
-        self.kib.clone().try_acquire_many_owned(share).ok()
-    }
-}
-
 /// The body length the request head declares (`Content-Length`), if any.
 fn declared_length(request: &Request) -> Option<u64> {
     request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.trim().parse::<u64>().ok())
-}
-
-fn kib(bytes: usize) -> usize {
-    bytes.div_ceil(1024)
 }
 
 /// Most bytes of a refused request's body discarded so that its 503 arrives ...
@@ -75,29 +55,93 @@ const DISCARD_TIME: Duration = Duration::from_secs(1);
 
 /// The admission layer of one route: `class` says which queue it waits in.
 pub async fn admit(State((state, class)): State<(AppState, WorkClass)>, request: Request, next: Next) -> Response {
-    let limit = state.0.config.max_body_bytes;
-    if declared_length(&request).is_some_and(|n| n > limit as u64) {
+    let config = &state.0.config;
+    let limit = config.max_body_bytes;
+    let declared = declared_length(&request);
+    if declared.is_some_and(|n| n > limit as u64) {
         let detail = format!("the request body is declared larger than the {} MiB limit", limit as f64 / (1 << 20) as f64);
-        let mut response = refuse(request, Problem::new(ProblemKind::TooLarge, detail));
-        // The body is not read: this connection cannot carry another request.
-        response.headers_mut().insert(header::CONNECTION, header::HeaderValue::from_static("close"));
-        return response;
+        return closing(refuse(request, Problem::new(ProblemKind::TooLarge, detail)));
     }
-    let mut request = match body_begun(request, FIRST_BYTE_WAIT.min(state.0.config.body_timeout)).await {
+    let request = match body_begun(request, FIRST_BYTE_WAIT.min(config.body_timeout)).await {
         Ok(request) => request,
         Err(request) => return refuse(request, body_timed_out()),
     };
-    let admission = match state.0.facegate.pool().admit_within(class, state.0.config.admission_wait).await {
+    // Room in the queue, or the refusal before the body; the place itself is taken once the body
+    // has arrived, so a slow body holds none.
+    let pool = state.0.facegate.pool();
+    if let Err(e) = pool.admit_within(class, config.admission_wait).await {
+        return refuse(request, Problem::from(e));
+    }
+    let address = request.extensions().get::<ConnectInfo<SocketAddr>>().map(|ConnectInfo(a)| a.ip());
+    let budget = &state.0.body_budget;
+    let slot = match address {
+        Some(address) => match budget.arrival_slot(address, config.max_uploads_per_address, config.admission_wait).await {
+            Some(slot) => Some(slot),
+            None => {
+                state.0.metrics.queue_rejections.inc();
+                return refuse(request, too_many_arriving(config.max_uploads_per_address));
+            }
+        },
+        None => None,
+    };
+    let (parts, mut body) = request.into_parts();
+    let pace = Pace { timeout: config.body_timeout, grace: config.body_grace, min_rate: config.min_body_rate };
+    let (bytes, share) = match intake::receive(&mut body, declared, limit, pace, budget).await {
+        Ok(received) => (received.bytes, received.share),
+        Err(cut) => return refuse_cut(cut, body, &state),
+    };
+    drop((slot, body));
+    let admission = match pool.admit_within(class, config.admission_wait).await {
         Ok(admission) => admission,
-        Err(e) => return refuse(request, Problem::from(e)),
+        Err(e) => return Problem::from(e).into_response(),
     };
-    let Some(body_share) = state.0.body_budget.take(&request) else {
-        state.0.metrics.queue_rejections.inc();
-        return refuse(request, Problem::new(ProblemKind::Overloaded, PoolError::Overloaded.to_string()));
+    let response = admission.scope(next.run(Request::from_parts(parts, Body::from(bytes)))).await;
+    // The body's share of the budget is held until the request is answered.
+    drop(share);
+    response
+}
+
+/// The answer to a body [`intake::receive`] cut short.
+fn refuse_cut(cut: Cut, body: Body, state: &AppState) -> Response {
+    let problem = match cut {
+        Cut::TooLarge => {
+            let limit = state.0.config.max_body_bytes as f64 / (1 << 20) as f64;
+            let problem = Problem::new(ProblemKind::TooLarge, format!("the request body exceeds the {limit} MiB limit"));
+            return closing(problem.into_response());
+        }
+        Cut::TimedOut => body_timed_out(),
+        Cut::TooSlow => {
+            let config = &state.0.config;
+            Problem::new(
+                ProblemKind::RequestTimeout,
+                format!(
+                    "the request body arrived slower than {} KiB/s after its first {} s; send it faster or smaller",
+                    config.min_body_rate as f64 / 1024.0,
+                    config.body_grace.as_secs_f64()
+                ),
+            )
+        }
+        Cut::BudgetSpent => {
+            state.0.metrics.queue_rejections.inc();
+            return refuse(Request::new(body), Problem::new(ProblemKind::Overloaded, PoolError::Overloaded.to_string()));
+        }
+        Cut::Broken(e) => return closing(Problem::malformed(format!("cannot read the body: {e}")).into_response()),
     };
-    request.extensions_mut().insert(BodyDeadline(Instant::now() + state.0.config.body_timeout));
-    let response = admission.scope(next.run(request)).await;
-    drop(body_share);
+    problem.into_response()
+}
+
+/// The 503 of a client address with as many bodies arriving as it may have.
+fn too_many_arriving(cap: usize) -> Problem {
+    Problem::new(
+        ProblemKind::Overloaded,
+        format!("this client address already has {cap} request bodies arriving, the most it may have at once; retry shortly"),
+    )
+}
+
+/// `response` with `Connection: close`: the body was not read to its end, so this connection
+/// cannot carry another request.
+fn closing(mut response: Response) -> Response {
+    response.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
     response
 }
 

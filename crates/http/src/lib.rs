@@ -30,6 +30,7 @@ mod handlers;
 mod head_errors;
 pub mod input;
 mod inspect;
+mod intake;
 pub mod limits;
 pub mod metrics;
 pub mod problem;

@@ -11,19 +11,25 @@
 //!   hyper refuses itself (a head over its buffer, a malformed request line) it answers with an
 //!   empty body, which hyper offers no way to fill: `head_errors::ProblemHeads` replaces that
 //!   answer with problem+json on its way out.
+//! - The client's address on each request (`ConnectInfo<SocketAddr>`), which admission counts
+//!   arriving bodies by.
 //! - Graceful shutdown: on the signal, stop accepting, let in-flight requests finish, and give up
 //!   on connections still open after the grace period (idle keep-alives, stalled uploads).
 
+use std::convert::Infallible;
 use std::future::Future;
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
 use axum::Router;
+use axum::extract::ConnectInfo;
+use hyper::body::Incoming;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::server::graceful::GracefulShutdown;
-use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
+use tower_service::Service as _;
 
 use super::head_errors::ProblemHeads;
 
@@ -50,6 +56,17 @@ const HYPER_MAX_BUF: usize = 4 * (super::limits::MAX_URI_BYTES + super::limits::
 /// waits about this long for a place instead of the whole header timeout.
 const PRESSED_HEADER_TIMEOUT: Duration = Duration::from_secs(1);
 
+/// `router` as hyper's service of one connection, each request carrying the client's address.
+fn with_peer(
+    router: Router,
+    peer: SocketAddr,
+) -> impl hyper::service::Service<hyper::Request<Incoming>, Response = axum::response::Response, Error = Infallible, Future: Send> {
+    hyper::service::service_fn(move |mut request: hyper::Request<Incoming>| {
+        request.extensions_mut().insert(ConnectInfo(peer));
+        router.clone().call(request.map(axum::body::Body::new))
+    })
+}
+
 /// How the server stopped.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Stopped {
@@ -74,9 +91,9 @@ pub async fn serve(listener: TcpListener, router: Router, limits: ServerLimits, 
             permit = connections.clone().acquire_owned() => permit.expect("the connection semaphore is never closed"),
             _ = &mut shutdown => break,
         };
-        let stream = tokio::select! {
+        let (stream, peer) = tokio::select! {
             accepted = listener.accept() => match accepted {
-                Ok((stream, _)) => stream,
+                Ok(accepted) => accepted,
                 Err(e) => {
                     // Out of file descriptors and the like: wait a little rather than spin.
                     tracing::warn!("accept failed: {e}");
@@ -87,7 +104,7 @@ pub async fn serve(listener: TcpListener, router: Router, limits: ServerLimits, 
             _ = &mut shutdown => break,
         };
         let _ = stream.set_nodelay(true);
-        let service = TowerToHyperService::new(router.clone());
+        let service = with_peer(router.clone(), peer);
         let builder = if connections.available_permits() < pressure_below { &pressed } else { &builder };
         let connection = graceful.watch(builder.serve_connection(TokioIo::new(ProblemHeads::new(stream)), service));
         tokio::spawn(async move {

@@ -18,19 +18,26 @@ pub struct ApiConfig {
     pub max_body_bytes: usize,
     /// Whole-request deadline (queueing and reading the body included); exceeded → 504.
     pub request_timeout: Duration,
-    /// Time from admission to the end of the body; exceeded → 408 (the client's fault).
+    /// Time from the start of the body to its end; exceeded → 408 (the client's fault).
     pub body_timeout: Duration,
+    /// Time a body may take before `min_body_rate` applies.
+    pub body_grace: Duration,
+    /// Least average rate of a body after `body_grace`, bytes per second (0: none); slower → 408.
+    pub min_body_rate: u64,
+    /// Request bodies arriving at once from one client address (IPv6: its /64); beyond → 503.
+    pub max_uploads_per_address: usize,
     /// Photos analysed at once on the blocking pool.
     pub workers: usize,
     /// Probe requests (verify, identify, inspection) that may wait for a worker; beyond → 503.
     pub queue_depth: usize,
     /// Enrollments that may wait for a worker, a queue of their own; beyond → 503.
     pub enroll_queue_depth: usize,
-    /// How long a request waits for a place when its queue is full, before the 503 (its body
-    /// still unread). Zero refuses at once.
+    /// How long a request waits, before the 503, for room when its queue is full (its body still
+    /// unread), for a place among its client address's arriving bodies, and for its place in the
+    /// queue once its body has arrived. Zero refuses at once.
     pub admission_wait: Duration,
-    /// Request bodies held in memory at once, in bytes (each admitted request counts its
-    /// Content-Length, or the body limit without one); beyond → 503.
+    /// Request bodies held in memory at once, in bytes (each request counts what has arrived of
+    /// its body, from its first byte until it is answered); beyond → 503.
     pub max_buffered_bytes: usize,
     /// Accepted API keys; empty means the API is open (`config` refuses keys under 16 characters).
     pub api_keys: Vec<String>,

@@ -28,8 +28,8 @@ pub enum WorkClass {
     Enroll,
 }
 
-/// A request's place in the pool, taken before its body is read ([`WorkPool::admit`]); its jobs
-/// run on this place instead of taking one each. Cheap to clone.
+/// A request's place in the pool ([`WorkPool::admit`]), taken by the HTTP layer once the request's
+/// body has arrived; its jobs run on this place instead of taking one each. Cheap to clone.
 #[derive(Debug, Clone)]
 pub struct Admission {
     _place: Arc<tokio::sync::OwnedSemaphorePermit>,
@@ -50,8 +50,9 @@ impl Admission {
 
 /// A bounded pool for CPU work: `workers` jobs run at once on tokio's blocking threads, at most
 /// `queue_depth` more probe requests and `enrol_queue_depth` more enrolments wait, and any further
-/// one is refused at once with [`PoolError::Overloaded`]. A request takes its place with
-/// [`WorkPool::admit`] before its body is read, so a refusal costs no body read, parse or query.
+/// one is refused at once with [`PoolError::Overloaded`]. The HTTP layer looks for room with
+/// [`WorkPool::admit_within`] before it reads a request's body (a refusal then costs no body read,
+/// parse or query) and takes the request's place once the body has arrived.
 /// Refusals are counted in `rejections`; queued and running jobs in `in_flight`.
 #[derive(Debug, Clone)]
 pub struct WorkPool {
