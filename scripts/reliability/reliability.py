@@ -38,6 +38,10 @@ checks its target and prints one result line; the script exits non-zero if any f
   part-flood  one multipart body of a subject and 150,000 one-byte `image` parts (11 MB) POSTed to /enroll:
               answered 4xx, the server's peak RSS growth (VmHWM, reset first, - VmRSS before)
               <= 50 MB, and /health 200 afterwards
+  duplicates  81 LFW persons enrolled (two photos each), 40 of them again under a second id (a third
+              photo); each person's fourth photo verified, then `facegate calibrate` and a
+              restart: the genuine verifications match at >= 95 % of the rate before, and
+              calibrate names at least half of the 40 duplicates (scripts/reliability/duplicates.py)
   fail-closed the binary with `--api-keys ",,"`, with an --api-keys-file of comment lines only, and
               on a database sealed under one template key started without a key and with another:
               each exits non-zero within 30 s and never prints "listening on" (the control: the
@@ -1148,13 +1152,19 @@ def db_down_verdict(records, present, t_stop, t_down, t_start, t_up, up_s, down_
                 f"{len(unanswered)} unanswered (client timeout or error), {unanswered_present} of those present")
 
 
+def duplicates(args, work):
+    import duplicates as scenario  # beside this script (scripts/reliability/duplicates.py)
+
+    return scenario.duplicates(args, work, Server, SHARED, os.path.join(ROOT, "models"))
+
+
 SCENARIOS = {
     "slowloris": slowloris, "slow-body": slow_body, "kill9": kill9, "sigterm": sigterm, "stalled-heads": stalled_heads,
-    "json-flood": json_flood, "trickle": trickle, "part-flood": part_flood, "fail-closed": fail_closed, "db-down": db_down,
-    "overload": overload,
+    "json-flood": json_flood, "trickle": trickle, "part-flood": part_flood, "duplicates": duplicates, "fail-closed": fail_closed,
+    "db-down": db_down, "overload": overload,
 }
-DEFAULT = ["slowloris", "slow-body", "kill9", "sigterm", "stalled-heads", "json-flood", "trickle", "part-flood", "fail-closed",
-           "db-down"]
+DEFAULT = ["slowloris", "slow-body", "kill9", "sigterm", "stalled-heads", "json-flood", "trickle", "part-flood", "duplicates",
+           "fail-closed", "db-down"]
 
 
 def main():
