@@ -2,7 +2,8 @@
 //!
 //! - `openapi`: `openapi.yaml` against the served operations; every response received by these
 //!   tests is checked against the document.
-//! - `deploy`: `compose.yaml` and the load balancer's config (and `docker compose config` where installed).
+//! - `deploy`: `compose.yaml` and the load balancer's config (and `docker compose config` where installed), and the
+//!   Kubernetes manifests rendered by `kubectl kustomize` and checked by `kubernetes-validate`.
 //! - `hostile`: half-open and idle connections, stalled bodies, admission before the body, head
 //!   limits, keys on the operational routes, the audit log (raw TCP where needed).
 //! - `http`: the HTTP layer (formats, every bad-input class, limits, keys, timeouts, overload,
