@@ -468,6 +468,23 @@ def overload(args, work):
         server.stop()
 
 
+def answered_status(sock, received):
+    """Read what the non-blocking `sock` has after `received`: (the response's status code, or
+    "closed" when the peer closed without one; None while the status line has not arrived yet,
+    all that was read so far)."""
+    try:
+        chunk = sock.recv(4096)
+    except BlockingIOError:
+        return None, received
+    except OSError:
+        chunk = b""
+    received += chunk
+    if chunk and b"\r\n" not in received:
+        return None, received
+    line = received.split(b"\r\n", 1)[0].decode(errors="replace")
+    return (line.split(" ")[1] if line.startswith("HTTP/1.1 ") else "closed"), received
+
+
 def problem_slug(data):
     """The last segment of a problem+json answer's type URI ("" when the body is not one)."""
     try:
@@ -516,17 +533,9 @@ def stalled_heads(args, work):
         while attacking.is_set() and time.monotonic() < deadline + 10:
             for key, _ in selector.select(timeout=0.05):
                 s, state = key.fileobj, key.data
-                try:
-                    chunk = s.recv(4096)
-                except BlockingIOError:
+                status, state[4] = answered_status(s, state[4])
+                if status is None:
                     continue
-                except OSError:
-                    chunk = b""
-                state[4] += chunk
-                if chunk and b"\r\n" not in state[4]:
-                    continue
-                line = state[4].split(b"\r\n", 1)[0].decode(errors="replace")
-                status = line.split(" ")[1] if line.startswith("HTTP/1.1 ") else "closed"
                 answers.setdefault((state[0], status), []).append(time.monotonic() - state[3])
                 selector.unregister(s)
                 s.close()
@@ -693,17 +702,9 @@ class Trickles:
 
     def _answered(self, key):
         s, state = key.fileobj, key.data
-        try:
-            chunk = s.recv(4096)
-        except BlockingIOError:
+        status, state[1] = answered_status(s, state[1])
+        if status is None:
             return
-        except OSError:
-            chunk = b""
-        state[1] += chunk
-        if chunk and b"\r\n" not in state[1]:
-            return
-        line = state[1].split(b"\r\n", 1)[0].decode(errors="replace")
-        status = line.split(" ")[1] if line.startswith("HTTP/1.1 ") else "closed"
         self.answers.setdefault(status, []).append(time.monotonic() - state[0])
         self.selector.unregister(s)
         s.close()
