@@ -162,39 +162,39 @@ pub struct PairScores {
 
 /// Score every pair of rows of different subjects: `rows` are unit vectors (`dimension` each)
 /// with `owners` their subject slots. With more than [`MAX_TEMPLATES`] rows, every n-th row is
-/// taken (rows in subject order spread the sample over the subjects) and those are paired. Two
-/// passes: the first finds the pairs of subjects with a template pair at or above
-/// `duplicate_threshold`, the second keeps the scores of every other pair of subjects.
+/// taken (rows in subject order spread the sample over the subjects) and those are paired. The
+/// pairs of subjects with a template pair at or above `duplicate_threshold` are suspected, and
+/// every score of theirs left out.
 pub fn score_pairs(rows: &[f32], dimension: usize, owners: &[u32], duplicate_threshold: f32) -> PairScores {
     let count = owners.len();
     let step = count.div_ceil(MAX_TEMPLATES).max(1);
     let taken: Vec<usize> = (0..count).step_by(step).collect();
     let row = |i: usize| &rows[i * dimension..(i + 1) * dimension];
-    let each_pair = |visit: &mut dyn FnMut((u32, u32), f32)| {
-        for (a, &i) in taken.iter().enumerate() {
-            for &j in &taken[a + 1..] {
-                if owners[i] != owners[j] {
-                    let slots = (owners[i].min(owners[j]), owners[i].max(owners[j]));
-                    visit(slots, facegate_core::vector::dot(row(i), row(j)));
-                }
-            }
-        }
+    // The pairs of rows of two subjects, always in the same order, with their subjects' slots.
+    let pairs = || {
+        taken
+            .iter()
+            .enumerate()
+            .flat_map(|(a, &i)| taken[a + 1..].iter().map(move |&j| (i, j)))
+            .filter(|&(i, j)| owners[i] != owners[j])
+            .map(|(i, j)| (i, j, (owners[i].min(owners[j]), owners[i].max(owners[j]))))
     };
+    // Each pair scored once; the scores of the suspected subjects' pairs are then dropped by a
+    // second walk of the same order, which computes nothing.
+    let mut impostor: Vec<f32> = pairs().map(|(i, j, _)| facegate_core::vector::dot(row(i), row(j))).collect();
     let mut duplicates: HashMap<(u32, u32), f32> = HashMap::new();
-    each_pair(&mut |slots, score| {
+    for ((_, _, slots), &score) in pairs().zip(&impostor) {
         if score >= duplicate_threshold {
             let best = duplicates.entry(slots).or_insert(score);
             *best = best.max(score);
         }
-    });
-    let (mut impostor, mut duplicate_pairs) = (Vec::new(), 0);
-    each_pair(&mut |slots, score| {
-        if duplicates.contains_key(&slots) {
-            duplicate_pairs += 1;
-        } else {
-            impostor.push(score);
-        }
-    });
+    }
+    let scored = impostor.len();
+    if !duplicates.is_empty() {
+        let mut walk = pairs();
+        impostor.retain(|_| walk.next().is_some_and(|(_, _, slots)| !duplicates.contains_key(&slots)));
+    }
+    let duplicate_pairs = scored - impostor.len();
     PairScores { impostor, duplicates, duplicate_pairs, duplicate_threshold }
 }
 
