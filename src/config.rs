@@ -23,7 +23,7 @@ use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::quality::QualityPolicy;
 use crate::recognize::DEFAULT_FMR;
 use crate::recognize::RecognizerKind;
-use crate::service::{LivenessPolicy, ServiceConfig};
+use crate::service::{ChallengeConfig, LivenessPolicy, ServiceConfig};
 use crate::store::KeyRing;
 use anyhow::Context;
 
@@ -57,6 +57,7 @@ const DEFAULT_BODY_TIMEOUT_SECS: f64 = 15.0;
 const DEFAULT_BODY_GRACE_SECS: f64 = 5.0;
 const DEFAULT_MIN_BODY_RATE_KIB: u64 = 8;
 const DEFAULT_MAX_UPLOADS_PER_ADDRESS: usize = 16;
+const DEFAULT_CHALLENGE_LIFETIME_SECS: u64 = 120;
 const DEFAULT_HEADER_TIMEOUT_SECS: f64 = 10.0;
 const DEFAULT_MAX_CONNECTIONS: usize = 1024;
 const DEFAULT_SHUTDOWN_GRACE_SECS: f64 = 10.0;
@@ -213,6 +214,9 @@ pub struct Settings {
     /// printed-photo scores the operator has measured.
     #[arg(long, env = "FACEGATE_LIVENESS_THRESHOLD")]
     pub liveness_threshold: Option<f32>,
+    /// Seconds a liveness challenge (POST /liveness/challenge) may be answered in.
+    #[arg(long, env = "FACEGATE_CHALLENGE_LIFETIME_SECS", default_value_t = DEFAULT_CHALLENGE_LIFETIME_SECS)]
+    pub challenge_lifetime_secs: u64,
     #[command(flatten)]
     pub template_key: TemplateKeyArgs,
 }
@@ -276,6 +280,7 @@ impl Default for Settings {
             max_pitch_deg: DEFAULT_MAX_PITCH_DEG,
             liveness: LivenessPolicy::default().into(),
             liveness_threshold: None,
+            challenge_lifetime_secs: DEFAULT_CHALLENGE_LIFETIME_SECS,
         }
     }
 }
@@ -292,6 +297,7 @@ impl Settings {
         let body_timeout = seconds("--body-timeout-secs", self.body_timeout_secs)?;
         anyhow::ensure!(body_timeout <= timeout, "--body-timeout-secs must not exceed --timeout-secs");
         anyhow::ensure!(self.max_images >= 1, "--max-images must be at least 1");
+        anyhow::ensure!((10..=3600).contains(&self.challenge_lifetime_secs), "--challenge-lifetime-secs must be between 10 and 3600");
         anyhow::ensure!(self.max_uploads_per_address >= 1, "--max-uploads-per-address must be at least 1");
         Ok(ApiConfig {
             max_body_bytes: self.max_body_mb << 20,
@@ -318,6 +324,7 @@ impl Settings {
                 quality_policy: self.quality_policy(),
                 default_fmr: DEFAULT_FMR,
                 liveness: self.liveness.into(),
+                challenge: ChallengeConfig { lifetime: Duration::from_secs(self.challenge_lifetime_secs) },
             },
         })
     }

@@ -152,3 +152,100 @@ pub fn run_train(args: TrainLivenessArgs) -> anyhow::Result<ExitCode> {
     );
     Ok(ExitCode::SUCCESS)
 }
+
+#[derive(clap::Args, Debug)]
+pub struct EvalChallengeArgs {
+    /// Which IMM persons: `test` (never trained on; with UMIST and NUAA) or `train` (where the
+    /// parallax threshold is chosen).
+    #[arg(long, value_parser = ["test", "train"], default_value = "test")]
+    pub persons: String,
+    /// Challenges drawn per person.
+    #[arg(long, default_value_t = 10)]
+    pub challenges: usize,
+    /// Seed of the challenges drawn.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Threads analysing frames.
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    /// Print the report as one JSON line on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `facegate eval challenge`: the head-turn challenge's BPCER and APCER per attack type.
+pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
+    use crate::research::eval::challenge::{ChallengeEvalConfig, evaluate};
+    let shared = crate::config::shared_dir();
+    let config = ChallengeEvalConfig {
+        imm: shared.join("data/imm"),
+        umist: shared.join("data/umist"),
+        nuaa: shared.join("data/nuaa"),
+        test_persons: args.persons == "test",
+        challenges_per_person: args.challenges,
+        seed: args.seed,
+        threads: args.threads.max(1),
+    };
+    let pipeline = crate::pipeline::Pipeline::load(&crate::config::pipeline_config())?;
+    anyhow::ensure!(pipeline.face_model.is_some(), "the challenge is judged on the 3D fit: the Surrey Face Model is needed");
+    let progress = super::Bar::default();
+    let report = evaluate(&pipeline, &config, &progress)?;
+    if args.json {
+        super::print_json_line(&serde_json::to_value(&report)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    eprintln!("persons: {}; mean steps {:.2}", report.persons, report.mean_steps);
+    eprintln!("{:<28} {:>8} {:>18} {:>18} {:>10}  first reasons", "kind", "attempts", "pass challenge", "pass enforce", "parallax");
+    for row in &report.rows {
+        let rate = |n: usize| format!("{n} ({:.1}%)", 100.0 * n as f64 / row.attempts.max(1) as f64);
+        let parallax = row.parallax_median.map_or("-".to_string(), |p| format!("{p:.4}"));
+        let reasons: Vec<String> = row.reasons.iter().map(|(r, n)| format!("{r}: {n}")).collect();
+        eprintln!(
+            "{:<28} {:>8} {:>18} {:>18} {:>10}  {}",
+            row.kind,
+            row.attempts,
+            rate(row.passed_challenge),
+            rate(row.passed_enforce),
+            parallax,
+            reasons.join("; ")
+        );
+    }
+    eprintln!("reused challenge: {} of {} given out a second time", report.reused_passed, report.reused_attempts);
+    for (person, (n, reason)) in &report.live_refused {
+        eprintln!("live refused: {person}: {n}, first: {reason}");
+    }
+    for (kind, [min, p5, median, p95, max]) in &report.yaw_quantiles {
+        eprintln!("yaw {kind}: min {min:.1}° p5 {p5:.1}° median {median:.1}° p95 {p95:.1}° max {max:.1}°");
+    }
+    let q = |v: &[f64], p: f64| {
+        let mut v = v.to_vec();
+        v.sort_by(f64::total_cmp);
+        v.get(((v.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(f64::NAN)
+    };
+    let (l, a, r) = (&report.live_parallax, &report.print_parallax, &report.avatar_parallax);
+    eprintln!(
+        "nose depth, poses right: live min {:.3} p5 {:.3} median {:.3} (n {}); prints median {:.3} p95 {:.3} max {:.3} (n {}); \
+         avatars median {:.3} p90 {:.3} max {:.3} (n {}); threshold {:.3}",
+        q(l, 0.0),
+        q(l, 0.05),
+        q(l, 0.5),
+        l.len(),
+        q(a, 0.5),
+        q(a, 0.95),
+        q(a, 1.0),
+        a.len(),
+        q(r, 0.5),
+        q(r, 0.9),
+        q(r, 1.0),
+        r.len(),
+        crate::service::challenge::PARALLAX_MIN
+    );
+    eprintln!(
+        "CPU: {:.0} ms per photo analysis, {:.3} ms per judgement: a challenge of {:.2} steps costs {:.2} plain verifications",
+        report.analysis_ms,
+        report.judge_ms,
+        report.mean_steps,
+        report.mean_steps + 1.0 + report.judge_ms / report.analysis_ms
+    );
+    Ok(ExitCode::SUCCESS)
+}

@@ -121,6 +121,9 @@ pub enum EvalCommand {
     Pose(pose::EvalPoseArgs),
     /// Liveness by NUAA subject folds: APCER, BPCER, ACER, BPCER at APCER 1% and 5%, a DET plot.
     Liveness(liveness::EvalLivenessArgs),
+    /// The head-turn liveness challenge: BPCER of live sequences and APCER per attack type
+    /// (still photo, prints turned and bent, wrong order, stranger, avatar renders, NUAA prints).
+    Challenge(liveness::EvalChallengeArgs),
     /// Embedding networks alone, by alignment variant, and fused: EER and FNMR on held-out persons.
     Embedding(networks::EvalEmbeddingArgs),
     /// Stated against observed FMR per photo domain: raw cosine and cohort normalisation, by calibration persons.
@@ -164,6 +167,7 @@ pub fn main() -> ExitCode {
         Command::Eval(EvalCommand::Quality(args)) => quality::run_eval(args),
         Command::Eval(EvalCommand::QualityCv(args)) => quality::run_eval_cv(args),
         Command::Eval(EvalCommand::Pose(args)) => pose::run_eval(args),
+        Command::Eval(EvalCommand::Challenge(args)) => liveness::run_eval_challenge(args),
         Command::Train(TrainCommand::Liveness(args)) => liveness::run_train(args),
         Command::Eval(EvalCommand::Liveness(args)) => liveness::run_eval(args),
     };

@@ -49,6 +49,11 @@ pub struct FrontalizeArgs {
     /// Side of the square frontal rendering in pixels.
     #[arg(long, default_value_t = FRONTAL_VIEW_SIZE)]
     pub size: usize,
+    /// Render the head turned to this yaw instead of from the front (degrees, -90 to 90; > 0: the
+    /// head turned to its own left, as `/analyze` reports it): the avatar of one photo, as an
+    /// attack on the liveness challenge would show it.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    pub yaw: f32,
     #[command(flatten)]
     pub input: MorphInput,
 }
@@ -125,10 +130,14 @@ pub fn run_frontalize(args: FrontalizeArgs) -> anyhow::Result<ExitCode> {
     if !(16..=2048).contains(&args.size) {
         bail!("--size must be between 16 and 2048");
     }
+    if !(-90.0..=90.0).contains(&args.yaw) {
+        bail!("--yaw must be between -90 and 90 degrees");
+    }
     let model = load_model(&args.input)?;
     let photo = open(&args.image)?;
     let fitted = fit(&args.input, &model, &photo)?;
-    let (frontal, png) = model.frontal_png(&photo, &fitted, args.size)?;
+    let pose = crate::morph::Pose { yaw: args.yaw, ..Default::default() };
+    let (frontal, png) = model.posed_png(&photo, &fitted, pose, args.size)?;
     std::fs::write(&args.out, png).with_context(|| format!("cannot write {}", args.out.display()))?;
     let k = frontal.keypoints;
     super::print_json_line(&serde_json::json!({
@@ -136,6 +145,7 @@ pub fn run_frontalize(args: FrontalizeArgs) -> anyhow::Result<ExitCode> {
         "pose": {"yaw": fitted.pose.yaw, "pitch": fitted.pose.pitch, "roll": fitted.pose.roll},
         "residual_px": fitted.residual_px,
         "keypoints": {"left_eye": k.left_eye, "right_eye": k.right_eye, "mouth": k.mouth},
+        "rendered_yaw": args.yaw,
         "out": args.out.display().to_string(),
     }));
     Ok(ExitCode::SUCCESS)

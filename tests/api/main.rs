@@ -22,10 +22,13 @@
 //!   real pipeline and `models/liveness.bin` on NUAA print and live frames.
 //! - `frames`: `/verify` of a capture (a probe and further frames): the frames' checks (a face,
 //!   the probe's person), the liveness fused over them, enforced by the fused score; NUAA frames.
+//! - `challenge`: the head-turn liveness challenge: issued, answered by a person's own turns,
+//!   used once, expired; a still photo and the wrong order fail it; JSON and multipart.
 //! - `browser`: the web console in headless Chromium over WebDriver, against the real pipeline.
 
 mod admission;
 mod browser;
+mod challenge;
 mod deploy;
 mod fail_closed;
 mod frames;

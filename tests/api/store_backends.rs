@@ -37,7 +37,8 @@ on_both_backends!(
     sealed_round_trip_and_tampered_rows_refused,
     rekey_seals_then_rotates,
     the_gallery_reads_in_parts_and_by_subject,
-    the_site_calibration_is_measured_on_sealed_templates_and_stored_per_version
+    the_site_calibration_is_measured_on_sealed_templates_and_stored_per_version,
+    a_challenge_is_taken_once_and_expired_ones_are_swept
 );
 
 /// A matcher with a fixed threshold table (1e-2: 0.5, 1e-3: 0.7, 1e-4: 0.8, so duplicates at 0.9).
@@ -68,6 +69,35 @@ impl Matcher for Table {
 /// The site calibration scores the pairs of different subjects' templates of one model version,
 /// sealed ones too, leaves out the pairs of ids that score like one person (naming them), and is
 /// stored, replaced and removed per version.
+/// A liveness challenge is taken once, by exactly one of several takers at the same moment (the
+/// replicas answering it), and challenges past their expiry are swept when a new one is issued.
+async fn a_challenge_is_taken_once_and_expired_ones_are_swept(url: String) {
+    let store = Store::connect(&url, None).await.unwrap();
+    store.insert_challenge("a", "[\"steps\"]", 5_000, 1_000).await.unwrap();
+    store.insert_challenge("old", "[]", 1_500, 1_000).await.unwrap();
+    assert_eq!(store.challenges_open().await.unwrap(), 2);
+    let taken = store.take_challenge("a").await.unwrap().expect("issued");
+    assert_eq!((taken.steps.as_str(), taken.expires_at_ms), ("[\"steps\"]", 5_000));
+    assert_eq!(store.take_challenge("a").await.unwrap(), None, "a challenge is taken once");
+    assert_eq!(store.take_challenge("never").await.unwrap(), None);
+    // Issued at 2 000 ms: "old" expired at 1 500 and is swept.
+    store.insert_challenge("b", "[]", 9_000, 2_000).await.unwrap();
+    assert_eq!(store.challenges_open().await.unwrap(), 1);
+    // Eight takers at once, as replicas answering the same challenge would: one gets it.
+    let takers: Vec<_> = (0..8)
+        .map(|_| {
+            let store = store.clone();
+            tokio::spawn(async move { store.take_challenge("b").await.unwrap().is_some() })
+        })
+        .collect();
+    let mut got = 0;
+    for taker in takers {
+        got += taker.await.unwrap() as usize;
+    }
+    assert_eq!(got, 1, "exactly one taker gets the challenge");
+    store.close().await;
+}
+
 async fn the_site_calibration_is_measured_on_sealed_templates_and_stored_per_version(url: String) {
     use rand::SeedableRng;
     use rand_distr::Distribution;

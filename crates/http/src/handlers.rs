@@ -13,7 +13,7 @@ use serde::Deserialize;
 use super::audit::Audit;
 use super::input::{Params, SubjectPath, Upload, subject_id, validate_fmr};
 use super::problem::{Problem, ProblemKind};
-use super::responses::{EnrollResponse, Health, IdentifyResponse, SubjectDetail, SubjectList, VerifyResponse};
+use super::responses::{ChallengeResponse, EnrollResponse, Health, IdentifyResponse, SubjectDetail, SubjectList, VerifyResponse};
 use super::timeout::CommitPoint;
 use super::{AppState, OPENAPI_YAML};
 use facegate_core::elapsed_ms;
@@ -76,7 +76,9 @@ pub async fn enroll(
 
 /// `POST /verify`: is the probe's largest face the enrolled subject? Up to four further frames of
 /// the same capture (`frame` parts, `frames` in JSON) must show the probe's person and lend their
-/// liveness to the probe's: the response's `liveness` is then fused over all of them.
+/// liveness to the probe's: the response's `liveness` is then fused over all of them. With a
+/// `challenge` (`POST /liveness/challenge`) the frames are its steps' in order and the response's
+/// `liveness.challenge` carries the verdict.
 pub async fn verify(
     State(state): State<AppState>,
     audit: Audit,
@@ -90,13 +92,23 @@ pub async fn verify(
     let subject = upload.require_subject()?;
     audit.subject(&subject);
     let frames = std::mem::take(&mut upload.frames);
+    let challenge = upload.challenge.take();
     let image = upload.single_image()?;
-    let verification = facegate.verify_capture(&subject, image, frames, fmr).await?;
+    let verification = match challenge {
+        Some(challenge) => facegate.verify_challenge(&subject, image, frames, &challenge, fmr).await?,
+        None => facegate.verify_capture(&subject, image, frames, fmr).await?,
+    };
     std::iter::once(&verification.photo).chain(&verification.frames).for_each(|photo| observe(&state, photo));
     let decision = &verification.decision;
     audit.decision(decision.score, decision.threshold, decision.is_match);
     let body = VerifyResponse::new(&subject, &verification, facegate.model_version(), elapsed_ms(start));
     Ok(Json(body).into_response())
+}
+
+/// `POST /liveness/challenge`: a new head-turn challenge, 201 with its id, lifetime and steps.
+pub async fn issue_challenge(State(state): State<AppState>, Params(NoParams {}): Params<NoParams>) -> Result<Response, Problem> {
+    let issued = state.facegate().issue_challenge().await?;
+    Ok((StatusCode::CREATED, Json(ChallengeResponse::from(issued))).into_response())
 }
 
 /// Most candidates `/identify` returns.

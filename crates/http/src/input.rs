@@ -40,6 +40,8 @@ pub struct Upload {
     /// Further frames of the probe's capture (`frame` parts, `frames` entries), at most
     /// [`MAX_FRAMES`]; only `/verify` takes them.
     pub frames: Vec<Bytes>,
+    /// The liveness challenge the frames answer (`challenge`); only `/verify` takes one.
+    pub challenge: Option<String>,
 }
 
 impl FromRequest<AppState> for Upload {
@@ -96,7 +98,7 @@ pub async fn read_upload(request: Request, max_photos: usize) -> Result<Upload, 
         Err(Problem::new(
             ProblemKind::UnsupportedMediaType,
             format!(
-                "Content-Type {:?} is not accepted: send multipart/form-data (fields subject, image, frame) or application/json",
+                "Content-Type {:?} is not accepted: send multipart/form-data (fields subject, image, frame, challenge) or application/json",
                 truncate(&content_type, 80)
             ),
         ))
@@ -129,6 +131,14 @@ async fn read_multipart(request: Request, max_photos: usize) -> Result<Upload, P
                 let bytes = field.bytes().await.map_err(multipart_problem)?;
                 upload.images.push(bytes);
             }
+            "challenge" => {
+                if upload.challenge.is_some() {
+                    return Err(Problem::malformed("the field challenge is given more than once"));
+                }
+                // A challenge id is 32 characters: a longer field is not one, and is not kept.
+                let text = field.text().await.map_err(multipart_problem)?;
+                upload.challenge = Some(truncate(&text, 64));
+            }
             "frame" => {
                 // Refused at the first frame too many, before its bytes are copied.
                 if upload.frames.len() == MAX_FRAMES {
@@ -139,7 +149,7 @@ async fn read_multipart(request: Request, max_photos: usize) -> Result<Upload, P
             }
             other => {
                 return Err(Problem::malformed(format!(
-                    "unknown form field {:?}: the fields are subject, image and (/verify) frame",
+                    "unknown form field {:?}: the fields are subject, image and (/verify) frame and challenge",
                     truncate(other, 40)
                 )));
             }
@@ -184,9 +194,12 @@ impl Upload {
         if self.subject.is_some() { Err(Problem::malformed(why.to_string())) } else { Ok(()) }
     }
 
-    /// No further frames: only `/verify` takes them (it takes them out of the upload first).
+    /// No further frames and no challenge: only `/verify` takes them (it takes them out of the
+    /// upload first).
     pub fn refuse_frames(&self) -> Result<(), Problem> {
-        if self.frames.is_empty() {
+        if self.challenge.is_some() {
+            Err(Problem::malformed("only /verify takes a liveness challenge (field challenge)"))
+        } else if self.frames.is_empty() {
             Ok(())
         } else {
             Err(Problem::malformed("only /verify takes further frames of a capture (field frame, or frames in JSON)"))

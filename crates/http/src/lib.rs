@@ -114,6 +114,7 @@ pub fn operations() -> Vec<Operation> {
         work(Method::POST, "/analyze", WorkClass::Probe, post(inspect::analyze)),
         work(Method::POST, "/avatar", WorkClass::Probe, post(inspect::avatar)),
         work(Method::POST, "/frontalize", WorkClass::Probe, post(inspect::frontalize)),
+        op(Method::POST, "/liveness/challenge", true, post(handlers::issue_challenge)),
         op(Method::GET, "/subjects", true, get(handlers::list_subjects)),
         op(Method::GET, "/subjects/{id}", true, get(handlers::get_subject)),
         op(Method::DELETE, "/subjects/{id}", true, delete(handlers::delete_subject)),

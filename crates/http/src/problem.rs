@@ -38,6 +38,9 @@ pub enum ProblemKind {
     PresentationAttack,
     /// A further frame of a `/verify` capture does not show the probe's person.
     FramesMismatch,
+    /// The liveness challenge a `/verify` answers is unknown, already used or expired (or liveness
+    /// is off): it never passes.
+    InvalidChallenge,
     /// The 3D morphable model the operation needs is not loaded (avatar, frontal rendering).
     NoFaceModel,
     /// The 3D morphable model could not be fitted to the face's landmarks.
@@ -71,7 +74,7 @@ pub enum ProblemKind {
 }
 
 impl ProblemKind {
-    pub const ALL: [ProblemKind; 25] = [
+    pub const ALL: [ProblemKind; 26] = [
         ProblemKind::NotAnImage,
         ProblemKind::UnsupportedFormat,
         ProblemKind::UnsupportedMediaType,
@@ -82,6 +85,7 @@ impl ProblemKind {
         ProblemKind::LowQuality,
         ProblemKind::PresentationAttack,
         ProblemKind::FramesMismatch,
+        ProblemKind::InvalidChallenge,
         ProblemKind::NoFaceModel,
         ProblemKind::FitFailed,
         ProblemKind::UnknownSubject,
@@ -112,6 +116,7 @@ impl ProblemKind {
             ProblemKind::LowQuality => "low-quality",
             ProblemKind::PresentationAttack => "presentation-attack",
             ProblemKind::FramesMismatch => "frames-mismatch",
+            ProblemKind::InvalidChallenge => "invalid-challenge",
             ProblemKind::NoFaceModel => "no-face-model",
             ProblemKind::FitFailed => "fit-failed",
             ProblemKind::UnknownSubject => "unknown-subject",
@@ -146,6 +151,7 @@ impl ProblemKind {
             ProblemKind::LowQuality => "Photo quality too low",
             ProblemKind::PresentationAttack => "Presentation attack",
             ProblemKind::FramesMismatch => "Frames of another person",
+            ProblemKind::InvalidChallenge => "Invalid liveness challenge",
             ProblemKind::NoFaceModel => "No 3D morphable model",
             ProblemKind::FitFailed => "3D morphable model fit failed",
             ProblemKind::UnknownSubject => "Unknown subject",
@@ -173,6 +179,7 @@ impl ProblemKind {
             | ProblemKind::LowQuality
             | ProblemKind::PresentationAttack
             | ProblemKind::FramesMismatch
+            | ProblemKind::InvalidChallenge
             | ProblemKind::NoFaceModel
             | ProblemKind::FitFailed => StatusCode::UNPROCESSABLE_ENTITY,
             ProblemKind::UnsupportedFormat | ProblemKind::UnsupportedMediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
@@ -207,6 +214,8 @@ pub struct Problem {
     /// `presentation-attack`: the liveness score and the operating point it fell below (the
     /// body's `score`, `threshold`, `operating_point` and `model` members).
     pub attack: Option<Box<PresentationAttack>>,
+    /// `presentation-attack` of a failed liveness challenge: why it failed (the body's `reason`).
+    pub reason: Option<String>,
 }
 
 /// The JSON body of a problem response.
@@ -231,11 +240,13 @@ struct ProblemBody<'a> {
     operating_point: Option<&'a str>,
     #[serde(skip_serializing_if = "Option::is_none")]
     model: Option<&'a str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    reason: Option<&'a str>,
 }
 
 impl Problem {
     pub fn new(kind: ProblemKind, detail: impl Into<String>) -> Problem {
-        Problem { kind, detail: detail.into(), image: None, frame: None, failures: Vec::new(), attack: None }
+        Problem { kind, detail: detail.into(), image: None, frame: None, failures: Vec::new(), attack: None, reason: None }
     }
 
     /// `presentation-attack`: the face's liveness score fell below the operating point.
@@ -308,6 +319,7 @@ impl Problem {
             threshold: self.attack.as_ref().map(|a| a.threshold),
             operating_point: self.attack.as_ref().map(|a| a.operating_point.as_str()),
             model: self.attack.as_ref().map(|a| a.model.as_str()),
+            reason: self.reason.as_deref(),
         };
         serde_json::to_vec(&body).expect("problem bodies serialise")
     }
@@ -342,6 +354,10 @@ impl From<PhotoError> for Problem {
             PhotoError::SeveralFaces(_) => Problem::new(ProblemKind::SeveralFaces, error.to_string()),
             PhotoError::LowQuality(failures) => Problem::low_quality(failures),
             PhotoError::PresentationAttack(attack) => Problem::presentation_attack(attack),
+            PhotoError::ChallengeFailed(ref outcome) => {
+                let reason = outcome.reason.clone();
+                Problem { reason, ..Problem::new(ProblemKind::PresentationAttack, error.to_string()) }
+            }
             PhotoError::LivenessUnavailable => Problem::internal(error),
             PhotoError::Internal(e) => Problem::internal(e),
         }
@@ -355,6 +371,7 @@ impl From<ServiceError> for Problem {
             ServiceError::Photo { index: None, error } => Problem::from(error),
             ServiceError::Frame { index, error } => Problem::from(error).for_frame(index),
             ServiceError::FramesMismatch(mismatch) => Problem::frames_mismatch(&mismatch),
+            ServiceError::InvalidChallenge(e) => Problem::new(ProblemKind::InvalidChallenge, e.to_string()),
             ServiceError::Invalid(detail) => Problem::malformed(detail),
             ServiceError::UnknownSubject(id) => Problem::new(ProblemKind::UnknownSubject, format!("subject {id} is not enrolled")),
             ServiceError::ModelMismatch(e) => Problem::new(ProblemKind::ModelMismatch, e.to_string()),

@@ -379,11 +379,25 @@ impl FaceModel {
     }
 
     pub fn frontalize_sized(&self, photo: &Photo, fit: &FittedFace, size: usize, texture_size: usize) -> Result<Frontal, MorphError> {
+        self.render_posed(photo, fit, Pose::default(), size, texture_size)
+    }
+
+    /// The fitted, textured head of `photo` rendered at `pose` (yaw, pitch, roll in degrees, the
+    /// fit's convention), centred in a `size` square on black: the frontal rendering at the zero
+    /// pose, and at other yaws the avatar of one photo turned as a live head would be.
+    pub fn render_posed(
+        &self,
+        photo: &Photo,
+        fit: &FittedFace,
+        pose: Pose,
+        size: usize,
+        texture_size: usize,
+    ) -> Result<Frontal, MorphError> {
         if fit.vertices.len() != self.vertex_count() {
             return Err(MorphError::Input("the fit does not belong to this model".into()));
         }
         let texture = self.extract_texture(&photo.rgb, fit, texture_size);
-        let camera = self.centred_camera(&fit.vertices, Pose::default(), size, size);
+        let camera = self.centred_camera(&fit.vertices, pose, size, size);
         let projected = self.project(&fit.vertices, &camera);
         let image = render::render_textured(&projected, &self.shape.triangles, &self.shape.texcoords, &texture, size, size, [0, 0, 0]);
         let keypoints = self.keypoints(&projected, &fit.correspondence);
@@ -424,7 +438,13 @@ impl FaceModel {
     /// The frontal rendering ([`FaceModel::frontalize_sized`] at `size`, texture at least as fine)
     /// as PNG bytes: the one path of `facegate frontalize` and `POST /frontalize`.
     pub fn frontal_png(&self, photo: &Photo, fit: &FittedFace, size: usize) -> Result<(Frontal, Vec<u8>), MorphError> {
-        let frontal = self.frontalize_sized(photo, fit, size, TEXTURE_SIZE.max(size))?;
+        self.posed_png(photo, fit, Pose::default(), size)
+    }
+
+    /// [`FaceModel::render_posed`] at `size` (texture at least as fine) as PNG bytes: `facegate
+    /// frontalize --yaw`.
+    pub fn posed_png(&self, photo: &Photo, fit: &FittedFace, pose: Pose, size: usize) -> Result<(Frontal, Vec<u8>), MorphError> {
+        let frontal = self.render_posed(photo, fit, pose, size, TEXTURE_SIZE.max(size))?;
         let mut png = Vec::new();
         frontal
             .image

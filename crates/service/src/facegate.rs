@@ -17,6 +17,7 @@ use facegate_vision::morph::AvatarFormat;
 use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PipelineError};
 use facegate_vision::quality::{Failure, QualityPolicy};
 
+use crate::challenge::{ChallengeConfig, ChallengeOutcome, InvalidChallenge};
 use crate::gallery::{LiveGallery, Precision, UnreadableTemplates};
 use crate::inspect::{self, Analysis, InspectError};
 use crate::liveness::{LivenessPolicy, PresentationAttack};
@@ -36,6 +37,8 @@ pub struct ServiceConfig {
     pub default_fmr: f64,
     /// What enrolment, verify and identify do with a face's liveness.
     pub liveness: LivenessPolicy,
+    /// The head-turn challenges' settings.
+    pub challenge: ChallengeConfig,
 }
 
 /// What is wrong with one photo.
@@ -61,6 +64,9 @@ pub enum PhotoError {
     /// Liveness is enforced and the face was taken for a printed photo.
     #[error("{0}")]
     PresentationAttack(PresentationAttack),
+    /// Liveness is enforced and the capture answering a challenge failed it.
+    #[error("the capture failed the liveness challenge: {}", .0.reason.as_deref().unwrap_or("no reason"))]
+    ChallengeFailed(ChallengeOutcome),
     /// Liveness is enforced but the engine gave none (no liveness model): a fault of the server,
     /// and no face is let through unchecked.
     #[error("liveness is enforced but no liveness model is loaded")]
@@ -80,6 +86,9 @@ pub enum ServiceError {
     /// frames (the probe is not counted).
     #[error("{error}")]
     Frame { index: usize, error: PhotoError },
+    /// The challenge a verification answers is unknown, used or expired.
+    #[error(transparent)]
+    InvalidChallenge(#[from] InvalidChallenge),
     /// A further frame of a verification's capture does not show the probe's person.
     #[error("{0}")]
     FramesMismatch(FramesMismatch),
@@ -150,7 +159,7 @@ impl PhotoError {
         ServiceError::Photo { index: Some(index), error: self }
     }
 
-    fn at_frame(self, index: usize) -> ServiceError {
+    pub(crate) fn at_frame(self, index: usize) -> ServiceError {
         ServiceError::Frame { index, error: self }
     }
 
@@ -229,6 +238,8 @@ pub struct Verification {
     /// Each photo's own liveness score, the probe's first, when the liveness was fused over
     /// frames; empty otherwise (a single photo, or no liveness).
     pub frame_scores: Vec<f32>,
+    /// The verdict on the capture when it answered a challenge.
+    pub challenge: Option<ChallengeOutcome>,
     /// Time spent deciding, after the photo's analysis.
     pub match_ms: f64,
 }
@@ -354,6 +365,10 @@ impl Facegate {
         self.0.engine.model_version()
     }
 
+    pub(crate) fn engine(&self) -> &Arc<dyn FaceEngine> {
+        &self.0.engine
+    }
+
     pub fn pool(&self) -> &WorkPool {
         &self.0.pool
     }
@@ -368,7 +383,7 @@ impl Facegate {
 
     /// `work` on the store, through the circuit: refused at once while the database is known to be
     /// unreachable.
-    async fn with_store<T>(&self, work: impl std::future::Future<Output = Result<T, StoreError>>) -> Result<T, ServiceError> {
+    pub(crate) async fn with_store<T>(&self, work: impl std::future::Future<Output = Result<T, StoreError>>) -> Result<T, ServiceError> {
         if !self.0.circuit.admit() {
             return Err(ServiceError::StoreUnavailable);
         }
@@ -379,7 +394,7 @@ impl Facegate {
 
     /// [`Facegate::with_store`] for a read, bounded in time: a read cut short changes nothing,
     /// and a database that went away answers no read in time.
-    async fn read_store<T>(&self, read: impl std::future::Future<Output = Result<T, StoreError>>) -> Result<T, ServiceError> {
+    pub(crate) async fn read_store<T>(&self, read: impl std::future::Future<Output = Result<T, StoreError>>) -> Result<T, ServiceError> {
         let bounded = async { tokio::time::timeout(STORE_READ_WAIT, read).await.unwrap_or_else(|_| Err(StoreError::timed_out())) };
         self.with_store(bounded).await
     }
@@ -445,7 +460,7 @@ impl Facegate {
         };
         let start = Instant::now();
         let decision = crate::decide(&matcher, &photo.analysis.template, &comparable, fmr);
-        Ok(Verification { decision, photo, frames, frame_scores, match_ms: elapsed_ms(start) })
+        Ok(Verification { decision, photo, frames, frame_scores, challenge: None, match_ms: elapsed_ms(start) })
     }
 
     /// The best `k` enrolled subjects for the largest face of `image`. What the store holds when

@@ -11,6 +11,7 @@
 //! point. A second recognizer (another way of computing templates) plugs in by implementing
 //! [`Matcher`]; templates of one model version are never compared with another's.
 
+pub mod challenge;
 mod facegate;
 pub mod gallery;
 pub mod inspect;
@@ -27,6 +28,7 @@ use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline
 use facegate_vision::quality::{Failure, Quality, QualityPolicy};
 use facegate_vision::recognize::{ClassicalRecognizer, Recognizer};
 
+pub use challenge::{ChallengeConfig, ChallengeOutcome, InvalidChallenge, IssuedChallenge};
 pub use facegate::{
     AnalyzedPhoto, Enrollment, Facegate, FramesMismatch, Health, Identification, PhotoError, PreparedEnrollment, ServiceConfig,
     ServiceError, Verification, analyze_photo,

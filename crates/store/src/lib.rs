@@ -35,6 +35,7 @@
 //! change feed (PostgreSQL's `LISTEN`/`NOTIFY`); `codec` how a template's vector is stored, plain
 //! or sealed; [`cipher`] the sealing itself; `site` the site calibration per model version.
 
+mod challenge;
 pub mod cipher;
 mod codec;
 mod feed;
@@ -64,6 +65,7 @@ use facegate_core::template::Template;
 
 use codec::{Sealing, StoredRow, encode_vector, open_vector, seal_subject, template_from_row};
 
+pub use challenge::TakenChallenge;
 pub use cipher::{CipherError, KeyRing};
 pub use codec::{KeyCheck, SealingCounts, blob_to_vector, vector_to_blob};
 pub use feed::{ChangeFeed, StoreChange};

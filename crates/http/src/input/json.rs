@@ -1,4 +1,4 @@
-//! The JSON form of an upload: `{"subject", "image", "images", "frames"}`, an object and nothing
+//! The JSON form of an upload: `{"subject", "image", "images", "frames", "challenge"}`, an object and nothing
 //! else (an array in the fields' order, which serde's derive would take for the struct, is
 //! malformed like any other body that is not the object), each field optional and `null` the same
 //! as leaving it out. It is parsed and its base64 decoded on the blocking pool, never on the async
@@ -55,7 +55,8 @@ fn parse_json(body: &[u8], max_photos: usize) -> Result<Upload, Problem> {
     let strings = json.image.into_iter().chain(json.images.into_iter().flatten());
     let images = strings.enumerate().map(|(index, s)| decode_base64(&s.0).map_err(|p| p.for_image(index))).collect::<Result<_, _>>()?;
     let frames = json.frames.iter().flatten().enumerate().map(|(index, s)| decode_base64(&s.0).map_err(|p| p.for_frame(index)));
-    Ok(Upload { subject: json.subject, images, frames: frames.collect::<Result<_, _>>()? })
+    let challenge = json.challenge.map(|c| c.chars().take(64).collect());
+    Ok(Upload { subject: json.subject, images, frames: frames.collect::<Result<_, _>>()?, challenge })
 }
 
 /// The JSON form of a request: base64 photos (a `data:` URL prefix is allowed), each still the
@@ -67,9 +68,10 @@ struct JsonUpload<'a> {
     image: Option<Base64Text<'a>>,
     images: Option<Vec<Base64Text<'a>>>,
     frames: Option<Vec<Base64Text<'a>>>,
+    challenge: Option<String>,
 }
 
-const FIELDS: &[&str] = &["subject", "image", "images", "frames"];
+const FIELDS: &[&str] = &["subject", "image", "images", "frames", "challenge"];
 
 /// One photo's base64 text, borrowed from the body (owned only when the JSON string has escapes).
 #[derive(Debug)]
@@ -124,8 +126,8 @@ impl<'de> Visitor<'de> for JsonLimit<'_> {
     }
 
     fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<JsonUpload<'de>, A::Error> {
-        let mut json = JsonUpload { subject: None, image: None, images: None, frames: None };
-        let mut seen = [false; 4];
+        let mut json = JsonUpload { subject: None, image: None, images: None, frames: None, challenge: None };
+        let mut seen = [false; 5];
         while let Some(Field(index)) = map.next_key::<Field>()? {
             if std::mem::replace(&mut seen[index], true) {
                 return Err(de::Error::duplicate_field(FIELDS[index]));
@@ -134,6 +136,7 @@ impl<'de> Visitor<'de> for JsonLimit<'_> {
                 0 => json.subject = map.next_value()?,
                 1 => json.image = map.next_value()?,
                 2 => json.images = map.next_value_seed(NullOr(PhotoList { max: self.max_photos, over: self.over }))?,
+                4 => json.challenge = map.next_value()?,
                 _ => json.frames = map.next_value_seed(NullOr(PhotoList { max: MAX_FRAMES, over: self.frames_over }))?,
             }
         }

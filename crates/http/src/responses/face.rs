@@ -4,7 +4,7 @@
 
 use serde::Serialize;
 
-use facegate_service::AnalyzedPhoto;
+use facegate_service::{AnalyzedPhoto, ChallengeOutcome};
 use facegate_vision::{detect, landmarks, liveness, morph, pipeline, quality};
 
 /// A point in image pixels, `[x, y]`.
@@ -159,12 +159,37 @@ pub(crate) struct Liveness {
     frames: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     frame_scores: Option<Vec<f32>>,
+    /// The verdict on a capture answering a liveness challenge.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    challenge: Option<Challenge>,
+}
+
+/// A liveness challenge's verdict: passed, why not, and each step as read.
+#[derive(Debug, Clone, Serialize)]
+pub(crate) struct Challenge {
+    passed: bool,
+    reason: Option<String>,
+    steps: Vec<ChallengeStep>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub(crate) struct ChallengeStep {
+    turn: &'static str,
+    yaw: Option<f32>,
+    ok: bool,
+}
+
+impl From<&ChallengeOutcome> for Challenge {
+    fn from(o: &ChallengeOutcome) -> Challenge {
+        let steps = o.steps.iter().map(|s| ChallengeStep { turn: s.turn.name(), yaw: s.yaw, ok: s.ok }).collect();
+        Challenge { passed: o.passed, reason: o.reason.clone(), steps }
+    }
 }
 
 impl From<liveness::Liveness> for Liveness {
     /// A single photo's liveness (no frames).
     fn from(l: liveness::Liveness) -> Liveness {
-        Liveness { score: l.score, attack: l.attack, model: l.model, frames: None, frame_scores: None }
+        Liveness { score: l.score, attack: l.attack, model: l.model, frames: None, frame_scores: None, challenge: None }
     }
 }
 
@@ -224,12 +249,16 @@ impl FaceReport {
     }
 
     /// The report of a `/verify` probe whose liveness was fused over the capture's `frame_scores`
-    /// (the probe's first); a single photo's (no scores) is [`FaceReport::of`].
-    pub(crate) fn of_capture(photo: &AnalyzedPhoto, frame_scores: &[f32]) -> FaceReport {
+    /// (the probe's first), with the verdict on the `challenge` it answered, if any; a single
+    /// photo's (no scores) is [`FaceReport::of`].
+    pub(crate) fn of_capture(photo: &AnalyzedPhoto, frame_scores: &[f32], challenge: Option<&ChallengeOutcome>) -> FaceReport {
         let mut report = FaceReport::of(photo);
         if let Some(live) = report.liveness.as_mut().filter(|_| !frame_scores.is_empty()) {
             live.frames = Some(frame_scores.len());
             live.frame_scores = Some(frame_scores.to_vec());
+        }
+        if let Some(live) = report.liveness.as_mut() {
+            live.challenge = challenge.map(Challenge::from);
         }
         report
     }

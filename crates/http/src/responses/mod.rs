@@ -8,7 +8,7 @@ mod face;
 use serde::Serialize;
 
 use facegate_core::SubjectId;
-use facegate_service::{Enrollment, Identification, Verification};
+use facegate_service::{Enrollment, Identification, IssuedChallenge, Verification};
 use facegate_store::{Backend, SealingCounts, Store};
 
 pub(crate) use face::QualityFailure;
@@ -91,7 +91,7 @@ impl VerifyResponse {
             model_version: model_version.to_string(),
             templates_compared: decision.templates_compared,
             best_template: decision.best_template,
-            found: FaceReport::of_capture(&verification.photo, &verification.frame_scores),
+            found: FaceReport::of_capture(&verification.photo, &verification.frame_scores, verification.challenge.as_ref()),
             timings: RequestTimings { photo: PhotoTimings::of(&verification.photo), match_ms: verification.match_ms, total_ms },
         }
     }
@@ -105,6 +105,29 @@ struct Candidate {
     is_match: bool,
     /// The threshold for this subject's number of templates.
     threshold: f32,
+}
+
+/// `POST /liveness/challenge`'s answer: the challenge's id, its lifetime in seconds and its
+/// steps, each with the yaw range (degrees, `/analyze`'s convention) its frame must show.
+#[derive(Debug, Serialize)]
+pub(crate) struct ChallengeResponse {
+    challenge: String,
+    expires_in: u64,
+    steps: Vec<ChallengeStepRange>,
+}
+
+#[derive(Debug, Serialize)]
+struct ChallengeStepRange {
+    turn: &'static str,
+    yaw_min: f32,
+    yaw_max: f32,
+}
+
+impl From<IssuedChallenge> for ChallengeResponse {
+    fn from(c: IssuedChallenge) -> ChallengeResponse {
+        let steps = c.steps.iter().map(|s| ChallengeStepRange { turn: s.turn.name(), yaw_min: s.yaw_min, yaw_max: s.yaw_max }).collect();
+        ChallengeResponse { challenge: c.id, expires_in: c.expires_in.as_secs(), steps }
+    }
 }
 
 /// `POST /identify`'s answer.

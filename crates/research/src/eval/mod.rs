@@ -1,6 +1,7 @@
 //! Evaluation: accuracy measures of each stage on held-out people, and their plots.
 
 pub mod calibration;
+pub mod challenge;
 pub mod deep;
 pub mod detection;
 pub mod identification;

@@ -6,6 +6,7 @@
 //! surround ([`features`]), and whether it falls below the model's operating point.
 
 pub mod features;
+pub mod head_turn;
 pub mod lbp;
 
 use std::path::Path;

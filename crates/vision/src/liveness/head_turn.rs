@@ -1,0 +1,292 @@
+//! Active liveness, the 3D part: does a capture show a head turning as a challenge asked, and is
+//! it a head at all? Each frame's yaw comes from the 3D fit (3D-ASM landmarks, 3DMM pose). A real
+//! head turning moves its near and far features by different amounts: the nose tip, a good
+//! centimetre in front of the eyes and mouth, crosses the cheek; a photo held up and turned, or
+//! bent, stays a surface whose points one homography of the image plane maps from one view to
+//! the next ([`nose_parallax`]). The measure reads the detector's five key points, where the
+//! network saw them: the 58 landmarks of a turned face are the 3D-ASM's, drawn towards a head's
+//! shape by its model, and on turned prints they showed as much "parallax" as real heads
+//! ([`planar_residual`] of them; docs/liveness-challenge.md). Plain data in (the steps, each
+//! frame's yaw and points), plain data out ([`HeadTurn`]); the service decides with it.
+
+use facegate_core::face::KeyPoints;
+use facegate_core::geometry::Point;
+use nalgebra::{DMatrix, Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// Where a challenge step asks the person to look. The yaw convention is the 3D fit's (and
+/// `/analyze`'s): yaw > 0 when the person turned to their own left (the nose to the image right).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Turn {
+    Front,
+    Left,
+    Right,
+}
+
+/// Most |yaw| of a frontal step, degrees: IMM training persons' neutral frontal photos (views 1,
+/// 2, 5) read −6.4° to 12.0° (`facegate eval challenge --persons train`).
+pub const FRONT_MAX_YAW: f32 = 12.0;
+/// Least |yaw| of a turned step, degrees: the same persons' photos turned about 30° (views 3, 4)
+/// read 10.0° to 48.0° in size, 5% of them under 15°; a photo held up and turned by 30° reads up
+/// to 12.2°, by 45° up to 22.8° (the parallax, not the yaw, stops those).
+pub const TURN_MIN_YAW: f32 = 12.0;
+/// Most |yaw| of a turned step: past it the far eye is hidden and the pose is read less well.
+pub const TURN_MAX_YAW: f32 = 60.0;
+
+impl Turn {
+    /// The yaw range (degrees, inclusive) a frame of this turn must show.
+    pub fn yaw_range(self) -> (f32, f32) {
+        match self {
+            Turn::Front => (-FRONT_MAX_YAW, FRONT_MAX_YAW),
+            Turn::Left => (TURN_MIN_YAW, TURN_MAX_YAW),
+            Turn::Right => (-TURN_MAX_YAW, -TURN_MIN_YAW),
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Turn::Front => "front",
+            Turn::Left => "left",
+            Turn::Right => "right",
+        }
+    }
+}
+
+/// One step of a challenge: the turn and the yaw range its frame must show.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Step {
+    pub turn: Turn,
+    pub yaw_min: f32,
+    pub yaw_max: f32,
+}
+
+impl Step {
+    pub fn of(turn: Turn) -> Step {
+        let (yaw_min, yaw_max) = turn.yaw_range();
+        Step { turn, yaw_min, yaw_max }
+    }
+
+    pub fn admits(&self, yaw: f32) -> bool {
+        (self.yaw_min..=self.yaw_max).contains(&yaw)
+    }
+}
+
+/// What was read of one frame: the 3D fit's yaw (`None` without a fit), its 58 landmarks, and
+/// the detector's five key points (`None` from a detector without them).
+#[derive(Debug, Clone, Copy)]
+pub struct FramePose<'a> {
+    pub yaw: Option<f32>,
+    pub points: &'a [Point],
+    pub keypoints: Option<[Point; 5]>,
+}
+
+/// One step as read: the frame's yaw and whether it lies in the step's range.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct StepReading {
+    pub turn: Turn,
+    pub yaw: Option<f32>,
+    pub ok: bool,
+}
+
+/// A capture read against a challenge's steps.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct HeadTurn {
+    pub steps: Vec<StepReading>,
+    /// The flattest turn: over the frames of turned steps (in their range), the least nose depth,
+    /// each frame's [`nose_parallax`] from the view of the capture (the probe among them) whose
+    /// yaw differs most from its own, over the sine of that difference. About 0 for a picture
+    /// moved in the plane; `None` when no turned frame could be measured (no other view a turn
+    /// away, or no key points).
+    pub parallax: Option<f64>,
+}
+
+/// Read `frames` (one per step, in order) against `steps`, with `probe` as a further view for the
+/// parallax reference.
+pub fn read_head_turn(steps: &[Step], probe: FramePose, frames: &[FramePose]) -> HeadTurn {
+    let readings = steps
+        .iter()
+        .zip(frames)
+        .map(|(step, frame)| StepReading { turn: step.turn, yaw: frame.yaw, ok: frame.yaw.is_some_and(|y| step.admits(y)) })
+        .collect();
+    // Each turned frame against the view of the capture (the probe among them) whose yaw differs
+    // most from its own, by at least a turn: the nose's parallax over the sine of that yaw
+    // difference is the depth of the nose in front of the eyes and mouth, in eye distances.
+    let views: Vec<&FramePose> = std::iter::once(&probe).chain(frames).collect();
+    let turned = steps.iter().zip(frames).filter(|(step, frame)| step.turn != Turn::Front && frame.yaw.is_some_and(|y| step.admits(y)));
+    let parallax = turned
+        .filter_map(|(_, frame)| {
+            let (to, yaw) = (frame.keypoints?, frame.yaw?);
+            let apart = |v: &&&FramePose| v.yaw.map_or(0.0, |y| (y - yaw).abs());
+            let other = views.iter().filter(|v| v.keypoints.is_some()).max_by(|a, b| apart(a).total_cmp(&apart(b)))?;
+            let difference = apart(&other);
+            if difference < TURN_MIN_YAW {
+                return None;
+            }
+            Some(nose_parallax(&other.keypoints?, &to)? / (difference as f64).to_radians().sin())
+        })
+        .min_by(f64::total_cmp);
+    HeadTurn { steps: readings, parallax }
+}
+
+/// How far the nose tip of the five key points `to` (image-left eye, image-right eye, nose tip,
+/// image-left and image-right mouth corner) is from where the homography that maps the eyes and
+/// mouth corners of `from` onto those of `to` puts the nose of `from`, over the inter-ocular
+/// distance of `to`. A picture moved, turned or bent only a little is one plane: the nose goes
+/// where the plane goes (0 up to the detector's noise). A head turned by 25° moves its nose
+/// about a quarter of the eye distance off that plane. `None` when the four points are
+/// degenerate.
+pub fn nose_parallax(from: &[Point; 5], to: &[Point; 5]) -> Option<f64> {
+    let quad = [0, 1, 3, 4];
+    // h33 = 1: eight unknowns, two equations per corner.
+    let mut a = nalgebra::SMatrix::<f64, 8, 8>::zeros();
+    let mut b = nalgebra::SVector::<f64, 8>::zeros();
+    for (row, &k) in quad.iter().enumerate() {
+        let (x, y) = (from[k][0] as f64, from[k][1] as f64);
+        let (u, v) = (to[k][0] as f64, to[k][1] as f64);
+        let r = 2 * row;
+        for (c, val) in [x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y].into_iter().enumerate() {
+            a[(r, c)] = val;
+        }
+        for (c, val) in [0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y].into_iter().enumerate() {
+            a[(r + 1, c)] = val;
+        }
+        b[r] = u;
+        b[r + 1] = v;
+    }
+    let h = a.lu().solve(&b)?;
+    let (x, y) = (from[2][0] as f64, from[2][1] as f64);
+    let w = h[6] * x + h[7] * y + 1.0;
+    if w.abs() < 1e-9 {
+        return None;
+    }
+    let (u, v) = ((h[0] * x + h[1] * y + h[2]) / w, (h[3] * x + h[4] * y + h[5]) / w);
+    let eyes = (((to[0][0] - to[1][0]).powi(2) + (to[0][1] - to[1][1]).powi(2)) as f64).sqrt();
+    let moved = ((u - to[2][0] as f64).powi(2) + (v - to[2][1] as f64).powi(2)).sqrt() / eyes.max(1.0);
+    moved.is_finite().then_some(moved)
+}
+
+/// How far the points `to` are from the best homography of the points `from` onto them: the RMS
+/// transfer error over the inter-ocular distance of `to`. A print moved, turned or bent in front
+/// of the camera stays (nearly) a plane, whose points one homography maps; a head turning in 3D
+/// does not. `None` when the point sets differ in length, have fewer than 5 points or are
+/// degenerate.
+pub fn planar_residual(from: &[Point], to: &[Point]) -> Option<f64> {
+    if from.len() != to.len() || from.len() < 5 {
+        return None;
+    }
+    // Hartley normalisation of each point set, then the DLT's null vector (the eigenvector of
+    // AᵀA with the least eigenvalue).
+    let (ta, tb) = (hartley(from)?, hartley(to)?);
+    let mut a = DMatrix::<f64>::zeros(2 * from.len(), 9);
+    for (i, (p, q)) in from.iter().zip(to).enumerate() {
+        let p = ta * Vector3::new(p[0] as f64, p[1] as f64, 1.0);
+        let q = tb * Vector3::new(q[0] as f64, q[1] as f64, 1.0);
+        let (x, y, u, v) = (p[0], p[1], q[0], q[1]);
+        for (k, val) in [-x, -y, -1.0, 0.0, 0.0, 0.0, u * x, u * y, u].into_iter().enumerate() {
+            a[(2 * i, k)] = val;
+        }
+        for (k, val) in [0.0, 0.0, 0.0, -x, -y, -1.0, v * x, v * y, v].into_iter().enumerate() {
+            a[(2 * i + 1, k)] = val;
+        }
+    }
+    let eig = nalgebra::SymmetricEigen::new(a.transpose() * &a);
+    let smallest = eig.eigenvalues.iter().enumerate().min_by(|x, y| x.1.total_cmp(y.1))?.0;
+    let h = eig.eigenvectors.column(smallest);
+    let hn = Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]);
+    let hm = tb.try_inverse()? * hn * ta;
+    let k = KeyPoints::from_imm(to);
+    let eyes = (((k.left_eye[0] - k.right_eye[0]).powi(2) + (k.left_eye[1] - k.right_eye[1]).powi(2)) as f64).sqrt().max(1.0);
+    let sq = from.iter().zip(to).map(|(p, q)| {
+        let m = hm * Vector3::new(p[0] as f64, p[1] as f64, 1.0);
+        let (u, v) = (m[0] / m[2], m[1] / m[2]);
+        (u - q[0] as f64).powi(2) + (v - q[1] as f64).powi(2)
+    });
+    let rms = (sq.sum::<f64>() / from.len() as f64).sqrt() / eyes;
+    rms.is_finite().then_some(rms)
+}
+
+/// The similarity that moves `points` to their centroid and scales their mean distance from it to
+/// √2; `None` when they all coincide.
+fn hartley(points: &[Point]) -> Option<Matrix3<f64>> {
+    let n = points.len() as f64;
+    let mx = points.iter().map(|q| q[0] as f64).sum::<f64>() / n;
+    let my = points.iter().map(|q| q[1] as f64).sum::<f64>() / n;
+    let spread = points.iter().map(|q| ((q[0] as f64 - mx).powi(2) + (q[1] as f64 - my).powi(2)).sqrt()).sum::<f64>() / n;
+    if spread < 1e-9 {
+        return None;
+    }
+    let s = std::f64::consts::SQRT_2 / spread;
+    Some(Matrix3::new(s, 0.0, -s * mx, 0.0, s, -s * my, 0.0, 0.0, 1.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 58 points of a bumpy surface (a face-like depth), seen by a pinhole camera turned `yaw`
+    /// degrees about the vertical axis; `flat` drops the depth (a photo of the same face).
+    fn view(yaw: f32, flat: bool) -> Vec<Point> {
+        let (s, c) = yaw.to_radians().sin_cos();
+        (0..58)
+            .map(|i| {
+                let (x, y) = ((i % 8) as f32 * 12.0 - 42.0, (i / 8) as f32 * 14.0 - 49.0);
+                // Eyes (points 27–30 and 32–35 in the IMM template) are part of the grid; depth is a dome with a nose.
+                let z = if flat { 0.0 } else { 40.0 - (x * x + y * y) / 120.0 + if x.abs() < 8.0 && y.abs() < 10.0 { 25.0 } else { 0.0 } };
+                let (xr, zr) = (c * x + s * z, -s * x + c * z);
+                let depth = 600.0 - zr;
+                [320.0 + 800.0 * xr / depth, 240.0 + 800.0 * y / depth]
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_turned_photo_is_a_homography_a_turned_head_is_not() {
+        let front = view(0.0, false);
+        let head = planar_residual(&front, &view(25.0, false)).unwrap();
+        let photo = planar_residual(&view(0.0, true), &view(25.0, true)).unwrap();
+        assert!(photo < 1e-6, "a plane turned in perspective is one homography: {photo}");
+        assert!(head > 0.02, "a head turned 25° shows parallax: {head}");
+        assert_eq!(planar_residual(&front[..4], &front[..4]), None);
+        assert_eq!(planar_residual(&front, &front[..57]), None);
+        assert_eq!(planar_residual(&vec![[1.0, 1.0]; 58], &front), None);
+    }
+
+    #[test]
+    fn the_nose_of_a_turned_head_leaves_the_plane_of_its_eyes_and_mouth() {
+        let front = keypoints(0.0, false);
+        for yaw in [15.0f32, 25.0, -25.0, 40.0] {
+            let head = nose_parallax(&front, &keypoints(yaw, false)).unwrap();
+            let photo = nose_parallax(&keypoints(0.0, true), &keypoints(yaw, true)).unwrap();
+            assert!(photo < 1e-6, "a photo turned {yaw}° keeps its nose in its plane: {photo}");
+            assert!(head > 0.1, "a head turned {yaw}°: {head}");
+        }
+        // Degenerate corners (all four at one place) measure nothing.
+        assert_eq!(nose_parallax(&[[1.0, 1.0]; 5], &front), None);
+    }
+
+    #[test]
+    fn steps_read_their_frames_yaw_and_the_flattest_turn() {
+        let steps = [Step::of(Turn::Left), Step::of(Turn::Front), Step::of(Turn::Right)];
+        let points: &'static [Point] = view(0.0, false).leak();
+        let frame = |yaw: f32, flat: bool| FramePose { yaw: Some(yaw), points, keypoints: Some(keypoints(yaw, flat)) };
+        let read = read_head_turn(&steps, frame(1.0, false), &[frame(24.0, false), frame(2.0, false), frame(-26.0, false)]);
+        assert!(read.steps.iter().all(|s| s.ok), "{read:?}");
+        assert!(read.parallax.is_some_and(|p| p > 0.1), "{read:?}");
+        // A photo turned to the same readings: the poses are right, the parallax is not there.
+        let read = read_head_turn(&steps, frame(1.0, true), &[frame(24.0, true), frame(2.0, true), frame(-26.0, true)]);
+        assert!(read.steps.iter().all(|s| s.ok) && read.parallax.is_some_and(|p| p < 0.01), "{read:?}");
+        // The wrong order: the left frame where the right is asked.
+        let read = read_head_turn(&steps, frame(1.0, false), &[frame(-26.0, false), frame(2.0, false), frame(24.0, false)]);
+        assert_eq!(read.steps.iter().map(|s| s.ok).collect::<Vec<_>>(), [false, true, false]);
+        assert_eq!(read.parallax, None, "no turned step was met");
+        // No fit: not ok, and no reference without any yaw; no key points: no parallax.
+        let none = FramePose { yaw: None, points, keypoints: None };
+        let read = read_head_turn(&steps, none, &[none, none, none]);
+        assert!(read.steps.iter().all(|s| !s.ok && s.yaw.is_none()) && read.parallax.is_none());
+        let blind = |yaw: f32| FramePose { keypoints: None, ..frame(yaw, false) };
+        let read = read_head_turn(&steps, blind(1.0), &[blind(24.0), blind(2.0), blind(-26.0)]);
+        assert!(read.steps.iter().all(|s| s.ok) && read.parallax.is_none(), "{read:?}");
+        assert!(Step::of(Turn::Left).admits(TURN_MIN_YAW) && !Step::of(Turn::Left).admits(-20.0));
+    }
+}

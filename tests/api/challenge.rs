@@ -1,0 +1,198 @@
+//! The head-turn liveness challenge through the real app and pipeline: `POST /liveness/challenge`
+//! draws 3 or 4 steps with a turn to each side; `/verify` answering it with IMM person 02's own
+//! photos in step order passes and matches; the same challenge again, an unknown or malformed
+//! one, and an expired one are `invalid-challenge`; the photo held still and the right photos in
+//! the wrong order fail it (reported under `report`, refused as `presentation-attack` with the
+//! reason under `enforce`); a wrong number of frames is malformed; with liveness off there are no
+//! challenges. The JSON form takes the same fields.
+
+use std::time::Duration;
+
+use facegate::choices::Liveness as Choice;
+use facegate::config::Settings;
+use facegate::http::ApiConfig;
+use facegate::service::ChallengeConfig;
+use reqwest::multipart::{Form, Part};
+use serde_json::{Value, json};
+
+use crate::pipeline::pipeline;
+use crate::support::*;
+
+const SUBJECT: &str = "imm-02";
+
+async fn app_with(config: ApiConfig) -> TestApp {
+    let app = TestApp::start(pipeline(), config).await;
+    let r = app.post_form("/enroll", Some(SUBJECT), &[imm("02-1m.jpg")]).await;
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    app
+}
+
+async fn app(liveness: Choice) -> TestApp {
+    app_with(Settings { liveness, ..Settings::default() }.api_config().unwrap()).await
+}
+
+async fn challenge(app: &TestApp) -> Value {
+    let r = app.send(app.client.post(app.url("/liveness/challenge"))).await;
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    r.json()
+}
+
+fn turns_of(challenge: &Value) -> Vec<String> {
+    challenge["steps"].as_array().unwrap().iter().map(|s| s["turn"].as_str().unwrap().to_string()).collect()
+}
+
+/// Person 02's photo for each step: the front alternately views 5 and 1, left view 4, right view 3.
+fn live_frames(turns: &[String]) -> Vec<Vec<u8>> {
+    let mut fronts = 0;
+    turns
+        .iter()
+        .map(|turn| match turn.as_str() {
+            "front" => {
+                fronts += 1;
+                imm(if fronts % 2 == 1 { "02-5m.jpg" } else { "02-1m.jpg" })
+            }
+            "left" => imm("02-4m.jpg"),
+            "right" => imm("02-3m.jpg"),
+            other => panic!("unknown turn {other}"),
+        })
+        .collect()
+}
+
+async fn verify(app: &TestApp, challenge: &str, frames: &[Vec<u8>]) -> Reply {
+    let mut form = Form::new()
+        .text("subject", SUBJECT)
+        .part("image", Part::bytes(imm("02-2m.jpg")).file_name("probe.jpg"))
+        .text("challenge", challenge.to_string());
+    for (i, frame) in frames.iter().enumerate() {
+        form = form.part("frame", Part::bytes(frame.clone()).file_name(format!("frame{i}.jpg")));
+    }
+    app.send(app.client.post(app.url("/verify")).multipart(form)).await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_challenge_has_three_or_four_steps_with_a_turn_to_each_side() {
+    let app = app(Choice::Report).await;
+    let mut ids = std::collections::BTreeSet::new();
+    for _ in 0..12 {
+        let c = challenge(&app).await;
+        let id = c["challenge"].as_str().unwrap();
+        assert!(id.len() == 32 && id.bytes().all(|b| b.is_ascii_hexdigit()), "{c}");
+        ids.insert(id.to_string());
+        assert_eq!(c["expires_in"], 120, "{c}");
+        let turns = turns_of(&c);
+        assert!((3..=4).contains(&turns.len()) && turns.contains(&"left".into()) && turns.contains(&"right".into()), "{c}");
+        for step in c["steps"].as_array().unwrap() {
+            let (min, max) = (step["yaw_min"].as_f64().unwrap(), step["yaw_max"].as_f64().unwrap());
+            match step["turn"].as_str().unwrap() {
+                "front" => assert!(min < 0.0 && max > 0.0 && min == -max, "{step}"),
+                "left" => assert!(min > 0.0 && max > min, "{step}: yaw > 0 is a head turned to its own left"),
+                _ => assert!(max < 0.0 && min < max, "{step}"),
+            }
+        }
+    }
+    assert_eq!(ids.len(), 12, "every challenge has its own id");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_persons_own_turns_pass_once_and_the_challenge_is_used_up() {
+    let app = app(Choice::Enforce).await;
+    let c = challenge(&app).await;
+    let (id, turns) = (c["challenge"].as_str().unwrap(), turns_of(&c));
+    let r = verify(&app, id, &live_frames(&turns)).await;
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let body = r.json();
+    assert_eq!(body["match"], true, "{body}");
+    let verdict = &body["liveness"]["challenge"];
+    assert_eq!(verdict["passed"], true, "{body}");
+    assert!(verdict["reason"].is_null(), "{body}");
+    assert_eq!(body["liveness"]["attack"], false, "{body}");
+    assert_eq!(body["liveness"]["frames"], turns.len() + 1, "the passive score is fused over the probe and every frame: {body}");
+    let steps = verdict["steps"].as_array().unwrap();
+    assert_eq!(steps.len(), turns.len());
+    for (step, turn) in steps.iter().zip(&turns) {
+        assert_eq!((step["turn"].as_str().unwrap(), step["ok"].as_bool().unwrap()), (turn.as_str(), true), "{body}");
+        let yaw = step["yaw"].as_f64().unwrap();
+        match turn.as_str() {
+            "left" => assert!(yaw > 12.0, "{body}"),
+            "right" => assert!(yaw < -12.0, "{body}"),
+            _ => assert!(yaw.abs() < 12.0, "{body}"),
+        }
+    }
+    // The same challenge again, whatever the frames: it was taken by the first answer.
+    verify(&app, id, &live_frames(&turns)).await.assert_problem(422, "invalid-challenge");
+    // Never issued, and not even an id.
+    verify(&app, &"0".repeat(32), &live_frames(&turns)).await.assert_problem(422, "invalid-challenge");
+    verify(&app, "' OR 1=1 --", &live_frames(&turns)).await.assert_problem(422, "invalid-challenge");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_still_photo_and_the_wrong_order_fail_the_challenge() {
+    // Report: answered 200 with the verdict, the liveness an attack.
+    let app = app(Choice::Report).await;
+    let c = challenge(&app).await;
+    let turns = turns_of(&c);
+    let still = vec![imm("02-2m.jpg"); turns.len()];
+    let r = verify(&app, c["challenge"].as_str().unwrap(), &still).await;
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let body = r.json();
+    assert_eq!(body["liveness"]["challenge"]["passed"], false, "{body}");
+    assert_eq!(body["liveness"]["attack"], true, "{body}");
+    assert!(body["liveness"]["challenge"]["reason"].as_str().unwrap().contains("yaw"), "{body}");
+    assert_eq!(body["match"], true, "the probe itself still matches: {body}");
+
+    // Enforce: the right photos with left and right exchanged are refused, with the reason.
+    let app = app_with(Settings { liveness: Choice::Enforce, ..Settings::default() }.api_config().unwrap()).await;
+    let c = challenge(&app).await;
+    let swapped: Vec<String> = turns_of(&c)
+        .iter()
+        .map(|t| match t.as_str() {
+            "left" => "right".to_string(),
+            "right" => "left".to_string(),
+            other => other.to_string(),
+        })
+        .collect();
+    let r = verify(&app, c["challenge"].as_str().unwrap(), &live_frames(&swapped)).await;
+    r.assert_problem(422, "presentation-attack");
+    let problem = r.json();
+    assert!(problem["reason"].as_str().unwrap().contains("outside"), "{problem}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wrong_frame_count_is_malformed_and_json_takes_the_same_fields() {
+    let app = app(Choice::Report).await;
+    let c = challenge(&app).await;
+    let turns = turns_of(&c);
+    let mut frames = live_frames(&turns);
+    frames.pop();
+    let r = verify(&app, c["challenge"].as_str().unwrap(), &frames).await;
+    r.assert_problem(400, "malformed-request");
+    assert!(r.json()["detail"].as_str().unwrap().contains(&format!("has {} steps", turns.len())), "{}", String::from_utf8_lossy(&r.body));
+
+    let c = challenge(&app).await;
+    let frames: Vec<String> = live_frames(&turns_of(&c)).iter().map(|f| base64(f)).collect();
+    let body = json!({"subject": SUBJECT, "image": base64(&imm("02-2m.jpg")), "challenge": c["challenge"], "frames": frames});
+    let r = app.post_json("/verify", &body).await;
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json()["liveness"]["challenge"]["passed"], true, "{}", String::from_utf8_lossy(&r.body));
+
+    // Only /verify takes a challenge.
+    let form = Form::new().part("image", Part::bytes(imm("02-2m.jpg")).file_name("a.jpg")).text("challenge", "0".repeat(32));
+    app.send(app.client.post(app.url("/identify")).multipart(form)).await.assert_problem(400, "malformed-request");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_expired_challenge_never_passes_and_liveness_off_issues_none() {
+    let defaults = Settings::default().api_config().unwrap();
+    let mut service = defaults.service.clone();
+    service.challenge = ChallengeConfig { lifetime: Duration::from_millis(300) };
+    let app = app_with(ApiConfig { service, ..defaults }).await;
+    let c = challenge(&app).await;
+    assert_eq!(c["expires_in"], 0, "{c}");
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    let r = verify(&app, c["challenge"].as_str().unwrap(), &live_frames(&turns_of(&c))).await;
+    r.assert_problem(422, "invalid-challenge");
+    assert!(r.json()["detail"].as_str().unwrap().contains("expired"), "{}", String::from_utf8_lossy(&r.body));
+
+    let off = app_with(Settings { liveness: Choice::Off, ..Settings::default() }.api_config().unwrap()).await;
+    off.send(off.client.post(off.url("/liveness/challenge"))).await.assert_problem(422, "invalid-challenge");
+}
