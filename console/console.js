@@ -60,6 +60,8 @@ function showProblem(target, error) {
         if (typeof p.score === 'number' && typeof p.threshold === 'number') {
             box.append(el('p', { class: 'liveness', text: `Liveness score ${fmt(p.score)} below the threshold ${fmt(p.threshold)}` }));
         }
+        // A failed head-turn challenge refused under --liveness enforce says why.
+        if (typeof p.reason === 'string') box.append(el('p', { class: 'reason', text: `Reason: ${p.reason}` }));
         if (slug) box.append(el('code', { text: slug }));
     } else {
         box.append(el('strong', { text: 'The request failed' }), el('p', { text: String(error.message || error) }));
@@ -366,6 +368,189 @@ $('#identify-form').addEventListener('submit', async (e) => {
     }
 });
 
+// ---------------------------------------------------------------- verify with the camera: the head-turn challenge
+
+const TURNS = { front: 'Look straight at the camera', left: 'Turn your head to your left', right: 'Turn your head to your right' };
+/// How long a step waits for a frame in its range before the last frame is sent anyway.
+const STEP_TIMEOUT_MS = 20000;
+/// The pause between two looks at the camera (one /analyze at a time).
+const RETRY_MS = 300;
+/// The probe's range when the challenge has no `front` step to borrow one from.
+const FRONT = { turn: 'front', yaw_min: -10, yaw_max: 10 };
+
+const degrees = (x) => (typeof x === 'number' ? `${x.toFixed(1)}°` : 'unknown');
+const range = (step) => `yaw ${step.yaw_min}° to ${step.yaw_max}°`;
+const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
+
+class Cancelled extends Error {}
+
+/// The challenge under way: { cancelled, stream, video }.
+let capture = null;
+
+function stopCapture() {
+    if (!capture) return;
+    capture.cancelled = true;
+    capture.stream?.getTracks().forEach((t) => t.stop());
+    capture = null;
+    $('#camera-video').srcObject = null;
+    $('#camera-live').hidden = true;
+}
+
+async function openCamera(run) {
+    if (!navigator.mediaDevices?.getUserMedia) throw new Error('No camera access here (the page needs https or localhost).');
+    try {
+        run.stream = await navigator.mediaDevices.getUserMedia({ video: { facingMode: 'user', width: { ideal: 640 }, height: { ideal: 480 } }, audio: false });
+    } catch (e) {
+        throw new Error(`The camera is unavailable: ${e.message || e}`);
+    }
+    if (run.cancelled) throw new Cancelled();
+    run.video.srcObject = run.stream;
+    $('#camera-live').hidden = false;
+    await run.video.play().catch(() => {});
+    const deadline = Date.now() + 10000;
+    while (run.video.readyState < 2 || run.video.videoWidth === 0) {
+        if (run.cancelled) throw new Cancelled();
+        if (Date.now() > deadline) throw new Error('The camera gave no picture.');
+        await sleep(50);
+    }
+}
+
+/// The camera's current frame as a JPEG file, as the camera sees it (the preview alone is mirrored).
+function grab(video) {
+    const canvas = el('canvas');
+    canvas.width = video.videoWidth;
+    canvas.height = video.videoHeight;
+    canvas.getContext('2d').drawImage(video, 0, 0);
+    return new Promise((resolve, reject) => {
+        canvas.toBlob((blob) => (blob ? resolve(new File([blob], `frame-${Date.now()}.jpg`, { type: 'image/jpeg' })) : reject(new Error('The camera frame could not be encoded.'))), 'image/jpeg', 0.92);
+    });
+}
+
+/// The yaw /analyze reads in a frame: null when it finds no face or no pose (or is busy).
+async function yawOf(file) {
+    const body = new FormData();
+    body.append('image', file, file.name);
+    try {
+        const r = await api('POST', '/analyze', body);
+        const yaw = r.faces[0]?.pose?.yaw;
+        return typeof yaw === 'number' ? yaw : null;
+    } catch (error) {
+        if (error instanceof ApiError && (error.status === 422 || error.status === 503)) return null;
+        throw error;
+    }
+}
+
+/// A frame for `step`: the first whose yaw lies in the step's range, else the last one taken when
+/// the step's time is up (the server judges it).
+async function frameFor(run, step, seen) {
+    const deadline = Date.now() + STEP_TIMEOUT_MS;
+    for (;;) {
+        if (run.cancelled) throw new Cancelled();
+        const file = await grab(run.video);
+        const yaw = await yawOf(file);
+        if (run.cancelled) throw new Cancelled();
+        const inRange = yaw !== null && yaw >= step.yaw_min && yaw <= step.yaw_max;
+        seen.textContent = yaw === null ? 'No face seen in the last frame' : `Seen: yaw ${degrees(yaw)}${inRange ? ', in range' : ''}`;
+        if (inRange || Date.now() >= deadline) return { file, yaw, inRange };
+        await sleep(RETRY_MS);
+    }
+}
+
+function stepItems(plan) {
+    return plan.map((step, i) => el('li', { 'data-state': 'pending', 'data-turn': step.turn, ...(step.probe ? { 'data-probe': 'true' } : { 'data-step': String(i) }) },
+        el('span', { text: `${step.probe ? 'Probe photo' : `Step ${i}`}: ${TURNS[step.turn]} (${range(step)})` }),
+        el('span', { class: 'state muted', text: ' · waiting' })));
+}
+
+function challengeOutcome(r, steps) {
+    const c = r.liveness?.challenge;
+    if (!c) {
+        const why = r.liveness ? 'The server reported no challenge outcome.' : 'Liveness is off on this server: the challenge was not judged.';
+        return [el('p', { id: 'camera-challenge', class: 'muted', text: why })];
+    }
+    const verdict = el('p', { id: 'camera-challenge', class: `decision ${c.passed ? 'match' : 'nomatch'}`, text: c.passed ? 'Challenge passed' : `Challenge failed: ${c.reason || 'no reason given'}` });
+    const t = el('table', { id: 'camera-challenge-steps' }, el('caption', { class: 'muted', text: 'The head-turn challenge as the server read each frame' }),
+        el('tr', {}, ...['Step', 'Turn', 'Asked', 'Yaw', 'In range'].map((h) => el('th', { scope: 'col', text: h }))));
+    c.steps.forEach((s, i) => {
+        t.append(el('tr', { 'data-ok': String(s.ok) }, el('td', { text: String(i + 1) }), el('td', { text: s.turn }),
+            el('td', { text: steps[i] ? range(steps[i]) : '–' }), el('td', { text: degrees(s.yaw) }), el('td', { text: s.ok ? 'yes' : 'no' })));
+    });
+    return [verdict, t];
+}
+
+async function runChallenge(run, subject, target) {
+    target.replaceChildren(el('p', { class: 'muted', text: 'Starting the camera…' }));
+    await openCamera(run);
+    const challenge = await api('POST', '/liveness/challenge');
+    if (run.cancelled) throw new Cancelled();
+    const front = challenge.steps.find((s) => s.turn === 'front') ?? FRONT;
+    const plan = [{ turn: 'front', yaw_min: front.yaw_min, yaw_max: front.yaw_max, probe: true }, ...challenge.steps];
+    const items = stepItems(plan);
+    const list = $('#camera-steps');
+    list.dataset.steps = String(challenge.steps.length);
+    list.replaceChildren(...items);
+    target.replaceChildren(el('p', { class: 'muted', text: `Challenge of ${challenge.steps.length} steps, valid for ${challenge.expires_in} s.` }));
+    const taken = [];
+    for (const [i, step] of plan.entries()) {
+        items[i].dataset.state = 'current';
+        items[i].setAttribute('aria-current', 'step');
+        $('.state', items[i]).textContent = ' · now';
+        $('#camera-seen').textContent = 'Looking…';
+        $('#camera-instruction').textContent = `${step.probe ? 'Probe photo' : `Step ${i} of ${challenge.steps.length}`}: ${TURNS[step.turn]} (${range(step)})`;
+        const got = await frameFor(run, step, $('#camera-seen'));
+        items[i].removeAttribute('aria-current');
+        items[i].dataset.state = got.inRange ? 'done' : 'timeout';
+        $('.state', items[i]).textContent = got.inRange ? ` · taken at yaw ${degrees(got.yaw)}` : ` · time up: the last frame (yaw ${degrees(got.yaw)}) goes to the server`;
+        taken.push(got);
+    }
+    $('#camera-cancel').disabled = true;
+    $('#camera-instruction').textContent = 'All frames taken.';
+    target.replaceChildren(el('p', { class: 'muted', text: 'Verifying…' }));
+    const body = new FormData();
+    body.append('subject', subject);
+    body.append('image', taken[0].file, 'probe.jpg');
+    body.append('challenge', challenge.challenge);
+    taken.slice(1).forEach((t, i) => body.append('frame', t.file, `step-${i + 1}.jpg`));
+    const r = await api('POST', '/verify', body);
+    const decision = el('p', { class: `decision ${r.match ? 'match' : 'nomatch'}`, id: 'camera-decision', text: r.match ? `Match: ${r.subject}` : `No match: not ${r.subject}` });
+    const why = el('p', { text: `Score ${fmt(r.score)} ${r.match ? '≥' : '<'} threshold ${fmt(r.threshold)} at false match rate ${fmtFmr(r.fmr)}.` });
+    target.replaceChildren(await reportView(taken[0].file, r, [decision, why, scoreBar(r.score, r.threshold), ...challengeOutcome(r, challenge.steps)]));
+    target.scrollIntoView({ block: 'start' });
+}
+
+$('#camera-form').addEventListener('submit', async (e) => {
+    e.preventDefault();
+    const form = e.target;
+    const target = $('#camera-result');
+    const subject = $('#camera-subject').value.trim();
+    if (!subject) {
+        showProblem(target, new Error('Enter the subject id first.'));
+        return;
+    }
+    stopCapture();
+    const run = { cancelled: false, stream: null, video: $('#camera-video') };
+    capture = run;
+    $('#camera-steps').replaceChildren();
+    delete $('#camera-steps').dataset.steps;
+    $('#camera-instruction').textContent = '';
+    $('#camera-seen').textContent = '';
+    $('#camera-start').disabled = true;
+    $('#camera-cancel').disabled = false;
+    form.setAttribute('aria-busy', 'true');
+    try {
+        await runChallenge(run, subject, target);
+    } catch (error) {
+        if (error instanceof Cancelled) target.replaceChildren(el('p', { id: 'camera-cancelled', text: 'Cancelled: nothing was sent for verification.' }));
+        else showProblem(target, error);
+    } finally {
+        if (capture === run) stopCapture();
+        $('#camera-start').disabled = false;
+        $('#camera-cancel').disabled = true;
+        form.setAttribute('aria-busy', 'false');
+    }
+});
+$('#camera-cancel').addEventListener('click', stopCapture);
+
 // ---------------------------------------------------------------- subjects
 
 let pendingDelete = null;
@@ -555,7 +740,8 @@ $('#avatar-form').addEventListener('submit', async (e) => {
 // ---------------------------------------------------------------- navigation
 
 function show(view) {
-    const name = ['enrol', 'verify', 'identify', 'subjects', 'avatar'].includes(view) ? view : 'enrol';
+    const name = ['enrol', 'verify', 'camera', 'identify', 'subjects', 'avatar'].includes(view) ? view : 'enrol';
+    if (name !== 'camera') stopCapture();
     for (const section of document.querySelectorAll('.view')) section.hidden = section.id !== `view-${name}`;
     for (const link of document.querySelectorAll('nav a')) {
         if (link.dataset.view === name) link.setAttribute('aria-current', 'page');

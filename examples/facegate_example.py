@@ -1,12 +1,18 @@
 #!/usr/bin/env python3
-"""facegate from Python with httpx (`pip install httpx`): enrol photos, verify a probe.
+"""facegate from Python with httpx (`pip install httpx`): enrol photos, verify a probe, verify with
+a head-turn challenge (active liveness).
 
     python facegate_example.py enroll alice alice-1.jpg alice-2.jpg
     python facegate_example.py verify alice probe.jpg [--fmr 1e-4]
+    python facegate_example.py verify-challenge alice probe.jpg --left l.jpg --right r.jpg [--front f.jpg]
+
+verify-challenge asks for a challenge (POST /liveness/challenge), answers each step with the photo
+given for its turn (`front` defaults to the probe; a real client takes a camera frame per step) and
+verifies the probe with them.
 
 FACEGATE_URL (default http://127.0.0.1:8080) and FACEGATE_API_KEY (if the server has keys) set the
-server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo, ...),
-3 model mismatch (enrol the subject again), 4 any other error.
+server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo,
+a failed challenge, ...), 3 model mismatch (enrol the subject again), 4 any other error.
 """
 
 import argparse
@@ -26,12 +32,17 @@ class Problem(Exception):
     def __init__(self, body: dict):
         self.slug = body["type"].removeprefix(PROBLEMS)
         self.status, self.detail, self.image = body["status"], body["detail"], body.get("image")
+        # `frame`: the further frame at fault; `reason`: why a head-turn challenge failed.
+        self.frame, self.reason = body.get("frame"), body.get("reason")
         super().__init__(f"{self.slug} ({self.status}): {self.detail}")
 
 
-def post(client: httpx.Client, path: str, fields: dict, photos: list[Path], params=None, attempts: int = 5) -> dict:
-    """POST multipart (photos as `image` file parts); retry `overloaded` after Retry-After seconds."""
+def post(client: httpx.Client, path: str, fields: dict, photos: list[Path], params=None, attempts: int = 5,
+         frames: list[Path] = ()) -> dict:
+    """POST multipart (photos as `image` file parts, then `frames` as `frame` parts; no body when
+    there is nothing to send); retry `overloaded` after Retry-After seconds."""
     files = [("image", (p.name, p.read_bytes(), "application/octet-stream")) for p in photos]
+    files += [("frame", (p.name, p.read_bytes(), "application/octet-stream")) for p in frames]
     for attempt in range(1, attempts + 1):
         r = client.post(path, data=fields, files=files, params=params)
         if r.headers.get("content-type", "").startswith("application/problem+json"):
@@ -57,6 +68,12 @@ def main() -> int:
     verify.add_argument("subject")
     verify.add_argument("photo", type=Path)
     verify.add_argument("--fmr", type=float, help="false match rate of the operating point (default 1e-3)")
+    challenge = commands.add_parser("verify-challenge", help="verify the probe with a head-turn challenge")
+    challenge.add_argument("subject")
+    challenge.add_argument("photo", type=Path, help="the probe, looking at the camera")
+    challenge.add_argument("--front", type=Path, help="a photo looking at the camera (default: the probe)")
+    challenge.add_argument("--left", type=Path, required=True, help="a photo turned to the person's own left")
+    challenge.add_argument("--right", type=Path, required=True, help="a photo turned to the person's own right")
     args = parser.parse_args()
 
     key = os.environ.get("FACEGATE_API_KEY")
@@ -68,15 +85,20 @@ def main() -> int:
                 e = post(client, "/enroll", {"subject": args.subject}, args.photos)
                 print(f"enrolled {e['subject']}: {e['added']} template(s) added, {e['templates']} in all")
                 return 0
+            if args.command == "verify-challenge":
+                return verify_challenge(client, args)
             params = {"fmr": args.fmr} if args.fmr else None
             v = post(client, "/verify", {"subject": args.subject}, [args.photo], params)
             verdict = "match" if v["match"] else "no match"
             print(f"{verdict}: score {v['score']:.3f}, threshold {v['threshold']:.3f} at FMR {v['fmr']:g}")
             return 0 if v["match"] else 1
         except Problem as p:
+            if p.reason:
+                print(f"the head-turn challenge failed: {p.reason} ({p.slug})", file=sys.stderr)
+                return 2
             if p.slug in ("no-face", "several-faces", "presentation-attack", "not-an-image", "corrupt-image", "unsupported-format", "too-large"):
                 photos = args.photos if args.command == "enroll" else [args.photo]
-                which = photos[p.image or 0]
+                which = photos[p.image or 0] if p.frame is None else f"frame {p.frame + 1}"
                 print(f"{which}: {p.detail} ({p.slug}); take another photo", file=sys.stderr)
                 return 2
             if p.slug == "model-mismatch":
@@ -87,6 +109,30 @@ def main() -> int:
         except httpx.HTTPError as e:
             print(f"request to facegate at {base_url} failed: {e}", file=sys.stderr)
             return 4
+
+
+def verify_challenge(client: httpx.Client, args) -> int:
+    """Ask for a challenge, answer each step with the photo of its turn, verify; print the outcome."""
+    c = post(client, "/liveness/challenge", {}, [])
+    photos = {"front": args.front or args.photo, "left": args.left, "right": args.right}
+    steps = c["steps"]
+    print(f"challenge of {len(steps)} steps: " + ", ".join(f"{s['turn']} ({s['yaw_min']:g}..{s['yaw_max']:g} deg)" for s in steps))
+    frames = [photos[s["turn"]] for s in steps]
+    v = post(client, "/verify", {"subject": args.subject, "challenge": c["challenge"]}, [args.photo], frames=frames)
+    verdict = "match" if v["match"] else "no match"
+    print(f"{verdict}: score {v['score']:.3f}, threshold {v['threshold']:.3f} at FMR {v['fmr']:g}")
+    outcome = (v.get("liveness") or {}).get("challenge")
+    if outcome is None:
+        print("the server judged no challenge (liveness is off)", file=sys.stderr)
+        return 4
+    for s in outcome["steps"]:
+        yaw = "unknown" if s["yaw"] is None else f"{s['yaw']:.1f} deg"
+        print(f"  {s['turn']}: yaw {yaw}, {'ok' if s['ok'] else 'not ok'}")
+    if not outcome["passed"]:
+        print(f"the head-turn challenge failed: {outcome['reason']}", file=sys.stderr)
+        return 2
+    print("challenge passed")
+    return 0 if v["match"] else 1
 
 
 if __name__ == "__main__":

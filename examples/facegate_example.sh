@@ -1,12 +1,17 @@
 #!/usr/bin/env bash
-# facegate with curl and jq: enrol photos, verify a probe.
+# facegate with curl and jq: enrol photos, verify a probe, verify with a head-turn challenge.
 #
 #   ./facegate_example.sh enroll alice alice-1.jpg alice-2.jpg
 #   ./facegate_example.sh verify alice probe.jpg [FMR]        # e.g. 1e-4
+#   ./facegate_example.sh verify-challenge alice probe.jpg --left l.jpg --right r.jpg [--front f.jpg]
+#
+# verify-challenge asks for a challenge (POST /liveness/challenge), answers each step with the photo
+# given for its turn (`front` defaults to the probe; a real client takes a camera frame per step)
+# and verifies the probe with them.
 #
 # FACEGATE_URL (default http://127.0.0.1:8080) and FACEGATE_API_KEY (if the server has keys) set the
-# server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo, ...),
-# 3 model mismatch (enrol the subject again), 4 any other error.
+# server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo,
+# a failed challenge, ...), 3 model mismatch (enrol the subject again), 4 any other error.
 set -euo pipefail
 url="${FACEGATE_URL:-http://127.0.0.1:8080}"
 auth=()
@@ -34,9 +39,13 @@ post() {
 
 # Map a problem to the exit status above.
 refused() {
+    if jq -e '.reason? | strings' "$body" >/dev/null 2>&1; then
+        echo "the head-turn challenge failed: $(jq -r .reason "$body") ($problem)" >&2
+        return 2
+    fi
     case "$problem" in
         no-face | several-faces | presentation-attack | not-an-image | corrupt-image | unsupported-format | too-large)
-            echo "photo $(jq -r ".image // 0" "$body") refused: $(jq -r .detail "$body") ($problem); take another photo" >&2
+            echo "$(jq -r 'if .frame then "frame \(.frame + 1)" else "photo \(.image // 0)" end' "$body") refused: $(jq -r .detail "$body") ($problem); take another photo" >&2
             return 2 ;;
         model-mismatch)
             echo "$subject was enrolled with another model version: enrol the subject again" >&2
@@ -62,7 +71,44 @@ case "$command" in
         [[ "$status" == 200 ]] || { refused; exit $?; }
         jq -r '"\(if .match then "match" else "no match" end): score \(.score), threshold \(.threshold) at FMR \(.fmr)"' "$body"
         jq -e .match "$body" >/dev/null || exit 1 ;;
+    verify-challenge)
+        [[ $# -ge 3 ]] || { echo "usage: $0 verify-challenge SUBJECT PROBE --left PHOTO --right PHOTO [--front PHOTO]" >&2; exit 4; }
+        probe="$3" front="$3" left="" right=""
+        shift 3
+        while [[ $# -gt 0 ]]; do
+            case "$1" in
+                --front) front="$2" ;;
+                --left) left="$2" ;;
+                --right) right="$2" ;;
+                *) echo "unknown option $1" >&2; exit 4 ;;
+            esac
+            shift 2
+        done
+        [[ -n "$left" && -n "$right" ]] || { echo "verify-challenge needs --left and --right" >&2; exit 4; }
+        post /liveness/challenge -X POST
+        [[ "$status" == 201 ]] || { refused; exit $?; }
+        challenge="$(jq -r .challenge "$body")"
+        jq -r '"challenge of \(.steps | length) steps: \([.steps[] | "\(.turn) (\(.yaw_min)..\(.yaw_max) deg)"] | join(", "))"' "$body"
+        frames=()
+        for turn in $(jq -r '.steps[].turn' "$body"); do
+            case "$turn" in
+                front) frames+=(-F "frame=@$front") ;;
+                left) frames+=(-F "frame=@$left") ;;
+                right) frames+=(-F "frame=@$right") ;;
+            esac
+        done
+        post /verify -F "subject=$subject" -F "image=@$probe" -F "challenge=$challenge" "${frames[@]}"
+        [[ "$status" == 200 ]] || { refused; exit $?; }
+        jq -r '"\(if .match then "match" else "no match" end): score \(.score), threshold \(.threshold) at FMR \(.fmr)"' "$body"
+        jq -e '.liveness.challenge' "$body" >/dev/null || { echo "the server judged no challenge (liveness is off)" >&2; exit 4; }
+        jq -r '.liveness.challenge.steps[] | "  \(.turn): yaw \(if .yaw == null then "unknown" else "\(.yaw) deg" end), \(if .ok then "ok" else "not ok" end)"' "$body"
+        if ! jq -e .liveness.challenge.passed "$body" >/dev/null; then
+            echo "the head-turn challenge failed: $(jq -r .liveness.challenge.reason "$body")" >&2
+            exit 2
+        fi
+        echo "challenge passed"
+        jq -e .match "$body" >/dev/null || exit 1 ;;
     *)
-        echo "usage: $0 enroll SUBJECT PHOTO... | verify SUBJECT PHOTO [FMR]" >&2
+        echo "usage: $0 enroll SUBJECT PHOTO... | verify SUBJECT PHOTO [FMR] | verify-challenge SUBJECT PROBE --left PHOTO --right PHOTO [--front PHOTO]" >&2
         exit 4 ;;
 esac

@@ -1,13 +1,18 @@
 // facegate from TypeScript on Node >= 18 (fetch, FormData and Blob are built in; no dependencies):
-// enrol photos, verify a probe. An ES module (top-level await); compile it with tsc (or run it
-// with tsx), then:
+// enrol photos, verify a probe, verify with a head-turn challenge (active liveness). An ES module
+// (top-level await); compile it with tsc (or run it with tsx), then:
 //
 //   node facegate_example.js enroll alice alice-1.jpg alice-2.jpg
 //   node facegate_example.js verify alice probe.jpg [--fmr 1e-4]
+//   node facegate_example.js verify-challenge alice probe.jpg --left l.jpg --right r.jpg [--front f.jpg]
+//
+// verify-challenge asks for a challenge (POST /liveness/challenge), answers each step with the
+// photo given for its turn (`front` defaults to the probe; a real client takes a camera frame per
+// step) and verifies the probe with them.
 //
 // FACEGATE_URL (default http://127.0.0.1:8080) and FACEGATE_API_KEY (if the server has keys) set
-// the server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo, ...),
-// 3 model mismatch (enrol the subject again), 4 any other error.
+// the server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo,
+// a failed challenge, ...), 3 model mismatch (enrol the subject again), 4 any other error.
 import { readFileSync } from "node:fs";
 import { basename } from "node:path";
 
@@ -18,20 +23,24 @@ const KEY = process.env.FACEGATE_API_KEY;
 /** An application/problem+json answer; `slug` is the type's last segment (`no-face`, ...). */
 class Problem extends Error {
   slug: string;
-  constructor(readonly body: { type: string; status: number; title: string; detail: string; image?: number }) {
+  // `frame`: the further frame at fault; `reason`: why a head-turn challenge failed.
+  constructor(readonly body: { type: string; status: number; title: string; detail: string; image?: number; frame?: number; reason?: string }) {
     super(`${body.type} (${body.status}): ${body.detail}`);
     this.slug = body.type.replace(PROBLEMS, "");
   }
 }
 
-/** POST multipart (photos as `image` file parts); retry `overloaded` after Retry-After seconds. */
-async function post<T>(path: string, fields: Record<string, string>, photos: string[], attempts = 5): Promise<T> {
+/** POST multipart (photos as `image` file parts, then `frames` as `frame` parts; no body when there
+ * is nothing to send); retry `overloaded` after Retry-After seconds. */
+async function post<T>(path: string, fields: Record<string, string>, photos: string[], frames: string[] = [], attempts = 5): Promise<T> {
   const form = new FormData();
   for (const [name, value] of Object.entries(fields)) form.append(name, value);
   for (const photo of photos) form.append("image", new Blob([readFileSync(photo)]), basename(photo));
+  for (const frame of frames) form.append("frame", new Blob([readFileSync(frame)]), basename(frame));
+  const empty = Object.keys(fields).length + photos.length + frames.length === 0;
   const headers: Record<string, string> = KEY ? { Authorization: `Bearer ${KEY}` } : {};
   for (let attempt = 1; ; attempt++) {
-    const r = await fetch(new URL(path, BASE_URL), { method: "POST", body: form, headers });
+    const r = await fetch(new URL(path, BASE_URL), { method: "POST", body: empty ? null : form, headers });
     if (r.headers.get("content-type")?.startsWith("application/problem+json")) {
       const problem = new Problem(await r.json());
       if (problem.slug === "overloaded" && attempt < attempts) {
@@ -47,15 +56,57 @@ async function post<T>(path: string, fields: Record<string, string>, photos: str
   }
 }
 
+type Turn = "front" | "left" | "right";
+type Challenge = { challenge: string; expires_in: number; steps: { turn: Turn; yaw_min: number; yaw_max: number }[] };
+type Verdict = {
+  match: boolean;
+  score: number;
+  threshold: number;
+  fmr: number;
+  liveness?: { attack: boolean; challenge?: { passed: boolean; reason: string | null; steps: { turn: Turn; yaw: number | null; ok: boolean }[] } };
+};
+
+/** Ask for a challenge, answer each step with the photo of its turn, verify; print the outcome. */
+async function verifyChallenge(subject: string, probe: string, photos: Record<Turn, string | undefined>): Promise<number> {
+  const c = await post<Challenge>("/liveness/challenge", {}, []);
+  console.log(`challenge of ${c.steps.length} steps: ${c.steps.map((s) => `${s.turn} (${s.yaw_min}..${s.yaw_max} deg)`).join(", ")}`);
+  const frames = c.steps.map((s) => photos[s.turn] ?? probe);
+  const v = await post<Verdict>("/verify", { subject, challenge: c.challenge }, [probe], frames);
+  console.log(`${v.match ? "match" : "no match"}: score ${v.score.toFixed(3)}, threshold ${v.threshold.toFixed(3)} at FMR ${v.fmr}`);
+  const outcome = v.liveness?.challenge;
+  if (!outcome) {
+    console.error("the server judged no challenge (liveness is off)");
+    return 4;
+  }
+  for (const s of outcome.steps) console.log(`  ${s.turn}: yaw ${s.yaw === null ? "unknown" : `${s.yaw.toFixed(1)} deg`}, ${s.ok ? "ok" : "not ok"}`);
+  if (!outcome.passed) {
+    console.error(`the head-turn challenge failed: ${outcome.reason}`);
+    return 2;
+  }
+  console.log("challenge passed");
+  return v.match ? 0 : 1;
+}
+
+/** The value of the option `name` (removed from `args` with it), if given. */
+function option(args: string[], name: string): string | undefined {
+  const at = args.indexOf(name);
+  return at >= 0 ? args.splice(at, 2)[1] : undefined;
+}
+
+const USAGE =
+  "usage: facegate_example enroll SUBJECT PHOTO... | verify SUBJECT PHOTO [--fmr 1e-4] | verify-challenge SUBJECT PROBE --left PHOTO --right PHOTO [--front PHOTO]";
+
 async function main(argv: string[]): Promise<number> {
   const [command, subject, ...rest] = argv;
-  const fmrAt = rest.indexOf("--fmr");
-  const fmr = fmrAt >= 0 ? rest.splice(fmrAt, 2)[1] : undefined;
-  if (!subject || rest.length === 0 || (command !== "enroll" && command !== "verify")) {
-    console.error("usage: facegate_example enroll SUBJECT PHOTO... | verify SUBJECT PHOTO [--fmr 1e-4]");
+  const fmr = option(rest, "--fmr");
+  const turns: Record<Turn, string | undefined> = { front: option(rest, "--front"), left: option(rest, "--left"), right: option(rest, "--right") };
+  const challenge = command === "verify-challenge";
+  if (!subject || rest.length === 0 || !["enroll", "verify", "verify-challenge"].includes(command ?? "") || (challenge && (!turns.left || !turns.right))) {
+    console.error(USAGE);
     return 4;
   }
   try {
+    if (challenge) return await verifyChallenge(subject, rest[0] as string, turns);
     if (command === "enroll") {
       const e = await post<{ subject: string; added: number; templates: number }>("/enroll", { subject }, rest);
       console.log(`enrolled ${e.subject}: ${e.added} template(s) added, ${e.templates} in all`);
@@ -70,8 +121,13 @@ async function main(argv: string[]): Promise<number> {
       console.error(`request to facegate at ${BASE_URL} failed: ${e}`);
       return 4;
     }
+    if (e.body.reason) {
+      console.error(`the head-turn challenge failed: ${e.body.reason} (${e.slug})`);
+      return 2;
+    }
     if (["no-face", "several-faces", "presentation-attack", "not-an-image", "corrupt-image", "unsupported-format", "too-large"].includes(e.slug)) {
-      console.error(`${rest[e.body.image ?? 0]}: ${e.body.detail} (${e.slug}); take another photo`);
+      const which = e.body.frame === undefined ? rest[e.body.image ?? 0] : `frame ${e.body.frame + 1}`;
+      console.error(`${which}: ${e.body.detail} (${e.slug}); take another photo`);
       return 2;
     }
     if (e.slug === "model-mismatch") {

@@ -8,7 +8,11 @@
 //! `FACEGATE_CONSOLE_SCREENSHOTS` (the README's images: `FACEGATE_CONSOLE_SCREENSHOTS=docs/img/console
 //! cargo test --test api browser::`).
 //!
-//! Without Chromium the test prints why and passes, except under CI (`CI=true`), where it fails.
+//! The camera view ("Verify with the camera", the head-turn challenge) runs on Chromium's fake camera
+//! playing a Y4M clip of IMM photos the test writes to a temporary folder: a person looking ahead
+//! and turning to each side passes the challenge; a still photo fails it with the server's reason.
+//!
+//! Without Chromium the tests print why and pass, except under CI (`CI=true`), where they fail.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -25,9 +29,65 @@ const CHROMIUM: [&str; 2] = ["/usr/lib/chromium/chromium", "/usr/bin/chromium"];
 const CHROMEDRIVER: [&str; 2] = ["/usr/bin/chromedriver", "/usr/lib/chromium/chromedriver"];
 /// The longest wait for one step of the page (a pipeline call in the dev profile takes < 1 s).
 const STEP: Duration = Duration::from_secs(30);
+/// The longest wait for a whole head-turn challenge: the probe and up to 4 steps of at most 20 s
+/// each (the page's own timeout), a look at the camera taking an `/analyze` call, then `/verify`.
+const CHALLENGE: Duration = Duration::from_secs(240);
+
+/// One browser at a time: each test drives the real pipeline, and the machine's cores are few.
+static ONE_BROWSER: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
 fn first_existing(candidates: &[&str]) -> Option<PathBuf> {
     candidates.iter().map(PathBuf::from).find(|p| p.is_file())
+}
+
+/// Chromium and chromedriver; None (the test prints why and passes) where they are not installed,
+/// except under CI, where the test fails.
+fn browser_binaries() -> Option<(PathBuf, PathBuf)> {
+    let ci = std::env::var("CI").is_ok_and(|v| v == "true");
+    let (Some(chromium), Some(chromedriver)) = (first_existing(&CHROMIUM), first_existing(&CHROMEDRIVER)) else {
+        let reason = "Chromium or chromedriver is not installed (apt-get install chromium chromium-driver)";
+        assert!(!ci, "{reason}: the browser test cannot be skipped in CI");
+        println!("browser test skipped: {reason}");
+        return None;
+    };
+    Some((chromium, chromedriver))
+}
+
+/// The folder for screenshots: `FACEGATE_CONSOLE_SCREENSHOTS`, else `target/tmp/console/`.
+fn screenshot_folder() -> PathBuf {
+    let shots = std::env::var_os("FACEGATE_CONSOLE_SCREENSHOTS")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("console"));
+    std::fs::create_dir_all(&shots).unwrap();
+    shots
+}
+
+/// A WebDriver session with headless Chromium (its profile in `profile`), with `extra` flags.
+async fn session(driver: &Driver, chromium: &Path, profile: &Path, extra: &[String]) -> Client {
+    let _ = std::fs::remove_dir_all(profile);
+    let mut args: Vec<String> = [
+        "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync",
+        "--no-first-run", "--no-default-browser-check", "--disable-extensions",
+        // WebGL on the CPU (SwiftShader): there is no GPU here.
+        "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
+        "--window-size=1280,1100", "--hide-scrollbars",
+    ]
+    .map(String::from)
+    .to_vec();
+    args.push(format!("--user-data-dir={}", profile.display()));
+    args.extend_from_slice(extra);
+    let capabilities = json!({
+        "browserName": "chrome",
+        "goog:chromeOptions": {"binary": chromium, "args": args},
+        "goog:loggingPrefs": {"browser": "ALL"},
+    });
+    let Value::Object(capabilities) = capabilities else { unreachable!() };
+    ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
+        .capabilities(capabilities)
+        .connect(&driver.url)
+        .await
+        .expect("a WebDriver session with headless Chromium")
 }
 
 /// chromedriver on a free port, killed when dropped.
@@ -87,7 +147,12 @@ impl Page {
 
     /// Wait until `script` (a JavaScript expression) is truthy.
     async fn until(&self, what: &str, script: &str) {
-        let deadline = Instant::now() + STEP;
+        self.until_within(what, script, STEP).await
+    }
+
+    /// [`Page::until`] with its own longest wait.
+    async fn until_within(&self, what: &str, script: &str, wait: Duration) {
+        let deadline = Instant::now() + wait;
         loop {
             let value = self.client.execute(&format!("return {script};"), vec![]).await.unwrap();
             if value.as_bool() == Some(true) || value.as_str().is_some_and(|s| !s.is_empty()) {
@@ -148,44 +213,14 @@ fn imm_path(name: &str) -> PathBuf {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_console_enrolls_verifies_shows_the_avatar_and_deletes_in_chromium() {
-    let ci = std::env::var("CI").is_ok_and(|v| v == "true");
-    let (Some(chromium), Some(chromedriver)) = (first_existing(&CHROMIUM), first_existing(&CHROMEDRIVER)) else {
-        let reason = "Chromium or chromedriver is not installed (apt-get install chromium chromium-driver)";
-        assert!(!ci, "{reason}: the browser test cannot be skipped in CI");
-        println!("browser test skipped: {reason}");
-        return;
-    };
-    let shots = std::env::var_os("FACEGATE_CONSOLE_SCREENSHOTS")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("console"));
-    std::fs::create_dir_all(&shots).unwrap();
+    let Some((chromium, chromedriver)) = browser_binaries() else { return };
+    let _one_browser = ONE_BROWSER.lock().await;
+    let shots = screenshot_folder();
 
     let app = TestApp::start(crate::pipeline::pipeline(), facegate::config::Settings::default().api_config().unwrap()).await;
     let driver = Driver::start(&chromedriver);
     let profile = std::env::temp_dir().join(format!("facegate-chromium-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&profile);
-    let capabilities = json!({
-        "browserName": "chrome",
-        "goog:chromeOptions": {
-            "binary": chromium,
-            "args": [
-                "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                "--no-first-run", "--no-default-browser-check", "--disable-extensions",
-                // WebGL on the CPU (SwiftShader): there is no GPU here.
-                "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
-                "--window-size=1280,1100", "--hide-scrollbars",
-                format!("--user-data-dir={}", profile.display()),
-            ],
-        },
-        "goog:loggingPrefs": {"browser": "ALL"},
-    });
-    let Value::Object(capabilities) = capabilities else { unreachable!() };
-    let client = ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
-        .capabilities(capabilities)
-        .connect(&driver.url)
-        .await
-        .expect("a WebDriver session with headless Chromium");
+    let client = session(&driver, &chromium, &profile, &[]).await;
     let page = Page { client, shots: shots.clone() };
 
     page.client.goto(&app.url("/#enrol")).await.unwrap();
@@ -334,4 +369,140 @@ async fn the_console_enrolls_verifies_shows_the_avatar_and_deletes_in_chromium()
     drop(driver);
     let _ = std::fs::remove_dir_all(&profile);
     println!("browser test: screenshots in {}", shots.display());
+}
+
+/// A Y4M clip (640 × 480, C420, 2 frames a second) of the IMM photos `names`, each held for
+/// `hold` frames, for Chromium's fake camera, which plays it in a loop. The planes are BT.601
+/// studio-range YCbCr of the photos' RGB, chroma averaged over 2 × 2 pixels.
+fn y4m_clip(path: &Path, names: &[&str], hold: usize) {
+    const W: u32 = 640;
+    const H: u32 = 480;
+    let mut clip = format!("YUV4MPEG2 W{W} H{H} F2:1 Ip A1:1 C420\n").into_bytes();
+    for name in names {
+        let mut rgb = image::open(imm_path(name)).unwrap().to_rgb8();
+        if rgb.dimensions() != (W, H) {
+            rgb = image::imageops::resize(&rgb, W, H, image::imageops::FilterType::Triangle);
+        }
+        let (mut y, mut u, mut v) = (Vec::new(), Vec::new(), Vec::new());
+        for p in rgb.pixels() {
+            let [r, g, b] = p.0.map(f32::from);
+            y.push((16.0 + (65.738 * r + 129.057 * g + 25.064 * b) / 256.0).round().clamp(0.0, 255.0) as u8);
+        }
+        for cy in (0..H).step_by(2) {
+            for cx in (0..W).step_by(2) {
+                let mut sum = [0.0f32; 3];
+                for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    let p = rgb.get_pixel(cx + dx, cy + dy).0;
+                    sum.iter_mut().zip(p).for_each(|(s, c)| *s += f32::from(c) / 4.0);
+                }
+                let [r, g, b] = sum;
+                u.push((128.0 + (-37.945 * r - 74.494 * g + 112.439 * b) / 256.0).round().clamp(0.0, 255.0) as u8);
+                v.push((128.0 + (112.439 * r - 94.154 * g - 18.285 * b) / 256.0).round().clamp(0.0, 255.0) as u8);
+            }
+        }
+        for _ in 0..hold {
+            clip.extend_from_slice(b"FRAME\n");
+            clip.extend_from_slice(&y);
+            clip.extend_from_slice(&u);
+            clip.extend_from_slice(&v);
+        }
+    }
+    std::fs::write(path, clip).unwrap();
+}
+
+/// The camera view on Chromium's fake camera playing `clip`: starts the challenge for `imm-02`
+/// and waits for the outcome; returns the page (its session still open).
+async fn camera_challenge(app: &TestApp, driver: &Driver, chromium: &Path, clip: &Path, name: &str) -> Page {
+    let profile = std::env::temp_dir().join(format!("facegate-chromium-{}-{name}", std::process::id()));
+    let camera = [
+        "--use-fake-ui-for-media-stream".to_string(),
+        "--use-fake-device-for-media-stream".to_string(),
+        format!("--use-file-for-fake-video-capture={}", clip.display()),
+    ];
+    let client = session(driver, chromium, &profile, &camera).await;
+    let page = Page { client, shots: screenshot_folder() };
+    page.client.goto(&app.url("/#camera")).await.unwrap();
+    page.until("the page script", "document.body.dataset.ready === 'true'").await;
+    page.until("the camera view", "!document.querySelector('#view-camera').hidden").await;
+    page.type_into("#camera-subject", "imm-02").await;
+    page.click("#camera-start").await;
+    page.until("the challenge's steps", "document.querySelector('#camera-steps').dataset.steps").await;
+    page.until("the camera preview", "document.querySelector('#camera-video').videoWidth === 640").await;
+    page.screenshot(&format!("{name}-capture.png")).await;
+    page.until_within(
+        "the outcome of the challenge",
+        "document.querySelector('#camera-decision')?.textContent || document.querySelector('#camera-result .problem')?.textContent",
+        CHALLENGE,
+    )
+    .await;
+    page.screenshot(&format!("{name}.png")).await;
+    page
+}
+
+/// Errors the page collected, except the browser's own log of an `/analyze` that found no face
+/// in a camera frame (the page then looks at the next frame).
+async fn camera_errors(page: &Page) -> Vec<String> {
+    page.errors().await.into_iter().filter(|e| !(e.contains("/analyze") && e.contains("422"))).collect()
+}
+
+async fn script_i64(page: &Page, script: &str) -> i64 {
+    let value = page.client.execute(&format!("return {script};"), vec![]).await.unwrap();
+    value.as_i64().unwrap_or_else(|| panic!("{script} is {value}"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_camera_view_passes_a_head_turn_challenge_and_fails_a_still_photo_in_chromium() {
+    let Some((chromium, chromedriver)) = browser_binaries() else { return };
+    let _one_browser = ONE_BROWSER.lock().await;
+    let app = TestApp::start(crate::pipeline::pipeline(), facegate::config::Settings::default().api_config().unwrap()).await;
+    let enrolled = app.post_form("/enroll", Some("imm-02"), &[crate::support::imm("02-1m.jpg"), crate::support::imm("02-2m.jpg")]).await;
+    assert_eq!(enrolled.status, 201, "{}", String::from_utf8_lossy(&enrolled.body));
+    let clips = std::env::temp_dir().join(format!("facegate-camera-{}", std::process::id()));
+    std::fs::create_dir_all(&clips).unwrap();
+    let driver = Driver::start(&chromedriver);
+
+    // IMM person 02 looking ahead, turned to their left (view 4), ahead, turned to their right
+    // (view 3): every step of any challenge finds its pose within one loop of the clip.
+    let turns = clips.join("turns.y4m");
+    y4m_clip(&turns, &["02-5m.jpg", "02-4m.jpg", "02-6m.jpg", "02-3m.jpg"], 3);
+    let page = camera_challenge(&app, &driver, &chromium, &turns, "camera-challenge").await;
+    let decision = page.text("#camera-result").await;
+    assert!(page.text("#camera-decision").await.starts_with("Match: imm-02"), "{decision}");
+    assert_eq!(page.text("#camera-challenge").await, "Challenge passed", "{decision}");
+    let steps = script_i64(&page, "Number(document.querySelector('#camera-steps').dataset.steps)").await;
+    assert!((3..=4).contains(&steps), "{steps} steps");
+    // The server's outcome: one row per step, every frame in its range.
+    assert_eq!(script_i64(&page, "document.querySelectorAll('#camera-challenge-steps tr[data-ok]').length").await, steps);
+    assert_eq!(script_i64(&page, "document.querySelectorAll('#camera-challenge-steps tr[data-ok=\"true\"]').length").await, steps);
+    for turn in ["left", "right"] {
+        let rows = format!("[...document.querySelectorAll('#camera-challenge-steps tr[data-ok]')].filter(r => r.cells[1].textContent === '{turn}').length");
+        assert!(script_i64(&page, &rows).await >= 1, "no {turn} step: {decision}");
+    }
+    page.until("the probe's overlay", "document.querySelector('#camera-result canvas.overlay')?.dataset.points === '58'").await;
+    let errors = camera_errors(&page).await;
+    assert!(errors.is_empty(), "console errors: {errors:?}");
+    page.client.close().await.unwrap();
+
+    // One still photo looking ahead: the turns never come, each turned step's frame is taken
+    // when its time is up, and the server fails the challenge, saying why.
+    let still = clips.join("still.y4m");
+    y4m_clip(&still, &["02-5m.jpg"], 1);
+    let page = camera_challenge(&app, &driver, &chromium, &still, "camera-challenge-failed").await;
+    let outcome = page.text("#camera-result").await;
+    let challenge = page.text("#camera-challenge").await;
+    let reason = challenge.strip_prefix("Challenge failed: ").unwrap_or_else(|| panic!("{outcome}"));
+    assert!(!reason.is_empty() && reason != "no reason given", "{outcome}");
+    assert!(script_i64(&page, "document.querySelectorAll('#camera-challenge-steps tr[data-ok=\"false\"]').length").await >= 2, "{outcome}");
+    assert!(script_i64(&page, "document.querySelectorAll('#camera-steps li[data-state=\"timeout\"]').length").await >= 2, "{outcome}");
+    // A failed challenge is an attack, as the liveness table says.
+    assert!(outcome.contains("Liveness") && outcome.contains("attack ("), "{outcome}");
+    let errors = camera_errors(&page).await;
+    assert!(errors.is_empty(), "console errors: {errors:?}");
+    page.client.close().await.unwrap();
+
+    drop(driver);
+    let _ = std::fs::remove_dir_all(&clips);
+    for name in ["camera-challenge", "camera-challenge-failed"] {
+        let _ = std::fs::remove_dir_all(std::env::temp_dir().join(format!("facegate-chromium-{}-{name}", std::process::id())));
+    }
 }

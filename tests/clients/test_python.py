@@ -11,6 +11,7 @@ from pathlib import Path
 
 from facegate_client import Client
 from facegate_client.api.default import (
+    create_challenge,
     delete_subject,
     enroll,
     get_subject,
@@ -20,16 +21,19 @@ from facegate_client.api.default import (
     verify,
 )
 from facegate_client.models import (
+    ChallengeResponse,
     EnrollFilesBody,
     EnrollJsonBody,
     EnrollResponse,
     Health,
     IdentifyFilesBody,
     IdentifyResponse,
+    LivenessChallenge,
     Problem,
     ProblemType,
     SubjectDetail,
     SubjectList,
+    Turn,
     VerifyFilesBody,
     VerifyJsonBody,
     VerifyResponse,
@@ -115,6 +119,82 @@ def identify_by_multipart():
     assert i.candidates[0].score >= i.candidates[1].score
 
 
+# IMM person 02 (enrolled as py-02 from views 1 and 2): the photos a head-turn challenge's steps
+# take, by turn, and the probe looking ahead. The frontal ones are taken in turn.
+TURNED = {Turn.LEFT: ["02-4m.jpg"], Turn.RIGHT: ["02-3m.jpg"], Turn.FRONT: ["02-6m.jpg", "02-2m.jpg", "02-5m.jpg"]}
+CHALLENGE_PROBE = "02-5m.jpg"
+
+
+def new_challenge() -> ChallengeResponse:
+    c = parsed(create_challenge.sync_detailed(client=client), 201, ChallengeResponse)
+    assert c.challenge and 30 <= c.expires_in <= 600, c
+    turns = [step.turn for step in c.steps]
+    assert 3 <= len(turns) <= 4 and Turn.LEFT in turns and Turn.RIGHT in turns, turns
+    for step in c.steps:
+        assert isinstance(step.turn, Turn) and step.yaw_min < step.yaw_max, step
+        if step.turn == Turn.LEFT:
+            assert step.yaw_min > 0, step
+        elif step.turn == Turn.RIGHT:
+            assert step.yaw_max < 0, step
+        else:
+            assert step.yaw_min < 0 < step.yaw_max, step
+    return c
+
+
+def frames_for(c: ChallengeResponse) -> list[str]:
+    """One photo per step, chosen by the step's turn."""
+    taken = {turn: 0 for turn in TURNED}
+    names = []
+    for step in c.steps:
+        choices = TURNED[step.turn]
+        names.append(choices[taken[step.turn] % len(choices)])
+        taken[step.turn] += 1
+    return names
+
+
+def challenge_passed_by_multipart():
+    c = new_challenge()
+    assert create_challenge.sync_detailed(client=client).parsed.challenge != c.challenge, "a fresh id per challenge"
+    names = frames_for(c)
+    body = VerifyFilesBody(subject="py-02", image=photo(CHALLENGE_PROBE), challenge=c.challenge, frame=[photo(n) for n in names])
+    v = parsed(verify.sync_detailed(client=client, body=body), 200, VerifyResponse)
+    assert v.match, v
+    outcome = v.liveness.challenge
+    assert isinstance(outcome, LivenessChallenge), outcome
+    assert [s.turn for s in outcome.steps] == [s.turn for s in c.steps], (outcome.steps, c.steps)
+    for step, read in zip(c.steps, outcome.steps):
+        assert read.ok and step.yaw_min <= read.yaw <= step.yaw_max, (names, step, read)
+    assert outcome.passed and outcome.reason is None and not v.liveness.attack, outcome
+    assert v.liveness.frames == len(c.steps) + 1, v.liveness
+    # Used once: the same challenge again is refused, and so it stays.
+    for _ in range(2):
+        p = problem(verify.sync_detailed(client=client, body=VerifyFilesBody(
+            subject="py-02", image=photo(CHALLENGE_PROBE), challenge=c.challenge, frame=[photo(n) for n in names])), 422, "invalid-challenge")
+        assert p.detail, p
+
+
+def challenge_failed_and_unknown_by_json():
+    # Every frame looking ahead: the turned steps are not ok, the challenge fails (an attack) and
+    # says why; under the default --liveness report the decision is still given.
+    c = new_challenge()
+    body = VerifyJsonBody(subject="py-02", image=b64(CHALLENGE_PROBE), challenge=c.challenge, frames=[b64("02-6m.jpg")] * len(c.steps))
+    v = parsed(verify.sync_detailed(client=client, body=body), 200, VerifyResponse)
+    outcome = v.liveness.challenge
+    assert isinstance(outcome, LivenessChallenge) and len(outcome.steps) == len(c.steps), outcome
+    assert not outcome.passed and outcome.reason and v.liveness.attack, outcome
+    assert [s.ok for s in outcome.steps] == [s.turn == Turn.FRONT for s in c.steps], outcome.steps
+    problem(verify.sync_detailed(client=client, body=body), 422, "invalid-challenge")
+    # An id never issued.
+    body = VerifyJsonBody(subject="py-02", image=b64(CHALLENGE_PROBE), challenge="0" * 32, frames=[b64("02-6m.jpg")] * 3)
+    problem(verify.sync_detailed(client=client, body=body), 422, "invalid-challenge")
+
+
+def challenge_with_a_wrong_frame_count():
+    c = new_challenge()
+    body = VerifyJsonBody(subject="py-02", image=b64(CHALLENGE_PROBE), challenge=c.challenge, frames=[b64("02-6m.jpg")] * (len(c.steps) - 1))
+    problem(verify.sync_detailed(client=client, body=body), 400, "malformed-request")
+
+
 def list_subjects_paged():
     page = parsed(list_subjects.sync_detailed(client=client, limit=1), 200, SubjectList)
     assert [s.id for s in page.subjects] == ["py-01"] and page.next_after == "py-01", page
@@ -156,6 +236,9 @@ CHECKS = [
     verify_match_by_multipart,
     verify_no_match_by_json_with_fmr,
     identify_by_multipart,
+    challenge_passed_by_multipart,
+    challenge_failed_and_unknown_by_json,
+    challenge_with_a_wrong_frame_count,
     list_subjects_paged,
     get_subject_detail,
     delete_a_subject,

@@ -8,6 +8,8 @@ import createClient from "openapi-fetch";
 import type { components, paths } from "./schema.js";
 
 type Problem = components["schemas"]["Problem"];
+type Challenge = components["schemas"]["ChallengeResponse"];
+type Turn = components["schemas"]["Turn"];
 type Slug = Problem["type"] extends `https://facegate.dev/problems/${infer S}` ? S : never;
 
 const [baseUrl, imm] = process.argv.slice(2) as [string, string];
@@ -50,6 +52,32 @@ function problem(r: { error?: Problem; response: Response }, status: number, slu
   const type: Problem["type"] = `https://facegate.dev/problems/${slug}`;
   assert(p.type === type && p.status === status && p.title && p.detail, JSON.stringify(p));
   return p;
+}
+
+// IMM person 02 (enrolled as ts-02 from views 1 and 2): the photos a head-turn challenge's steps
+// take, by turn (the frontal ones in turn), and the probe looking ahead.
+const TURNED: Record<Turn, string[]> = { left: ["02-4m.jpg"], right: ["02-3m.jpg"], front: ["02-6m.jpg", "02-2m.jpg", "02-5m.jpg"] };
+const CHALLENGE_PROBE = "02-5m.jpg";
+
+async function newChallenge(): Promise<Challenge> {
+  const c = ok(await client.POST("/liveness/challenge", {}), 201);
+  assert(c.challenge.length > 0 && c.expires_in >= 30 && c.expires_in <= 600, JSON.stringify(c));
+  const turns = c.steps.map((s) => s.turn);
+  assert(turns.length >= 3 && turns.length <= 4 && turns.includes("left") && turns.includes("right"), JSON.stringify(turns));
+  for (const s of c.steps) {
+    const side = { left: s.yaw_min > 0, right: s.yaw_max < 0, front: s.yaw_min < 0 && s.yaw_max > 0 }[s.turn];
+    assert(s.yaw_min < s.yaw_max && side, JSON.stringify(s));
+  }
+  return c;
+}
+
+/** One photo per step, chosen by the step's turn. */
+function framesFor(c: Challenge): string[] {
+  const taken: Record<Turn, number> = { left: 0, right: 0, front: 0 };
+  return c.steps.map((s) => {
+    const choices = TURNED[s.turn];
+    return choices[taken[s.turn]++ % choices.length] as string;
+  });
 }
 
 const checks: Record<string, () => Promise<void>> = {
@@ -97,6 +125,38 @@ const checks: Record<string, () => Promise<void>> = {
     );
     assert(i.subjects_searched === 2 && i.candidates.length === 2, JSON.stringify(i.candidates));
     assert(i.candidates[0]?.subject === "ts-02" && i.candidates[0].match, JSON.stringify(i.candidates));
+  },
+
+  async challenge_passed_by_json() {
+    const c = await newChallenge();
+    const names = framesFor(c);
+    const body = { subject: "ts-02", image: b64(CHALLENGE_PROBE), challenge: c.challenge, frames: names.map(b64) };
+    const v = ok(await client.POST("/verify", { body }), 200);
+    const outcome = v.liveness?.challenge;
+    assert(v.match && outcome !== undefined, JSON.stringify(v.liveness));
+    assert(outcome.steps.length === c.steps.length, JSON.stringify(outcome));
+    outcome.steps.forEach((read, i) => {
+      const step = c.steps[i];
+      assert(step !== undefined && read.turn === step.turn && read.ok, JSON.stringify({ names, step, read }));
+      assert(read.yaw !== null && read.yaw >= step.yaw_min && read.yaw <= step.yaw_max, JSON.stringify(read));
+    });
+    assert(outcome.passed && outcome.reason === null && !v.liveness?.attack, JSON.stringify(outcome));
+    // Used once: the same challenge again is refused.
+    const p = problem(await client.POST("/verify", { body }), 422, "invalid-challenge");
+    assert(p.detail.length > 0, JSON.stringify(p));
+  },
+
+  async challenge_failed_by_multipart() {
+    // Every frame looking ahead: the turned steps are not ok and the challenge fails, saying why.
+    const c = await newChallenge();
+    const frame = c.steps.map(() => photo("02-6m.jpg"));
+    const body = { subject: "ts-02", image: photo(CHALLENGE_PROBE), challenge: c.challenge, frame };
+    const v = ok(await client.POST("/verify", { body, ...multipart }), 200);
+    const outcome = v.liveness?.challenge;
+    assert(outcome !== undefined && outcome.steps.length === c.steps.length, JSON.stringify(v.liveness));
+    assert(!outcome.passed && typeof outcome.reason === "string" && outcome.reason.length > 0 && v.liveness?.attack, JSON.stringify(outcome));
+    assert(outcome.steps.every((read, i) => read.ok === (c.steps[i]?.turn === "front")), JSON.stringify(outcome.steps));
+    problem(await client.POST("/verify", { body, ...multipart }), 422, "invalid-challenge");
   },
 
   async list_subjects_paged() {
