@@ -11,6 +11,8 @@
 //! The camera view ("Verify with the camera", the head-turn challenge) runs on Chromium's fake camera
 //! playing a Y4M clip of IMM photos the test writes to a temporary folder: a person looking ahead
 //! and turning to each side passes the challenge; a still photo fails it with the server's reason.
+//! The person is IMM 05 (held out of training): person 02's nose depth, read through the camera
+//! path (4:2:0 chroma, the page's JPEG), lies within a hundredth of the challenge's threshold.
 //!
 //! Without Chromium the tests print why and pass, except under CI (`CI=true`), where they fail.
 
@@ -410,7 +412,7 @@ fn y4m_clip(path: &Path, names: &[&str], hold: usize) {
     std::fs::write(path, clip).unwrap();
 }
 
-/// The camera view on Chromium's fake camera playing `clip`: starts the challenge for `imm-02`
+/// The camera view on Chromium's fake camera playing `clip`: starts the challenge for `imm-05`
 /// and waits for the outcome; returns the page (its session still open).
 async fn camera_challenge(app: &TestApp, driver: &Driver, chromium: &Path, clip: &Path, name: &str) -> Page {
     let profile = std::env::temp_dir().join(format!("facegate-chromium-{}-{name}", std::process::id()));
@@ -424,7 +426,7 @@ async fn camera_challenge(app: &TestApp, driver: &Driver, chromium: &Path, clip:
     page.client.goto(&app.url("/#camera")).await.unwrap();
     page.until("the page script", "document.body.dataset.ready === 'true'").await;
     page.until("the camera view", "!document.querySelector('#view-camera').hidden").await;
-    page.type_into("#camera-subject", "imm-02").await;
+    page.type_into("#camera-subject", "imm-05").await;
     page.click("#camera-start").await;
     page.until("the challenge's steps", "document.querySelector('#camera-steps').dataset.steps").await;
     page.until("the camera preview", "document.querySelector('#camera-video').videoWidth === 640").await;
@@ -455,19 +457,19 @@ async fn the_camera_view_passes_a_head_turn_challenge_and_fails_a_still_photo_in
     let Some((chromium, chromedriver)) = browser_binaries() else { return };
     let _one_browser = ONE_BROWSER.lock().await;
     let app = TestApp::start(crate::pipeline::pipeline(), facegate::config::Settings::default().api_config().unwrap()).await;
-    let enrolled = app.post_form("/enroll", Some("imm-02"), &[crate::support::imm("02-1m.jpg"), crate::support::imm("02-2m.jpg")]).await;
+    let enrolled = app.post_form("/enroll", Some("imm-05"), &[crate::support::imm("05-1m.jpg"), crate::support::imm("05-2m.jpg")]).await;
     assert_eq!(enrolled.status, 201, "{}", String::from_utf8_lossy(&enrolled.body));
     let clips = std::env::temp_dir().join(format!("facegate-camera-{}", std::process::id()));
     std::fs::create_dir_all(&clips).unwrap();
     let driver = Driver::start(&chromedriver);
 
-    // IMM person 02 looking ahead, turned to their left (view 4), ahead, turned to their right
+    // IMM person 05 looking ahead, turned to their left (view 4), ahead, turned to their right
     // (view 3): every step of any challenge finds its pose within one loop of the clip.
     let turns = clips.join("turns.y4m");
-    y4m_clip(&turns, &["02-5m.jpg", "02-4m.jpg", "02-6m.jpg", "02-3m.jpg"], 3);
+    y4m_clip(&turns, &["05-5m.jpg", "05-4m.jpg", "05-6m.jpg", "05-3m.jpg"], 3);
     let page = camera_challenge(&app, &driver, &chromium, &turns, "camera-challenge").await;
     let decision = page.text("#camera-result").await;
-    assert!(page.text("#camera-decision").await.starts_with("Match: imm-02"), "{decision}");
+    assert!(page.text("#camera-decision").await.starts_with("Match: imm-05"), "{decision}");
     assert_eq!(page.text("#camera-challenge").await, "Challenge passed", "{decision}");
     let steps = script_i64(&page, "Number(document.querySelector('#camera-steps').dataset.steps)").await;
     assert!((3..=4).contains(&steps), "{steps} steps");
@@ -486,7 +488,7 @@ async fn the_camera_view_passes_a_head_turn_challenge_and_fails_a_still_photo_in
     // One still photo looking ahead: the turns never come, each turned step's frame is taken
     // when its time is up, and the server fails the challenge, saying why.
     let still = clips.join("still.y4m");
-    y4m_clip(&still, &["02-5m.jpg"], 1);
+    y4m_clip(&still, &["05-5m.jpg"], 1);
     let page = camera_challenge(&app, &driver, &chromium, &still, "camera-challenge-failed").await;
     let outcome = page.text("#camera-result").await;
     let challenge = page.text("#camera-challenge").await;
