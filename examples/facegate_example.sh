@@ -101,7 +101,7 @@ case "$command" in
         [[ "$status" == 200 ]] || { refused; exit $?; }
         jq -r '"\(if .match then "match" else "no match" end): score \(.score), threshold \(.threshold) at FMR \(.fmr)"' "$body"
         jq -e '.liveness.challenge' "$body" >/dev/null || { echo "the server judged no challenge (liveness is off)" >&2; exit 4; }
-        jq -r '.liveness.challenge.steps[] | "  \(.turn): yaw \(if .yaw == null then "unknown" else "\(.yaw) deg" end), \(if .ok then "ok" else "not ok" end)"' "$body"
+        jq -r '.liveness.challenge.steps[] | "  \(.turn): yaw \(if .yaw == null then "unknown" else "\(.yaw * 10 | round / 10) deg" end), \(if .ok then "ok" else "not ok" end)"' "$body"
         if ! jq -e .liveness.challenge.passed "$body" >/dev/null; then
             echo "the head-turn challenge failed: $(jq -r .liveness.challenge.reason "$body")" >&2
             exit 2
