@@ -66,12 +66,21 @@ fn screenshot_folder() -> PathBuf {
 async fn session(driver: &Driver, chromium: &Path, profile: &Path, extra: &[String]) -> Client {
     let _ = std::fs::remove_dir_all(profile);
     let mut args: Vec<String> = [
-        "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync",
-        "--no-first-run", "--no-default-browser-check", "--disable-extensions",
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-dev-shm-usage",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--no-first-run",
+        "--no-default-browser-check",
+        "--disable-extensions",
         // WebGL on the CPU (SwiftShader): there is no GPU here.
-        "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
-        "--window-size=1280,1100", "--hide-scrollbars",
+        "--enable-unsafe-swiftshader",
+        "--use-angle=swiftshader",
+        "--window-size=1280,1100",
+        "--hide-scrollbars",
     ]
     .map(String::from)
     .to_vec();
@@ -475,7 +484,9 @@ async fn the_camera_view_passes_a_head_turn_challenge_and_fails_a_still_photo_in
     assert_eq!(script_i64(&page, "document.querySelectorAll('#camera-challenge-steps tr[data-ok]').length").await, steps);
     assert_eq!(script_i64(&page, "document.querySelectorAll('#camera-challenge-steps tr[data-ok=\"true\"]').length").await, steps);
     for turn in ["left", "right"] {
-        let rows = format!("[...document.querySelectorAll('#camera-challenge-steps tr[data-ok]')].filter(r => r.cells[1].textContent === '{turn}').length");
+        let rows = format!(
+            "[...document.querySelectorAll('#camera-challenge-steps tr[data-ok]')].filter(r => r.cells[1].textContent === '{turn}').length"
+        );
         assert!(script_i64(&page, &rows).await >= 1, "no {turn} step: {decision}");
     }
     page.until("the probe's overlay", "document.querySelector('#camera-result canvas.overlay')?.dataset.points === '58'").await;
