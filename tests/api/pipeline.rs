@@ -231,6 +231,20 @@ async fn analyze_avatar_and_frontalize_a_real_photo() {
     assert!(lit > 256 * 256 / 4, "the face covers the rendering: {lit} lit pixels");
     let cli_png = cli(&["frontalize", path.to_str().unwrap()], &dir.join("cli.png"));
     assert!(cli_png == r.body, "POST /frontalize and facegate frontalize differ");
+    // `--yaw`: the fitted head turned, as an attack on the liveness challenge would show it; the
+    // pipeline reads it turned that way (a 400-pixel render on black, as `/analyze` would get it).
+    for (yaw, side) in [("25", 1.0), ("-25", -1.0)] {
+        let png = cli(&["frontalize", "--yaw", yaw, "--size", "400", path.to_str().unwrap()], &dir.join("turned.png"));
+        let photo = facegate::core::imaging::decode(&png, &Default::default()).unwrap();
+        let read = pipeline().analyze(&photo).unwrap().pose.expect("posed").yaw;
+        assert!(side * read > 12.0 && side * read < 40.0, "rendered at {yaw}°, read {read}°");
+    }
+    let refused = std::process::Command::new(env!("CARGO_BIN_EXE_facegate"))
+        .args(["frontalize", "--yaw", "120", path.to_str().unwrap(), "--out"])
+        .arg(dir.join("no.png"))
+        .output()
+        .unwrap();
+    assert!(!refused.status.success() && String::from_utf8_lossy(&refused.stderr).contains("--yaw must be between"));
     let _ = std::fs::remove_dir_all(&dir);
 
     // No face, and the photo checks of /verify.

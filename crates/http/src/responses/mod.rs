@@ -126,7 +126,9 @@ struct ChallengeStepRange {
 impl From<IssuedChallenge> for ChallengeResponse {
     fn from(c: IssuedChallenge) -> ChallengeResponse {
         let steps = c.steps.iter().map(|s| ChallengeStepRange { turn: s.turn.name(), yaw_min: s.yaw_min, yaw_max: s.yaw_max }).collect();
-        ChallengeResponse { challenge: c.id, expires_in: c.expires_in.as_secs(), steps }
+        // Whole seconds, rounded up: a challenge is never announced as expired when it is not.
+        let expires_in = (c.expires_in.as_millis() as u64).div_ceil(1000);
+        ChallengeResponse { challenge: c.id, expires_in, steps }
     }
 }
 

@@ -626,3 +626,76 @@ fn reused_challenges(n: usize) -> anyhow::Result<(usize, usize)> {
             let _ = std::fs::remove_file(&path);
         })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn striped(width: u32, height: u32) -> RgbImage {
+        RgbImage::from_fn(width, height, |x, y| Rgb([(x * 7 % 256) as u8, (y * 5 % 256) as u8, 200]))
+    }
+
+    #[test]
+    fn a_print_held_straight_is_the_photo_and_turned_it_narrows() {
+        let photo = striped(120, 90);
+        assert_eq!(print_held(&photo, 0.0, None), photo, "held straight at the focal distance: the photo itself");
+        let turned = print_held(&photo, 45.0, None);
+        let grey = |x: u32| (0..90).all(|y| turned.get_pixel(x, y).0 == [128, 128, 128]);
+        assert!(grey(119), "the receding edge no longer reaches the frame's edge");
+        assert!(!grey(60), "its middle is still there");
+        // Turned > 0 (as a head turning to its own left): the right half recedes, so it is narrower
+        // than the left, which comes nearer.
+        let width = |from: u32, to: u32| (from..to).filter(|&x| !grey(x)).count();
+        assert!(width(60, 120) < width(0, 60), "{} {}", width(0, 60), width(60, 120));
+        // Bent, the sheet's edges curl away and it narrows even held straight.
+        let bent = print_held(&photo, 0.0, Some(0.4));
+        assert_ne!(bent, photo);
+        assert_eq!(bent.get_pixel(0, 45).0, [128, 128, 128]);
+    }
+
+    #[test]
+    fn every_attempt_answers_its_steps_and_live_frames_follow_the_turns() {
+        let shared = facegate_paths::shared_dir();
+        let config = ChallengeEvalConfig {
+            imm: shared.join("data/imm"),
+            umist: shared.join("data/umist"),
+            nuaa: shared.join("data/nuaa"),
+            test_persons: true,
+            challenges_per_person: 2,
+            seed: 3,
+            threads: 1,
+        };
+        let attempts = attempts(&config, &|_| Some(20.0)).unwrap();
+        let kinds: std::collections::BTreeSet<&str> = attempts.iter().map(|a| a.kind).collect();
+        for kind in
+            ["live", "still photo", "wrong order", "stranger in one step", "avatar render", "NUAA print capture", "flat print turned ±30°"]
+        {
+            assert!(kinds.contains(kind), "{kind} missing from {kinds:?}");
+        }
+        for a in &attempts {
+            assert_eq!(a.frames.len(), a.steps.len(), "{a:?}");
+            if a.kind == "live" && a.person.starts_with("imm-") {
+                for (step, frame) in a.steps.iter().zip(&a.frames) {
+                    let Source::File(path) = frame else { panic!("{frame:?}") };
+                    let view = path.file_name().unwrap().to_str().unwrap().as_bytes()[3];
+                    let expected: &[u8] = match step.turn {
+                        Turn::Front => b"15",
+                        Turn::Left => b"4",
+                        Turn::Right => b"3",
+                    };
+                    assert!(expected.contains(&view), "{step:?} answered by {}", path.display());
+                }
+            }
+            if a.person.starts_with("umist-") {
+                assert!(a.steps.iter().all(|s| s.turn != Turn::Front), "UMIST has no frontal photo: {a:?}");
+            }
+        }
+        // Persons never trained on only.
+        assert!(
+            attempts
+                .iter()
+                .filter(|a| a.person.starts_with("imm-"))
+                .all(|a| { crate::dataset::imm_is_test_person(a.person[4..].parse().unwrap()) })
+        );
+    }
+}
