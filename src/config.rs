@@ -621,3 +621,32 @@ mod tests {
         std::fs::remove_dir_all(dir).unwrap();
     }
 }
+
+/// What the `OTEL_*` environment asks of traces; the OpenTelemetry SDK reads the rest (headers,
+/// timeout, batching, sampler) itself.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TraceSettings {
+    /// `OTEL_EXPORTER_OTLP_TRACES_ENDPOINT`, else `OTEL_EXPORTER_OTLP_ENDPOINT`: traces are
+    /// exported only when one is set.
+    pub endpoint: Option<String>,
+    /// `OTEL_EXPORTER_OTLP_TRACES_PROTOCOL`, else `OTEL_EXPORTER_OTLP_PROTOCOL`.
+    pub protocol: Option<String>,
+    /// `OTEL_SERVICE_NAME`, or `service.name` in `OTEL_RESOURCE_ATTRIBUTES`.
+    pub service_name: Option<String>,
+    /// `OTEL_SDK_DISABLED=true`.
+    pub sdk_disabled: bool,
+}
+
+impl TraceSettings {
+    pub fn from_env() -> TraceSettings {
+        let var = |key: &str| std::env::var(key).ok().map(|v| v.trim().to_string()).filter(|v| !v.is_empty());
+        let from_attributes = var("OTEL_RESOURCE_ATTRIBUTES")
+            .and_then(|attributes| attributes.split(',').find_map(|pair| pair.trim().strip_prefix("service.name=").map(str::to_string)));
+        TraceSettings {
+            endpoint: var("OTEL_EXPORTER_OTLP_TRACES_ENDPOINT").or_else(|| var("OTEL_EXPORTER_OTLP_ENDPOINT")),
+            protocol: var("OTEL_EXPORTER_OTLP_TRACES_PROTOCOL").or_else(|| var("OTEL_EXPORTER_OTLP_PROTOCOL")),
+            service_name: var("OTEL_SERVICE_NAME").or(from_attributes),
+            sdk_disabled: var("OTEL_SDK_DISABLED").is_some_and(|v| v.eq_ignore_ascii_case("true")),
+        }
+    }
+}

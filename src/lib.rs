@@ -24,3 +24,4 @@ pub mod choices;
 pub mod cli;
 pub mod config;
 pub mod startup;
+pub mod telemetry;

@@ -8,8 +8,9 @@ use std::time::Duration;
 
 use anyhow::Context;
 
-use crate::config::{LogFormat, Settings};
+use crate::config::{LogFormat, Settings, TraceSettings};
 use crate::startup::Application;
+use crate::telemetry::Traces;
 
 #[derive(clap::Args, Debug)]
 pub struct ServeArgs {
@@ -25,11 +26,8 @@ pub fn run(args: ServeArgs) -> anyhow::Result<ExitCode> {
     if args.healthcheck {
         return healthcheck(&args.settings.bind);
     }
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
-    let _ = match args.settings.log_format {
-        LogFormat::Text => tracing_subscriber::fmt().with_env_filter(filter).try_init(),
-        LogFormat::Json => tracing_subscriber::fmt().json().with_env_filter(filter).try_init(),
-    };
+    let traces = Traces::start(&TraceSettings::from_env())?;
+    install_subscriber(args.settings.log_format, traces.as_ref());
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("cannot start the async runtime")?;
     runtime.block_on(async {
         let app = Application::build(args.settings).await?;
@@ -38,7 +36,24 @@ pub fn run(args: ServeArgs) -> anyhow::Result<ExitCode> {
     })?;
     // Pool jobs still running after the grace period are not waited for.
     runtime.shutdown_timeout(Duration::from_secs(1));
+    // Exports the spans still batched.
+    drop(traces);
     Ok(ExitCode::SUCCESS)
+}
+
+/// The log lines (`RUST_LOG`, default `info`; events only, so a line never carries its spans'
+/// fields) and, when traces are exported, the spans.
+fn install_subscriber(format: LogFormat, traces: Option<&Traces>) {
+    use tracing_subscriber::layer::{Layer, SubscriberExt};
+    use tracing_subscriber::util::SubscriberInitExt;
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    let lines = match format {
+        LogFormat::Text => tracing_subscriber::fmt::layer().boxed(),
+        LogFormat::Json => tracing_subscriber::fmt::layer().json().boxed(),
+    };
+    let events = tracing_subscriber::filter::filter_fn(|metadata| metadata.is_event());
+    let spans = traces.map(|t| t.layer().with_filter(tracing_subscriber::filter::LevelFilter::INFO));
+    let _ = tracing_subscriber::registry().with(lines.with_filter(filter).with_filter(events)).with(spans).try_init();
 }
 
 async fn shutdown_signal() {

@@ -130,6 +130,11 @@ pub(crate) struct Served {
 
 impl Served {
     pub(crate) async fn start(database: &str, extra: &[&str], log: PathBuf) -> Served {
+        Served::start_with_env(database, extra, log, &[]).await
+    }
+
+    /// [`Served::start`] with `env` set for the process.
+    pub(crate) async fn start_with_env(database: &str, extra: &[&str], log: PathBuf, env: &[(&str, &str)]) -> Served {
         let port = free_port();
         let mut args = vec!["serve".to_string(), "--bind".into(), format!("127.0.0.1:{port}"), "--database".into(), database.into()];
         args.extend(["--workers".into(), "1".into()]);
@@ -141,6 +146,7 @@ impl Served {
             .env_remove("FACEGATE_API_KEYS_FILE")
             .env_remove("FACEGATE_TEMPLATE_KEY_FILE")
             .env("RUST_LOG", "info")
+            .envs(env.iter().copied())
             .stdin(Stdio::null())
             .stdout(std::fs::File::create(&log).unwrap())
             .stderr(Stdio::null())

@@ -24,6 +24,8 @@
 //!   the probe's person), the liveness fused over them, enforced by the fused score; NUAA frames.
 //! - `challenge`: the head-turn liveness challenge: issued, answered by a person's own turns,
 //!   used once, expired; a still photo and the wrong order fail it; JSON and multipart.
+//! - `telemetry`: OpenTelemetry traces of the real binary to an OTLP/HTTP receiver started by the
+//!   test: a `/verify`'s `traceparent` continued, its stages' spans.
 //! - `browser`: the web console in headless Chromium over WebDriver, against the real pipeline.
 
 mod admission;
@@ -46,3 +48,4 @@ mod store_backends;
 mod store_cli;
 mod store_outage;
 mod support;
+mod telemetry;

@@ -38,6 +38,7 @@ mod responses;
 pub mod server;
 mod state;
 pub mod timeout;
+pub mod trace;
 
 pub use metrics::Metrics;
 pub use problem::{Problem, ProblemKind};
@@ -129,7 +130,8 @@ pub fn operations() -> Vec<Operation> {
 
 /// The application: routes, API keys, admission, audit, body limit, request timeout, metrics, and
 /// the head limits, request id and `Cache-Control` of [`limits::edge`]. In request order:
-/// edge → metrics → audit → API key → request timeout → admission → handler (the timeout inside
+/// edge → metrics → request span (`trace`) → audit → API key → request timeout → admission →
+/// handler (the timeout inside
 /// the audit, so that a request it ends is audited).
 pub fn router(state: AppState) -> Router {
     let keys = state.keys().clone();
@@ -150,8 +152,9 @@ pub fn router(state: AppState) -> Router {
     let protected = protected
         .route_layer(timeout.clone())
         .route_layer(middleware::from_fn_with_state(keys, require_api_key))
-        .route_layer(middleware::from_fn(audit::record));
-    let mut public = public.route_layer(timeout);
+        .route_layer(middleware::from_fn(audit::record))
+        .route_layer(middleware::from_fn(trace::request_span));
+    let mut public = public.route_layer(timeout).route_layer(middleware::from_fn(trace::request_span));
     if state.config().console {
         public = public.merge(console::routes());
     }

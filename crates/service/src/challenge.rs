@@ -263,7 +263,7 @@ fn challenge_photos(
         .map(|f| crate::decide(matcher as &dyn Matcher, &f.analysis.template, std::slice::from_ref(&probe.analysis.template), fmr))
         .collect();
     let frame_analyses: Vec<&FaceAnalysis> = analyzed.iter().map(|p| &p.analysis).collect();
-    let outcome = judge(steps, &probe.analysis, &frame_analyses, &same);
+    let outcome = tracing::info_span!("challenge").in_scope(|| judge(steps, &probe.analysis, &frame_analyses, &same));
     Ok((probe, analyzed, outcome))
 }
 

@@ -387,7 +387,7 @@ impl Facegate {
         if !self.0.circuit.admit() {
             return Err(ServiceError::StoreUnavailable);
         }
-        let result = work.await;
+        let result = tracing::Instrument::instrument(work, tracing::info_span!("store")).await;
         self.0.circuit.report(&result);
         Ok(result?)
     }
@@ -477,7 +477,8 @@ impl Facegate {
         let (matcher, probe) = (self.matcher(), photo.analysis.template.clone());
         // Scanning the whole gallery is CPU work too: it runs on the pool.
         let (searching, scoring) = (gallery.clone(), matcher.clone());
-        let (found, subjects_searched) = self.0.pool.run(move || searching.search(&scoring, &probe, fmr, k)).await??;
+        let search = move || tracing::info_span!("gallery").in_scope(|| searching.search(&scoring, &probe, fmr, k));
+        let (found, subjects_searched) = self.0.pool.run(search).await??;
         let candidates = self.read_store(gallery.rerank(&matcher, &photo.analysis.template, found, fmr, k)).await?;
         let operating_point = matcher.operating_point(fmr, 1);
         Ok(Identification { candidates, operating_point, subjects_searched, photo, match_ms: elapsed_ms(start) })

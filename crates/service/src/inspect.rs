@@ -31,7 +31,7 @@ pub struct Analysis {
 /// step of every use case ([`crate::analyze_photo`] too).
 pub fn decode_photo(bytes: &[u8], limits: &DecodeLimits) -> Result<(Photo, f64), DecodeError> {
     let start = Instant::now();
-    let photo = imaging::decode(bytes, limits)?;
+    let photo = tracing::info_span!("decode").in_scope(|| imaging::decode(bytes, limits))?;
     Ok((photo, elapsed_ms(start)))
 }
 

@@ -121,9 +121,11 @@ impl WorkPool {
         // Released when the job ends, even by a panic.
         let held = InFlight { _permits: (admitted, running), gauge: self.in_flight.clone() };
         held.gauge.inc();
+        // The job runs in the caller's span (a request's), so its stages' spans are the request's.
+        let span = tracing::Span::current();
         Ok(tokio::task::spawn_blocking(move || {
             let _held = held;
-            job()
+            span.in_scope(job)
         })
         .await?)
     }

@@ -252,6 +252,19 @@ mod tests {
         assert_eq!(planar_residual(&vec![[1.0, 1.0]; 58], &front), None);
     }
 
+    /// Five key points of a head (eyes, nose tip 25 mm in front of them, mouth corners) seen by
+    /// a pinhole camera turned `yaw` degrees; `flat` puts the nose in the eyes' plane (a photo).
+    fn keypoints(yaw: f32, flat: bool) -> [Point; 5] {
+        let (s, c) = yaw.to_radians().sin_cos();
+        let head = [[-32.0, -20.0, 0.0], [32.0, -20.0, 0.0], [0.0, 10.0, 25.0], [-25.0, 40.0, -3.0], [25.0, 40.0, -3.0]];
+        head.map(|[x, y, z]| {
+            let z = if flat { 0.0 } else { z };
+            let (xr, zr) = (c * x + s * z, -s * x + c * z);
+            let depth = 600.0 - zr;
+            [320.0 + 800.0 * xr / depth, 240.0 + 800.0 * y / depth]
+        })
+    }
+
     #[test]
     fn the_nose_of_a_turned_head_leaves_the_plane_of_its_eyes_and_mouth() {
         let front = keypoints(0.0, false);

@@ -124,16 +124,19 @@ impl Pipeline {
         Ok(Pipeline { finder, face_model, recognizer, quality, liveness })
     }
 
-    /// Detect, landmark, pose-correct and template the largest face of `photo`.
+    /// Detect, landmark, pose-correct and template the largest face of `photo`. Each stage runs
+    /// in a span of its own name (`detect`, `landmarks`, `3d_fit`, `template`, `quality`,
+    /// `liveness`; the classical recognizer's quality runs inside its `template`), which the
+    /// service's traces carry.
     pub fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
         let mut timings = StageTimings::default();
         let t = Instant::now();
-        let faces = self.finder.detect(&photo.gray);
+        let faces = tracing::info_span!("detect").in_scope(|| self.finder.detect(&photo.gray));
         timings.detect_ms = elapsed_ms(t);
         let face = *faces.first().ok_or(PipelineError::NoFace)?;
 
         let t = Instant::now();
-        let landmarks = self.finder.landmarks_of(&photo.gray, &face);
+        let landmarks = tracing::info_span!("landmarks").in_scope(|| self.finder.landmarks_of(&photo.gray, &face));
         timings.landmarks_ms = elapsed_ms(t);
 
         let (template, pose, quality) = match &self.recognizer {
@@ -141,7 +144,7 @@ impl Pipeline {
             _ => self.embedding_template(photo, &face, &landmarks, &mut timings)?,
         };
         let t = Instant::now();
-        let liveness = self.liveness_of(photo, &landmarks);
+        let liveness = tracing::info_span!("liveness").in_scope(|| self.liveness_of(photo, &landmarks));
         timings.liveness_ms = elapsed_ms(t);
         Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, template, quality, liveness, timings })
     }
@@ -158,12 +161,15 @@ impl Pipeline {
         // The networks see the photo itself (the 3DMM frontal rendering measured worse as the
         // dlib network's input: docs/recognition.md); the fit still reports the head pose.
         let t = Instant::now();
+        let fitting = tracing::info_span!("3d_fit").entered();
         let mut input = recognition_input(self.face_model.as_ref(), photo, landmarks, Normalization::TwoD)?;
         if let Some(fit) = self.profile_fit(photo, face) {
             (input.pose, input.fit_residual_px) = (Some(fit.pose), Some(fit.residual_px));
         }
+        drop(fitting);
         timings.morph_ms = elapsed_ms(t);
         let t = Instant::now();
+        let templating = tracing::info_span!("template").entered();
         // The quality components are measured on dlib's chip whichever network embeds.
         let chip = crate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
         let (template, mirror) = match &self.recognizer {
@@ -177,8 +183,10 @@ impl Pipeline {
             }
             Recognizer::Classical(recognizer) => return self.classical_template(recognizer, photo, landmarks, timings),
         };
+        drop(templating);
         timings.template_ms = elapsed_ms(t);
         let t = Instant::now();
+        let _assessing = tracing::info_span!("quality").entered();
         let components = crate::quality::components(&chip, &landmarks.keypoints, input.pose, input.fit_residual_px);
         let components = match &mirror {
             Some(mirror) => components.with_mirror(mirror),
@@ -269,10 +277,13 @@ impl Pipeline {
         timings: &mut StageTimings,
     ) -> Result<(Template, Option<Pose>, Quality), PipelineError> {
         let t = Instant::now();
+        let fitting = tracing::info_span!("3d_fit").entered();
         let input = recognition_input(self.face_model.as_ref(), photo, landmarks, recognizer.normalization())?;
+        drop(fitting);
         timings.morph_ms = elapsed_ms(t);
 
         let t = Instant::now();
+        let _templating = tracing::info_span!("template").entered();
         let crop = |input: &RecognitionInput| recognizer.normalized_crop(&input.gray, &input.keypoints);
         let template = match recognizer.paths().get(1) {
             // A fused model also sees the face on its second path (2D: the photo itself, no fit).
