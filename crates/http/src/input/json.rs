@@ -271,6 +271,7 @@ mod tests {
         image: Option<String>,
         images: Option<Vec<String>>,
         frames: Option<Vec<String>>,
+        challenge: Option<String>,
     }
 
     fn detail(body: &str, max_photos: usize) -> String {
@@ -307,6 +308,8 @@ mod tests {
             r#"{"frames": [1]}"#,
             r#"{"frames": [], "frames": []}"#,
             r#"{"frames": ["aGVsbG8="], "extra": 1}"#,
+            r#"{"challenge": 1}"#,
+            r#"{"challenge": "a", "challenge": "b"}"#,
         ];
         for body in bodies {
             let reference = serde_json::from_str::<JsonUpload>(body).expect_err(body);
