@@ -295,16 +295,28 @@ impl ChainNet {
         Some(ChainNet { side, sub, mul, ops, outputs, workspaces: Mutex::default() }.with_arithmetic(Arithmetic::detect()))
     }
 
-    /// The same network computing in `arithmetic` (evaluations compare the two).
+    /// The same network computing in `arithmetic` (evaluations compare the two). Layers whose
+    /// float weights were released ([`ChainNet::release_float_weights`]) stay in integers.
     pub fn with_arithmetic(mut self, arithmetic: Arithmetic) -> ChainNet {
         for op in &mut self.ops {
             match op {
                 Op::Conv(conv) => conv.set_arithmetic(arithmetic),
-                Op::Dense(d) => d.int8 = int8_weights(arithmetic, &d.rhs, d.inputs, d.outputs),
+                Op::Dense(d) if !(d.rhs.is_empty() && d.int8.is_some()) => d.int8 = int8_weights(arithmetic, &d.rhs, d.inputs, d.outputs),
                 _ => {}
             }
         }
         self
+    }
+
+    /// Lets go of the float weights of the layers that compute in integers (not read again).
+    pub fn release_float_weights(&mut self) {
+        for op in &mut self.ops {
+            match op {
+                Op::Conv(conv) => conv.release_floats(),
+                Op::Dense(d) if d.int8.is_some() => d.rhs = Vec::new(),
+                _ => {}
+            }
+        }
     }
 
     pub fn outputs(&self) -> usize {

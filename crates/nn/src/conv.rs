@@ -76,9 +76,21 @@ impl FoldedConv {
         Ok(FoldedConv { filters: f, channels: c, size: k, stride: conv.stride, padding: conv.padding, rhs, bias, int8: None })
     }
 
-    /// Sets the layer to compute in `arithmetic` ([`int8_weights`]).
+    /// Sets the layer to compute in `arithmetic` ([`int8_weights`]). A layer whose float weights
+    /// were released ([`FoldedConv::release_floats`]) keeps computing in integers.
     pub(crate) fn set_arithmetic(&mut self, arithmetic: Arithmetic) {
+        if self.rhs.is_empty() && self.int8.is_some() {
+            return;
+        }
         self.int8 = int8_weights(arithmetic, &self.rhs, self.size * self.size * self.channels, self.filters);
+    }
+
+    /// Lets go of the float weights of a layer that computes in integers: nothing reads them
+    /// then, and they are four times the integer copy.
+    pub(crate) fn release_floats(&mut self) {
+        if self.int8.is_some() {
+            self.rhs = Vec::new();
+        }
     }
 
     /// A 1×1 convolution of stride 1: its input is the product's left-hand side, no im2col copy.

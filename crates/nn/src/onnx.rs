@@ -51,6 +51,14 @@ impl OnnxNet {
         Ok(OnnxNet { engine })
     }
 
+    /// Lets go of the own kernels' float weights where they compute in integers
+    /// ([`ChainNet::release_float_weights`]; tract's are untouched).
+    pub fn release_float_weights(&mut self) {
+        if let Engine::Own(net) = &mut self.engine {
+            net.release_float_weights();
+        }
+    }
+
     /// The same network with the own kernels computing in `arithmetic` (tract's are untouched).
     pub fn with_arithmetic(mut self, arithmetic: Arithmetic) -> OnnxNet {
         self.engine = match self.engine {

@@ -188,6 +188,17 @@ impl Embedder {
         .with_arithmetic(Arithmetic::detect()))
     }
 
+    /// Lets go of the float weights of the layers that compute in integers (they are not read
+    /// again): what a service that never changes the arithmetic keeps (about 19 MB less for
+    /// dlib's network). After it, [`Embedder::with_arithmetic`] leaves those layers in integers.
+    pub fn release_float_weights(&mut self) {
+        self.stem.release_floats();
+        for unit in &mut self.units {
+            unit.conv1.release_floats();
+            unit.conv2.release_floats();
+        }
+    }
+
     /// The same network computing in `arithmetic` (evaluations compare the two).
     pub fn with_arithmetic(mut self, arithmetic: Arithmetic) -> Embedder {
         self.stem.set_arithmetic(arithmetic);

@@ -78,6 +78,34 @@ fn the_own_kernels_run_sface_and_agree_with_tract() {
     }
 }
 
+/// The service's recognizers let go of the float weights of the layers computing in integers:
+/// the embeddings stay the same bits, and such a network stays in integers when asked for floats.
+#[test]
+fn releasing_the_float_weights_changes_no_bit_of_an_integer_network() {
+    let dir = facegate_paths::models_dir();
+    let int8 = OnnxEmbedder::load(&dir, "sface").unwrap().with_arithmetic(Arithmetic::Int8);
+    let mut lean = OnnxEmbedder::load(&dir, "sface").unwrap().with_arithmetic(Arithmetic::Int8);
+    lean.release_float_weights();
+    let float = OnnxEmbedder::load(&dir, "sface").unwrap().with_arithmetic(Arithmetic::Float);
+    let chip = central_chip("Hal_Sutton/Hal_Sutton_0001");
+    let reference = int8.embed_once(&chip);
+    assert_eq!(lean.embed_once(&chip), reference);
+    let lean = lean.with_arithmetic(Arithmetic::Float);
+    assert_eq!(lean.embed_once(&chip), reference, "no floats to compute with: it stays in integers");
+    assert_ne!(float.embed_once(&chip), reference, "the control: floats and integers differ");
+    // dlib's network the same way.
+    let file = facegate_vision::embed::read_file(&dir.join(facegate_nn::weights::FILE)).unwrap();
+    let dlib = facegate_nn::Embedder::new(&file).unwrap().with_arithmetic(Arithmetic::Int8);
+    let mut dlib_lean = facegate_nn::Embedder::new(&file).unwrap().with_arithmetic(Arithmetic::Int8);
+    dlib_lean.release_float_weights();
+    let chip = chip::extract(
+        &facegate_core::imaging::open(&facegate_paths::shared_dir().join("data/lfw/Hal_Sutton/Hal_Sutton_0001.jpg")).unwrap().rgb,
+        &Similarity { a: 0.6, b: 0.0, tx: 50.0, ty: 50.0 },
+        150,
+    );
+    assert_eq!(dlib.embed(&chip).0, dlib_lean.embed(&chip).0);
+}
+
 #[test]
 #[ignore = "a timing probe, not a test: cargo test --release -p facegate-research --test sface -- --ignored --nocapture"]
 fn timing_probe() {

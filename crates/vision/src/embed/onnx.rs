@@ -196,6 +196,12 @@ impl OnnxEmbedder {
         Ok(embedder)
     }
 
+    /// Lets go of the float weights the network no longer reads
+    /// ([`OnnxNet::release_float_weights`]).
+    pub fn release_float_weights(&mut self) {
+        self.net.release_float_weights();
+    }
+
     /// The same network with the own kernels computing in `arithmetic` (tract's are untouched).
     pub fn with_arithmetic(mut self, arithmetic: facegate_nn::Arithmetic) -> OnnxEmbedder {
         self.net = self.net.with_arithmetic(arithmetic);

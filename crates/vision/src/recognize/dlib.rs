@@ -111,7 +111,8 @@ impl DlibRecognizer {
                 file.provenance.sha256, FILE, model.network_sha256
             )));
         }
-        let network = Embedder::new(&file).map_err(|e| fail(e.to_string()))?;
+        let mut network = Embedder::new(&file).map_err(|e| fail(e.to_string()))?;
+        network.release_float_weights();
         Ok(DlibRecognizer { model, network })
     }
 

@@ -212,11 +212,15 @@ fn load_member(models_dir: &Path, member: &Member) -> Result<MemberNetwork, Reco
             if file.provenance.sha256 != member.sha256 {
                 return Err(mismatch(&path, &file.provenance.sha256));
             }
-            Ok(MemberNetwork::Dlib(Embedder::new(&file).map_err(|e| fail(e.to_string()))?))
+            // A recognizer never changes its networks' arithmetic: their float copies can go.
+            let mut network = Embedder::new(&file).map_err(|e| fail(e.to_string()))?;
+            network.release_float_weights();
+            Ok(MemberNetwork::Dlib(network))
         }
         Network::Onnx(name) => {
-            let net = OnnxEmbedder::load(models_dir, name)
+            let mut net = OnnxEmbedder::load(models_dir, name)
                 .map_err(|e| RecognizeError::Model { path: models_dir.join(name).display().to_string(), message: e.to_string() })?;
+            net.release_float_weights();
             if !net.manifest.sha256.eq_ignore_ascii_case(&member.sha256) {
                 return Err(mismatch(&models_dir.join(format!("{name}.onnx")), &net.manifest.sha256));
             }
