@@ -202,23 +202,14 @@ impl Facegate {
         let (limits, scoring) = (self.config().decode_limits, matcher.clone());
         let (mut probe, analyzed, outcome) =
             self.pool().run(move || challenge_photos(&scoring, &steps, &image, &frames, &limits, fmr)).await??;
-        let point = self.engine().liveness_point();
-        let each: Option<Vec<_>> = std::iter::once(&probe).chain(&analyzed).map(|p| p.analysis.liveness.clone()).collect();
-        let mut fused = match (each.as_deref(), point.as_ref()) {
-            (Some(each), Some(point)) => crate::fuse_liveness(each, point.threshold),
-            _ => None,
-        };
         if policy == LivenessPolicy::Enforce && !outcome.passed {
             return Err(PhotoError::ChallengeFailed(outcome).into());
         }
-        crate::check_liveness(policy, point, &mut fused)?;
+        let each = std::iter::once(&probe).chain(&analyzed).map(|p| p.analysis.liveness.clone()).collect();
+        let (mut fused, frame_scores) = crate::liveness::check_capture_liveness(policy, self.engine().liveness_point(), each)?;
         if let Some(live) = fused.as_mut() {
             live.attack |= !outcome.passed;
         }
-        let frame_scores = match (&fused, each) {
-            (Some(_), Some(each)) => each.iter().map(|l| l.score).collect(),
-            _ => Vec::new(),
-        };
         probe.analysis.liveness = fused;
         let start = std::time::Instant::now();
         let decision = crate::decide(&matcher, &probe.analysis.template, &comparable, fmr);

@@ -504,17 +504,8 @@ impl Facegate {
     ) -> Result<(AnalyzedPhoto, Vec<AnalyzedPhoto>, Vec<f32>), ServiceError> {
         let (matcher, limits, policy) = (self.matcher(), self.0.config.decode_limits, self.0.config.liveness);
         let (mut probe, frames) = self.0.pool.run(move || capture_photos(&matcher, &image, &frames, &limits, fmr)).await??;
-        let point = self.0.engine.liveness_point();
-        let each: Option<Vec<_>> = std::iter::once(&probe).chain(&frames).map(|p| p.analysis.liveness.clone()).collect();
-        let mut fused = match (each.as_deref(), point.as_ref()) {
-            (Some(each), Some(point)) => crate::fuse_liveness(each, point.threshold),
-            _ => None,
-        };
-        crate::check_liveness(policy, point, &mut fused)?;
-        let scores = match (&fused, each) {
-            (Some(_), Some(each)) => each.iter().map(|l| l.score).collect(),
-            _ => Vec::new(),
-        };
+        let each = std::iter::once(&probe).chain(&frames).map(|p| p.analysis.liveness.clone()).collect();
+        let (fused, scores) = crate::liveness::check_capture_liveness(policy, self.0.engine.liveness_point(), each)?;
         probe.analysis.liveness = fused;
         Ok((probe, frames, scores))
     }

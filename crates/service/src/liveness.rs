@@ -102,6 +102,27 @@ pub fn fuse_liveness(frames: &[Liveness], threshold: f32) -> Option<Liveness> {
     Some(Liveness { score, attack: score < threshold, model: first.model.clone() })
 }
 
+/// The liveness of a capture held against `policy`: `each` photo's own (the probe's first; `None`
+/// when one has none) fused by [`fuse_liveness`] at the model's threshold, then
+/// [`check_liveness`]. Returns the fused liveness and each photo's own score (empty when nothing
+/// is reported).
+pub fn check_capture_liveness(
+    policy: LivenessPolicy,
+    point: Option<LivenessPoint>,
+    each: Option<Vec<Liveness>>,
+) -> Result<(Option<Liveness>, Vec<f32>), PhotoError> {
+    let mut fused = match (each.as_deref(), point.as_ref()) {
+        (Some(each), Some(point)) => fuse_liveness(each, point.threshold),
+        _ => None,
+    };
+    check_liveness(policy, point, &mut fused)?;
+    let scores = match (&fused, each) {
+        (Some(_), Some(each)) => each.iter().map(|l| l.score).collect(),
+        _ => Vec::new(),
+    };
+    Ok((fused, scores))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
