@@ -258,6 +258,23 @@ mod tests {
     }
 
     #[test]
+    fn a_plane_moved_in_perspective_fits_one_homography_and_a_turned_head_does_not() {
+        // 58 points on a plane, seen again through a perspective map: no residual.
+        let from: Vec<[f32; 2]> =
+            (0..58).map(|i| [100.0 + (i % 8) as f32 * 10.0 + (i / 8) as f32, 100.0 + (i / 8) as f32 * 12.0]).collect();
+        let warp = |p: [f32; 2]| {
+            let w = 1.0 + 0.0005 * p[0];
+            [(1.1 * p[0] + 0.1 * p[1] + 5.0) / w, (0.05 * p[0] + 0.95 * p[1] - 3.0) / w]
+        };
+        let planar: Vec<[f32; 2]> = from.iter().map(|&p| warp(p)).collect();
+        assert!(homography_residual(&from, &planar).unwrap() < 1e-3);
+        // Points at different depths rotating about a vertical axis: parallax no homography explains.
+        let depth = |i: usize| if i % 3 == 0 { 40.0 } else { 0.0 };
+        let turned: Vec<[f32; 2]> = from.iter().enumerate().map(|(i, p)| [130.0 + (p[0] - 130.0) * 0.9 + depth(i) * 0.43, p[1]]).collect();
+        assert!(homography_residual(&from, &turned).unwrap() > 0.05);
+    }
+
+    #[test]
     fn the_logistic_fit_separates_and_platt_keeps_the_order() {
         // Two Gaussian-ish clouds on the first feature; the second is noise.
         let rows: Vec<[f32; 2]> = (0..200).map(|i| [if i % 2 == 0 { 1.0 } else { -1.0 } + (i % 7) as f32 * 0.1, (i % 5) as f32]).collect();
@@ -394,4 +411,53 @@ pub fn landmarks(
     progress: &dyn Progress,
 ) -> anyhow::Result<Vec<Option<Vec<facegate_core::geometry::Point>>>> {
     located(("liveness-landmarks", "landmarks"), cache_dir, models_dir, images, threads, progress, |l| l.points)
+}
+
+/// How far the points of a later frame are from the best homography of the first frame's onto
+/// them: the RMS transfer error over the inter-ocular distance. A print moved or bent in front of
+/// the camera stays (nearly) a plane, whose points one homography maps; a head turning in 3D does
+/// not. `None` when the points are degenerate.
+pub fn homography_residual(from: &[facegate_core::geometry::Point], to: &[facegate_core::geometry::Point]) -> Option<f64> {
+    use nalgebra::{DMatrix, Matrix3, Vector3};
+    if from.len() != to.len() || from.len() < 5 {
+        return None;
+    }
+    // Hartley normalisation of each point set, then the DLT's null vector by SVD.
+    let normalise = |p: &[facegate_core::geometry::Point]| {
+        let n = p.len() as f64;
+        let (mx, my) = (p.iter().map(|q| q[0] as f64).sum::<f64>() / n, p.iter().map(|q| q[1] as f64).sum::<f64>() / n);
+        let spread = p.iter().map(|q| ((q[0] as f64 - mx).powi(2) + (q[1] as f64 - my).powi(2)).sqrt()).sum::<f64>() / n;
+        let s = std::f64::consts::SQRT_2 / spread.max(1e-9);
+        Matrix3::new(s, 0.0, -s * mx, 0.0, s, -s * my, 0.0, 0.0, 1.0)
+    };
+    let (ta, tb) = (normalise(from), normalise(to));
+    let mut a = DMatrix::<f64>::zeros(2 * from.len(), 9);
+    for (i, (p, q)) in from.iter().zip(to).enumerate() {
+        let p = ta * Vector3::new(p[0] as f64, p[1] as f64, 1.0);
+        let q = tb * Vector3::new(q[0] as f64, q[1] as f64, 1.0);
+        let (x, y, u, v) = (p[0], p[1], q[0], q[1]);
+        for (k, val) in [-x, -y, -1.0, 0.0, 0.0, 0.0, u * x, u * y, u].into_iter().enumerate() {
+            a[(2 * i, k)] = val;
+        }
+        for (k, val) in [0.0, 0.0, 0.0, -x, -y, -1.0, v * x, v * y, v].into_iter().enumerate() {
+            a[(2 * i + 1, k)] = val;
+        }
+    }
+    let ata = a.transpose() * &a;
+    let eig = nalgebra::SymmetricEigen::new(ata);
+    let smallest = eig.eigenvalues.iter().enumerate().min_by(|x, y| x.1.total_cmp(y.1))?.0;
+    let h = eig.eigenvectors.column(smallest);
+    let hn = Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]);
+    let hm = tb.try_inverse()? * hn * ta;
+    let eyes = |p: &[facegate_core::geometry::Point]| {
+        let k = KeyPoints::from_imm(p);
+        (((k.left_eye[0] - k.right_eye[0]).powi(2) + (k.left_eye[1] - k.right_eye[1]).powi(2)) as f64).sqrt()
+    };
+    let scale = eyes(to).max(1.0);
+    let sq = from.iter().zip(to).map(|(p, q)| {
+        let m = hm * Vector3::new(p[0] as f64, p[1] as f64, 1.0);
+        let (u, v) = (m[0] / m[2], m[1] / m[2]);
+        (u - q[0] as f64).powi(2) + (v - q[1] as f64).powi(2)
+    });
+    Some((sq.sum::<f64>() / from.len() as f64).sqrt() / scale)
 }

@@ -144,8 +144,8 @@ pub fn judge(steps: &[Step], probe: &FaceAnalysis, frames: &[&FaceAnalysis], sam
     ChallengeOutcome { passed: reason.is_none(), reason, steps: readings, parallax }
 }
 
-fn frame_pose(a: &FaceAnalysis) -> FramePose<'_> {
-    FramePose { yaw: a.pose.map(|p| p.yaw), points: &a.landmarks.points, keypoints: a.face.points }
+fn frame_pose(a: &FaceAnalysis) -> FramePose {
+    FramePose { yaw: a.pose.map(|p| p.yaw), keypoints: a.face.points }
 }
 
 fn unix_ms(at: SystemTime) -> i64 {

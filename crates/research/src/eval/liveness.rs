@@ -14,8 +14,9 @@ use crate::dataset::Split;
 use crate::eval::plot::{Chart, Scale, Series, line_chart};
 use crate::eval::verification::{eer, error_curve, fnmr_at_fmr};
 use crate::train_deep::Set;
-use crate::train_liveness::{LivenessData, Recipe, columns, fit_recipe, fit_recipe_without, out_of_fold_logits, platt};
-use facegate_vision::liveness::head_turn::planar_residual;
+use crate::train_liveness::{
+    LivenessData, Recipe, columns, fit_recipe, fit_recipe_without, homography_residual, out_of_fold_logits, platt,
+};
 
 /// The ISO/IEC 30107-3 error rates at one threshold.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -129,7 +130,7 @@ fn sequence_scores(data: &LivenessData, logits: &[Option<f32>], frames: usize) -
 
 /// The motion test on its own: NUAA's captures in runs of [`SEQUENCE_FRAMES`] frames, scored by how
 /// badly one homography maps the first frame's 58 landmarks onto each later frame's (mean of
-/// [`planar_residual`]; a live head should score higher than a print).
+/// [`homography_residual`]; a live head should score higher than a print).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct MotionMeasures {
     pub live_sequences: usize,
@@ -152,7 +153,7 @@ pub fn motion_measures(data: &LivenessData, landmarks: &[Option<Vec<facegate_cor
     for ((is_live, ..), mut run) in captures {
         run.sort_by_key(|(f, _)| *f);
         for chunk in run.chunks_exact(SEQUENCE_FRAMES) {
-            let residuals: Vec<f64> = chunk[1..].iter().filter_map(|(_, p)| planar_residual(chunk[0].1, p)).collect();
+            let residuals: Vec<f64> = chunk[1..].iter().filter_map(|(_, p)| homography_residual(chunk[0].1, p)).collect();
             if residuals.len() + 1 == SEQUENCE_FRAMES {
                 let mean = (residuals.iter().sum::<f64>() / residuals.len() as f64) as f32;
                 if is_live { live.push(mean) } else { attacks.push(mean) }

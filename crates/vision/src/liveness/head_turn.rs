@@ -5,13 +5,11 @@
 //! bent, stays a surface whose points one homography of the image plane maps from one view to
 //! the next ([`nose_parallax`]). The measure reads the detector's five key points, where the
 //! network saw them: the 58 landmarks of a turned face are the 3D-ASM's, drawn towards a head's
-//! shape by its model, and on turned prints they showed as much "parallax" as real heads
-//! ([`planar_residual`] of them; docs/liveness-challenge.md). Plain data in (the steps, each
-//! frame's yaw and points), plain data out ([`HeadTurn`]); the service decides with it.
+//! shape by its model, and on turned prints they showed as much "parallax" as real heads (one
+//! homography's residual over them: docs/liveness-challenge.md). Plain data in (the steps, each
+//! frame's yaw and key points), plain data out ([`HeadTurn`]); the service decides with it.
 
-use facegate_core::face::KeyPoints;
 use facegate_core::geometry::Point;
-use nalgebra::{DMatrix, Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// Where a challenge step asks the person to look. The yaw convention is the 3D fit's (and
@@ -72,12 +70,11 @@ impl Step {
     }
 }
 
-/// What was read of one frame: the 3D fit's yaw (`None` without a fit), its 58 landmarks, and
-/// the detector's five key points (`None` from a detector without them).
+/// What was read of one frame: the 3D fit's yaw (`None` without a fit) and the detector's five
+/// key points (`None` from a detector without them).
 #[derive(Debug, Clone, Copy)]
-pub struct FramePose<'a> {
+pub struct FramePose {
     pub yaw: Option<f32>,
-    pub points: &'a [Point],
     pub keypoints: Option<[Point; 5]>,
 }
 
@@ -166,91 +163,9 @@ pub fn nose_parallax(from: &[Point; 5], to: &[Point; 5]) -> Option<f64> {
     moved.is_finite().then_some(moved)
 }
 
-/// How far the points `to` are from the best homography of the points `from` onto them: the RMS
-/// transfer error over the inter-ocular distance of `to`. A print moved, turned or bent in front
-/// of the camera stays (nearly) a plane, whose points one homography maps; a head turning in 3D
-/// does not. `None` when the point sets differ in length, have fewer than 5 points or are
-/// degenerate.
-pub fn planar_residual(from: &[Point], to: &[Point]) -> Option<f64> {
-    if from.len() != to.len() || from.len() < 5 {
-        return None;
-    }
-    // Hartley normalisation of each point set, then the DLT's null vector (the eigenvector of
-    // AᵀA with the least eigenvalue).
-    let (ta, tb) = (hartley(from)?, hartley(to)?);
-    let mut a = DMatrix::<f64>::zeros(2 * from.len(), 9);
-    for (i, (p, q)) in from.iter().zip(to).enumerate() {
-        let p = ta * Vector3::new(p[0] as f64, p[1] as f64, 1.0);
-        let q = tb * Vector3::new(q[0] as f64, q[1] as f64, 1.0);
-        let (x, y, u, v) = (p[0], p[1], q[0], q[1]);
-        for (k, val) in [-x, -y, -1.0, 0.0, 0.0, 0.0, u * x, u * y, u].into_iter().enumerate() {
-            a[(2 * i, k)] = val;
-        }
-        for (k, val) in [0.0, 0.0, 0.0, -x, -y, -1.0, v * x, v * y, v].into_iter().enumerate() {
-            a[(2 * i + 1, k)] = val;
-        }
-    }
-    let eig = nalgebra::SymmetricEigen::new(a.transpose() * &a);
-    let smallest = eig.eigenvalues.iter().enumerate().min_by(|x, y| x.1.total_cmp(y.1))?.0;
-    let h = eig.eigenvectors.column(smallest);
-    let hn = Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]);
-    let hm = tb.try_inverse()? * hn * ta;
-    let k = KeyPoints::from_imm(to);
-    let eyes = (((k.left_eye[0] - k.right_eye[0]).powi(2) + (k.left_eye[1] - k.right_eye[1]).powi(2)) as f64).sqrt().max(1.0);
-    let sq = from.iter().zip(to).map(|(p, q)| {
-        let m = hm * Vector3::new(p[0] as f64, p[1] as f64, 1.0);
-        let (u, v) = (m[0] / m[2], m[1] / m[2]);
-        (u - q[0] as f64).powi(2) + (v - q[1] as f64).powi(2)
-    });
-    let rms = (sq.sum::<f64>() / from.len() as f64).sqrt() / eyes;
-    rms.is_finite().then_some(rms)
-}
-
-/// The similarity that moves `points` to their centroid and scales their mean distance from it to
-/// √2; `None` when they all coincide.
-fn hartley(points: &[Point]) -> Option<Matrix3<f64>> {
-    let n = points.len() as f64;
-    let mx = points.iter().map(|q| q[0] as f64).sum::<f64>() / n;
-    let my = points.iter().map(|q| q[1] as f64).sum::<f64>() / n;
-    let spread = points.iter().map(|q| ((q[0] as f64 - mx).powi(2) + (q[1] as f64 - my).powi(2)).sqrt()).sum::<f64>() / n;
-    if spread < 1e-9 {
-        return None;
-    }
-    let s = std::f64::consts::SQRT_2 / spread;
-    Some(Matrix3::new(s, 0.0, -s * mx, 0.0, s, -s * my, 0.0, 0.0, 1.0))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// 58 points of a bumpy surface (a face-like depth), seen by a pinhole camera turned `yaw`
-    /// degrees about the vertical axis; `flat` drops the depth (a photo of the same face).
-    fn view(yaw: f32, flat: bool) -> Vec<Point> {
-        let (s, c) = yaw.to_radians().sin_cos();
-        (0..58)
-            .map(|i| {
-                let (x, y) = ((i % 8) as f32 * 12.0 - 42.0, (i / 8) as f32 * 14.0 - 49.0);
-                // Eyes (points 27–30 and 32–35 in the IMM template) are part of the grid; depth is a dome with a nose.
-                let z = if flat { 0.0 } else { 40.0 - (x * x + y * y) / 120.0 + if x.abs() < 8.0 && y.abs() < 10.0 { 25.0 } else { 0.0 } };
-                let (xr, zr) = (c * x + s * z, -s * x + c * z);
-                let depth = 600.0 - zr;
-                [320.0 + 800.0 * xr / depth, 240.0 + 800.0 * y / depth]
-            })
-            .collect()
-    }
-
-    #[test]
-    fn a_turned_photo_is_a_homography_a_turned_head_is_not() {
-        let front = view(0.0, false);
-        let head = planar_residual(&front, &view(25.0, false)).unwrap();
-        let photo = planar_residual(&view(0.0, true), &view(25.0, true)).unwrap();
-        assert!(photo < 1e-6, "a plane turned in perspective is one homography: {photo}");
-        assert!(head > 0.02, "a head turned 25° shows parallax: {head}");
-        assert_eq!(planar_residual(&front[..4], &front[..4]), None);
-        assert_eq!(planar_residual(&front, &front[..57]), None);
-        assert_eq!(planar_residual(&vec![[1.0, 1.0]; 58], &front), None);
-    }
 
     /// Five key points of a head (eyes, nose tip 25 mm in front of them, mouth corners) seen by
     /// a pinhole camera turned `yaw` degrees; `flat` puts the nose in the eyes' plane (a photo).
@@ -281,8 +196,7 @@ mod tests {
     #[test]
     fn steps_read_their_frames_yaw_and_the_flattest_turn() {
         let steps = [Step::of(Turn::Left), Step::of(Turn::Front), Step::of(Turn::Right)];
-        let points: &'static [Point] = view(0.0, false).leak();
-        let frame = |yaw: f32, flat: bool| FramePose { yaw: Some(yaw), points, keypoints: Some(keypoints(yaw, flat)) };
+        let frame = |yaw: f32, flat: bool| FramePose { yaw: Some(yaw), keypoints: Some(keypoints(yaw, flat)) };
         let read = read_head_turn(&steps, frame(1.0, false), &[frame(24.0, false), frame(2.0, false), frame(-26.0, false)]);
         assert!(read.steps.iter().all(|s| s.ok), "{read:?}");
         assert!(read.parallax.is_some_and(|p| p > 0.1), "{read:?}");
@@ -294,7 +208,7 @@ mod tests {
         assert_eq!(read.steps.iter().map(|s| s.ok).collect::<Vec<_>>(), [false, true, false]);
         assert_eq!(read.parallax, None, "no turned step was met");
         // No fit: not ok, and no reference without any yaw; no key points: no parallax.
-        let none = FramePose { yaw: None, points, keypoints: None };
+        let none = FramePose { yaw: None, keypoints: None };
         let read = read_head_turn(&steps, none, &[none, none, none]);
         assert!(read.steps.iter().all(|s| !s.ok && s.yaw.is_none()) && read.parallax.is_none());
         let blind = |yaw: f32| FramePose { keypoints: None, ..frame(yaw, false) };
