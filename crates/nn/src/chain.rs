@@ -50,6 +50,24 @@ struct Dense {
     int8: Option<Int8Weights>,
 }
 
+impl Dense {
+    /// As [`FoldedConv`]'s: the layer computes in `arithmetic`, unless its float weights were
+    /// released (then it stays in integers).
+    fn set_arithmetic(&mut self, arithmetic: Arithmetic) {
+        if self.rhs.is_empty() && self.int8.is_some() {
+            return;
+        }
+        self.int8 = int8_weights(arithmetic, &self.rhs, self.inputs, self.outputs);
+    }
+
+    /// Lets go of the float weights when the layer computes in integers.
+    fn release_floats(&mut self) {
+        if self.int8.is_some() {
+            self.rhs = Vec::new();
+        }
+    }
+}
+
 enum RawOp {
     Conv(RawConv),
     PRelu(Vec<f32>),
@@ -301,7 +319,7 @@ impl ChainNet {
         for op in &mut self.ops {
             match op {
                 Op::Conv(conv) => conv.set_arithmetic(arithmetic),
-                Op::Dense(d) if !(d.rhs.is_empty() && d.int8.is_some()) => d.int8 = int8_weights(arithmetic, &d.rhs, d.inputs, d.outputs),
+                Op::Dense(d) => d.set_arithmetic(arithmetic),
                 _ => {}
             }
         }
@@ -313,7 +331,7 @@ impl ChainNet {
         for op in &mut self.ops {
             match op {
                 Op::Conv(conv) => conv.release_floats(),
-                Op::Dense(d) if d.int8.is_some() => d.rhs = Vec::new(),
+                Op::Dense(d) => d.release_floats(),
                 _ => {}
             }
         }
