@@ -33,24 +33,9 @@ if [[ -z "$BIN" ]]; then
     cargo build --release --bin facegate
     BIN=target/release/facegate
 fi
-tmp="$(mktemp -d)"
-server_pid=""
-cleanup() {
-    if [[ -n "$server_pid" ]]; then kill "$server_pid" 2>/dev/null || true; wait "$server_pid" 2>/dev/null || true; fi
-    rm -rf "$tmp"
-}
-trap cleanup EXIT
-
-FACEGATE_API_KEYS="" RUST_LOG=warn "$BIN" serve \
-    --bind "127.0.0.1:$PORT" --database "sqlite://$tmp/loadtest.db" --queue 256 >"$tmp/server.log" 2>&1 &
-server_pid=$!
-base="http://127.0.0.1:$PORT"
-for _ in $(seq 1 120); do
-    curl -fsS "$base/health" >/dev/null 2>&1 && break
-    kill -0 "$server_pid" 2>/dev/null || { cat "$tmp/server.log" >&2; exit 1; }
-    sleep 0.5
-done
-curl -fsS "$base/health" >/dev/null || { echo "loadtest: the server did not come up" >&2; cat "$tmp/server.log" >&2; exit 1; }
+# shellcheck source=scripts/lib/scratch-server.sh
+source scripts/lib/scratch-server.sh
+FACEGATE_API_KEYS="" RUST_LOG=warn scratch_server "$BIN" "$PORT" --queue 256
 
 curl -fsS -F subject=loadtest -F "image=@$ENROL" "$base/enroll" >/dev/null
 echo "one verification, for reference:"

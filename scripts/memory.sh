@@ -22,25 +22,13 @@ BIN="${BIN:-target/release/facegate}"
 
 command -v hey >/dev/null || { echo "memory: hey is missing (apt-get install hey)" >&2; exit 1; }
 [[ -x "$BIN" ]] || { echo "memory: no binary $BIN (cargo build --release --bin facegate)" >&2; exit 1; }
-tmp="$(mktemp -d)"
-server_pid=""
-cleanup() {
-    if [[ -n "$server_pid" ]]; then kill "$server_pid" 2>/dev/null || true; wait "$server_pid" 2>/dev/null || true; fi
-    rm -rf "$tmp"
-}
-trap cleanup EXIT
-
+# shellcheck source=scripts/lib/scratch-server.sh
+source scripts/lib/scratch-server.sh
 status_mb() { awk -v key="$1:" '$1 == key { printf "%.1f", $2 / 1024 }' "/proc/$server_pid/status"; }
 
-"$BIN" serve --bind "127.0.0.1:$PORT" --database "sqlite://$tmp/facegate.db" >"$tmp/serve.log" 2>&1 &
-server_pid=$!
-for _ in $(seq 1 600); do
-    curl -fsS "http://127.0.0.1:$PORT/health" >/dev/null 2>&1 && break
-    sleep 0.1
-done
-curl -fsS "http://127.0.0.1:$PORT/health" >/dev/null || { cat "$tmp/serve.log" >&2; exit 1; }
+scratch_server "$BIN" "$PORT"
 startup_peak="$(status_mb VmHWM)"
-curl -fsS -F subject=memory -F "image=@$ENROL" "http://127.0.0.1:$PORT/enroll" >/dev/null
+curl -fsS -F subject=memory -F "image=@$ENROL" "$base/enroll" >/dev/null
 sleep 5
 idle="$(status_mb VmRSS)"
 
@@ -53,7 +41,7 @@ boundary="facegate-memory-boundary"
     printf -- '\r\n--%s--\r\n' "$boundary"
 } >"$tmp/body"
 hey -z "${DURATION}s" -c "$CONNECTIONS" -m POST -T "multipart/form-data; boundary=$boundary" -D "$tmp/body" \
-    "http://127.0.0.1:$PORT/verify" >"$tmp/hey.txt"
+    "$base/verify" >"$tmp/hey.txt"
 load_peak="$(status_mb VmHWM)"
 after="$(status_mb VmRSS)"
 answered="$(grep -E "^\s*\[[0-9]+\]\s+[0-9]+ responses" "$tmp/hey.txt" | tr -s " " | paste -sd ";" -)"
