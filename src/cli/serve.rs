@@ -26,6 +26,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<ExitCode> {
     if args.healthcheck {
         return healthcheck(&args.settings.bind);
     }
+    limit_malloc_arenas();
     let traces = Traces::start(&TraceSettings::from_env())?;
     install_subscriber(args.settings.log_format, traces.as_ref());
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("cannot start the async runtime")?;
@@ -39,6 +40,23 @@ pub fn run(args: ServeArgs) -> anyhow::Result<ExitCode> {
     // Exports the spans still batched.
     drop(traces);
     Ok(ExitCode::SUCCESS)
+}
+
+/// glibc gives a thread that allocates while another holds the lock an arena of its own (up to 8
+/// per core), and each arena keeps what its requests freed for its own later use: under 200
+/// connections the process peaked at 221–264 MB with the default, 208–221 MB with two arenas and
+/// 184 MB with one, at the same CPU per verification (`scripts/memory.sh`, `scripts/loadtest.sh`;
+/// docs/speed.md "Memory of one replica"). So one arena, set before any thread starts, unless the
+/// operator set glibc's own `MALLOC_ARENA_MAX` (which glibc then applies itself): a replica with
+/// many workers may trade memory for less lock contention that way.
+fn limit_malloc_arenas() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    if std::env::var_os("MALLOC_ARENA_MAX").is_none() {
+        // SAFETY: mallopt only sets an allocator parameter; no other thread exists yet.
+        unsafe {
+            libc::mallopt(libc::M_ARENA_MAX, 1);
+        }
+    }
 }
 
 /// The log lines (`RUST_LOG`, default `info`; events only, so a line never carries its spans'

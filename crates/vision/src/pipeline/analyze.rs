@@ -108,7 +108,9 @@ impl Pipeline {
     /// model's templates carry its own version, so subjects enrolled under one model are not
     /// compared with probes of another.
     pub fn load(config: &PipelineConfig) -> Result<Pipeline, PipelineError> {
-        let finder = FaceFinder::load_with(&config.models_dir, config.detector)?;
+        // The recognizer loads before the detector and landmark models: parsing its ONNX file is
+        // the largest passing allocation of the load, and made first it does not stack on their
+        // resident size (the start-up peak, docs/speed.md "Memory of one replica").
         let face_model = load_face_model(config.sfm_dir.as_deref());
         let recognizer = match config.recognizer {
             RecognizerKind::Deep => Recognizer::Deep(Box::new(DlibRecognizer::load(&config.models_dir)?)),
@@ -118,6 +120,7 @@ impl Pipeline {
                 Recognizer::Embedding(Box::new(EmbeddingRecognizer::load(&config.models_dir, file)?), kind)
             }
         };
+        let finder = FaceFinder::load_with(&config.models_dir, config.detector)?;
         let quality = QualityModel::load(&config.models_dir.join(crate::quality::FILE))?;
         let liveness_path = config.models_dir.join(crate::liveness::FILE);
         let liveness = if liveness_path.exists() { Some(LivenessModel::load(&liveness_path)?) } else { None };
