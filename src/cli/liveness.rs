@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 use crate::liveness::Block;
 use crate::research::eval::liveness::{self as research, OperatingPoint};
+use crate::research::eval::liveness_subjects as subjects;
 use crate::research::train_liveness::{self, LivenessData, Recipe};
 
 /// Options both liveness commands share.
@@ -39,6 +40,11 @@ pub struct EvalLivenessArgs {
     /// Only the recipes whose name contains this.
     #[arg(long)]
     pub only: Option<String>,
+    /// The recipes (of those evaluated) whose name contains this also run the nested subject-wise
+    /// protocol: each NUAA subject scored by a model and a threshold chosen without it, every
+    /// subject's APCER and BPCER, the worst (81 fits per recipe).
+    #[arg(long, default_value = "shipped")]
+    pub nested: String,
     #[command(flatten)]
     pub data: LivenessDataArgs,
 }
@@ -46,14 +52,24 @@ pub struct EvalLivenessArgs {
 /// The shipped model's recipe and operating point (chosen by `facegate eval liveness`: docs/liveness.md).
 pub fn shipped() -> (Recipe, OperatingPoint) {
     (
-        Recipe { blocks: vec![Block::FaceLbp, Block::FaceColourLbp, Block::ContextLbp], other_cameras: true, ridge: 1e-2 },
+        Recipe {
+            blocks: vec![Block::FaceLbp, Block::FaceColourLbp, Block::ContextLbp],
+            other_cameras: true,
+            ridge: 1e-2,
+            simulated_attacks: false,
+        },
         OperatingPoint::Eer,
     )
 }
 
 /// The recipes compared, by name.
 pub fn candidates() -> Vec<(String, Recipe)> {
-    let r = |blocks: &[Block], other_cameras: bool, ridge: f64| Recipe { blocks: blocks.to_vec(), other_cameras, ridge };
+    let r = |blocks: &[Block], other_cameras: bool, ridge: f64| Recipe {
+        blocks: blocks.to_vec(),
+        other_cameras,
+        ridge,
+        simulated_attacks: false,
+    };
     vec![
         ("face LBP (Määttä)".into(), r(&[Block::FaceLbp], false, 1e-2)),
         ("face colour LBP (Boulkenafet)".into(), r(&[Block::FaceColourLbp], false, 1e-2)),
@@ -65,6 +81,10 @@ pub fn candidates() -> Vec<(String, Recipe)> {
         ("all blocks + other cameras' live, ridge 0.1".into(), r(&Block::ALL, true, 1e-1)),
         ("all blocks + other cameras' live, ridge 0.001".into(), r(&Block::ALL, true, 1e-3)),
         ("shipped: face LBP + colour + context + other cameras' live".into(), shipped().0),
+        (
+            "face LBP + colour + context + other cameras' live + simulated prints and screens".into(),
+            Recipe { simulated_attacks: true, ..shipped().0 },
+        ),
     ]
 }
 
@@ -92,8 +112,31 @@ pub fn run_eval(args: EvalLivenessArgs) -> anyhow::Result<ExitCode> {
                 100.0 * report.at_eer_of_other_subjects.apcer,
                 100.0 * report.at_eer_of_other_subjects.bpcer
             );
+            for a in &report.simulated_accepted {
+                eprintln!(
+                    "    test persons' simulated attacks taken for live at {}: prints {:.2}%, screens {:.2}% of {}",
+                    a.operating_point,
+                    100.0 * a.print,
+                    100.0 * a.screen,
+                    a.photos
+                );
+            }
+            if let Some(r) = &report.reverse {
+                eprintln!(
+                    "    without NUAA, on NUAA: EER {:.2}%  BPCER@APCER1% {:.2}%  at the test persons' threshold APCER {:.2}%, BPCER {:.2}%",
+                    100.0 * r.eer,
+                    100.0 * r.bpcer_at_apcer_1,
+                    100.0 * r.at_threshold.apcer,
+                    100.0 * r.at_threshold.bpcer
+                );
+            }
         }
         curves.push((name.clone(), logits));
+        if name.contains(args.nested.as_str()) {
+            let fit = subjects::recipe_scores(&data, recipe);
+            let folds = subjects::folds(&data, &fit, args.data.threads, &progress);
+            print_nested(name, &folds, args.json)?;
+        }
     }
     let sets: Vec<(&str, &[Option<f32>])> = curves.iter().map(|(n, l)| (n.as_str(), l.as_slice())).collect();
     research::write_det(&args.plot, &data, &sets)?;
@@ -113,6 +156,42 @@ pub fn run_eval(args: EvalLivenessArgs) -> anyhow::Result<ExitCode> {
         );
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The nested protocol's per-subject table and worst subject, for each threshold rule.
+fn print_nested(name: &str, folds: &[subjects::Fold], json: bool) -> anyhow::Result<()> {
+    for rule in subjects::RULES {
+        let report = subjects::report(name, folds, rule);
+        if json {
+            super::print_json_line(&serde_json::json!({ "nested": report }));
+            continue;
+        }
+        eprintln!(
+            "{name}, unseen subjects, threshold at {}: APCER {:.2}%  BPCER {:.2}%  ACER {:.2}%; worst APCER {:.2}% (subject {}), worst BPCER {:.2}% (subject {}); pooled EER {:.2}%, BPCER@APCER1% {:.2}%",
+            report.rule,
+            100.0 * report.apcer,
+            100.0 * report.bpcer,
+            100.0 * report.acer,
+            100.0 * report.worst_apcer,
+            report.worst_apcer_subject,
+            100.0 * report.worst_bpcer,
+            report.worst_bpcer_subject,
+            100.0 * report.pooled_eer,
+            100.0 * report.pooled_bpcer_at_apcer_1
+        );
+        for s in &report.subjects {
+            eprintln!(
+                "    subject {}: threshold {:.3}  APCER {:6.2}% of {:4}  BPCER {:6.2}% of {:4}",
+                s.subject,
+                s.threshold,
+                100.0 * s.apcer,
+                s.attacks,
+                100.0 * s.bpcer,
+                s.live
+            );
+        }
+    }
+    Ok(())
 }
 
 pub fn run_train(args: TrainLivenessArgs) -> anyhow::Result<ExitCode> {

@@ -3,6 +3,7 @@
 //! (stages, pipeline, service, store, http) never imports it.
 
 pub mod asm3d_synth;
+pub mod attack_sim;
 pub mod cache;
 pub mod convert;
 pub mod dataset;

@@ -15,6 +15,7 @@ use faer::{Mat, Side};
 use serde::{Deserialize, Serialize};
 
 use crate::Progress;
+use crate::attack_sim::{AttackKind, simulate};
 use crate::cache::{self, CacheKey, ModelFiles, map_samples};
 
 /// One NUAA frame: `SSSS_GG_PP_EE_frame.jpg` under `real/SSSS` or `print/SSSS`.
@@ -116,6 +117,23 @@ pub fn all_features(images: &[PathBuf], keypoints: &[Option<KeyPoints>], threads
     })
 }
 
+/// Every block's features of each photo with key points, the photo turned into the simulated
+/// attack `kind` first (seeded by its index: the same attacks on every run).
+pub fn simulated_features(
+    images: &[PathBuf],
+    keypoints: &[Option<KeyPoints>],
+    kind: AttackKind,
+    threads: usize,
+    progress: &dyn Progress,
+) -> Vec<Option<Vec<f32>>> {
+    let items: Vec<(usize, &PathBuf, &Option<KeyPoints>)> = images.iter().zip(keypoints).enumerate().map(|(i, (p, k))| (i, p, k)).collect();
+    map_samples(&items, threads, kind.name(), progress, |(i, path, kp)| {
+        let kp = (*kp).as_ref()?;
+        let photo = simulate(&image::open(path).ok()?.to_rgb8(), kind, *i as u64);
+        Some(facegate_vision::liveness::features::features(&facegate_vision::liveness::features::crops(&photo, kp), &Block::ALL))
+    })
+}
+
 /// The columns of `blocks` within [`Block::ALL`]'s features.
 pub fn columns(blocks: &[Block]) -> Vec<usize> {
     let mut start = 0;
@@ -184,25 +202,17 @@ pub fn fit_logistic(rows: &[&[f32]], live: &[bool], weights: &[f64], ridge: f64)
     }
 }
 
-/// Weights that give the live and the attack rows equal totals, and within the live class the
-/// NUAA rows and the other cameras' rows (`other`) equal totals too (when there are any).
+/// Weights that give the live and the attack rows equal totals, and within each class the NUAA
+/// rows and the other rows (`other`: other cameras' live photos, simulated attacks) equal totals
+/// too, when the class has both.
 pub fn balanced_weights(live: &[bool], other: &[bool]) -> Vec<f64> {
-    let count = |f: &dyn Fn(usize) -> bool| (0..live.len()).filter(|&i| f(i)).count().max(1) as f64;
-    let attacks = count(&|i| !live[i]);
-    let nuaa_live = count(&|i| live[i] && !other[i]);
-    let other_live = (0..live.len()).filter(|&i| other[i]).count();
     let n = live.len() as f64;
+    let count = |class: bool, from_other: bool| (0..live.len()).filter(|&i| live[i] == class && other[i] == from_other).count();
     (0..live.len())
         .map(|i| {
-            if !live[i] {
-                0.5 * n / attacks
-            } else if other_live == 0 {
-                0.5 * n / nuaa_live
-            } else if other[i] {
-                0.25 * n / other_live as f64
-            } else {
-                0.25 * n / nuaa_live
-            }
+            let (nuaa, others) = (count(live[i], false), count(live[i], true));
+            let share = if nuaa == 0 || others == 0 { 0.5 } else { 0.25 };
+            share * n / (if other[i] { others } else { nuaa }) as f64
         })
         .collect()
 }
@@ -275,6 +285,22 @@ mod tests {
     }
 
     #[test]
+    fn each_class_weighs_half_and_within_it_nuaa_and_the_other_rows_half_each() {
+        // Rows: 2 NUAA live, 1 other camera's live, 1 NUAA print, 3 simulated attacks.
+        let live = [true, true, true, false, false, false, false];
+        let other = [false, false, true, false, true, true, true];
+        let w = balanced_weights(&live, &other);
+        let total = |f: &dyn Fn(usize) -> bool| (0..w.len()).filter(|&i| f(i)).map(|i| w[i]).sum::<f64>();
+        let n = live.len() as f64;
+        assert!((total(&|i| live[i]) - 0.5 * n).abs() < 1e-9);
+        assert!((total(&|i| !live[i] && other[i]) - 0.25 * n).abs() < 1e-9);
+        assert!((total(&|i| !live[i] && !other[i]) - 0.25 * n).abs() < 1e-9);
+        // A class without other rows keeps its whole half for NUAA's.
+        let w = balanced_weights(&[true, false, false], &[false, false, false]);
+        assert!((w[0] - 1.5).abs() < 1e-9 && (w[1] - 0.75).abs() < 1e-9);
+    }
+
+    #[test]
     fn the_logistic_fit_separates_and_platt_keeps_the_order() {
         // Two Gaussian-ish clouds on the first feature; the second is noise.
         let rows: Vec<[f32; 2]> = (0..200).map(|i| [if i % 2 == 0 { 1.0 } else { -1.0 } + (i % 7) as f32 * 0.1, (i % 5) as f32]).collect();
@@ -303,6 +329,9 @@ pub struct LivenessData {
     /// Live photos of a camera no model is trained with (UMIST, grey, profile to frontal).
     pub unseen: Vec<PathBuf>,
     pub unseen_features: Vec<Option<Vec<f32>>>,
+    /// Per [`AttackKind::ALL`], the other cameras' photos as that simulated attack: features at
+    /// the photo's own key points (the simulation keeps the geometry); `None`: no face.
+    pub simulated_features: Vec<Vec<Option<Vec<f32>>>>,
 }
 
 impl LivenessData {
@@ -323,7 +352,10 @@ impl LivenessData {
         let unseen_kp = keypoints(cache_dir, models_dir, &unseen, threads, progress)?;
         let nuaa_kp = keypoints(cache_dir, models_dir, &nuaa_images, threads, progress)?;
         let other_kp = keypoints(cache_dir, models_dir, &other_images, threads, progress)?;
+        let simulated_features =
+            AttackKind::ALL.iter().map(|&kind| simulated_features(&other_images, &other_kp, kind, threads, progress)).collect();
         Ok(LivenessData {
+            simulated_features,
             nuaa_features: all_features(&nuaa_images, &nuaa_kp, threads, progress),
             other_features: all_features(&other_images, &other_kp, threads, progress),
             unseen_features: all_features(&unseen, &unseen_kp, threads, progress),
@@ -347,6 +379,9 @@ pub struct Recipe {
     pub other_cameras: bool,
     /// The ridge penalty per unit of total weight.
     pub ridge: f64,
+    /// Whether the training persons' photos as simulated prints and screens
+    /// ([`crate::attack_sim`]) join the attack class (needs `other_cameras`'s photos).
+    pub simulated_attacks: bool,
 }
 
 /// A fit of `recipe` on the NUAA frames `nuaa` (indices with features) and, when the recipe says
@@ -374,6 +409,17 @@ pub fn fit_recipe_without(data: &LivenessData, recipe: &Recipe, nuaa: &[usize], 
             rows.push(pick(data.other_features[i].as_ref().expect("others_in keeps photos with features")));
             live.push(true);
             other.push(true);
+        }
+    }
+    if recipe.simulated_attacks {
+        for kind in &data.simulated_features {
+            for i in data.others_in(crate::dataset::Split::Train).into_iter().filter(|&i| Some(data.others[i].set) != without) {
+                if let Some(f) = &kind[i] {
+                    rows.push(pick(f));
+                    live.push(false);
+                    other.push(true);
+                }
+            }
         }
     }
     let refs: Vec<&[f32]> = rows.iter().map(Vec::as_slice).collect();

@@ -87,6 +87,13 @@ pub struct LivenessReport {
     /// Live photos of other cameras' test persons refused, by set and operating point, for the
     /// model fitted on every NUAA subject.
     pub other_cameras_refused: Vec<Refusals>,
+    /// The IMM, ORL and LFW test persons' photos as simulated prints and screens, taken for live
+    /// faces by the model fitted on every NUAA subject, at each operating point: APCER on people,
+    /// cameras and attacks NUAA never had.
+    pub simulated_accepted: Vec<SimulatedAcceptance>,
+    /// The reverse, for recipes trained with simulated attacks: a model fitted without any NUAA
+    /// frame, measured on NUAA's real prints and live frames.
+    pub reverse: Option<ReverseCheck>,
     /// Platt's calibration of the out-of-fold logits.
     pub calibration: (f32, f32),
     /// The same frames fused [`SEQUENCE_FRAMES`] at a time: the mean logit of consecutive frames
@@ -199,6 +206,87 @@ pub struct Refusals {
     pub umist: f64,
 }
 
+/// Simulated attacks of the test persons taken for live faces at one operating point.
+#[derive(Debug, Clone, Serialize)]
+pub struct SimulatedAcceptance {
+    pub operating_point: String,
+    pub threshold: f32,
+    /// APCER on the simulated prints and on the simulated screens.
+    pub print: f64,
+    pub screen: f64,
+    pub photos: usize,
+}
+
+/// A model that never saw NUAA (the other cameras' training persons, live against their simulated
+/// attacks) on NUAA's frames: the ranking (EER, BPCER at APCER 1%, on NUAA's own scores) and the
+/// rates at the threshold of equal rates on the test persons' live photos and simulated attacks
+/// (chosen without NUAA).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct ReverseCheck {
+    pub eer: f64,
+    pub bpcer_at_apcer_1: f64,
+    pub threshold: f32,
+    pub at_threshold: Rates,
+}
+
+fn simulated_acceptance(data: &LivenessData, recipe: &Recipe, f: &FoldScores, (slope, offset): (f32, f32)) -> Vec<SimulatedAcceptance> {
+    let all: Vec<usize> = (0..data.nuaa.len()).collect();
+    let cols = columns(&recipe.blocks);
+    let full = fit_recipe(data, recipe, &all);
+    let calibrated = |l: f32| 1.0 / (1.0 + (-(slope * l + offset)).exp());
+    let test = data.others_in(Split::Test);
+    let scores: Vec<Vec<f32>> = data
+        .simulated_features
+        .iter()
+        .map(|kind| {
+            test.iter()
+                .filter_map(|&i| kind[i].as_ref())
+                .map(|x| calibrated(full.logit(&cols.iter().map(|&c| x[c]).collect::<Vec<f32>>())))
+                .collect()
+        })
+        .collect();
+    let accepted = |v: &[f32], t: f32| v.iter().filter(|&&s| s >= t).count() as f64 / v.len().max(1) as f64;
+    OPERATING_POINTS
+        .iter()
+        .map(|op| {
+            let threshold = calibrated(op.threshold(&f.live, &f.attacks));
+            SimulatedAcceptance {
+                operating_point: op.name(),
+                threshold,
+                print: accepted(&scores[0], threshold),
+                screen: accepted(&scores[1], threshold),
+                photos: scores[0].len(),
+            }
+        })
+        .collect()
+}
+
+fn reverse_check(data: &LivenessData, recipe: &Recipe) -> Option<ReverseCheck> {
+    if !(recipe.simulated_attacks && recipe.other_cameras) {
+        return None;
+    }
+    let cols = columns(&recipe.blocks);
+    let fit = fit_recipe(data, recipe, &[]);
+    let logit = |x: &Vec<f32>| fit.logit(&cols.iter().map(|&c| x[c]).collect::<Vec<f32>>());
+    let test = data.others_in(Split::Test);
+    let test_live: Vec<f32> = test.iter().filter_map(|&i| data.other_features[i].as_ref()).map(logit).collect();
+    let test_attacks: Vec<f32> =
+        data.simulated_features.iter().flat_map(|kind| test.iter().filter_map(|&i| kind[i].as_ref())).map(logit).collect();
+    let threshold = eer_threshold(&test_live, &test_attacks);
+    let (mut live, mut attacks) = (Vec::new(), Vec::new());
+    for (s, x) in data.nuaa.iter().zip(&data.nuaa_features) {
+        let Some(x) = x else { continue };
+        if s.live { live.push(logit(x)) } else { attacks.push(logit(x)) }
+    }
+    let (lf, af) = (vec![0; live.len()], vec![0; attacks.len()]);
+    Some(ReverseCheck {
+        eer: eer(&live, &attacks),
+        bpcer_at_apcer_1: fnmr_at_fmr(&live, &attacks, 0.01).0,
+        threshold,
+        at_threshold: rates(&live, &attacks, |_| threshold, &lf, &af),
+    })
+}
+
 /// The out-of-fold logits of `data`'s NUAA frames split into live and attack scores, with each
 /// score's subject fold.
 struct FoldScores {
@@ -279,6 +367,8 @@ pub fn evaluate(data: &LivenessData, name: &str, recipe: &Recipe, progress: &dyn
         apcer_by_print_condition: share(by_condition),
         bpcer_by_live_session: share(by_session),
         other_cameras_refused: other_camera_refusals(data, recipe, &f, calibration),
+        simulated_accepted: simulated_acceptance(data, recipe, &f, calibration),
+        reverse: reverse_check(data, recipe),
         calibration,
         sequences: {
             let (live, attacks) = sequence_scores(data, &logits, SEQUENCE_FRAMES);
@@ -420,8 +510,15 @@ mod tests {
             frame(false, "01", 6),
         ];
         let logits = [Some(100.0), Some(1.0), Some(2.0), Some(3.0), Some(5.0), Some(5.0), Some(-1.0), None, Some(-3.0)];
-        let data =
-            LivenessData { nuaa, nuaa_features: vec![], others: vec![], other_features: vec![], unseen: vec![], unseen_features: vec![] };
+        let data = LivenessData {
+            nuaa,
+            nuaa_features: vec![],
+            others: vec![],
+            other_features: vec![],
+            unseen: vec![],
+            unseen_features: vec![],
+            simulated_features: vec![],
+        };
         let (live, attacks) = sequence_scores(&data, &logits, 2);
         // Frames 0, 3 | 6, 9 of the first capture; 0, 3 of the second; the print's frame without a face is skipped.
         assert_eq!(live, vec![1.5, 51.5, 5.0]);
