@@ -15,6 +15,8 @@ pub mod chain;
 pub mod chip;
 pub mod conv;
 pub mod int8;
+mod layers;
+
 pub mod onnx;
 pub mod resnet;
 pub mod weights;
