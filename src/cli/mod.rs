@@ -9,6 +9,7 @@ pub mod detect;
 pub mod embed;
 pub mod landmarks;
 pub mod liveness;
+pub mod minifasnet;
 pub mod morph;
 pub mod networks;
 pub mod pose;
@@ -74,6 +75,8 @@ pub enum ConvertCommand {
     Sface(networks::ConvertSfaceArgs),
     /// Your own ONNX face-embedding model → models/<name>.onnx + <name>.json (its manifest).
     OnnxEmbedding(networks::ConvertOnnxEmbeddingArgs),
+    /// Silent-Face-Anti-Spoofing's MiniFASNet V2 and V1SE (.pth) → models/minifasnet-v2.bin + minifasnet-v1se.bin.
+    Minifasnet(minifasnet::ConvertMinifasnetArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -152,6 +155,7 @@ pub fn main() -> ExitCode {
         Command::Convert(ConvertCommand::Yunet(args)) => detect::run_convert_yunet(args),
         Command::Convert(ConvertCommand::Sface(args)) => networks::run_convert_sface(args),
         Command::Convert(ConvertCommand::OnnxEmbedding(args)) => networks::run_convert_onnx_embedding(args),
+        Command::Convert(ConvertCommand::Minifasnet(args)) => minifasnet::run_convert(args),
         Command::Train(TrainCommand::Embedding(args)) => networks::run_train_embedding(args),
         Command::Eval(EvalCommand::Embedding(args)) => networks::run_eval_embedding(args),
         Command::Eval(EvalCommand::Calibration(args)) => networks::run_eval_calibration(args),

@@ -15,7 +15,7 @@
 //! The kernels are the crate's: a convolution is one [`conv`] (im2col and one product; the 1×1
 //! ones need no copy), the depthwise convolutions, PReLU and the fully connected layers those the
 //! ONNX chain ([`crate::chain`]) runs on. Everything computes in floats: the networks are small
-//! (about 45 M multiply-adds), and the tests hold them to PyTorch's outputs.
+//! (about 41 M multiply-adds), and the tests hold them to PyTorch's outputs.
 
 use std::sync::Mutex;
 
