@@ -1,5 +1,6 @@
 //! The MiniFASNet anti-spoofing networks: `convert minifasnet` (the original `.pth` files →
-//! `models/minifasnet-v2.bin`, `minifasnet-v1se.bin`).
+//! `models/minifasnet-v2.bin`, `minifasnet-v1se.bin`) and `eval minifasnet` (their APCER, BPCER
+//! and EER on NUAA, per subject).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -7,6 +8,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 
 use crate::research::convert::minifasnet::{self as convert, ORIGINALS};
+use crate::research::minifasnet::{self as research, Measures, Row};
 
 #[derive(clap::Args, Debug)]
 pub struct ConvertMinifasnetArgs {
@@ -40,6 +42,58 @@ pub fn run_convert(args: ConvertMinifasnetArgs) -> anyhow::Result<ExitCode> {
             original.file,
             convert::LICENCE,
             original.sha256
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[derive(clap::Args, Debug)]
+pub struct EvalMinifasnetArgs {
+    /// NUAA's folder (`real/<subject>/*.jpg`, `print/<subject>/*.jpg`); default `<shared>/data/nuaa`.
+    #[arg(long)]
+    pub nuaa: Option<PathBuf>,
+    /// The research cache folder, where every photo's face box is kept.
+    #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
+    pub cache: PathBuf,
+    /// Threads measuring photos.
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    /// Print each row as one JSON line on stdout instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn cells(m: &Measures) -> String {
+    format!("{:>6.2} {:>6.2} {:>6.2}", 100.0 * m.apcer, 100.0 * m.bpcer, 100.0 * m.eer)
+}
+
+/// Each network's and the fused score's APCER and BPCER at one half and EER, per NUAA subject.
+pub fn run_eval(args: EvalMinifasnetArgs) -> anyhow::Result<ExitCode> {
+    let nuaa = args.nuaa.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/nuaa"));
+    let samples = crate::research::train_liveness::list_nuaa(&nuaa)?;
+    let images: Vec<PathBuf> = samples.iter().map(|s| s.image.clone()).collect();
+    let progress = super::Bar::default();
+    let scores = research::scores(&args.cache, &crate::config::models_dir(), &images, args.threads, &progress)?;
+    let rows: Vec<Row> = research::nuaa_rows(&samples, &scores);
+    if args.json {
+        for row in &rows {
+            super::print_json_line(&serde_json::to_value(row)?);
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!("APCER and BPCER at a live probability of {} and EER, in %", research::THRESHOLD);
+    println!("{:<8} {:>5} {:>6} {:>7} | {:^20} | {:^20} | {:^20}", "subject", "live", "print", "no face", "V2", "V1SE", "fused");
+    println!("{:<30} | {:^20} | {:^20} | {:^20}", "", "APCER  BPCER    EER", "APCER  BPCER    EER", "APCER  BPCER    EER");
+    for r in &rows {
+        println!(
+            "{:<8} {:>5} {:>6} {:>7} | {} | {} | {}",
+            r.subject,
+            r.live,
+            r.attacks,
+            r.no_face,
+            cells(&r.v2),
+            cells(&r.v1se),
+            cells(&r.fused)
         );
     }
     Ok(ExitCode::SUCCESS)

@@ -127,6 +127,8 @@ pub enum EvalCommand {
     /// The head-turn liveness challenge: BPCER of live sequences and APCER per attack type
     /// (still photo, prints turned and bent, wrong order, stranger, avatar renders, NUAA prints).
     Challenge(liveness::EvalChallengeArgs),
+    /// MiniFASNet V2, V1SE and fused on NUAA: APCER and BPCER at 0.5 and EER, per subject.
+    Minifasnet(minifasnet::EvalMinifasnetArgs),
     /// Embedding networks alone, by alignment variant, and fused: EER and FNMR on held-out persons.
     Embedding(networks::EvalEmbeddingArgs),
     /// Stated against observed FMR per photo domain: raw cosine and cohort normalisation, by calibration persons.
@@ -174,6 +176,7 @@ pub fn main() -> ExitCode {
         Command::Eval(EvalCommand::Challenge(args)) => liveness::run_eval_challenge(args),
         Command::Train(TrainCommand::Liveness(args)) => liveness::run_train(args),
         Command::Eval(EvalCommand::Liveness(args)) => liveness::run_eval(args),
+        Command::Eval(EvalCommand::Minifasnet(args)) => minifasnet::run_eval(args),
     };
     match result {
         Ok(code) => code,
