@@ -9,6 +9,7 @@ pub mod detect;
 pub mod embed;
 pub mod landmarks;
 pub mod liveness;
+pub mod minifasnet;
 pub mod morph;
 pub mod networks;
 pub mod pose;
@@ -74,6 +75,8 @@ pub enum ConvertCommand {
     Sface(networks::ConvertSfaceArgs),
     /// Your own ONNX face-embedding model → models/<name>.onnx + <name>.json (its manifest).
     OnnxEmbedding(networks::ConvertOnnxEmbeddingArgs),
+    /// Silent-Face-Anti-Spoofing's MiniFASNet V2 and V1SE (.pth) → models/minifasnet-v2.bin + minifasnet-v1se.bin.
+    Minifasnet(minifasnet::ConvertMinifasnetArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -124,6 +127,8 @@ pub enum EvalCommand {
     /// The head-turn liveness challenge: BPCER of live sequences and APCER per attack type
     /// (still photo, prints turned and bent, wrong order, stranger, avatar renders, NUAA prints).
     Challenge(liveness::EvalChallengeArgs),
+    /// MiniFASNet V2, V1SE and fused on NUAA: APCER and BPCER at 0.5 and EER, per subject.
+    Minifasnet(minifasnet::EvalMinifasnetArgs),
     /// Embedding networks alone, by alignment variant, and fused: EER and FNMR on held-out persons.
     Embedding(networks::EvalEmbeddingArgs),
     /// Stated against observed FMR per photo domain: raw cosine and cohort normalisation, by calibration persons.
@@ -152,6 +157,7 @@ pub fn main() -> ExitCode {
         Command::Convert(ConvertCommand::Yunet(args)) => detect::run_convert_yunet(args),
         Command::Convert(ConvertCommand::Sface(args)) => networks::run_convert_sface(args),
         Command::Convert(ConvertCommand::OnnxEmbedding(args)) => networks::run_convert_onnx_embedding(args),
+        Command::Convert(ConvertCommand::Minifasnet(args)) => minifasnet::run_convert(args),
         Command::Train(TrainCommand::Embedding(args)) => networks::run_train_embedding(args),
         Command::Eval(EvalCommand::Embedding(args)) => networks::run_eval_embedding(args),
         Command::Eval(EvalCommand::Calibration(args)) => networks::run_eval_calibration(args),
@@ -170,6 +176,7 @@ pub fn main() -> ExitCode {
         Command::Eval(EvalCommand::Challenge(args)) => liveness::run_eval_challenge(args),
         Command::Train(TrainCommand::Liveness(args)) => liveness::run_train(args),
         Command::Eval(EvalCommand::Liveness(args)) => liveness::run_eval(args),
+        Command::Eval(EvalCommand::Minifasnet(args)) => minifasnet::run_eval(args),
     };
     match result {
         Ok(code) => code,

@@ -14,12 +14,10 @@
 use std::collections::HashMap;
 use std::sync::Mutex;
 
-use faer::linalg::matmul::matmul;
-use faer::{Accum, MatMut, MatRef, Par};
 use tract_onnx::pb::{GraphProto, NodeProto, TensorProto};
 
-use crate::conv::{Act, Arithmetic, Cols, FoldedConv, conv, int8_weights};
-use crate::int8::{self, Epilogue, Int8Weights, Quantisation};
+use crate::conv::{Act, Arithmetic, Cols, FoldedConv, conv};
+use crate::layers::{Dense, Depthwise, dense, depthwise, prelu};
 use crate::weights::Conv;
 
 /// A convolution as the ONNX file gives it (filters × channels/group × k × k), before folding.
@@ -40,49 +38,11 @@ struct Affine {
     shift: Vec<f32>,
 }
 
-/// A fully connected layer: `inputs × outputs` row-major, rows in channels-last order.
-struct Dense {
-    inputs: usize,
-    outputs: usize,
-    rhs: Vec<f32>,
-    bias: Vec<f32>,
-    /// The weights in `i8`, when the layer computes in integers.
-    int8: Option<Int8Weights>,
-}
-
-impl Dense {
-    /// As [`FoldedConv`]'s: the layer computes in `arithmetic`, unless its float weights were
-    /// released (then it stays in integers).
-    fn set_arithmetic(&mut self, arithmetic: Arithmetic) {
-        if self.rhs.is_empty() && self.int8.is_some() {
-            return;
-        }
-        self.int8 = int8_weights(arithmetic, &self.rhs, self.inputs, self.outputs);
-    }
-
-    /// Lets go of the float weights when the layer computes in integers.
-    fn release_floats(&mut self) {
-        if self.int8.is_some() {
-            self.rhs = Vec::new();
-        }
-    }
-}
-
 enum RawOp {
     Conv(RawConv),
     PRelu(Vec<f32>),
     Affine(Affine),
     Dense(Dense),
-}
-
-/// Depthwise convolution weights as `k × k × channels` (channels fastest).
-struct Depthwise {
-    channels: usize,
-    size: usize,
-    stride: usize,
-    padding: usize,
-    weights: Vec<f32>,
-    bias: Vec<f32>,
 }
 
 enum Op {
@@ -309,7 +269,7 @@ impl ChainNet {
         let (raw, sub, mul) = (reader.ops, reader.sub, reader.mul);
         // The parsed file is let go before the kernels' copies are made: loading peaks lower.
         drop(proto);
-        let ops = raw.into_iter().map(Op::from).collect::<Option<Vec<_>>>()?;
+        let ops = raw.into_iter().map(Op::from).collect();
         Some(ChainNet { side, sub, mul, ops, outputs, workspaces: Mutex::default() }.with_arithmetic(Arithmetic::detect()))
     }
 
@@ -371,7 +331,7 @@ impl ChainNet {
                         px.iter_mut().zip(&a.scale).zip(&a.shift).for_each(|((v, s), t)| *v = *v * s + t);
                     }
                 }
-                Op::Dense(d) => out = dense(d, &x.data[..d.inputs], cols),
+                Op::Dense(d) => dense(d, &x.data[..d.inputs], cols, &mut out),
             }
         }
         if let Ok(mut pool) = self.workspaces.lock() {
@@ -381,38 +341,10 @@ impl ChainNet {
     }
 }
 
-/// A fully connected layer on `x`: in integers (the one row quantised into the scratch bytes,
-/// zero-padded to the weights' depth) or floats.
-fn dense(d: &Dense, x: &[f32], cols: &mut Cols) -> Vec<f32> {
-    let mut out = d.bias.clone();
-    match &d.int8 {
-        Some(weights) => {
-            let bytes = cols.bytes();
-            let input = Quantisation::into_bytes(x, bytes, weights.depth);
-            int8::matmul(bytes, 1, weights, &Epilogue { input, bias: &d.bias, relu: false }, &mut out);
-        }
-        None => {
-            let lhs = MatRef::from_row_major_slice(x, 1, d.inputs);
-            let rhs = MatRef::from_row_major_slice(&d.rhs[..], d.inputs, d.outputs);
-            matmul(MatMut::from_row_major_slice_mut(&mut out[..], 1, d.outputs), Accum::Add, lhs, rhs, 1.0f32, Par::Seq);
-        }
-    }
-    out
-}
-
 impl Op {
-    fn from(raw: RawOp) -> Option<Op> {
-        Some(match raw {
-            RawOp::Conv(c) if c.depthwise => {
-                let (n, k) = (c.channels, c.size);
-                let mut weights = vec![0.0f32; k * k * n];
-                for ch in 0..n {
-                    for t in 0..k * k {
-                        weights[t * n + ch] = c.weights[ch * k * k + t];
-                    }
-                }
-                Op::Depthwise(Depthwise { channels: n, size: k, stride: c.stride, padding: c.padding, weights, bias: c.bias })
-            }
+    fn from(raw: RawOp) -> Op {
+        match raw {
+            RawOp::Conv(c) if c.depthwise => Op::Depthwise(Depthwise::new(c.channels, c.size, c.stride, c.padding, &c.weights, c.bias)),
             RawOp::Conv(c) => {
                 let raw = Conv {
                     filters: c.filters,
@@ -423,97 +355,11 @@ impl Op {
                     weights: c.weights,
                     bias: c.bias,
                 };
-                Op::Conv(FoldedConv::new(&raw, &vec![1.0; c.filters], &vec![0.0; c.filters]).ok()?)
+                Op::Conv(FoldedConv::prefolded(&raw))
             }
             RawOp::PRelu(s) => Op::PRelu(s),
             RawOp::Affine(a) => Op::Affine(a),
             RawOp::Dense(d) => Op::Dense(d),
-        })
-    }
-}
-
-/// The crate is built for the x86-64 baseline (SSE2, 4 lanes); on a CPU with AVX2 and FMA the
-/// element-wise kernels are compiled a second time for it (8 lanes, fused multiply-add).
-#[cfg(target_arch = "x86_64")]
-fn avx2_fma() -> bool {
-    std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
-}
-
-#[cfg(not(target_arch = "x86_64"))]
-fn avx2_fma() -> bool {
-    false
-}
-
-fn prelu(data: &mut [f32], slope: &[f32]) {
-    #[cfg(target_arch = "x86_64")]
-    if avx2_fma() {
-        // SAFETY: the CPU has AVX2 and FMA (checked at run time).
-        return unsafe { prelu_avx2(data, slope) };
-    }
-    prelu_body(data, slope)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn prelu_avx2(data: &mut [f32], slope: &[f32]) {
-    prelu_body(data, slope)
-}
-
-/// `v` where positive, `slope · v` where negative; branch-free, so the loop vectorises (a branch
-/// on the sign measured three times slower than the convolutions themselves).
-#[inline(always)]
-fn prelu_body(data: &mut [f32], slope: &[f32]) {
-    for px in data.chunks_exact_mut(slope.len()) {
-        for (v, s) in px.iter_mut().zip(slope) {
-            *v = v.max(0.0) + s * v.min(0.0);
-        }
-    }
-}
-
-/// `out = depthwise(input)`: per channel, a `k × k` filter. Taps outermost, then the output
-/// pixels each tap reaches, then the channels: the inner loop is branch-free along the channels.
-fn depthwise(layer: &Depthwise, input: &Act, out: &mut Act) {
-    #[cfg(target_arch = "x86_64")]
-    if avx2_fma() {
-        // SAFETY: the CPU has AVX2 and FMA (checked at run time).
-        return unsafe { depthwise_avx2(layer, input, out) };
-    }
-    depthwise_body(layer, input, out)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn depthwise_avx2(layer: &Depthwise, input: &Act, out: &mut Act) {
-    depthwise_body(layer, input, out)
-}
-
-#[inline(always)]
-fn depthwise_body(layer: &Depthwise, input: &Act, out: &mut Act) {
-    let (k, s, p, c) = (layer.size, layer.stride, layer.padding, layer.channels);
-    let side = |n: usize| (n + 2 * p - k) / s + 1;
-    let (ho, wo, w) = (side(input.h), side(input.w), input.w);
-    out.reshape(ho, wo, c);
-    for oy in 0..ho {
-        let row = &mut out.data[oy * wo * c..(oy + 1) * wo * c];
-        for px in row.chunks_exact_mut(c) {
-            px.copy_from_slice(&layer.bias);
-        }
-        for ky in 0..k {
-            let Some(iy) = (oy * s + ky).checked_sub(p).filter(|&iy| iy < input.h) else { continue };
-            let in_row = &input.data[iy * w * c..(iy + 1) * w * c];
-            for kx in 0..k {
-                let taps = &layer.weights[(ky * k + kx) * c..(ky * k + kx + 1) * c];
-                // Output columns whose input column ox·s + kx − p lies inside the row.
-                let first = p.saturating_sub(kx).div_ceil(s);
-                let last = ((w + p).saturating_sub(kx + 1) / s + 1).min(wo);
-                for ox in first..last {
-                    let ix = ox * s + kx - p;
-                    let acc = &mut row[ox * c..(ox + 1) * c];
-                    for ((a, v), t) in acc.iter_mut().zip(&in_row[ix * c..(ix + 1) * c]).zip(taps) {
-                        *a += v * t;
-                    }
-                }
-            }
         }
     }
 }

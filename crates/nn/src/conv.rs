@@ -76,6 +76,12 @@ impl FoldedConv {
         Ok(FoldedConv { filters: f, channels: c, size: k, stride: conv.stride, padding: conv.padding, rhs, bias, int8: None })
     }
 
+    /// A convolution whose batch normalisation is already in its weights and bias.
+    pub(crate) fn prefolded(conv: &Conv) -> FoldedConv {
+        let f = conv.filters;
+        FoldedConv::new(conv, &vec![1.0; f], &vec![0.0; f]).expect("one unit scale and zero shift per filter")
+    }
+
     /// Sets the layer to compute in `arithmetic` ([`int8_weights`]). A layer whose float weights
     /// were released ([`FoldedConv::release_floats`]) keeps computing in integers.
     pub(crate) fn set_arithmetic(&mut self, arithmetic: Arithmetic) {

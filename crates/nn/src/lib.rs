@@ -7,7 +7,8 @@
 //! [`resnet`]: dlib's face-recognition ResNet on a [`FaceChip`], whose weights are the project's
 //! own file ([`weights`]); [`chain`]: facegate's kernels for ONNX networks that are a chain of
 //! layers (depthwise convolutions and PReLU compiled for AVX2 at run time); [`onnx`]: an ONNX
-//! network run by those kernels or by tract.
+//! network run by those kernels or by tract; [`minifasnet`]: the MiniFASNet anti-spoofing
+//! networks on the same kernels, from the project's own weight files.
 //!
 //! Runtime code: it never prints or reads the environment (the workspace's clippy lints).
 
@@ -15,6 +16,8 @@ pub mod chain;
 pub mod chip;
 pub mod conv;
 pub mod int8;
+mod layers;
+pub mod minifasnet;
 pub mod onnx;
 pub mod resnet;
 pub mod weights;

@@ -2,7 +2,9 @@
 //! only reads the converted file).
 
 pub mod dlib;
+pub mod minifasnet;
 pub mod onnx_embedding;
+pub mod torch_legacy;
 pub mod wheel;
 pub mod yunet;
 

@@ -8,6 +8,7 @@
 pub mod features;
 pub mod head_turn;
 pub mod lbp;
+pub mod minifasnet;
 
 use std::path::Path;
 
