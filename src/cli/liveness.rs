@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 use crate::liveness::Block;
 use crate::research::eval::liveness::{self as research, OperatingPoint};
+use crate::research::eval::liveness_peer::{self as peer, Network, PeerScores};
 use crate::research::eval::liveness_subjects as subjects;
 use crate::research::train_liveness::{self, LivenessData, Recipe};
 
@@ -42,7 +43,8 @@ pub struct EvalLivenessArgs {
     pub only: Option<String>,
     /// The recipes (of those evaluated) whose name contains this also run the nested subject-wise
     /// protocol: each NUAA subject scored by a model and a threshold chosen without it, every
-    /// subject's APCER and BPCER, the worst (81 fits per recipe).
+    /// subject's APCER and BPCER, the worst (81 fits per recipe). `MiniFASNet` runs the
+    /// pretrained networks (`models/minifasnet-*.bin`) as peers under it.
     #[arg(long, default_value = "shipped")]
     pub nested: String,
     #[command(flatten)]
@@ -138,6 +140,7 @@ pub fn run_eval(args: EvalLivenessArgs) -> anyhow::Result<ExitCode> {
             print_nested(name, &folds, args.json)?;
         }
     }
+    run_peers(&args, &data, &progress)?;
     let sets: Vec<(&str, &[Option<f32>])> = curves.iter().map(|(n, l)| (n.as_str(), l.as_slice())).collect();
     research::write_det(&args.plot, &data, &sets)?;
     let images: Vec<PathBuf> = data.nuaa.iter().map(|s| s.image.clone()).collect();
@@ -156,6 +159,40 @@ pub fn run_eval(args: EvalLivenessArgs) -> anyhow::Result<ExitCode> {
         );
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// MiniFASNet as shipped (`models/minifasnet-*.bin`), each network whose name `--only` and
+/// `--nested` select: the nested protocol, other cameras' live photos and simulated attacks.
+fn run_peers(args: &EvalLivenessArgs, data: &LivenessData, progress: &super::Bar) -> anyhow::Result<()> {
+    let selected: Vec<Network> = Network::ALL
+        .into_iter()
+        .filter(|n| args.only.as_ref().is_none_or(|o| n.name().contains(o.as_str())) && n.name().contains(args.nested.as_str()))
+        .collect();
+    if selected.is_empty() {
+        return Ok(());
+    }
+    let scores = PeerScores::compute(data, &args.data.cache, &crate::config::models_dir(), args.data.threads, progress)?;
+    for network in selected {
+        let folds = scores.folds(data, network, args.data.threads, progress);
+        print_nested(network.name(), &folds, args.json)?;
+        for o in peer::other_cameras(data, &scores, network) {
+            if args.json {
+                super::print_json_line(&serde_json::json!({ "peer_other_cameras": o }));
+            } else {
+                eprintln!(
+                    "{} at {} ({:.3}): IMM/ORL/LFW test persons' live photos refused {:.2}% of {}; their simulated prints taken for live {:.2}%, screens {:.2}%",
+                    network.name(),
+                    o.threshold_from,
+                    o.threshold,
+                    100.0 * o.live_refused,
+                    o.live_photos,
+                    100.0 * o.print_accepted,
+                    100.0 * o.screen_accepted
+                );
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The nested protocol's per-subject table and worst subject, for each threshold rule.

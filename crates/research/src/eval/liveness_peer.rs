@@ -1,0 +1,138 @@
+//! MiniFASNet (the pretrained passive networks, [`facegate_vision::liveness::minifasnet`]) as a
+//! peer of the LBP model under the same measures: the nested subject-wise protocol on NUAA (the
+//! networks never trained on NUAA, so only the threshold is chosen without the held-out subject),
+//! and the IMM, ORL and LFW test persons' live photos and their simulated prints and screens
+//! ([`crate::attack_sim`], the same seeds as [`LivenessData`]'s).
+
+use std::path::{Path, PathBuf};
+
+use facegate_vision::liveness::minifasnet::{MiniFasNet, MiniFasScores};
+use serde::Serialize;
+
+use crate::Progress;
+use crate::attack_sim::{AttackKind, simulate};
+use crate::cache::map_samples;
+use crate::dataset::Split;
+use crate::eval::liveness::eer_threshold;
+use crate::eval::liveness_subjects::{FitAndScore, Fold, folds};
+use crate::train_liveness::LivenessData;
+
+/// Which of MiniFASNet's scores.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum Network {
+    V2,
+    V1se,
+    Fused,
+}
+
+impl Network {
+    pub const ALL: [Network; 3] = [Network::V2, Network::V1se, Network::Fused];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Network::V2 => "MiniFASNet V2 (as shipped)",
+            Network::V1se => "MiniFASNet V1SE (as shipped)",
+            Network::Fused => "MiniFASNet V2 + V1SE (as shipped)",
+        }
+    }
+
+    pub fn of(self, s: &MiniFasScores) -> f32 {
+        match self {
+            Network::V2 => s.v2,
+            Network::V1se => s.v1se,
+            Network::Fused => s.fused,
+        }
+    }
+}
+
+/// The networks' scores of every photo the liveness evaluation reads: NUAA's frames, the other
+/// cameras' test persons' live photos and each simulated attack of them (`None`: no face, or a
+/// training person).
+pub struct PeerScores {
+    pub nuaa: Vec<Option<MiniFasScores>>,
+    pub others_live: Vec<Option<MiniFasScores>>,
+    /// Per [`AttackKind::ALL`].
+    pub others_simulated: Vec<Vec<Option<MiniFasScores>>>,
+}
+
+impl PeerScores {
+    pub fn compute(
+        data: &LivenessData,
+        cache_dir: &Path,
+        models_dir: &Path,
+        threads: usize,
+        progress: &dyn Progress,
+    ) -> anyhow::Result<PeerScores> {
+        let nuaa_images: Vec<PathBuf> = data.nuaa.iter().map(|s| s.image.clone()).collect();
+        let nuaa = crate::minifasnet::scores(cache_dir, models_dir, &nuaa_images, threads, progress)?;
+        let other_images: Vec<PathBuf> = data.others.iter().map(|s| s.image.clone()).collect();
+        let boxes = crate::minifasnet::face_boxes(cache_dir, models_dir, &other_images, threads, progress)?;
+        let networks = MiniFasNet::load(models_dir)?;
+        let test: Vec<usize> = (0..data.others.len()).filter(|&i| data.others[i].split == Split::Test).collect();
+        let score = |kind: Option<AttackKind>| -> Vec<Option<MiniFasScores>> {
+            let scored = map_samples(&test, threads, "MiniFASNet on the test persons", progress, |&i| {
+                let face = boxes[i].as_ref()?;
+                let photo = image::open(&other_images[i]).ok()?.to_rgb8();
+                let photo = match kind {
+                    Some(kind) => simulate(&photo, kind, i as u64),
+                    None => photo,
+                };
+                Some(networks.assess(&photo, face))
+            });
+            let mut all = vec![None; data.others.len()];
+            for (&i, s) in test.iter().zip(scored) {
+                all[i] = s;
+            }
+            all
+        };
+        Ok(PeerScores { nuaa, others_live: score(None), others_simulated: AttackKind::ALL.iter().map(|&k| score(Some(k))).collect() })
+    }
+
+    /// `network`'s NUAA scores as a [`FitAndScore`] that learns nothing.
+    pub fn fixed(&self, network: Network) -> impl Fn(&[usize], &[usize]) -> Vec<Option<f32>> + Sync + '_ {
+        move |_train, frames| frames.iter().map(|&i| self.nuaa[i].as_ref().map(|s| network.of(s))).collect()
+    }
+
+    /// The nested folds of `network` (the threshold rules choose on the other subjects' scores).
+    pub fn folds(&self, data: &LivenessData, network: Network, threads: usize, progress: &dyn Progress) -> Vec<Fold> {
+        let fixed = self.fixed(network);
+        let fit: &FitAndScore = &fixed;
+        folds(data, fit, threads, progress)
+    }
+}
+
+/// Other cameras' live photos refused and simulated attacks taken for live at one threshold.
+#[derive(Debug, Clone, Serialize)]
+pub struct OtherCameras {
+    pub network: Network,
+    /// `0.5` (the networks' own arg-max point) or NUAA's equal rates.
+    pub threshold_from: String,
+    pub threshold: f32,
+    pub live_refused: f64,
+    pub live_photos: usize,
+    pub print_accepted: f64,
+    pub screen_accepted: f64,
+}
+
+/// `network` at its own 0.5 and at NUAA's equal-rates threshold.
+pub fn other_cameras(data: &LivenessData, scores: &PeerScores, network: Network) -> Vec<OtherCameras> {
+    let nuaa = |live: bool| -> Vec<f32> {
+        data.nuaa.iter().zip(&scores.nuaa).filter(|(s, _)| s.live == live).filter_map(|(_, x)| x.as_ref().map(|x| network.of(x))).collect()
+    };
+    let flat = |v: &[Option<MiniFasScores>]| -> Vec<f32> { v.iter().flatten().map(|s| network.of(s)).collect() };
+    let live = flat(&scores.others_live);
+    let sims: Vec<Vec<f32>> = scores.others_simulated.iter().map(|v| flat(v)).collect();
+    let share = |v: &[f32], f: &dyn Fn(f32) -> bool| v.iter().filter(|&&s| f(s)).count() as f64 / v.len().max(1) as f64;
+    [("0.5 (the networks' own)".to_string(), 0.5), ("NUAA's equal rates".to_string(), eer_threshold(&nuaa(true), &nuaa(false)))]
+        .into_iter()
+        .map(|(from, t)| OtherCameras {
+            network,
+            threshold_from: from,
+            threshold: t,
+            live_refused: share(&live, &|s| s < t),
+            live_photos: live.len(),
+            print_accepted: share(&sims[0], &|s| s >= t),
+            screen_accepted: share(&sims[1], &|s| s >= t),
+        })
+        .collect()
+}
