@@ -179,9 +179,22 @@ fn taps(len: usize, out: usize, clamp_fraction: bool) -> Vec<Tap> {
 
 /// `crop` of `photo` resized to `side × side` exactly as `cv2.resize(crop, (side, side))` does on
 /// 8-bit pixels, as three channel-first planes in OpenCV's order (blue, green, red) of 0–255 values.
+///
+/// # Panics
+/// When the crop is not inside the photo ([`crop_box`]'s always is).
 pub fn network_input(photo: &RgbImage, crop: CropBox, side: usize) -> Vec<f32> {
+    assert!(
+        crop.left <= crop.right && crop.top <= crop.bottom && crop.right < photo.width() && crop.bottom < photo.height(),
+        "{crop:?} inside a {}×{} photo",
+        photo.width(),
+        photo.height()
+    );
     let (w, h) = ((crop.right - crop.left + 1) as usize, (crop.bottom - crop.top + 1) as usize);
-    let pixel = |x: usize, y: usize| photo.get_pixel(crop.left + x as u32, crop.top + y as u32).0;
+    let (raw, stride) = (photo.as_raw(), photo.width() as usize * 3);
+    let pixel = |x: usize, y: usize| {
+        let at = (crop.top as usize + y) * stride + (crop.left as usize + x) * 3;
+        [raw[at], raw[at + 1], raw[at + 2]]
+    };
     let plane = side * side;
     let mut planes = vec![0.0f32; 3 * plane];
     let mut put = |x: usize, y: usize, rgb: [u8; 3]| {
@@ -202,29 +215,30 @@ pub fn network_input(photo: &RgbImage, crop: CropBox, side: usize) -> Vec<f32> {
     }
     let columns = taps(w, side, true);
     let rows = taps(h, side, false);
-    // The horizontal pass of every source row, in OpenCV's fixed point (value · 2048).
-    let horizontal: Vec<[i32; 3]> = (0..h)
-        .flat_map(|y| {
-            columns.iter().map(move |t| {
-                // Columns are clamped into the crop by `taps`.
-                let x = t.index as usize;
-                let a = pixel(x, y);
-                match x + 1 < w {
-                    true => {
-                        let b = pixel(x + 1, y);
-                        std::array::from_fn(|c| a[c] as i32 * t.weights[0] + b[c] as i32 * t.weights[1])
-                    }
-                    false => std::array::from_fn(|c| a[c] as i32 * COEF_SCALE as i32),
+    // The horizontal pass of source row `y`, in OpenCV's fixed point (value · 2048). Only the two
+    // rows each output row reads are computed (a 480-row crop reads 160 of them).
+    let horizontal = |y: usize, out: &mut Vec<[i32; 3]>| {
+        out.clear();
+        out.extend(columns.iter().map(|t| {
+            // Columns are clamped into the crop by `taps`.
+            let x = t.index as usize;
+            let a = pixel(x, y);
+            match x + 1 < w {
+                true => {
+                    let b = pixel(x + 1, y);
+                    std::array::from_fn(|c| a[c] as i32 * t.weights[0] + b[c] as i32 * t.weights[1])
                 }
-            })
-        })
-        .collect();
+                false => std::array::from_fn(|c| a[c] as i32 * COEF_SCALE as i32),
+            }
+        }));
+    };
+    let (mut upper, mut lower) = (Vec::with_capacity(side), Vec::with_capacity(side));
     for (y, t) in rows.iter().enumerate() {
         // Rows outside the crop are its edge rows (the weights are kept).
-        let row = |k: i64| (t.index + k).clamp(0, h as i64 - 1) as usize * side;
-        let (r0, r1) = (row(0), row(1));
-        for x in 0..side {
-            let (s0, s1) = (horizontal[r0 + x], horizontal[r1 + x]);
+        let row = |k: i64| (t.index + k).clamp(0, h as i64 - 1) as usize;
+        horizontal(row(0), &mut upper);
+        horizontal(row(1), &mut lower);
+        for (x, (s0, s1)) in upper.iter().zip(&lower).enumerate() {
             // VResizeLinear<uchar, int, short>: each product shifted down on its own, then rounded.
             put(
                 x,
