@@ -207,12 +207,17 @@ pub fn fit_logistic(rows: &[&[f32]], live: &[bool], weights: &[f64], ridge: f64)
 /// too, when the class has both.
 pub fn balanced_weights(live: &[bool], other: &[bool]) -> Vec<f64> {
     let n = live.len() as f64;
-    let count = |class: bool, from_other: bool| (0..live.len()).filter(|&i| live[i] == class && other[i] == from_other).count();
-    (0..live.len())
-        .map(|i| {
-            let (nuaa, others) = (count(live[i], false), count(live[i], true));
+    // Rows per (class, from other), counted once: [live][other].
+    let mut counts = [[0usize; 2]; 2];
+    for (&l, &o) in live.iter().zip(other) {
+        counts[usize::from(l)][usize::from(o)] += 1;
+    }
+    live.iter()
+        .zip(other)
+        .map(|(&l, &o)| {
+            let [nuaa, others] = counts[usize::from(l)];
             let share = if nuaa == 0 || others == 0 { 0.5 } else { 0.25 };
-            share * n / (if other[i] { others } else { nuaa }) as f64
+            share * n / counts[usize::from(l)][usize::from(o)] as f64
         })
         .collect()
 }

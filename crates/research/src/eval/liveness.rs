@@ -15,7 +15,7 @@ use crate::eval::plot::{Chart, Scale, Series, line_chart};
 use crate::eval::verification::{eer, error_curve, fnmr_at_fmr};
 use crate::train_deep::Set;
 use crate::train_liveness::{
-    LivenessData, Recipe, columns, fit_recipe, fit_recipe_without, homography_residual, out_of_fold_logits, platt,
+    LivenessData, LogisticFit, Recipe, columns, fit_recipe, fit_recipe_without, homography_residual, out_of_fold_logits, platt,
 };
 
 /// The ISO/IEC 30107-3 error rates at one threshold.
@@ -229,10 +229,14 @@ pub struct ReverseCheck {
     pub at_threshold: Rates,
 }
 
-fn simulated_acceptance(data: &LivenessData, recipe: &Recipe, f: &FoldScores, (slope, offset): (f32, f32)) -> Vec<SimulatedAcceptance> {
-    let all: Vec<usize> = (0..data.nuaa.len()).collect();
+fn simulated_acceptance(
+    data: &LivenessData,
+    recipe: &Recipe,
+    full: &LogisticFit,
+    f: &FoldScores,
+    (slope, offset): (f32, f32),
+) -> Vec<SimulatedAcceptance> {
     let cols = columns(&recipe.blocks);
-    let full = fit_recipe(data, recipe, &all);
     let calibrated = |l: f32| 1.0 / (1.0 + (-(slope * l + offset)).exp());
     let test = data.others_in(Split::Test);
     let scores: Vec<Vec<f32>> = data
@@ -298,9 +302,7 @@ struct FoldScores {
 }
 
 fn fold_scores(data: &LivenessData, logits: &[Option<f32>]) -> FoldScores {
-    let mut subjects: Vec<String> = data.nuaa.iter().map(|s| s.subject.clone()).collect();
-    subjects.sort_unstable();
-    subjects.dedup();
+    let subjects = crate::eval::liveness_subjects::subjects(data);
     let mut f = FoldScores { live: vec![], attacks: vec![], live_fold: vec![], attack_fold: vec![], subjects };
     for (s, l) in data.nuaa.iter().zip(logits) {
         let Some(l) = l else { continue };
@@ -353,6 +355,8 @@ pub fn evaluate(data: &LivenessData, name: &str, recipe: &Recipe, progress: &dyn
         &f.live.iter().chain(&f.attacks).copied().collect::<Vec<_>>(),
         &f.live.iter().map(|_| true).chain(f.attacks.iter().map(|_| false)).collect::<Vec<_>>(),
     );
+    // The model fitted on every NUAA subject: the other cameras and the simulated attacks both read it.
+    let full = fit_recipe(data, recipe, &(0..data.nuaa.len()).collect::<Vec<_>>());
     let report = LivenessReport {
         name: name.to_string(),
         recipe: recipe.clone(),
@@ -366,8 +370,8 @@ pub fn evaluate(data: &LivenessData, name: &str, recipe: &Recipe, progress: &dyn
         at_eer_of_other_subjects: at,
         apcer_by_print_condition: share(by_condition),
         bpcer_by_live_session: share(by_session),
-        other_cameras_refused: other_camera_refusals(data, recipe, &f, calibration),
-        simulated_accepted: simulated_acceptance(data, recipe, &f, calibration),
+        other_cameras_refused: other_camera_refusals(data, recipe, &full, &f, calibration),
+        simulated_accepted: simulated_acceptance(data, recipe, &full, &f, calibration),
         reverse: reverse_check(data, recipe),
         calibration,
         sequences: {
@@ -387,7 +391,13 @@ pub fn evaluate(data: &LivenessData, name: &str, recipe: &Recipe, progress: &dyn
 
 /// The model fitted on every NUAA subject, calibrated, at each [`OPERATING_POINTS`] threshold (put
 /// on the out-of-fold scores): the share of the IMM, ORL and LFW test persons' live photos refused.
-fn other_camera_refusals(data: &LivenessData, recipe: &Recipe, f: &FoldScores, (slope, offset): (f32, f32)) -> Vec<Refusals> {
+fn other_camera_refusals(
+    data: &LivenessData,
+    recipe: &Recipe,
+    full: &LogisticFit,
+    f: &FoldScores,
+    (slope, offset): (f32, f32),
+) -> Vec<Refusals> {
     let all: Vec<usize> = (0..data.nuaa.len()).collect();
     let cols = columns(&recipe.blocks);
     let test = data.others_in(Split::Test);
@@ -401,7 +411,6 @@ fn other_camera_refusals(data: &LivenessData, recipe: &Recipe, f: &FoldScores, (
             .map(|&i| calibrated(fit.logit(&pick(data.other_features[i].as_ref().expect("with features")))))
             .collect()
     };
-    let full = fit_recipe(data, recipe, &all);
     let umist: Vec<f32> = data.unseen_features.iter().flatten().map(|x| calibrated(full.logit(&pick(x)))).collect();
     let by_set: Vec<(Set, Vec<f32>)> = [Set::Imm, Set::Orl, Set::Lfw]
         .into_iter()
