@@ -1,5 +1,7 @@
-//! Speed of the 3DMM path on one core: fit (58 IMM points), texture extraction, frontal rendering.
-//! Target: fit + texture + frontal rendering ≤ 10 ms per face.
+//! Speed of the 3DMM path on one core: fit (58 IMM points), texture extraction, frontal rendering,
+//! and the mean face fitted to the detector's five key points (`key_point_pose`, which every
+//! analysis now makes for the head-turn challenge). Target: fit + texture + frontal rendering
+//! ≤ 10 ms per face.
 //! Run: `cargo bench --bench morph` (needs the Surrey Face Model at FACEGATE_SFM or ../shared/models/sfm).
 //!
 //! Times are the benchmark thread's CPU time (`benches/common`), not wall time: on a
@@ -24,7 +26,11 @@ fn bench(c: &mut Criterion<ThreadCpuTime>) {
     let (w, h) = (photo.width(), photo.height());
     let fitted = model.fit(&points, w, h).expect("fit");
 
+    // YuNet's five points on this photo, as `/analyze` reports them (`face.points`).
+    let key_points = [[255.0, 267.9], [327.8, 266.8], [275.5, 312.2], [267.6, 344.6], [327.3, 343.0]];
+
     c.bench_function("morph/fit", |b| b.iter(|| model.fit(std::hint::black_box(&points), w, h).unwrap()));
+    c.bench_function("morph/fit_key_points", |b| b.iter(|| model.fit_key_points(std::hint::black_box(&key_points), w, h).unwrap()));
     c.bench_function("morph/texture", |b| b.iter(|| model.extract_texture(&photo.rgb, &fitted, TEXTURE_SIZE)));
     c.bench_function("morph/frontal_render", |b| b.iter(|| model.frontalize(&photo, &fitted).unwrap()));
     c.bench_function("morph/fit_texture_frontal", |b| {

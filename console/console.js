@@ -213,12 +213,16 @@ function landmarkCount(landmarks) {
 function faceDetails(report) {
     const parts = [];
     const pose = report.pose;
-    parts.push(table([
+    const angles = (p) => `${fmt(p.yaw, 1)}°, ${fmt(p.pitch, 1)}°, ${fmt(p.roll, 1)}°`;
+    const rows = [
         ['Faces found', String(report.faces_found ?? 1)],
         ['Detector score', fmt(report.face.score, 2)],
         ['Landmarks', landmarkCount(report.landmarks)],
-        ['Pose (yaw, pitch, roll)', pose ? `${fmt(pose.yaw, 1)}°, ${fmt(pose.pitch, 1)}°, ${fmt(pose.roll, 1)}°` : 'unknown (no 3D model)'],
-    ], 'The face used'));
+        ['Pose (yaw, pitch, roll)', pose ? angles(pose) : 'unknown (no 3D model)'],
+    ];
+    // /analyze only: the pose of the detector's five key points, which the head-turn challenge judges.
+    if (report.key_point_pose) rows.push(['Pose from the five key points', angles(report.key_point_pose)]);
+    parts.push(table(rows, 'The face used'));
     const q = report.quality;
     if (q) {
         const deg = (v) => (typeof v === 'number' ? `${fmt(v, 1)}°` : 'unknown');
@@ -426,13 +430,14 @@ function grab(video) {
     });
 }
 
-/// The yaw /analyze reads in a frame: null when it finds no face or no pose (or is busy).
+/// The yaw /analyze reads in a frame, as the challenge judges it (`key_point_pose`): null when it
+/// finds no face or no pose (or is busy).
 async function yawOf(file) {
     const body = new FormData();
     body.append('image', file, file.name);
     try {
         const r = await api('POST', '/analyze', body);
-        const yaw = r.faces[0]?.pose?.yaw;
+        const yaw = r.faces[0]?.key_point_pose?.yaw;
         return typeof yaw === 'number' ? yaw : null;
     } catch (error) {
         if (error instanceof ApiError && (error.status === 422 || error.status === 503)) return null;

@@ -1,6 +1,7 @@
 //! The head-turn liveness challenge through the real app and pipeline: `POST /liveness/challenge`
 //! draws 3 or 4 steps with a turn to each side; `/verify` answering it with IMM person 02's own
-//! photos in step order passes and matches; the same challenge again, an unknown or malformed
+//! photos in step order passes and matches, each step's yaw the frame's `/analyze`
+//! `key_point_pose.yaw`; the same challenge again, an unknown or malformed
 //! one, and an expired one are `invalid-challenge`; the photo held still and the right photos in
 //! the wrong order fail it (reported under `report`, refused as `presentation-attack` with the
 //! reason under `enforce`); a wrong number of frames is malformed; with liveness off there are no
@@ -117,6 +118,13 @@ async fn the_persons_own_turns_pass_once_and_the_challenge_is_used_up() {
             "right" => assert!(yaw < -12.0, "{body}"),
             _ => assert!(yaw.abs() < 12.0, "{body}"),
         }
+    }
+    // A client checks its frames with `/analyze`: each step's yaw is the frame's
+    // `key_point_pose.yaw` there, the yaw the steps' ranges are in.
+    for (step, frame) in steps.iter().zip(live_frames(&turns)) {
+        let analyzed = app.post_form("/analyze", None, &[frame]).await.json();
+        let yaw = analyzed["faces"][0]["key_point_pose"]["yaw"].as_f64().expect("YuNet's key points and the 3DMM give a pose");
+        assert!((yaw - step["yaw"].as_f64().unwrap()).abs() < 1e-3, "{analyzed} against {step}");
     }
     // The same challenge again, whatever the frames: it was taken by the first answer.
     verify(&app, id, &live_frames(&turns)).await.assert_problem(422, "invalid-challenge");

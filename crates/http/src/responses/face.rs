@@ -286,6 +286,9 @@ pub(crate) struct AnalyzedFace {
     landmarks: SeenLandmarks,
     /// Null when the 3DMM is not loaded or could not be fitted.
     pose: Option<Pose>,
+    /// The pose of the 3DMM's mean face fitted to the detector's five key points: what the
+    /// head-turn challenge judges. Null without key points or the 3DMM.
+    key_point_pose: Option<Pose>,
     fit_residual_px: Option<f32>,
     quality: Quality,
     /// Reported, never refused here; absent when liveness is off.
@@ -301,6 +304,7 @@ impl From<pipeline::FaceReading> for AnalyzedFace {
             face: f.face.into(),
             landmarks: SeenLandmarks { points: landmarks.points, keypoints: landmarks.keypoints, visible: f.visible },
             pose: f.pose.map(Pose::from),
+            key_point_pose: f.key_point_pose.map(Pose::from),
             fit_residual_px: f.fit_residual_px,
             quality: f.quality.into(),
             liveness: f.liveness.map(Liveness::from),

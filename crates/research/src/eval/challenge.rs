@@ -472,7 +472,7 @@ pub fn judge_attempt(pipeline: &Pipeline, attempt: &Attempt, analyses: &Analyses
 /// Judge every attempt and tally them by kind.
 pub fn evaluate(pipeline: &Pipeline, config: &ChallengeEvalConfig, progress: &dyn Progress) -> anyhow::Result<ChallengeReport> {
     let mut analyses = analyze_sources(pipeline, umist_candidates(config)?, config.threads, progress);
-    let yaw_of = |s: &Source| analyses.get(s).and_then(|(a, _)| a.as_ref()).and_then(|a| a.pose).map(|p| p.yaw);
+    let yaw_of = |s: &Source| analyses.get(s).and_then(|(a, _)| a.as_ref()).and_then(|a| a.key_point_pose).map(|p| p.yaw);
     let attempts = attempts(config, &yaw_of)?;
     let used = attempts.iter().flat_map(|a| [a.enrolled.clone(), a.probe.clone()].into_iter().chain(a.frames.iter().cloned()));
     let missing: Vec<Source> = used.filter(|s| !analyses.contains_key(s)).collect();
@@ -572,7 +572,7 @@ fn median(values: &[f64]) -> Option<f64> {
 fn yaw_quantiles(analyses: &Analyses) -> BTreeMap<String, [f32; 5]> {
     let mut by: BTreeMap<String, Vec<f32>> = BTreeMap::new();
     for (source, (analysis, _)) in analyses {
-        let Some(yaw) = analysis.as_ref().and_then(|a| a.pose).map(|p| p.yaw) else { continue };
+        let Some(yaw) = analysis.as_ref().and_then(|a| a.key_point_pose).map(|p| p.yaw) else { continue };
         let key = match source {
             Source::File(p) | Source::Mirror(p) => {
                 let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");

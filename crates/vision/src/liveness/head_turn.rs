@@ -1,5 +1,7 @@
 //! Active liveness, the 3D part: does a capture show a head turning as a challenge asked, and is
-//! it a head at all? Each frame's yaw comes from the 3D fit (3D-ASM landmarks, 3DMM pose). A real
+//! it a head at all? Each frame's yaw comes from 3DMM fits: the step's from the mean face fitted
+//! to the detector's five key points, the depth's from the fit to the 58 landmarks ([`FramePose`]
+//! says why). A real
 //! head turning moves its near and far features by different amounts: the nose tip, a good
 //! centimetre in front of the eyes and mouth, crosses the cheek; a photo held up and turned, or
 //! bent, stays a surface whose points one homography of the image plane maps from one view to
@@ -22,12 +24,13 @@ pub enum Turn {
     Right,
 }
 
-/// Most |yaw| of a frontal step, degrees: IMM training persons' neutral frontal photos (views 1,
-/// 2, 5) read −6.4° to 12.0° (`facegate eval challenge --persons train`).
+/// Most |yaw| of a frontal step, degrees, as [`FramePose::yaw`] (the key points') reads it: IMM
+/// training persons' neutral frontal photos (views 1, 2, 5) and their mirror images read within
+/// 9.3° (`facegate eval challenge --persons train`; docs/liveness-challenge.md, "Which yaw").
 pub const FRONT_MAX_YAW: f32 = 12.0;
 /// Least |yaw| of a turned step, degrees: the same persons' photos turned about 30° (views 3, 4)
-/// read 10.0° to 48.0° in size, 5% of them under 15°; a photo held up and turned by 30° reads up
-/// to 12.2°, by 45° up to 22.8° (the parallax, not the yaw, stops those).
+/// read 16.6° to 51.1° in size (their mirror images from 14.0°); a photo held up and turned by
+/// 30° reads at most 9.3°, by 45° 13.5°, by 60° 19.4° (the parallax stops those that reach a step).
 pub const TURN_MIN_YAW: f32 = 12.0;
 /// Most |yaw| of a turned step: past it the far eye is hidden and the pose is read less well.
 pub const TURN_MAX_YAW: f32 = 60.0;
@@ -70,11 +73,22 @@ impl Step {
     }
 }
 
-/// What was read of one frame: the 3D fit's yaw (`None` without a fit) and the detector's five
-/// key points (`None` from a detector without them).
+/// What was read of one frame: two yaws and the detector's five key points (`None` from a
+/// detector without them).
+///
+/// The step is judged by `yaw`, the 3DMM's mean face fitted to the five key points: on the IMM
+/// training persons it kept frontal and turned views apart where the 58-landmark fit did not
+/// (docs/liveness-challenge.md, "Which yaw"). The depth divides the nose's parallax by the sine
+/// of `fit_yaw` differences, the 3DMM fitted to the 58 landmarks: a yaw read from the same five
+/// points would take its size from the mean face's nose and so push every nose, a rendered one
+/// too, towards the mean's depth (measured: the least live depth on the training persons fell
+/// from 0.659 to 0.589 and the avatars' margin below it from 0.070 to 0.025).
 #[derive(Debug, Clone, Copy)]
 pub struct FramePose {
+    /// The key points' yaw (degrees), judged against the step's range.
     pub yaw: Option<f32>,
+    /// The 58-landmark 3DMM fit's yaw (degrees), for the depth's yaw differences.
+    pub fit_yaw: Option<f32>,
     pub keypoints: Option<[Point; 5]>,
 }
 
@@ -113,8 +127,8 @@ pub fn read_head_turn(steps: &[Step], probe: FramePose, frames: &[FramePose]) ->
     let turned = steps.iter().zip(frames).filter(|(step, frame)| step.turn != Turn::Front && frame.yaw.is_some_and(|y| step.admits(y)));
     let parallax = turned
         .filter_map(|(_, frame)| {
-            let (to, yaw) = (frame.keypoints?, frame.yaw?);
-            let apart = |v: &&&FramePose| v.yaw.map_or(0.0, |y| (y - yaw).abs());
+            let (to, yaw) = (frame.keypoints?, frame.fit_yaw?);
+            let apart = |v: &&&FramePose| v.fit_yaw.map_or(0.0, |y| (y - yaw).abs());
             let other = views.iter().filter(|v| v.keypoints.is_some()).max_by(|a, b| apart(a).total_cmp(&apart(b)))?;
             let difference = apart(&other);
             if difference < TURN_MIN_YAW {
@@ -196,7 +210,7 @@ mod tests {
     #[test]
     fn steps_read_their_frames_yaw_and_the_flattest_turn() {
         let steps = [Step::of(Turn::Left), Step::of(Turn::Front), Step::of(Turn::Right)];
-        let frame = |yaw: f32, flat: bool| FramePose { yaw: Some(yaw), keypoints: Some(keypoints(yaw, flat)) };
+        let frame = |yaw: f32, flat: bool| FramePose { yaw: Some(yaw), fit_yaw: Some(yaw), keypoints: Some(keypoints(yaw, flat)) };
         let read = read_head_turn(&steps, frame(1.0, false), &[frame(24.0, false), frame(2.0, false), frame(-26.0, false)]);
         assert!(read.steps.iter().all(|s| s.ok), "{read:?}");
         assert!(read.parallax.is_some_and(|p| p > 0.1), "{read:?}");
@@ -208,12 +222,28 @@ mod tests {
         assert_eq!(read.steps.iter().map(|s| s.ok).collect::<Vec<_>>(), [false, true, false]);
         assert_eq!(read.parallax, None, "no turned step was met");
         // No fit: not ok, and no reference without any yaw; no key points: no parallax.
-        let none = FramePose { yaw: None, keypoints: None };
+        let none = FramePose { yaw: None, fit_yaw: None, keypoints: None };
         let read = read_head_turn(&steps, none, &[none, none, none]);
         assert!(read.steps.iter().all(|s| !s.ok && s.yaw.is_none()) && read.parallax.is_none());
         let blind = |yaw: f32| FramePose { keypoints: None, ..frame(yaw, false) };
         let read = read_head_turn(&steps, blind(1.0), &[blind(24.0), blind(2.0), blind(-26.0)]);
         assert!(read.steps.iter().all(|s| s.ok) && read.parallax.is_none(), "{read:?}");
         assert!(Step::of(Turn::Left).admits(TURN_MIN_YAW) && !Step::of(Turn::Left).admits(-20.0));
+    }
+
+    #[test]
+    fn the_step_reads_the_key_points_yaw_and_the_depth_the_fits() {
+        let steps = [Step::of(Turn::Left), Step::of(Turn::Right)];
+        let head = |yaw: f32, fit_yaw: Option<f32>| FramePose { yaw: Some(yaw), fit_yaw, keypoints: Some(keypoints(yaw, false)) };
+        let both = read_head_turn(&steps, head(0.0, Some(0.0)), &[head(25.0, Some(25.0)), head(-25.0, Some(-25.0))]);
+        // The same key points, the fit reading half the turns: the steps stand, and the depth is
+        // the parallax over the sines of the fit's (smaller) differences, so larger.
+        let halved = read_head_turn(&steps, head(0.0, Some(0.0)), &[head(25.0, Some(12.5)), head(-25.0, Some(-12.5))]);
+        assert!(halved.steps.iter().all(|s| s.ok), "{halved:?}");
+        let (p, q) = (both.parallax.unwrap(), halved.parallax.unwrap());
+        assert!(q > 1.5 * p, "halved yaw differences give a deeper nose: {p} then {q}");
+        // No fit: the steps are judged, but no depth is measured.
+        let unfit = read_head_turn(&steps, head(0.0, None), &[head(25.0, None), head(-25.0, None)]);
+        assert!(unfit.steps.iter().all(|s| s.ok) && unfit.parallax.is_none(), "{unfit:?}");
     }
 }
