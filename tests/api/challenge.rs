@@ -1,5 +1,5 @@
 //! The head-turn liveness challenge through the real app and pipeline: `POST /liveness/challenge`
-//! draws 3 or 4 steps with a turn to each side; `/verify` answering it with IMM person 02's own
+//! draws 3 or 4 steps with a turn to each side; `/verify` answering it with IMM person 15's own
 //! photos in step order passes and matches, each step's yaw the frame's `/analyze`
 //! `key_point_pose.yaw`; the same challenge again, an unknown or malformed
 //! one, and an expired one are `invalid-challenge`; the photo held still and the right photos in
@@ -19,11 +19,11 @@ use serde_json::{Value, json};
 use crate::pipeline::pipeline;
 use crate::support::*;
 
-const SUBJECT: &str = "imm-02";
+const SUBJECT: &str = "imm-15";
 
 async fn app_with(config: ApiConfig) -> TestApp {
     let app = TestApp::start(pipeline(), config).await;
-    let r = app.post_form("/enroll", Some(SUBJECT), &[imm("02-1m.jpg")]).await;
+    let r = app.post_form("/enroll", Some(SUBJECT), &[imm("15-1f.jpg")]).await;
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
     app
 }
@@ -42,7 +42,7 @@ fn turns_of(challenge: &Value) -> Vec<String> {
     challenge["steps"].as_array().unwrap().iter().map(|s| s["turn"].as_str().unwrap().to_string()).collect()
 }
 
-/// Person 02's photo for each step: the front alternately views 5 and 1, left view 4, right view 3.
+/// Person 15's photo for each step: the front alternately views 5 and 1, left view 4, right view 3.
 fn live_frames(turns: &[String]) -> Vec<Vec<u8>> {
     let mut fronts = 0;
     turns
@@ -50,10 +50,10 @@ fn live_frames(turns: &[String]) -> Vec<Vec<u8>> {
         .map(|turn| match turn.as_str() {
             "front" => {
                 fronts += 1;
-                imm(if fronts % 2 == 1 { "02-5m.jpg" } else { "02-1m.jpg" })
+                imm(if fronts % 2 == 1 { "15-5f.jpg" } else { "15-1f.jpg" })
             }
-            "left" => imm("02-4m.jpg"),
-            "right" => imm("02-3m.jpg"),
+            "left" => imm("15-4f.jpg"),
+            "right" => imm("15-3f.jpg"),
             other => panic!("unknown turn {other}"),
         })
         .collect()
@@ -62,7 +62,7 @@ fn live_frames(turns: &[String]) -> Vec<Vec<u8>> {
 async fn verify(app: &TestApp, challenge: &str, frames: &[Vec<u8>]) -> Reply {
     let mut form = Form::new()
         .text("subject", SUBJECT)
-        .part("image", Part::bytes(imm("02-2m.jpg")).file_name("probe.jpg"))
+        .part("image", Part::bytes(imm("15-2f.jpg")).file_name("probe.jpg"))
         .text("challenge", challenge.to_string());
     for (i, frame) in frames.iter().enumerate() {
         form = form.part("frame", Part::bytes(frame.clone()).file_name(format!("frame{i}.jpg")));
@@ -139,7 +139,7 @@ async fn a_still_photo_and_the_wrong_order_fail_the_challenge() {
     let app = app(Choice::Report).await;
     let c = challenge(&app).await;
     let turns = turns_of(&c);
-    let still = vec![imm("02-2m.jpg"); turns.len()];
+    let still = vec![imm("15-2f.jpg"); turns.len()];
     let r = verify(&app, c["challenge"].as_str().unwrap(), &still).await;
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let body = r.json();
@@ -178,13 +178,13 @@ async fn a_wrong_frame_count_is_malformed_and_json_takes_the_same_fields() {
 
     let c = challenge(&app).await;
     let frames: Vec<String> = live_frames(&turns_of(&c)).iter().map(|f| base64(f)).collect();
-    let body = json!({"subject": SUBJECT, "image": base64(&imm("02-2m.jpg")), "challenge": c["challenge"], "frames": frames});
+    let body = json!({"subject": SUBJECT, "image": base64(&imm("15-2f.jpg")), "challenge": c["challenge"], "frames": frames});
     let r = app.post_json("/verify", &body).await;
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     assert_eq!(r.json()["liveness"]["challenge"]["passed"], true, "{}", String::from_utf8_lossy(&r.body));
 
     // Only /verify takes a challenge.
-    let form = Form::new().part("image", Part::bytes(imm("02-2m.jpg")).file_name("a.jpg")).text("challenge", "0".repeat(32));
+    let form = Form::new().part("image", Part::bytes(imm("15-2f.jpg")).file_name("a.jpg")).text("challenge", "0".repeat(32));
     app.send(app.client.post(app.url("/identify")).multipart(form)).await.assert_problem(400, "malformed-request");
 }
 

@@ -13,7 +13,9 @@
 //! photo as a flat print turned by ±15…60° (perspective warp) or bent on a cylinder and turned;
 //! the right photos in the wrong order (left and right exchanged); another person's photo in one
 //! turned step; the probe photo's fitted 3D head rendered at each step's yaw (`frontalize
-//! --yaw`). NUAA: each print capture's frames (the print moved or bent by hand) as the steps. The
+//! --yaw`); and the attacker who watches the console's yaw, holding the print (or rendering the
+//! head) at whichever of several angles reads inside each step's range. NUAA: each print
+//! capture's frames (the print moved or bent by hand) as the steps. The
 //! reused challenge is refused by the store (taken once) and is measured there.
 
 use std::collections::{BTreeMap, HashMap};
@@ -297,6 +299,15 @@ pub fn attempts(config: &ChallengeEvalConfig, yaw_of: &dyn Fn(&Source) -> Option
                 })
                 .collect();
             out.push(attempt("avatar render", avatar));
+            // The attacker with the console's own check: each step's frame the first of the
+            // print's (or the avatar's) poses, in random order, that `/analyze` reads inside the
+            // step's range.
+            let mut prints = print_candidates(&probe);
+            let frames = steps.iter().map(|step| console_pick(&mut prints, step, &mut rng, yaw_of)).collect();
+            out.push(attempt("print turned until in range", frames));
+            let mut avatars = avatar_candidates(&probe);
+            let frames = steps.iter().map(|step| console_pick(&mut avatars, step, &mut rng, yaw_of)).collect();
+            out.push(attempt("avatar turned until in range", frames));
         }
     }
     out.extend(umist_attempts(config, &mut rng, yaw_of)?);
@@ -313,6 +324,43 @@ fn print_kind(deg: i32, bent: bool) -> &'static str {
         (30, true) => "bent print turned ±30°",
         _ => "bent print turned ±45°",
     }
+}
+
+/// The probe photo as a print held flat or bent, straight or turned by 15° to 60° either way:
+/// what an attacker who watches the console's yaw can hold up.
+fn print_candidates(probe: &Path) -> Vec<Source> {
+    let turns = [-60, -45, -30, -15, 0, 15, 30, 45, 60];
+    let bends = [0, 40];
+    turns.iter().flat_map(|&turn| bends.map(|bend_radius_pct| Source::Print { path: probe.to_path_buf(), turn, bend_radius_pct })).collect()
+}
+
+/// The probe photo's fitted head rendered at 0° and 15° to 45° either way.
+fn avatar_candidates(probe: &Path) -> Vec<Source> {
+    [-45, -35, -25, -15, 0, 15, 25, 35, 45].map(|yaw| Source::Avatar { path: probe.to_path_buf(), yaw }).to_vec()
+}
+
+/// Every frame the attackers with the console's check may send, to be analysed before the
+/// attempts are made: the test (or training) IMM persons' probe photos printed and rendered.
+fn adaptive_candidates(config: &ChallengeEvalConfig) -> Vec<Source> {
+    (1..=30)
+        .filter(|&p| crate::dataset::imm_is_test_person(p) == config.test_persons)
+        .filter_map(|p| imm_photo(&config.imm, p, 2))
+        .flat_map(|probe| print_candidates(&probe).into_iter().chain(avatar_candidates(&probe)))
+        .collect()
+}
+
+/// A step's frame as the console takes it: `candidates` tried in a random order, the first whose
+/// yaw as `/analyze` reads it (`key_point_pose`) lies in the step's range; when none does, the
+/// client's wait runs out and it sends the last one tried.
+fn console_pick(
+    candidates: &mut [Source],
+    step: &Step,
+    rng: &mut rand_chacha::ChaCha8Rng,
+    yaw_of: &dyn Fn(&Source) -> Option<f32>,
+) -> Source {
+    candidates.shuffle(rng);
+    let found = candidates.iter().find(|c| yaw_of(c).is_some_and(|y| step.admits(y)));
+    found.unwrap_or_else(|| candidates.last().expect("candidates")).clone()
 }
 
 /// UMIST's photos by person: the enrolled one (18), the probe (19) and the candidates for turned
@@ -360,14 +408,7 @@ fn umist_attempts(
                 continue;
             }
             made += 1;
-            let frames = steps
-                .iter()
-                .map(|step| {
-                    candidates.shuffle(rng);
-                    let found = candidates.iter().find(|c| yaw_of(c).is_some_and(|y| step.admits(y)));
-                    found.unwrap_or_else(|| candidates.last().expect("UMIST candidates")).clone()
-                })
-                .collect();
+            let frames = steps.iter().map(|step| console_pick(&mut candidates, step, rng, yaw_of)).collect();
             out.push(Attempt {
                 kind: "live",
                 person: format!("umist-{person}"),
@@ -471,7 +512,8 @@ pub fn judge_attempt(pipeline: &Pipeline, attempt: &Attempt, analyses: &Analyses
 
 /// Judge every attempt and tally them by kind.
 pub fn evaluate(pipeline: &Pipeline, config: &ChallengeEvalConfig, progress: &dyn Progress) -> anyhow::Result<ChallengeReport> {
-    let mut analyses = analyze_sources(pipeline, umist_candidates(config)?, config.threads, progress);
+    let candidates = umist_candidates(config)?.into_iter().chain(adaptive_candidates(config)).collect();
+    let mut analyses = analyze_sources(pipeline, candidates, config.threads, progress);
     let yaw_of = |s: &Source| analyses.get(s).and_then(|(a, _)| a.as_ref()).and_then(|a| a.key_point_pose).map(|p| p.yaw);
     let attempts = attempts(config, &yaw_of)?;
     let used = attempts.iter().flat_map(|a| [a.enrolled.clone(), a.probe.clone()].into_iter().chain(a.frames.iter().cloned()));
@@ -509,7 +551,7 @@ pub fn evaluate(pipeline: &Pipeline, config: &ChallengeEvalConfig, progress: &dy
             match attempt.kind {
                 "live" => live_parallax.push(p),
                 k if k.contains("print") => print_parallax.push(p),
-                "avatar render" => avatar_parallax.push(p),
+                k if k.starts_with("avatar") => avatar_parallax.push(p),
                 _ => {}
             }
         }
@@ -665,15 +707,35 @@ mod tests {
             seed: 3,
             threads: 1,
         };
-        let attempts = attempts(&config, &|_| Some(20.0)).unwrap();
+        // A stand-in for `/analyze`: a print reads half its turn, an avatar its render's yaw.
+        let yaw_of = |s: &Source| match s {
+            Source::Print { turn, .. } => Some(*turn as f32 / 2.0),
+            Source::Avatar { yaw, .. } => Some(*yaw as f32),
+            _ => Some(20.0),
+        };
+        let attempts = attempts(&config, &yaw_of).unwrap();
         let kinds: std::collections::BTreeSet<&str> = attempts.iter().map(|a| a.kind).collect();
-        for kind in
-            ["live", "still photo", "wrong order", "stranger in one step", "avatar render", "NUAA print capture", "flat print turned ±30°"]
-        {
+        for kind in [
+            "live",
+            "still photo",
+            "wrong order",
+            "stranger in one step",
+            "avatar render",
+            "NUAA print capture",
+            "flat print turned ±30°",
+            "print turned until in range",
+            "avatar turned until in range",
+        ] {
             assert!(kinds.contains(kind), "{kind} missing from {kinds:?}");
         }
         for a in &attempts {
             assert_eq!(a.frames.len(), a.steps.len(), "{a:?}");
+            if a.kind.ends_with("until in range") {
+                // Every step has a candidate inside its range here, and the attacker sends it.
+                for (step, frame) in a.steps.iter().zip(&a.frames) {
+                    assert!(step.admits(yaw_of(frame).unwrap()), "{step:?} answered by {frame:?}");
+                }
+            }
             if a.kind == "live" && a.person.starts_with("imm-") {
                 for (step, frame) in a.steps.iter().zip(&a.frames) {
                     let Source::File(path) = frame else { panic!("{frame:?}") };
