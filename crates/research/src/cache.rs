@@ -74,16 +74,23 @@ impl ModelFiles {
     }
 
     /// The service's face finder as [`facegate_vision::pipeline::FaceFinder::load`] reads
-    /// `models_dir`: the detector's files under `cascades/` (their compiled-in copies where absent,
-    /// as the detector falls back to them), `asm.bin` and `asm3d.bin` (when present).
+    /// `models_dir`: the detectors' files (the cascades under `cascades/`, `yunet.onnx`; their
+    /// compiled-in copies where absent, as the detector falls back to them), `asm.bin`,
+    /// `asm3d.bin` and `asm3d-profile.bin` (when present).
     pub fn finder(self, models_dir: &Path) -> ModelFiles {
-        use facegate_vision::detect::{EMBEDDED_FRONTAL, EMBEDDED_PROFILE, EMBEDDED_SEETA, FRONTAL_CASCADE, PROFILE_CASCADE, SEETA_MODEL};
+        use facegate_vision::detect::{
+            EMBEDDED_FRONTAL, EMBEDDED_PROFILE, EMBEDDED_SEETA, EMBEDDED_YUNET, FRONTAL_CASCADE, PROFILE_CASCADE, SEETA_MODEL, YUNET_MODEL,
+        };
         let cascades =
             [(FRONTAL_CASCADE, EMBEDDED_FRONTAL.as_bytes()), (PROFILE_CASCADE, EMBEDDED_PROFILE.as_bytes()), (SEETA_MODEL, EMBEDDED_SEETA)];
         let with_cascades = cascades.into_iter().fold(self, |files, (name, embedded)| {
             files.with(format!("cascades/{name}"), Some(models_dir.join("cascades").join(name)), Some(embedded))
         });
-        with_cascades.model(models_dir, "asm.bin").model(models_dir, "asm3d.bin")
+        with_cascades
+            .with(YUNET_MODEL.to_string(), Some(models_dir.join(YUNET_MODEL)), Some(EMBEDDED_YUNET))
+            .model(models_dir, "asm.bin")
+            .model(models_dir, "asm3d.bin")
+            .model(models_dir, "asm3d-profile.bin")
     }
 
     /// The file `name` of `models_dir` (`embedding.bin`, …).
@@ -267,6 +274,8 @@ mod tests {
         let changes = [
             models.join("asm.bin"),
             models.join("asm3d.bin"),
+            models.join("asm3d-profile.bin"),
+            models.join(facegate_vision::detect::YUNET_MODEL),
             models.join("embedding.bin"),
             models.join("cascades").join(facegate_vision::detect::FRONTAL_CASCADE),
             sfm.join(facegate_vision::morph::SHAPE_FILE),

@@ -29,8 +29,7 @@ pub fn face_boxes(
     threads: usize,
     progress: &dyn Progress,
 ) -> anyhow::Result<Vec<Option<Rect>>> {
-    // The finder's files, and YuNet's (the default detector, which `ModelFiles::finder` leaves out).
-    let models = ModelFiles::new().finder(models_dir).model(models_dir, facegate_vision::detect::YUNET_MODEL);
+    let models = ModelFiles::new().finder(models_dir);
     let key = CacheKey::new("minifasnet-face-boxes", &models, &[], images.iter().map(|p| p.display().to_string()));
     cache::get_or_compute(cache_dir, &key, images.len(), progress, || {
         let finder = FaceFinder::load(models_dir)?;
