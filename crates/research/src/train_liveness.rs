@@ -112,9 +112,14 @@ pub fn all_features(images: &[PathBuf], keypoints: &[Option<KeyPoints>], threads
     let items: Vec<(&PathBuf, &Option<KeyPoints>)> = images.iter().zip(keypoints).collect();
     map_samples(&items, threads, "liveness features", progress, |(path, kp)| {
         let kp = (*kp).as_ref()?;
-        let photo = image::open(path).ok()?.to_rgb8();
-        Some(facegate_vision::liveness::features::features(&facegate_vision::liveness::features::crops(&photo, kp), &Block::ALL))
+        Some(block_features(&image::open(path).ok()?.to_rgb8(), kp))
     })
+}
+
+/// Every block's features of `photo` around its key points `kp`.
+fn block_features(photo: &image::RgbImage, kp: &KeyPoints) -> Vec<f32> {
+    use facegate_vision::liveness::features::{crops, features};
+    features(&crops(photo, kp), &Block::ALL)
 }
 
 /// Every block's features of each photo with key points, the photo turned into the simulated
@@ -129,8 +134,7 @@ pub fn simulated_features(
     let items: Vec<(usize, &PathBuf, &Option<KeyPoints>)> = images.iter().zip(keypoints).enumerate().map(|(i, (p, k))| (i, p, k)).collect();
     map_samples(&items, threads, kind.name(), progress, |(i, path, kp)| {
         let kp = (*kp).as_ref()?;
-        let photo = simulate(&image::open(path).ok()?.to_rgb8(), kind, *i as u64);
-        Some(facegate_vision::liveness::features::features(&facegate_vision::liveness::features::crops(&photo, kp), &Block::ALL))
+        Some(block_features(&simulate(&image::open(path).ok()?.to_rgb8(), kind, *i as u64), kp))
     })
 }
 
