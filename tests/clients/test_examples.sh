@@ -51,15 +51,15 @@ for lang in python typescript curl; do
     # Under --liveness enforce: a live frame enrols, a printed photo of the same person is refused.
     expect "$lang" 0 "^enrolled $s: 1 template" '' "$ENFORCE" -- enroll "$s" "$NUAA/real/0004/0004_01_00_02_134.jpg"
     expect "$lang" 2 '' 'presentation-attack' "$ENFORCE" -- verify "$s" "$NUAA/print/0004/0004_01_01_03_211.jpg"
-    # The head-turn challenge with IMM person 02: a photo per turn passes; frontal photos for the
+    # The head-turn challenge with IMM person 15: a photo per turn passes; frontal photos for the
     # turns fail it (reported under --liveness report, refused under enforce), saying why.
-    t="$s-turns" turns=(--front "$IMM/02-6m.jpg" --left "$IMM/02-4m.jpg" --right "$IMM/02-3m.jpg")
-    expect "$lang" 0 "^enrolled $t: 2 template" '' "$BASE" -- enroll "$t" "$IMM/02-1m.jpg" "$IMM/02-2m.jpg"
-    expect "$lang" 0 '^challenge passed' '' "$BASE" -- verify-challenge "$t" "$IMM/02-5m.jpg" "${turns[@]}"
-    expect "$lang" 2 '^match: ' 'challenge failed: .' "$BASE" -- verify-challenge "$t" "$IMM/02-5m.jpg" --left "$IMM/02-6m.jpg" --right "$IMM/02-6m.jpg"
-    expect "$lang" 0 "^enrolled $t: 2 template" '' "$ENFORCE" -- enroll "$t" "$IMM/02-1m.jpg" "$IMM/02-2m.jpg"
-    expect "$lang" 0 '^challenge passed' '' "$ENFORCE" -- verify-challenge "$t" "$IMM/02-5m.jpg" "${turns[@]}"
-    expect "$lang" 2 '' 'challenge failed: .*presentation-attack' "$ENFORCE" -- verify-challenge "$t" "$IMM/02-5m.jpg" --left "$IMM/02-5m.jpg" --right "$IMM/02-6m.jpg"
+    t="$s-turns" turns=(--front "$IMM/15-5f.jpg" --left "$IMM/15-4f.jpg" --right "$IMM/15-3f.jpg")
+    expect "$lang" 0 "^enrolled $t: 2 template" '' "$BASE" -- enroll "$t" "$IMM/15-1f.jpg" "$IMM/15-2f.jpg"
+    expect "$lang" 0 '^challenge passed' '' "$BASE" -- verify-challenge "$t" "$IMM/15-2f.jpg" "${turns[@]}"
+    expect "$lang" 2 '^match: ' 'challenge failed: .' "$BASE" -- verify-challenge "$t" "$IMM/15-2f.jpg" --left "$IMM/15-1f.jpg" --right "$IMM/15-1f.jpg"
+    expect "$lang" 0 "^enrolled $t: 2 template" '' "$ENFORCE" -- enroll "$t" "$IMM/15-1f.jpg" "$IMM/15-2f.jpg"
+    expect "$lang" 0 '^challenge passed' '' "$ENFORCE" -- verify-challenge "$t" "$IMM/15-2f.jpg" "${turns[@]}"
+    expect "$lang" 2 '' 'challenge failed: .*presentation-attack' "$ENFORCE" -- verify-challenge "$t" "$IMM/15-2f.jpg" --left "$IMM/15-5f.jpg" --right "$IMM/15-1f.jpg"
 done
 echo "examples: $passed passed, $failed failed"
 [[ $failed == 0 ]]

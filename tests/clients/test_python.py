@@ -91,10 +91,10 @@ def enrol_by_multipart():
 
 
 def enrol_by_json():
-    e = parsed(enroll.sync_detailed(client=client, body=EnrollJsonBody(subject="py-02", images=[b64("02-1m.jpg")])), 201, EnrollResponse)
-    assert (e.subject, e.added, e.templates) == ("py-02", 1, 1), e
+    e = parsed(enroll.sync_detailed(client=client, body=EnrollJsonBody(subject="py-15", images=[b64("15-1f.jpg")])), 201, EnrollResponse)
+    assert (e.subject, e.added, e.templates) == ("py-15", 1, 1), e
     # The single-photo field too.
-    e = parsed(enroll.sync_detailed(client=client, body=EnrollJsonBody(subject="py-02", image=b64("02-2m.jpg"))), 201, EnrollResponse)
+    e = parsed(enroll.sync_detailed(client=client, body=EnrollJsonBody(subject="py-15", image=b64("15-2f.jpg"))), 201, EnrollResponse)
     assert (e.added, e.templates) == (1, 2), e
 
 
@@ -106,23 +106,23 @@ def verify_match_by_multipart():
 
 
 def verify_no_match_by_json_with_fmr():
-    body = VerifyJsonBody(subject="py-01", image=b64("02-4m.jpg"))
+    body = VerifyJsonBody(subject="py-01", image=b64("15-4f.jpg"))
     v = parsed(verify.sync_detailed(client=client, body=body, fmr=0.01), 200, VerifyResponse)
     assert not v.match and v.score < v.threshold, v
     assert v.fmr != 0.001 and 0 < v.fmr < 1, v.fmr
 
 
 def identify_by_multipart():
-    i = parsed(identify.sync_detailed(client=client, body=IdentifyFilesBody(image=photo("02-6m.jpg")), k=2), 200, IdentifyResponse)
+    i = parsed(identify.sync_detailed(client=client, body=IdentifyFilesBody(image=photo("15-5f.jpg")), k=2), 200, IdentifyResponse)
     assert i.subjects_searched == 2 and len(i.candidates) == 2, i
-    assert i.candidates[0].subject == "py-02" and i.candidates[0].match, i.candidates
+    assert i.candidates[0].subject == "py-15" and i.candidates[0].match, i.candidates
     assert i.candidates[0].score >= i.candidates[1].score
 
 
-# IMM person 02 (enrolled as py-02 from views 1 and 2): the photos a head-turn challenge's steps
+# IMM person 15 (enrolled as py-15 from views 1 and 2): the photos a head-turn challenge's steps
 # take, by turn, and the probe looking ahead. The frontal ones are taken in turn.
-TURNED = {Turn.LEFT: ["02-4m.jpg"], Turn.RIGHT: ["02-3m.jpg"], Turn.FRONT: ["02-6m.jpg", "02-2m.jpg", "02-5m.jpg"]}
-CHALLENGE_PROBE = "02-5m.jpg"
+TURNED = {Turn.LEFT: ["15-4f.jpg"], Turn.RIGHT: ["15-3f.jpg"], Turn.FRONT: ["15-1f.jpg", "15-2f.jpg", "15-5f.jpg"]}
+CHALLENGE_PROBE = "15-2f.jpg"
 
 
 def new_challenge() -> ChallengeResponse:
@@ -156,7 +156,7 @@ def challenge_passed_by_multipart():
     c = new_challenge()
     assert create_challenge.sync_detailed(client=client).parsed.challenge != c.challenge, "a fresh id per challenge"
     names = frames_for(c)
-    body = VerifyFilesBody(subject="py-02", image=photo(CHALLENGE_PROBE), challenge=c.challenge, frame=[photo(n) for n in names])
+    body = VerifyFilesBody(subject="py-15", image=photo(CHALLENGE_PROBE), challenge=c.challenge, frame=[photo(n) for n in names])
     v = parsed(verify.sync_detailed(client=client, body=body), 200, VerifyResponse)
     assert v.match, v
     outcome = v.liveness.challenge
@@ -169,7 +169,7 @@ def challenge_passed_by_multipart():
     # Used once: the same challenge again is refused, and so it stays.
     for _ in range(2):
         p = problem(verify.sync_detailed(client=client, body=VerifyFilesBody(
-            subject="py-02", image=photo(CHALLENGE_PROBE), challenge=c.challenge, frame=[photo(n) for n in names])), 422, "invalid-challenge")
+            subject="py-15", image=photo(CHALLENGE_PROBE), challenge=c.challenge, frame=[photo(n) for n in names])), 422, "invalid-challenge")
         assert p.detail, p
 
 
@@ -177,7 +177,7 @@ def challenge_failed_and_unknown_by_json():
     # Every frame looking ahead: the turned steps are not ok, the challenge fails (an attack) and
     # says why; under the default --liveness report the decision is still given.
     c = new_challenge()
-    body = VerifyJsonBody(subject="py-02", image=b64(CHALLENGE_PROBE), challenge=c.challenge, frames=[b64("02-6m.jpg")] * len(c.steps))
+    body = VerifyJsonBody(subject="py-15", image=b64(CHALLENGE_PROBE), challenge=c.challenge, frames=[b64("15-1f.jpg")] * len(c.steps))
     v = parsed(verify.sync_detailed(client=client, body=body), 200, VerifyResponse)
     outcome = v.liveness.challenge
     assert isinstance(outcome, LivenessChallenge) and len(outcome.steps) == len(c.steps), outcome
@@ -185,13 +185,13 @@ def challenge_failed_and_unknown_by_json():
     assert [s.ok for s in outcome.steps] == [s.turn == Turn.FRONT for s in c.steps], outcome.steps
     problem(verify.sync_detailed(client=client, body=body), 422, "invalid-challenge")
     # An id never issued.
-    body = VerifyJsonBody(subject="py-02", image=b64(CHALLENGE_PROBE), challenge="0" * 32, frames=[b64("02-6m.jpg")] * 3)
+    body = VerifyJsonBody(subject="py-15", image=b64(CHALLENGE_PROBE), challenge="0" * 32, frames=[b64("15-1f.jpg")] * 3)
     problem(verify.sync_detailed(client=client, body=body), 422, "invalid-challenge")
 
 
 def challenge_with_a_wrong_frame_count():
     c = new_challenge()
-    body = VerifyJsonBody(subject="py-02", image=b64(CHALLENGE_PROBE), challenge=c.challenge, frames=[b64("02-6m.jpg")] * (len(c.steps) - 1))
+    body = VerifyJsonBody(subject="py-15", image=b64(CHALLENGE_PROBE), challenge=c.challenge, frames=[b64("15-1f.jpg")] * (len(c.steps) - 1))
     problem(verify.sync_detailed(client=client, body=body), 400, "malformed-request")
 
 
@@ -200,21 +200,21 @@ def list_subjects_paged():
     assert [s.id for s in page.subjects] == ["py-01"] and page.next_after == "py-01", page
     assert page.subjects[0].templates == 2 and page.subjects[0].created_at.year >= 2024
     page = parsed(list_subjects.sync_detailed(client=client, after=page.next_after), 200, SubjectList)
-    assert [s.id for s in page.subjects] == ["py-02"] and page.next_after is None, page
+    assert [s.id for s in page.subjects] == ["py-15"] and page.next_after is None, page
 
 
 def get_subject_detail():
-    d = parsed(get_subject.sync_detailed("py-02", client=client), 200, SubjectDetail)
-    assert d.id == "py-02" and d.templates == 2, d
+    d = parsed(get_subject.sync_detailed("py-15", client=client), 200, SubjectDetail)
+    assert d.id == "py-15" and d.templates == 2, d
     assert [m.templates for m in d.model_versions] == [2], d.model_versions
     assert d.updated_at >= d.created_at
 
 
 def delete_a_subject():
-    r = delete_subject.sync_detailed("py-02", client=client)
+    r = delete_subject.sync_detailed("py-15", client=client)
     assert r.status_code == 204 and r.content == b"", (r.status_code, r.content)
-    problem(get_subject.sync_detailed("py-02", client=client), 404, "unknown-subject")
-    problem(delete_subject.sync_detailed("py-02", client=client), 404, "unknown-subject")
+    problem(get_subject.sync_detailed("py-15", client=client), 404, "unknown-subject")
+    problem(delete_subject.sync_detailed("py-15", client=client), 404, "unknown-subject")
 
 
 def problems_as_typed_errors():

@@ -54,10 +54,10 @@ function problem(r: { error?: Problem; response: Response }, status: number, slu
   return p;
 }
 
-// IMM person 02 (enrolled as ts-02 from views 1 and 2): the photos a head-turn challenge's steps
+// IMM person 15 (enrolled as ts-15 from views 1 and 2): the photos a head-turn challenge's steps
 // take, by turn (the frontal ones in turn), and the probe looking ahead.
-const TURNED: Record<Turn, string[]> = { left: ["02-4m.jpg"], right: ["02-3m.jpg"], front: ["02-6m.jpg", "02-2m.jpg", "02-5m.jpg"] };
-const CHALLENGE_PROBE = "02-5m.jpg";
+const TURNED: Record<Turn, string[]> = { left: ["15-4f.jpg"], right: ["15-3f.jpg"], front: ["15-1f.jpg", "15-2f.jpg", "15-5f.jpg"] };
+const CHALLENGE_PROBE = "15-2f.jpg";
 
 async function newChallenge(): Promise<Challenge> {
   const c = ok(await client.POST("/liveness/challenge", {}), 201);
@@ -98,9 +98,9 @@ const checks: Record<string, () => Promise<void>> = {
   },
 
   async enrol_by_json() {
-    let e = ok(await client.POST("/enroll", { body: { subject: "ts-02", images: [b64("02-1m.jpg")] } }), 201);
+    let e = ok(await client.POST("/enroll", { body: { subject: "ts-15", images: [b64("15-1f.jpg")] } }), 201);
     assert(e.added === 1 && e.templates === 1, JSON.stringify(e));
-    e = ok(await client.POST("/enroll", { body: { subject: "ts-02", image: b64("02-2m.jpg") } }), 201);
+    e = ok(await client.POST("/enroll", { body: { subject: "ts-15", image: b64("15-2f.jpg") } }), 201);
     assert(e.added === 1 && e.templates === 2, JSON.stringify(e));
   },
 
@@ -112,7 +112,7 @@ const checks: Record<string, () => Promise<void>> = {
 
   async verify_no_match_by_json_with_fmr() {
     const v = ok(
-      await client.POST("/verify", { params: { query: { fmr: 0.01 } }, body: { subject: "ts-01", image: b64("02-4m.jpg") } }),
+      await client.POST("/verify", { params: { query: { fmr: 0.01 } }, body: { subject: "ts-01", image: b64("15-4f.jpg") } }),
       200,
     );
     assert(!v.match && v.score < v.threshold && v.fmr !== 0.001, JSON.stringify(v));
@@ -120,17 +120,17 @@ const checks: Record<string, () => Promise<void>> = {
 
   async identify_by_multipart() {
     const i = ok(
-      await client.POST("/identify", { params: { query: { k: 2 } }, body: { image: photo("02-6m.jpg") }, ...multipart }),
+      await client.POST("/identify", { params: { query: { k: 2 } }, body: { image: photo("15-5f.jpg") }, ...multipart }),
       200,
     );
     assert(i.subjects_searched === 2 && i.candidates.length === 2, JSON.stringify(i.candidates));
-    assert(i.candidates[0]?.subject === "ts-02" && i.candidates[0].match, JSON.stringify(i.candidates));
+    assert(i.candidates[0]?.subject === "ts-15" && i.candidates[0].match, JSON.stringify(i.candidates));
   },
 
   async challenge_passed_by_json() {
     const c = await newChallenge();
     const names = framesFor(c);
-    const body = { subject: "ts-02", image: b64(CHALLENGE_PROBE), challenge: c.challenge, frames: names.map(b64) };
+    const body = { subject: "ts-15", image: b64(CHALLENGE_PROBE), challenge: c.challenge, frames: names.map(b64) };
     const v = ok(await client.POST("/verify", { body }), 200);
     const outcome = v.liveness?.challenge;
     assert(v.match && outcome !== undefined, JSON.stringify(v.liveness));
@@ -149,8 +149,8 @@ const checks: Record<string, () => Promise<void>> = {
   async challenge_failed_by_multipart() {
     // Every frame looking ahead: the turned steps are not ok and the challenge fails, saying why.
     const c = await newChallenge();
-    const frame = c.steps.map(() => photo("02-6m.jpg"));
-    const body = { subject: "ts-02", image: photo(CHALLENGE_PROBE), challenge: c.challenge, frame };
+    const frame = c.steps.map(() => photo("15-1f.jpg"));
+    const body = { subject: "ts-15", image: photo(CHALLENGE_PROBE), challenge: c.challenge, frame };
     const v = ok(await client.POST("/verify", { body, ...multipart }), 200);
     const outcome = v.liveness?.challenge;
     assert(outcome !== undefined && outcome.steps.length === c.steps.length, JSON.stringify(v.liveness));
@@ -164,18 +164,18 @@ const checks: Record<string, () => Promise<void>> = {
     assert(page.subjects.map((s) => s.id).join() === "ts-01" && page.next_after === "ts-01", JSON.stringify(page));
     assert(!Number.isNaN(Date.parse(page.subjects[0]?.created_at ?? "")), "created_at");
     page = ok(await client.GET("/subjects", { params: { query: { after: page.next_after } } }), 200);
-    assert(page.subjects.map((s) => s.id).join() === "ts-02" && page.next_after === null, JSON.stringify(page));
+    assert(page.subjects.map((s) => s.id).join() === "ts-15" && page.next_after === null, JSON.stringify(page));
   },
 
   async get_subject_detail() {
-    const d = ok(await client.GET("/subjects/{id}", { params: { path: { id: "ts-02" } } }), 200);
-    assert(d.id === "ts-02" && d.templates === 2 && d.model_versions.length === 1, JSON.stringify(d));
+    const d = ok(await client.GET("/subjects/{id}", { params: { path: { id: "ts-15" } } }), 200);
+    assert(d.id === "ts-15" && d.templates === 2 && d.model_versions.length === 1, JSON.stringify(d));
   },
 
   async delete_a_subject() {
-    const r = await client.DELETE("/subjects/{id}", { params: { path: { id: "ts-02" } } });
+    const r = await client.DELETE("/subjects/{id}", { params: { path: { id: "ts-15" } } });
     assert(r.response.status === 204, `status ${r.response.status}`);
-    problem(await client.GET("/subjects/{id}", { params: { path: { id: "ts-02" } } }), 404, "unknown-subject");
+    problem(await client.GET("/subjects/{id}", { params: { path: { id: "ts-15" } } }), 404, "unknown-subject");
   },
 
   async problems_as_typed_errors() {
