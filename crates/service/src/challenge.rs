@@ -146,7 +146,7 @@ pub fn judge(steps: &[Step], probe: &FaceAnalysis, frames: &[&FaceAnalysis], sam
     ChallengeOutcome { passed: reason.is_none(), reason, steps: readings, parallax }
 }
 
-/// A frame's step yaw is its key-point pose's ([`facegate_vision::pipeline::Pipeline::key_point_pose`]),
+/// A frame's step yaw is its key-point pose's ([`facegate_vision::pipeline::Pipeline::key_point_fit`]),
 /// its depth's yaw the 58-landmark fit's ([`FramePose`] says why).
 fn frame_pose(a: &FaceAnalysis) -> FramePose {
     FramePose { yaw: a.key_point_pose.map(|p| p.yaw), fit_yaw: a.pose.map(|p| p.yaw), keypoints: a.face.points }

@@ -42,7 +42,7 @@ pub struct FaceAnalysis {
     /// Head pose from the 3DMM fit, when the model is loaded.
     pub pose: Option<Pose>,
     /// Head pose of the 3DMM's mean face fitted to the detector's five key points
-    /// ([`Pipeline::key_point_pose`]); `None` without key points or the model.
+    /// ([`Pipeline::key_point_fit`]); `None` without key points or the model.
     pub key_point_pose: Option<Pose>,
     pub template: Template,
     /// The face image quality components and unified score.
@@ -71,7 +71,7 @@ pub struct FaceReading {
     /// Head pose from the 3DMM fit; `None` when the model is not loaded or the fit failed.
     pub pose: Option<Pose>,
     /// Head pose of the 3DMM's mean face fitted to the detector's five key points
-    /// ([`Pipeline::key_point_pose`]).
+    /// ([`Pipeline::key_point_fit`]).
     pub key_point_pose: Option<Pose>,
     /// RMS distance in pixels between the landmarks and the fitted model's points.
     pub fit_residual_px: Option<f32>,
@@ -148,14 +148,17 @@ impl Pipeline {
         let landmarks = tracing::info_span!("landmarks").in_scope(|| self.finder.landmarks_of(&photo.gray, &face));
         timings.landmarks_ms = elapsed_ms(t);
 
+        // One fit of the mean face to the detector's points: the challenge's pose, and the pose of
+        // a profile the C-ASM landmarked (`profile_fit`).
+        let key_point_fit = self.key_point_fit(photo, &face);
+        let key_point_pose = key_point_fit.as_ref().map(|f| f.pose);
         let (template, pose, quality) = match &self.recognizer {
             Recognizer::Classical(recognizer) => self.classical_template(recognizer, photo, &landmarks, &mut timings)?,
-            _ => self.embedding_template(photo, &face, &landmarks, &mut timings)?,
+            _ => self.embedding_template(photo, &face, &landmarks, key_point_fit, &mut timings)?,
         };
         let t = Instant::now();
         let liveness = tracing::info_span!("liveness").in_scope(|| self.liveness_of(photo, &landmarks));
         timings.liveness_ms = elapsed_ms(t);
-        let key_point_pose = self.key_point_pose(photo, &face);
         Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, key_point_pose, template, quality, liveness, timings })
     }
 
@@ -166,6 +169,7 @@ impl Pipeline {
         photo: &Photo,
         face: &Face,
         landmarks: &Landmarks,
+        key_point_fit: Option<FittedFace>,
         timings: &mut StageTimings,
     ) -> Result<(Template, Option<Pose>, Quality), PipelineError> {
         // The networks see the photo itself (the 3DMM frontal rendering measured worse as the
@@ -173,7 +177,7 @@ impl Pipeline {
         let t = Instant::now();
         let fitting = tracing::info_span!("3d_fit").entered();
         let mut input = recognition_input(self.face_model.as_ref(), photo, landmarks, Normalization::TwoD)?;
-        if let Some(fit) = self.profile_fit(photo, face) {
+        if let Some(fit) = self.profile_fit(face, key_point_fit) {
             (input.pose, input.fit_residual_px) = (Some(fit.pose), Some(fit.residual_px));
         }
         drop(fitting);
@@ -223,15 +227,16 @@ impl Pipeline {
                 let landmarks = self.finder.landmarks_of(&photo.gray, &face);
                 let landmarks_ms = elapsed_ms(t);
                 let t = Instant::now();
+                let key_point_fit = self.key_point_fit(photo, &face);
+                let key_point_pose = key_point_fit.as_ref().map(|f| f.pose);
                 let fit = self
-                    .profile_fit(photo, &face)
+                    .profile_fit(&face, key_point_fit)
                     .or_else(|| self.face_model.as_ref().and_then(|m| m.fit(&landmarks.points, photo.width(), photo.height()).ok()));
                 let morph_ms = elapsed_ms(t);
                 let (pose, fit_residual_px) = (fit.as_ref().map(|f| f.pose), fit.as_ref().map(|f| f.residual_px));
                 let visible = self.face_model.as_ref().zip(fit.as_ref()).map(|(m, f)| m.landmark_visibility(f));
                 let quality = self.quality.assess(quality_components(photo, &landmarks, pose, fit_residual_px).1);
                 let liveness = self.liveness_of(photo, &landmarks);
-                let key_point_pose = self.key_point_pose(photo, &face);
                 FaceReading { face, landmarks, pose, key_point_pose, fit_residual_px, visible, quality, liveness, landmarks_ms, morph_ms }
             })
             .collect();
@@ -239,29 +244,28 @@ impl Pipeline {
     }
 
     /// On a head the detector's five points show turned past [`HIDDEN_SIDE_YAW`] whose landmarks
-    /// are the C-ASM's (no profile model loaded), the mean face fitted to those points: there the
-    /// C-ASM's 58 points, and the fit to them, are unreliable. With the profile model's landmarks
-    /// the 3DMM fit to them stands: on renders of held-out faces its yaw was 7–18° off at 60–90°,
-    /// the five-point fit's 18–33° (`facegate eval landmarks`, docs/pose.md).
-    fn profile_fit(&self, photo: &Photo, face: &Face) -> Option<FittedFace> {
+    /// are the C-ASM's (no profile model loaded), the mean face fitted to those points
+    /// (`key_point_fit`, [`Pipeline::key_point_fit`]): there the C-ASM's 58 points, and the fit to
+    /// them, are unreliable. With the profile model's landmarks the 3DMM fit to them stands: on
+    /// renders of held-out faces its yaw was 7–18° off at 60–90°, the five-point fit's 18–33°
+    /// (`facegate eval landmarks`, docs/pose.md).
+    fn profile_fit(&self, face: &Face, key_point_fit: Option<FittedFace>) -> Option<FittedFace> {
         if self.finder.profile_seeded(face) {
             return None;
         }
-        let fit = self.face_model.as_ref()?.fit_key_points(face.points.as_ref()?, photo.width(), photo.height()).ok()?;
-        (fit.pose.yaw.abs() >= HIDDEN_SIDE_YAW).then_some(fit)
+        key_point_fit.filter(|fit| fit.pose.yaw.abs() >= HIDDEN_SIDE_YAW)
     }
 
-    /// The pose of the 3DMM's mean face fitted to the detector's five key points (scaled
-    /// orthographic, `FaceModel::fit_key_points`): the yaw the head-turn challenge judges its steps
+    /// The 3DMM's mean face fitted to the detector's five key points (scaled orthographic,
+    /// `FaceModel::fit_key_points`). Its pose is the yaw the head-turn challenge judges its steps
     /// by. On the IMM training persons' photos and their mirror images it kept every frontal view
     /// (1, 2, 5) within 9.3° and every turned one (3, 4) at 14.0° or more, where the 58-landmark
     /// fit read frontal views up to 12.0° and turned ones down to 10.0°: the C-ASM's points
     /// sometimes settle on a frontal shape on a head turned 20–30°, and the fit follows them
     /// (docs/liveness-challenge.md, "Which yaw"). `None` without key points (the cascade
     /// detectors) or without the model.
-    pub fn key_point_pose(&self, photo: &Photo, face: &Face) -> Option<Pose> {
-        let points = face.points.as_ref()?;
-        self.face_model.as_ref()?.fit_key_points(points, photo.width(), photo.height()).ok().map(|fit| fit.pose)
+    pub fn key_point_fit(&self, photo: &Photo, face: &Face) -> Option<FittedFace> {
+        self.face_model.as_ref()?.fit_key_points(face.points.as_ref()?, photo.width(), photo.height()).ok()
     }
 
     /// The liveness of the face with `landmarks`, measured where the recognizer cuts its chip.
