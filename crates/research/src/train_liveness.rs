@@ -160,7 +160,17 @@ pub struct LogisticFit {
 
 impl LogisticFit {
     pub fn logit(&self, x: &[f32]) -> f32 {
-        self.bias + x.iter().zip(&self.mean).zip(&self.scale).zip(&self.weights).map(|(((x, m), s), w)| w * (x - m) / s).sum::<f32>()
+        self.logit_of(x.iter().copied())
+    }
+
+    /// The logit of the features `x` at `cols` ([`columns`]): a fit on some blocks scoring every
+    /// block's features.
+    pub fn logit_at(&self, cols: &[usize], x: &[f32]) -> f32 {
+        self.logit_of(cols.iter().map(|&c| x[c]))
+    }
+
+    fn logit_of(&self, x: impl Iterator<Item = f32>) -> f32 {
+        self.bias + x.zip(&self.mean).zip(&self.scale).zip(&self.weights).map(|(((x, m), s), w)| w * (x - m) / s).sum::<f32>()
     }
 }
 
@@ -238,6 +248,12 @@ pub fn platt(logits: &[f32], live: &[bool]) -> (f32, f32) {
     (slope, fit.bias - slope * fit.mean[0])
 }
 
+/// The probability of a live face from a `logit` under [`platt`]'s `(slope, offset)`, as the
+/// runtime model's `probability` computes it.
+pub fn platt_probability((slope, offset): (f32, f32), logit: f32) -> f32 {
+    1.0 / (1.0 + (-(slope * logit + offset)).exp())
+}
+
 /// The runtime model from a fit on `blocks`, a calibration and an operating point.
 pub fn model(
     name: &str,
@@ -267,6 +283,16 @@ pub fn model(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_fit_scores_the_columns_it_was_fitted_on() {
+        let fit = LogisticFit { mean: vec![1.0, -2.0], scale: vec![2.0, 0.5], weights: vec![0.3, -1.5], bias: 0.25 };
+        let all = [9.0, 3.0, 7.0, -1.0];
+        // Columns 2 and 3: 0.25 + 0.3·(7 − 1)/2 − 1.5·(−1 + 2)/0.5 = 0.25 + 0.9 − 3.0.
+        assert_eq!(fit.logit_at(&[2, 3], &all), fit.logit(&[7.0, -1.0]));
+        assert!((fit.logit_at(&[2, 3], &all) - (-1.85)).abs() < 1e-6);
+        assert!((platt_probability((2.0, -1.0), 0.5) - 0.5).abs() < 1e-6, "a logit calibrated to 0 is even odds");
+    }
 
     #[test]
     fn nuaa_names_give_subject_condition_and_session() {
@@ -448,7 +474,7 @@ pub fn out_of_fold_logits(data: &LivenessData, recipe: &Recipe, progress: &dyn P
         let train: Vec<usize> = (0..data.nuaa.len()).filter(|&i| data.nuaa[i].subject != subject).collect();
         let fit = fit_recipe(data, recipe, &train);
         for i in (0..data.nuaa.len()).filter(|&i| data.nuaa[i].subject == subject) {
-            out[i] = data.nuaa_features[i].as_ref().map(|f| fit.logit(&cols.iter().map(|&c| f[c]).collect::<Vec<f32>>()));
+            out[i] = data.nuaa_features[i].as_ref().map(|f| fit.logit_at(&cols, f));
         }
         progress.step();
     }

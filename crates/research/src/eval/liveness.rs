@@ -16,6 +16,7 @@ use crate::eval::verification::{eer, error_curve, fnmr_at_fmr};
 use crate::train_deep::Set;
 use crate::train_liveness::{
     LivenessData, LogisticFit, Recipe, columns, fit_recipe, fit_recipe_without, homography_residual, out_of_fold_logits, platt,
+    platt_probability,
 };
 
 /// The ISO/IEC 30107-3 error rates at one threshold.
@@ -234,20 +235,15 @@ fn simulated_acceptance(
     recipe: &Recipe,
     full: &LogisticFit,
     f: &FoldScores,
-    (slope, offset): (f32, f32),
+    calibration: (f32, f32),
 ) -> Vec<SimulatedAcceptance> {
     let cols = columns(&recipe.blocks);
-    let calibrated = |l: f32| 1.0 / (1.0 + (-(slope * l + offset)).exp());
+    let calibrated = |l: f32| platt_probability(calibration, l);
     let test = data.others_in(Split::Test);
     let scores: Vec<Vec<f32>> = data
         .simulated_features
         .iter()
-        .map(|kind| {
-            test.iter()
-                .filter_map(|&i| kind[i].as_ref())
-                .map(|x| calibrated(full.logit(&cols.iter().map(|&c| x[c]).collect::<Vec<f32>>())))
-                .collect()
-        })
+        .map(|kind| test.iter().filter_map(|&i| kind[i].as_ref()).map(|x| calibrated(full.logit_at(&cols, x))).collect())
         .collect();
     let accepted = |v: &[f32], t: f32| v.iter().filter(|&&s| s >= t).count() as f64 / v.len().max(1) as f64;
     OPERATING_POINTS
@@ -271,7 +267,7 @@ fn reverse_check(data: &LivenessData, recipe: &Recipe) -> Option<ReverseCheck> {
     }
     let cols = columns(&recipe.blocks);
     let fit = fit_recipe(data, recipe, &[]);
-    let logit = |x: &Vec<f32>| fit.logit(&cols.iter().map(|&c| x[c]).collect::<Vec<f32>>());
+    let logit = |x: &Vec<f32>| fit.logit_at(&cols, x);
     let test = data.others_in(Split::Test);
     let test_live: Vec<f32> = test.iter().filter_map(|&i| data.other_features[i].as_ref()).map(logit).collect();
     let test_attacks: Vec<f32> =
@@ -396,22 +392,21 @@ fn other_camera_refusals(
     recipe: &Recipe,
     full: &LogisticFit,
     f: &FoldScores,
-    (slope, offset): (f32, f32),
+    calibration: (f32, f32),
 ) -> Vec<Refusals> {
     let all: Vec<usize> = (0..data.nuaa.len()).collect();
     let cols = columns(&recipe.blocks);
     let test = data.others_in(Split::Test);
-    let calibrated = |l: f32| 1.0 / (1.0 + (-(slope * l + offset)).exp());
-    let pick = |x: &Vec<f32>| cols.iter().map(|&c| x[c]).collect::<Vec<f32>>();
+    let calibrated = |l: f32| platt_probability(calibration, l);
     // The scores of the test persons' photos of `set` (all sets: None) by a model fitted without `without`.
     let scores_of = |without: Option<Set>, only: Option<Set>| -> Vec<f32> {
         let fit = fit_recipe_without(data, recipe, &all, without);
         test.iter()
             .filter(|&&i| only.is_none_or(|s| data.others[i].set == s))
-            .map(|&i| calibrated(fit.logit(&pick(data.other_features[i].as_ref().expect("with features")))))
+            .map(|&i| calibrated(fit.logit_at(&cols, data.other_features[i].as_ref().expect("with features"))))
             .collect()
     };
-    let umist: Vec<f32> = data.unseen_features.iter().flatten().map(|x| calibrated(full.logit(&pick(x)))).collect();
+    let umist: Vec<f32> = data.unseen_features.iter().flatten().map(|x| calibrated(full.logit_at(&cols, x))).collect();
     let by_set: Vec<(Set, Vec<f32>)> = [Set::Imm, Set::Orl, Set::Lfw]
         .into_iter()
         .map(|set| {
@@ -419,7 +414,7 @@ fn other_camera_refusals(
                 set,
                 test.iter()
                     .filter(|&&i| data.others[i].set == set)
-                    .map(|&i| calibrated(full.logit(&pick(data.other_features[i].as_ref().expect("with features")))))
+                    .map(|&i| calibrated(full.logit_at(&cols, data.other_features[i].as_ref().expect("with features"))))
                     .collect(),
             )
         })

@@ -132,10 +132,7 @@ pub fn recipe_scores<'a>(data: &'a LivenessData, recipe: &'a Recipe) -> impl Fn(
     let cols = columns(&recipe.blocks);
     move |train, score| {
         let fit = fit_recipe(data, recipe, train);
-        score
-            .iter()
-            .map(|&i| data.nuaa_features[i].as_ref().map(|f| fit.logit(&cols.iter().map(|&c| f[c]).collect::<Vec<f32>>())))
-            .collect()
+        score.iter().map(|&i| data.nuaa_features[i].as_ref().map(|f| fit.logit_at(&cols, f))).collect()
     }
 }
 
