@@ -205,6 +205,11 @@ pub fn print_held(photo: &RgbImage, turn: f32, bend_radius: Option<f32>) -> RgbI
     out
 }
 
+/// The IMM persons `config` evaluates: the test persons, or the training ones.
+fn imm_persons(config: &ChallengeEvalConfig) -> Vec<u32> {
+    (1..=30).filter(|&p| crate::dataset::imm_is_test_person(p) == config.test_persons).collect()
+}
+
 /// One IMM photo: `<dir>/<person>-<view>m.jpg` (or `f` for the women).
 fn imm_photo(dir: &Path, person: u32, view: u32) -> Option<PathBuf> {
     ["m", "f"].iter().map(|g| dir.join(format!("{person:02}-{view}{g}.jpg"))).find(|p| p.is_file())
@@ -226,7 +231,7 @@ fn imm_live(dir: &Path, person: u32, turn: Turn, nth: usize) -> Option<Source> {
 /// frame's yaw ([`umist_candidates`]).
 pub fn attempts(config: &ChallengeEvalConfig, yaw_of: &dyn Fn(&Source) -> Option<f32>) -> anyhow::Result<Vec<Attempt>> {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(config.seed);
-    let persons: Vec<u32> = (1..=30).filter(|&p| crate::dataset::imm_is_test_person(p) == config.test_persons).collect();
+    let persons = imm_persons(config);
     let mut out = Vec::new();
     for (k, &person) in persons.iter().enumerate() {
         let (Some(enrolled), Some(probe)) = (imm_photo(&config.imm, person, 1), imm_photo(&config.imm, person, 2)) else { continue };
@@ -342,8 +347,8 @@ fn avatar_candidates(probe: &Path) -> Vec<Source> {
 /// Every frame the attackers with the console's check may send, to be analysed before the
 /// attempts are made: the test (or training) IMM persons' probe photos printed and rendered.
 fn adaptive_candidates(config: &ChallengeEvalConfig) -> Vec<Source> {
-    (1..=30)
-        .filter(|&p| crate::dataset::imm_is_test_person(p) == config.test_persons)
+    imm_persons(config)
+        .into_iter()
         .filter_map(|p| imm_photo(&config.imm, p, 2))
         .flat_map(|probe| print_candidates(&probe).into_iter().chain(avatar_candidates(&probe)))
         .collect()
