@@ -210,8 +210,9 @@ pub struct Settings {
     #[arg(long, env = "FACEGATE_LIVENESS", value_enum, default_value_t = choices::Liveness::from(LivenessPolicy::default()))]
     pub liveness: choices::Liveness,
     /// Liveness score (strictly between 0 and 1) below which a face is an attack, in place of the
-    /// model's operating point (the EER of its NUAA evaluation): for a camera whose live and
-    /// printed-photo scores the operator has measured.
+    /// model's operating point (the EER of its NUAA evaluation) and of the camera's stored one
+    /// (`facegate calibrate-liveness`): for a camera whose live and printed-photo scores the
+    /// operator has measured.
     #[arg(long, env = "FACEGATE_LIVENESS_THRESHOLD")]
     pub liveness_threshold: Option<f32>,
     /// Seconds a liveness challenge (POST /liveness/challenge) may be answered in.

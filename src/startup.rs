@@ -19,6 +19,7 @@ use crate::config::Settings;
 use crate::http::server::{self, ServerLimits, Stopped};
 use crate::http::{self, ApiConfig, AppState, FaceEngine};
 use crate::pipeline::Pipeline;
+use crate::service::liveness_site;
 use crate::service::site::SiteStatus;
 use crate::service::{Facegate, LivenessPolicy, Matcher};
 use crate::store::{KeyCheck, KeyRing, Store};
@@ -158,7 +159,7 @@ impl ApplicationBuilder {
         log_api_keys(&config, &settings.bind);
         let engine: Arc<dyn FaceEngine> = match self.engine {
             Some(engine) => engine,
-            None => match load_pipeline(&settings, &config).await {
+            None => match load_pipeline(&settings, &config, &store).await {
                 Ok(pipeline) => Arc::new(pipeline),
                 Err(e) => {
                     store.close().await;
@@ -204,14 +205,16 @@ fn log_api_keys(config: &ApiConfig, bind: &str) {
     }
 }
 
-/// The face pipeline the settings name, shaped by the liveness settings.
-async fn load_pipeline(settings: &Settings, config: &ApiConfig) -> anyhow::Result<Pipeline> {
+/// The face pipeline the settings name, shaped by the liveness settings and the camera's liveness
+/// calibration in `store`.
+async fn load_pipeline(settings: &Settings, config: &ApiConfig, store: &Store) -> anyhow::Result<Pipeline> {
     let pipeline_config = settings.pipeline_config();
     info!(models = %pipeline_config.models_dir.display(), "loading the face pipeline");
     let loaded = tokio::task::spawn_blocking(move || Pipeline::load(&pipeline_config)).await?;
     // The liveness settings shape the loaded pipeline: off drops the model, a threshold replaces its own.
     let mut pipeline = loaded.context("cannot load the face pipeline models")?;
     settings.configure_liveness(&mut pipeline)?;
+    apply_liveness_calibration(settings, store, &mut pipeline).await?;
     info!(model_version = pipeline.recognizer.model_version(), with_3dmm = pipeline.face_model.is_some(), "pipeline loaded");
     match &pipeline.liveness {
         Some(model) => info!(
@@ -227,6 +230,29 @@ async fn load_pipeline(settings: &Settings, config: &ApiConfig) -> anyhow::Resul
         None => warn!("no liveness model ({}): faces report no liveness", crate::liveness::FILE),
     }
     Ok(pipeline)
+}
+
+/// The camera's liveness threshold (`facegate calibrate-liveness`) in place of the liveness model's
+/// own, unless the operator named one (`--liveness-threshold`, which wins) or liveness is off.
+async fn apply_liveness_calibration(settings: &Settings, store: &Store, pipeline: &mut Pipeline) -> anyhow::Result<()> {
+    let Some(model) = pipeline.liveness.as_mut() else { return Ok(()) };
+    let stored = liveness_site::load(store, &model.name).await.context("cannot read the liveness calibration")?;
+    match stored {
+        Some(calibration) if settings.liveness_threshold.is_some() => warn!(
+            calibrated = calibration.threshold,
+            threshold = model.threshold,
+            "--liveness-threshold (FACEGATE_LIVENESS_THRESHOLD) is set: the camera's stored liveness calibration is not used"
+        ),
+        Some(calibration) if calibration.apply(model) => info!(
+            threshold = calibration.threshold,
+            model_threshold = calibration.model_threshold,
+            live_faces = calibration.live_faces,
+            refused = calibration.refused,
+            "liveness threshold of this camera (facegate calibrate-liveness) in place of the model's"
+        ),
+        _ => info!(threshold = model.threshold, "no liveness calibration (facegate calibrate-liveness): the model's threshold"),
+    }
+    Ok(())
 }
 
 /// Read the site calibration of the engine's model version (`facegate calibrate`) into the service

@@ -123,6 +123,7 @@ pub fn run_eval(args: EvalLivenessArgs) -> anyhow::Result<ExitCode> {
                     a.photos
                 );
             }
+            print_camera_thresholds(&report.camera_thresholds);
             if let Some(r) = &report.reverse {
                 eprintln!(
                     "    without NUAA, on NUAA: EER {:.2}%  BPCER@APCER1% {:.2}%  at the test persons' threshold APCER {:.2}%, BPCER {:.2}%",
@@ -175,6 +176,12 @@ fn run_peers(args: &EvalLivenessArgs, data: &LivenessData, progress: &super::Bar
     for network in selected {
         let folds = scores.folds(data, network, args.data.threads, progress);
         print_nested(network.name(), &folds, args.json)?;
+        let cameras = peer::camera_thresholds(data, &scores, network);
+        if args.json {
+            super::print_json_line(&serde_json::json!({ "peer_camera_thresholds": cameras }));
+        } else {
+            print_camera_thresholds(&cameras);
+        }
         for o in peer::other_cameras(data, &scores, network) {
             if args.json {
                 super::print_json_line(&serde_json::json!({ "peer_other_cameras": o }));
@@ -193,6 +200,28 @@ fn run_peers(args: &EvalLivenessArgs, data: &LivenessData, progress: &super::Bar
         }
     }
     Ok(())
+}
+
+/// Each camera's own threshold against NUAA's, on the camera's test persons.
+fn print_camera_thresholds(cameras: &[research::CameraThreshold]) {
+    for c in cameras {
+        eprintln!(
+            "    {} on {}: its own threshold {:.4} from {} live faces (BPCER {}%): test persons' live refused {:.2}% of {}, simulated prints taken for live {:.2}%, screens {:.2}%; at NUAA's {:.4}: {:.2}%, {:.2}%, {:.2}%",
+            c.model,
+            c.set,
+            c.threshold,
+            c.calibration_faces,
+            100.0 * c.bpcer,
+            100.0 * c.live_refused,
+            c.test_live,
+            100.0 * c.print_accepted,
+            100.0 * c.screen_accepted,
+            c.nuaa_threshold,
+            100.0 * c.nuaa_live_refused,
+            100.0 * c.nuaa_print_accepted,
+            100.0 * c.nuaa_screen_accepted
+        );
+    }
 }
 
 /// The nested protocol's per-subject table and worst subject, for each threshold rule.

@@ -63,6 +63,9 @@ pub enum Command {
     /// Measure the deployment's own impostor thresholds from its enrolled subjects and store them
     /// (the service raises its thresholds to them at start-up).
     Calibrate(store::CalibrateArgs),
+    /// Set the liveness threshold to the deployment's camera from live captures of it and store it
+    /// (the service uses it at start-up in place of the model's).
+    CalibrateLiveness(store::CalibrateLivenessArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -165,6 +168,7 @@ pub fn main() -> ExitCode {
         Command::Rekey(args) => store::run_rekey(args),
         Command::Backup(args) => store::run_backup(args),
         Command::Calibrate(args) => store::run_calibrate(args),
+        Command::CalibrateLiveness(args) => store::run_calibrate_liveness(args),
         Command::Restore(args) => store::run_restore(args),
         Command::Train(TrainCommand::Deep(args)) => embed::run_train_deep(args),
         Command::Eval(EvalCommand::Deep(args)) => embed::run_eval_deep(args),

@@ -1,7 +1,8 @@
-//! `facegate rekey`, `facegate backup` and `facegate restore`: the template database offline
-//! (or, for `rekey` and `backup`, beside the running service).
+//! `facegate rekey`, `facegate backup`, `facegate restore`, `facegate calibrate` and `facegate
+//! calibrate-liveness`: the template database offline (or, for `rekey` and `backup`, beside the
+//! running service), and the deployment's calibrations kept in it.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context;
@@ -10,10 +11,12 @@ use crate::config::{DEFAULT_DATABASE, TemplateKeyArgs};
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::RecognizerKind;
 use crate::service::Matcher;
+use crate::service::liveness_site::{self, DEFAULT_BPCER, LivenessCalibration};
 use crate::service::site::{self, SiteCalibration};
 use crate::store::{self, Store};
 
-use crate::choices::Recognizer;
+use crate::choices::{Detector, Recognizer};
+use crate::detect::DetectorKind;
 
 /// The database the command works on.
 #[derive(clap::Args, Debug)]
@@ -72,6 +75,31 @@ pub struct CalibrateArgs {
     /// The recognizer, as `facegate serve --recognizer`: its model version is the one calibrated.
     #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = Recognizer::from(RecognizerKind::default()))]
     pub recognizer: Recognizer,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct CalibrateLivenessArgs {
+    /// Live captures of the deployment's camera (people in front of it, never prints or screens):
+    /// image files, or folders searched for them. At least 1 / --bpcer faces.
+    #[arg(required_unless_present = "clear")]
+    pub live: Vec<PathBuf>,
+    /// The share of those live faces the threshold may refuse, strictly between 0 and 0.5.
+    #[arg(long, default_value_t = DEFAULT_BPCER)]
+    pub bpcer: f64,
+    #[command(flatten)]
+    pub database: DatabaseArgs,
+    /// Measure and print; store nothing.
+    #[arg(long)]
+    pub dry_run: bool,
+    /// Remove the stored liveness calibration instead (the service then uses the model's threshold).
+    #[arg(long, conflicts_with_all = ["dry_run", "live"])]
+    pub clear: bool,
+    /// The trained models, as `facegate serve --models`: the liveness model calibrated is theirs.
+    #[arg(long, env = "FACEGATE_MODELS")]
+    pub models: Option<PathBuf>,
+    /// The face detector, as `facegate serve --detector`: it places the crops the liveness model reads.
+    #[arg(long, env = "FACEGATE_DETECTOR", value_enum, default_value_t = Detector::from(DetectorKind::default()))]
+    pub detector: Detector,
 }
 
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
@@ -163,6 +191,90 @@ async fn calibrate(store: &Store, args: &CalibrateArgs) -> anyhow::Result<ExitCo
     line["stored"] = serde_json::Value::Bool(!args.dry_run);
     super::print_json_line(&line);
     Ok(ExitCode::SUCCESS)
+}
+
+/// The liveness threshold of the deployment's camera (`facegate_service::liveness_site`): the
+/// liveness model scores every live capture given, the threshold that refuses at most `--bpcer` of
+/// them is stored (or the stored one removed with `--clear`), and the service uses it from its next
+/// start. One JSON line. The database must exist, as for `facegate calibrate`.
+pub fn run_calibrate_liveness(args: CalibrateLivenessArgs) -> anyhow::Result<ExitCode> {
+    let config = PipelineConfig { detector: args.detector.into(), ..crate::config::pipeline_config() };
+    let config = PipelineConfig { models_dir: args.models.clone().unwrap_or(config.models_dir), ..config };
+    let pipeline = Pipeline::load(&config).context("cannot load the face pipeline")?;
+    let model = pipeline.liveness.as_ref().with_context(|| {
+        format!("no liveness model ({}) in {}: nothing to calibrate", crate::liveness::FILE, config.models_dir.display())
+    })?;
+    let url = &args.database.database;
+    if args.clear {
+        return runtime()?.block_on(async {
+            let store = Store::connect_existing(url, None).await.with_context(|| format!("cannot open {url}"))?;
+            let removed = store.clear_liveness_calibration(&model.name).await;
+            store.close().await;
+            super::print_json_line(&serde_json::json!({ "model": model.name, "removed": removed? }));
+            Ok(ExitCode::SUCCESS)
+        });
+    }
+    let photos = image_files(&args.live)?;
+    anyhow::ensure!(!photos.is_empty(), "no image files (.jpg, .jpeg, .png, .pgm, .ppm, .bmp, .webp) in {:?}", args.live);
+    let bar = super::progress(photos.len() as u64, "live captures");
+    let mut scores = Vec::with_capacity(photos.len());
+    let mut without_face = Vec::new();
+    for path in &photos {
+        let photo = crate::core::imaging::open(path).with_context(|| format!("cannot read {}", path.display()))?;
+        match pipeline.analyze(&photo).ok().and_then(|a| a.liveness) {
+            Some(liveness) => scores.push(liveness.score),
+            None => without_face.push(path.display().to_string()),
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    for path in &without_face {
+        eprintln!("warning: no face found in {path}: not counted");
+    }
+    let calibration = LivenessCalibration::from_scores(model, &scores, args.bpcer)?;
+    if !args.dry_run {
+        runtime()?.block_on(async {
+            let store = Store::connect_existing(url, None).await.with_context(|| format!("cannot open {url}"))?;
+            let saved = liveness_site::save(&store, &calibration).await;
+            store.close().await;
+            anyhow::Ok(saved?)
+        })?;
+    }
+    let mut line = serde_json::to_value(&calibration)?;
+    line["photos"] = photos.len().into();
+    line["without_face"] = without_face.len().into();
+    line["stored"] = (!args.dry_run).into();
+    super::print_json_line(&line);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The image files among `paths`, folders searched through, in name order.
+fn image_files(paths: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
+    fn walk(path: &Path, out: &mut Vec<PathBuf>) -> anyhow::Result<()> {
+        if path.is_dir() {
+            let mut entries: Vec<PathBuf> = std::fs::read_dir(path)
+                .with_context(|| format!("cannot list {}", path.display()))?
+                .map(|e| e.map(|e| e.path()))
+                .collect::<Result<_, _>>()?;
+            entries.sort();
+            for entry in entries {
+                walk(&entry, out)?;
+            }
+        } else {
+            let image = ["jpg", "jpeg", "png", "pgm", "ppm", "bmp", "webp"];
+            let extension = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+            anyhow::ensure!(path.exists(), "{} does not exist", path.display());
+            if extension.is_some_and(|e| image.contains(&e.as_str())) {
+                out.push(path.to_path_buf());
+            }
+        }
+        Ok(())
+    }
+    let mut out = Vec::new();
+    for path in paths {
+        walk(path, &mut out)?;
+    }
+    Ok(out)
 }
 
 /// Suspected duplicate identities on standard error, for the operator to merge or erase.

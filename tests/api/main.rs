@@ -38,6 +38,7 @@ mod hostile;
 mod http;
 mod json_bounds;
 mod liveness;
+mod liveness_calibration;
 mod openapi;
 mod pipeline;
 mod postgres;

@@ -16,6 +16,7 @@ mod facegate;
 pub mod gallery;
 pub mod inspect;
 pub mod liveness;
+pub mod liveness_site;
 pub mod pool;
 pub mod site;
 

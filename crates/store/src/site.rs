@@ -52,4 +52,31 @@ impl Store {
         let done = sqlx::query("DELETE FROM site_calibrations WHERE model_version = $1").bind(model_version).execute(&self.pool).await?;
         Ok(done.rows_affected() > 0)
     }
+
+    /// The stored liveness calibration of the liveness model `model` (its JSON text), if any.
+    pub async fn liveness_calibration(&self, model: &str) -> Result<Option<String>, StoreError> {
+        Ok(sqlx::query_scalar("SELECT calibration FROM liveness_calibrations WHERE model = $1")
+            .bind(model)
+            .fetch_optional(&self.pool)
+            .await?)
+    }
+
+    /// Store `calibration` (JSON text) for the liveness model `model`, replacing the one before.
+    pub async fn set_liveness_calibration(&self, model: &str, calibration: &str) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO liveness_calibrations (model, calibration) VALUES ($1, $2) \
+             ON CONFLICT (model) DO UPDATE SET calibration = excluded.calibration, created_at = excluded.created_at",
+        )
+        .bind(model)
+        .bind(calibration)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// Remove the liveness calibration of `model`; whether there was one.
+    pub async fn clear_liveness_calibration(&self, model: &str) -> Result<bool, StoreError> {
+        let done = sqlx::query("DELETE FROM liveness_calibrations WHERE model = $1").bind(model).execute(&self.pool).await?;
+        Ok(done.rows_affected() > 0)
+    }
 }

@@ -92,6 +92,9 @@ pub struct LivenessReport {
     /// faces by the model fitted on every NUAA subject, at each operating point: APCER on people,
     /// cameras and attacks NUAA never had.
     pub simulated_accepted: Vec<SimulatedAcceptance>,
+    /// Each camera's own threshold from its live photos ([`CameraThreshold`]; recipes trained with
+    /// the other cameras' live photos).
+    pub camera_thresholds: Vec<CameraThreshold>,
     /// The reverse, for recipes trained with simulated attacks: a model fitted without any NUAA
     /// frame, measured on NUAA's real prints and live frames.
     pub reverse: Option<ReverseCheck>,
@@ -216,6 +219,89 @@ pub struct SimulatedAcceptance {
     pub print: f64,
     pub screen: f64,
     pub photos: usize,
+}
+
+/// A camera's own threshold, as `facegate calibrate-liveness` sets it
+/// ([`facegate_service::liveness_site::live_threshold`]): from the live photos of one data set's
+/// persons outside its test split, by a model that never saw that data set, measured on its test
+/// persons (their live photos and their simulated prints and screens), beside NUAA's threshold
+/// on the same photos.
+#[derive(Debug, Clone, Serialize)]
+pub struct CameraThreshold {
+    pub model: String,
+    pub set: String,
+    /// The share of the calibration faces the threshold may refuse.
+    pub bpcer: f64,
+    pub calibration_faces: usize,
+    pub threshold: f32,
+    pub test_live: usize,
+    pub live_refused: f64,
+    pub print_accepted: f64,
+    pub screen_accepted: f64,
+    /// The same at the model's NUAA threshold.
+    pub nuaa_threshold: f32,
+    pub nuaa_live_refused: f64,
+    pub nuaa_print_accepted: f64,
+    pub nuaa_screen_accepted: f64,
+}
+
+/// The share of the camera's live photos `facegate calibrate-liveness` refuses at most.
+pub const CAMERA_BPCER: f64 = facegate_service::liveness_site::DEFAULT_BPCER;
+
+/// [`CameraThreshold`] of scores: the calibration persons' live faces, the test persons' live
+/// faces and their simulated prints and screens; `None` when too few faces calibrate.
+pub fn camera_threshold(
+    (model, set): (&str, &str),
+    calibration: &[f32],
+    test: [&[f32]; 3],
+    nuaa_threshold: f32,
+) -> Option<CameraThreshold> {
+    let threshold = facegate_service::liveness_site::live_threshold(calibration, CAMERA_BPCER).ok()?;
+    let [live, prints, screens] = test;
+    let share = |v: &[f32], f: &dyn Fn(f32) -> bool| v.iter().filter(|&&s| f(s)).count() as f64 / v.len().max(1) as f64;
+    Some(CameraThreshold {
+        model: model.to_string(),
+        set: set.to_string(),
+        bpcer: CAMERA_BPCER,
+        calibration_faces: calibration.len(),
+        threshold,
+        test_live: live.len(),
+        live_refused: share(live, &|s| s < threshold),
+        print_accepted: share(prints, &|s| s >= threshold),
+        screen_accepted: share(screens, &|s| s >= threshold),
+        nuaa_threshold,
+        nuaa_live_refused: share(live, &|s| s < nuaa_threshold),
+        nuaa_print_accepted: share(prints, &|s| s >= nuaa_threshold),
+        nuaa_screen_accepted: share(screens, &|s| s >= nuaa_threshold),
+    })
+}
+
+/// For a recipe trained with the other cameras' live photos: per data set, the recipe fitted on
+/// every NUAA frame and the other sets' live photos (that set's left out, so its camera is new),
+/// its threshold set on the set's non-test persons' live photos, measured on its test persons.
+fn camera_thresholds(data: &LivenessData, recipe: &Recipe, f: &FoldScores, calibration: (f32, f32)) -> Vec<CameraThreshold> {
+    if !recipe.other_cameras {
+        return Vec::new();
+    }
+    let all: Vec<usize> = (0..data.nuaa.len()).collect();
+    let cols = columns(&recipe.blocks);
+    let calibrated = |l: f32| platt_probability(calibration, l);
+    let nuaa_threshold = calibrated(OperatingPoint::Eer.threshold(&f.live, &f.attacks));
+    [(Set::Imm, "IMM"), (Set::Orl, "ORL"), (Set::Lfw, "LFW")]
+        .into_iter()
+        .filter_map(|(set, name)| {
+            let fit = fit_recipe_without(data, recipe, &all, Some(set));
+            let score = |x: &Vec<f32>| calibrated(fit.logit_at(&cols, x));
+            let of_set = |test: bool| {
+                (0..data.others.len()).filter(move |&i| data.others[i].set == set && (data.others[i].split == Split::Test) == test)
+            };
+            let live = |test: bool| -> Vec<f32> { of_set(test).filter_map(|i| data.other_features[i].as_ref()).map(score).collect() };
+            let simulated =
+                |kind: usize| -> Vec<f32> { of_set(true).filter_map(|i| data.simulated_features[kind][i].as_ref()).map(score).collect() };
+            let (prints, screens) = (simulated(0), simulated(1));
+            camera_threshold(("shipped recipe, this camera left out", name), &live(false), [&live(true), &prints, &screens], nuaa_threshold)
+        })
+        .collect()
 }
 
 /// A model that never saw NUAA (the other cameras' training persons, live against their simulated
@@ -368,6 +454,7 @@ pub fn evaluate(data: &LivenessData, name: &str, recipe: &Recipe, progress: &dyn
         bpcer_by_live_session: share(by_session),
         other_cameras_refused: other_camera_refusals(data, recipe, &full, &f, calibration),
         simulated_accepted: simulated_acceptance(data, recipe, &full, &f, calibration),
+        camera_thresholds: camera_thresholds(data, recipe, &f, calibration),
         reverse: reverse_check(data, recipe),
         calibration,
         sequences: {

@@ -13,8 +13,9 @@ use crate::Progress;
 use crate::attack_sim::{AttackKind, simulate};
 use crate::cache::map_samples;
 use crate::dataset::Split;
-use crate::eval::liveness::eer_threshold;
+use crate::eval::liveness::{CameraThreshold, camera_threshold, eer_threshold};
 use crate::eval::liveness_subjects::{FitAndScore, Fold, folds};
+use crate::train_deep::Set;
 use crate::train_liveness::LivenessData;
 
 /// Which of MiniFASNet's scores.
@@ -47,10 +48,12 @@ impl Network {
 
 /// The networks' scores of every photo the liveness evaluation reads: NUAA's frames, the other
 /// cameras' test persons' live photos and each simulated attack of them (`None`: no face, or a
-/// training person).
+/// training person), and the other persons' live photos (what a camera's threshold is set on).
 pub struct PeerScores {
     pub nuaa: Vec<Option<MiniFasScores>>,
     pub others_live: Vec<Option<MiniFasScores>>,
+    /// The persons outside the test split (`None`: no face, or a test person).
+    pub others_live_development: Vec<Option<MiniFasScores>>,
     /// Per [`AttackKind::ALL`].
     pub others_simulated: Vec<Vec<Option<MiniFasScores>>>,
 }
@@ -68,9 +71,11 @@ impl PeerScores {
         let other_images: Vec<PathBuf> = data.others.iter().map(|s| s.image.clone()).collect();
         let boxes = crate::minifasnet::face_boxes(cache_dir, models_dir, &other_images, threads, progress)?;
         let networks = MiniFasNet::load(models_dir)?;
-        let test: Vec<usize> = (0..data.others.len()).filter(|&i| data.others[i].split == Split::Test).collect();
-        let score = |kind: Option<AttackKind>| -> Vec<Option<MiniFasScores>> {
-            let scored = map_samples(&test, threads, "MiniFASNet on the test persons", progress, |&i| {
+        let split =
+            |test: bool| -> Vec<usize> { (0..data.others.len()).filter(|&i| (data.others[i].split == Split::Test) == test).collect() };
+        let score = |kind: Option<AttackKind>, test: bool| -> Vec<Option<MiniFasScores>> {
+            let persons = split(test);
+            let scored = map_samples(&persons, threads, "MiniFASNet on the other cameras' persons", progress, |&i| {
                 let face = boxes[i].as_ref()?;
                 let photo = image::open(&other_images[i]).ok()?.to_rgb8();
                 let photo = match kind {
@@ -80,12 +85,17 @@ impl PeerScores {
                 Some(networks.assess(&photo, face))
             });
             let mut all = vec![None; data.others.len()];
-            for (&i, s) in test.iter().zip(scored) {
+            for (&i, s) in persons.iter().zip(scored) {
                 all[i] = s;
             }
             all
         };
-        Ok(PeerScores { nuaa, others_live: score(None), others_simulated: AttackKind::ALL.iter().map(|&k| score(Some(k))).collect() })
+        Ok(PeerScores {
+            nuaa,
+            others_live: score(None, true),
+            others_live_development: score(None, false),
+            others_simulated: AttackKind::ALL.iter().map(|&k| score(Some(k), true)).collect(),
+        })
     }
 
     /// `network`'s NUAA scores as a [`FitAndScore`] that learns nothing.
@@ -133,6 +143,31 @@ pub fn other_cameras(data: &LivenessData, scores: &PeerScores, network: Network)
             live_photos: live.len(),
             print_accepted: share(&sims[0], &|s| s >= t),
             screen_accepted: share(&sims[1], &|s| s >= t),
+        })
+        .collect()
+}
+
+/// `network` with each camera's own threshold ([`CameraThreshold`]): set on the live photos of
+/// the data set's persons outside the test split (the networks never saw any), measured on its
+/// test persons, beside NUAA's equal-rates threshold.
+pub fn camera_thresholds(data: &LivenessData, scores: &PeerScores, network: Network) -> Vec<CameraThreshold> {
+    let nuaa = |live: bool| -> Vec<f32> {
+        data.nuaa.iter().zip(&scores.nuaa).filter(|(s, _)| s.live == live).filter_map(|(_, x)| x.as_ref().map(|x| network.of(x))).collect()
+    };
+    let nuaa_threshold = eer_threshold(&nuaa(true), &nuaa(false));
+    [(Set::Imm, "IMM"), (Set::Orl, "ORL"), (Set::Lfw, "LFW")]
+        .into_iter()
+        .filter_map(|(set, name)| {
+            let of = |v: &[Option<MiniFasScores>]| -> Vec<f32> {
+                v.iter().zip(&data.others).filter(|(_, o)| o.set == set).filter_map(|(x, _)| x.as_ref().map(|x| network.of(x))).collect()
+            };
+            let (prints, screens) = (of(&scores.others_simulated[0]), of(&scores.others_simulated[1]));
+            camera_threshold(
+                (network.name(), name),
+                &of(&scores.others_live_development),
+                [&of(&scores.others_live), &prints, &screens],
+                nuaa_threshold,
+            )
         })
         .collect()
 }

@@ -25,14 +25,19 @@ pub enum ThresholdRule {
     /// The lowest threshold that keeps *every* development subject's APCER at most this: the
     /// worst development fold decides, so that a subject whose prints look live is covered.
     WorstSubjectApcer(f64),
+    /// The highest threshold that refuses at most this share of the development subjects' live
+    /// frames, their prints unused: what `facegate calibrate-liveness` does with a camera's live
+    /// captures ([`facegate_service::liveness_site::live_threshold`]).
+    LiveBpcer(f64),
 }
 
 /// The rules compared.
-pub const RULES: [ThresholdRule; 4] = [
+pub const RULES: [ThresholdRule; 5] = [
     ThresholdRule::PooledEer,
     ThresholdRule::PooledApcer(0.01),
     ThresholdRule::WorstSubjectApcer(0.05),
     ThresholdRule::WorstSubjectApcer(0.01),
+    ThresholdRule::LiveBpcer(crate::eval::liveness::CAMERA_BPCER),
 ];
 
 /// One frame's score: its subject (an index into the fold's subject list), whether it is live.
@@ -60,6 +65,9 @@ impl ThresholdRule {
                     .map(|k| threshold_at(&attacks.iter().filter(|s| s.subject == k).map(|s| s.score).collect::<Vec<_>>(), a))
                     .fold(f32::NEG_INFINITY, f32::max)
             }
+            // Too few live frames to place the share: the lowest live score refuses none of them.
+            ThresholdRule::LiveBpcer(share) => facegate_service::liveness_site::live_threshold(&live, share)
+                .unwrap_or_else(|_| live.iter().copied().fold(f32::INFINITY, f32::min)),
         }
     }
 
@@ -68,6 +76,7 @@ impl ThresholdRule {
             ThresholdRule::PooledEer => "pooled EER".to_string(),
             ThresholdRule::PooledApcer(a) => format!("pooled APCER {}%", a * 100.0),
             ThresholdRule::WorstSubjectApcer(a) => format!("every subject's APCER {}%", a * 100.0),
+            ThresholdRule::LiveBpcer(b) => format!("live frames only, BPCER {}%", b * 100.0),
         }
     }
 }
@@ -234,6 +243,19 @@ mod tests {
         let worst = ThresholdRule::WorstSubjectApcer(0.1).threshold(&dev);
         assert!(pooled <= 0.8, "{pooled}");
         assert!(worst > 0.8, "{worst}");
+    }
+
+    #[test]
+    fn the_live_only_rule_reads_no_print() {
+        // 100 development live frames 0.01 … 1.00: at 2% the third lowest, whatever the prints.
+        let live: Vec<f32> = (1..=100).map(|i| i as f32 / 100.0).collect();
+        let mut dev = scored(0, true, &live);
+        let rule = ThresholdRule::LiveBpcer(0.02);
+        assert_eq!(rule.threshold(&dev), 0.03);
+        dev.extend(scored(1, false, &[0.99; 50]));
+        assert_eq!(rule.threshold(&dev), 0.03, "prints do not move it");
+        // Too few live frames for the share: none of them is refused.
+        assert_eq!(rule.threshold(&scored(0, true, &[0.4, 0.7])), 0.4);
     }
 
     #[test]

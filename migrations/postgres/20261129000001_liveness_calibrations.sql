@@ -1,0 +1,8 @@
+-- A camera's liveness threshold per liveness model (`facegate calibrate-liveness`,
+-- facegate_service::liveness_site): JSON of a LivenessCalibration. Aggregates only (a threshold
+-- and counts): no photo, face or subject, so erasing a subject leaves nothing of it here.
+CREATE TABLE liveness_calibrations (
+    model        TEXT PRIMARY KEY NOT NULL,
+    calibration  TEXT NOT NULL,
+    created_at   TEXT NOT NULL DEFAULT to_char(now() AT TIME ZONE 'UTC', 'YYYY-MM-DD"T"HH24:MI:SS.MS"Z"')
+);
