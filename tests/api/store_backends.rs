@@ -5,6 +5,7 @@
 use std::time::Duration;
 
 use facegate::recognize::{OperatingPoint, Template};
+use facegate::service::liveness_site::{self, LivenessCalibration};
 use facegate::service::site::{self, SiteCalibration, SiteStatus};
 use facegate::service::{Matcher, SubjectId};
 use facegate::store::{Backend, CipherError, KeyRing, RekeyReport, Store, StoreChange, StoreError, VersionCount};
@@ -38,8 +39,32 @@ on_both_backends!(
     rekey_seals_then_rotates,
     the_gallery_reads_in_parts_and_by_subject,
     the_site_calibration_is_measured_on_sealed_templates_and_stored_per_version,
-    a_challenge_is_taken_once_and_expired_ones_are_swept
+    a_challenge_is_taken_once_and_expired_ones_are_swept,
+    a_liveness_calibration_is_kept_per_model_and_replaced
 );
+
+async fn a_liveness_calibration_is_kept_per_model_and_replaced(url: String) {
+    let store = Store::connect(&url, None).await.unwrap();
+    let calibration = |model: &str, threshold: f32| LivenessCalibration {
+        model: model.into(),
+        bpcer: 0.02,
+        live_faces: 120,
+        refused: 2,
+        threshold,
+        model_threshold: 0.64,
+        refused_at_model_threshold: 9,
+    };
+    assert_eq!(liveness_site::load(&store, "lbp-1").await.unwrap(), None);
+    liveness_site::save(&store, &calibration("lbp-1", 0.31)).await.unwrap();
+    liveness_site::save(&store, &calibration("other", 0.9)).await.unwrap();
+    liveness_site::save(&store, &calibration("lbp-1", 0.42)).await.unwrap();
+    assert_eq!(liveness_site::load(&store, "lbp-1").await.unwrap(), Some(calibration("lbp-1", 0.42)), "the later one replaces it");
+    assert!(store.clear_liveness_calibration("lbp-1").await.unwrap());
+    assert!(!store.clear_liveness_calibration("lbp-1").await.unwrap());
+    assert_eq!(liveness_site::load(&store, "lbp-1").await.unwrap(), None);
+    assert_eq!(liveness_site::load(&store, "other").await.unwrap(), Some(calibration("other", 0.9)), "another model's is kept");
+    store.close().await;
+}
 
 /// A matcher with a fixed threshold table (1e-2: 0.5, 1e-3: 0.7, 1e-4: 0.8, so duplicates at 0.9).
 struct Table;
