@@ -20,7 +20,7 @@ use facegate_vision::quality::{Failure, QualityPolicy};
 use crate::challenge::{ChallengeConfig, ChallengeOutcome, InvalidChallenge};
 use crate::gallery::{LiveGallery, Precision, UnreadableTemplates};
 use crate::inspect::{self, Analysis, InspectError};
-use crate::liveness::{LivenessPolicy, PresentationAttack};
+use crate::liveness::{LivenessPoint, LivenessPolicy, PresentationAttack};
 use crate::site::{CalibratedMatcher, SiteCalibration, SiteStatus};
 use crate::{Candidate, Decision, FaceEngine, Matcher, PoolError, VerifyError, WorkPool};
 
@@ -272,6 +272,9 @@ pub struct Health {
     /// Subjects with a template of the current model version: those verify and identify can
     /// find (the others were enrolled under another model and must enrol again).
     pub subjects_current_model: u64,
+    /// The liveness threshold in force and how it was set (the model's, the camera's calibration
+    /// or the operator's); `None` with liveness off or no model.
+    pub liveness: Option<LivenessPoint>,
 }
 
 /// How long requests that need the database are refused at once after it could not be reached,
@@ -542,6 +545,7 @@ impl Facegate {
             store_backend: self.0.store.backend(),
             site_calibration: self.matcher().site,
             subjects_current_model,
+            liveness: self.0.engine.liveness_point().filter(|_| self.0.config.liveness != LivenessPolicy::Off),
         })
     }
 

@@ -346,6 +346,16 @@ pub(crate) struct Health {
     /// others must enrol again.
     #[serde(skip_serializing_if = "Option::is_none")]
     subjects_current_model: Option<u64>,
+    /// The liveness threshold in force; absent with liveness off or no model.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    liveness: Option<HealthLiveness>,
+}
+
+/// `/health`'s `liveness`: the threshold a face's score is held to and how it was set.
+#[derive(Debug, Serialize)]
+pub(crate) struct HealthLiveness {
+    threshold: f32,
+    operating_point: String,
 }
 
 impl Health {
@@ -372,6 +382,7 @@ impl Health {
             subjects_on_older_keys: sealing.map(|s| s.other_keys),
             site_calibration: health.site_calibration.as_deref().filter(|_| admitted).map(SiteCalibration::from),
             subjects_current_model: admitted.then_some(health.subjects_current_model),
+            liveness: health.liveness.map(|p| HealthLiveness { threshold: p.threshold, operating_point: p.operating_point }),
         }
     }
 }
