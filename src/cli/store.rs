@@ -8,6 +8,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 
 use crate::config::{DEFAULT_DATABASE, TemplateKeyArgs};
+use crate::liveness::LivenessModel;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::RecognizerKind;
 use crate::service::Matcher;
@@ -196,7 +197,8 @@ async fn calibrate(store: &Store, args: &CalibrateArgs) -> anyhow::Result<ExitCo
 /// The liveness threshold of the deployment's camera (`facegate_service::liveness_site`): the
 /// liveness model scores every live capture given, the threshold that refuses at most `--bpcer` of
 /// them is stored (or the stored one removed with `--clear`), and the service uses it from its next
-/// start. One JSON line. The database must exist, as for `facegate calibrate`.
+/// start. One JSON line. The database must exist, as for `facegate calibrate`; it is opened before
+/// any photo is scored, so a mistyped one is refused at once.
 pub fn run_calibrate_liveness(args: CalibrateLivenessArgs) -> anyhow::Result<ExitCode> {
     let config = PipelineConfig { detector: args.detector.into(), ..crate::config::pipeline_config() };
     let config = PipelineConfig { models_dir: args.models.clone().unwrap_or(config.models_dir), ..config };
@@ -204,48 +206,63 @@ pub fn run_calibrate_liveness(args: CalibrateLivenessArgs) -> anyhow::Result<Exi
     let model = pipeline.liveness.as_ref().with_context(|| {
         format!("no liveness model ({}) in {}: nothing to calibrate", crate::liveness::FILE, config.models_dir.display())
     })?;
+    let photos = if args.clear { Vec::new() } else { image_files(&args.live)? };
+    anyhow::ensure!(args.clear || !photos.is_empty(), "no image files (.jpg, .jpeg, .png, .pgm, .ppm, .bmp, .webp) in {:?}", args.live);
     let url = &args.database.database;
-    if args.clear {
-        return runtime()?.block_on(async {
-            let store = Store::connect_existing(url, None).await.with_context(|| format!("cannot open {url}"))?;
-            let removed = store.clear_liveness_calibration(&model.name).await;
+    runtime()?.block_on(async {
+        let store = match args.dry_run {
+            true => None,
+            false => Some(Store::connect_existing(url, None).await.with_context(|| format!("cannot open {url}"))?),
+        };
+        let done = match &store {
+            Some(store) if args.clear => {
+                let removed = store.clear_liveness_calibration(&model.name).await?;
+                super::print_json_line(&serde_json::json!({ "model": model.name, "removed": removed }));
+                Ok(())
+            }
+            _ => calibrate_liveness(&pipeline, model, &photos, args.bpcer, store.as_ref()).await,
+        };
+        if let Some(store) = store {
             store.close().await;
-            super::print_json_line(&serde_json::json!({ "model": model.name, "removed": removed? }));
-            Ok(ExitCode::SUCCESS)
-        });
-    }
-    let photos = image_files(&args.live)?;
-    anyhow::ensure!(!photos.is_empty(), "no image files (.jpg, .jpeg, .png, .pgm, .ppm, .bmp, .webp) in {:?}", args.live);
+        }
+        done.map(|()| ExitCode::SUCCESS)
+    })
+}
+
+/// Score `photos` with `model` (through `pipeline`), make the calibration and store it in `store`
+/// (none: a dry run); its JSON line on stdout.
+async fn calibrate_liveness(
+    pipeline: &Pipeline,
+    model: &LivenessModel,
+    photos: &[PathBuf],
+    bpcer: f64,
+    store: Option<&Store>,
+) -> anyhow::Result<()> {
     let bar = super::progress(photos.len() as u64, "live captures");
-    let mut scores = Vec::with_capacity(photos.len());
-    let mut without_face = Vec::new();
-    for path in &photos {
+    let (mut scores, mut not_read) = (Vec::with_capacity(photos.len()), 0usize);
+    for path in photos {
         let photo = crate::core::imaging::open(path).with_context(|| format!("cannot read {}", path.display()))?;
-        match pipeline.analyze(&photo).ok().and_then(|a| a.liveness) {
-            Some(liveness) => scores.push(liveness.score),
-            None => without_face.push(path.display().to_string()),
+        match pipeline.analyze(&photo).map(|a| a.liveness) {
+            Ok(Some(liveness)) => scores.push(liveness.score),
+            Ok(None) => anyhow::bail!("the liveness model gave {} no score", path.display()),
+            Err(e) => {
+                bar.suspend(|| eprintln!("warning: {}: {e}: not counted", path.display()));
+                not_read += 1;
+            }
         }
         bar.inc(1);
     }
     bar.finish_and_clear();
-    for path in &without_face {
-        eprintln!("warning: no face found in {path}: not counted");
-    }
-    let calibration = LivenessCalibration::from_scores(model, &scores, args.bpcer)?;
-    if !args.dry_run {
-        runtime()?.block_on(async {
-            let store = Store::connect_existing(url, None).await.with_context(|| format!("cannot open {url}"))?;
-            let saved = liveness_site::save(&store, &calibration).await;
-            store.close().await;
-            anyhow::Ok(saved?)
-        })?;
+    let calibration = LivenessCalibration::from_scores(model, &scores, bpcer)?;
+    if let Some(store) = store {
+        liveness_site::save(store, &calibration).await?;
     }
     let mut line = serde_json::to_value(&calibration)?;
     line["photos"] = photos.len().into();
-    line["without_face"] = without_face.len().into();
-    line["stored"] = (!args.dry_run).into();
+    line["without_face"] = not_read.into();
+    line["stored"] = store.is_some().into();
     super::print_json_line(&line);
-    Ok(ExitCode::SUCCESS)
+    Ok(())
 }
 
 /// The image files among `paths`, folders searched through, in name order.

@@ -64,6 +64,11 @@ async fn a_cameras_live_captures_set_the_served_liveness_threshold() {
     scores.sort_by(|a, b| a.0.total_cmp(&b.0));
     assert!(scores[0].0 < scores[1].0, "the lowest score is one photo's: {scores:?}");
 
+    // A mistyped database is refused before any photo is scored, and none is made there.
+    let missing = dir.0.join("missing.db");
+    let missing_url = format!("sqlite://{}", missing.display());
+    let (ok, _, error) = facegate(&["calibrate-liveness", "--database", &missing_url, captures.to_str().unwrap()]);
+    assert!(!ok && error.contains("no database") && !missing.exists(), "{error}");
     // Too few faces for the share asked: refused, nothing stored.
     let (ok, _, error) = facegate(&["calibrate-liveness", "--database", &database, captures.to_str().unwrap()]);
     assert!(!ok && error.contains("at least 50 are needed"), "{error}");
@@ -77,6 +82,11 @@ async fn a_cameras_live_captures_set_the_served_liveness_threshold() {
     );
     assert_eq!((calibration["stored"].as_bool(), calibration["refused_at_model_threshold"].as_u64()), (Some(true), Some(0)));
     let threshold = calibration["threshold"].as_f64().unwrap();
+    // A dry run measures the same and stores nothing (nor needs the database).
+    let (ok, lines, error) =
+        facegate(&["calibrate-liveness", "--dry-run", "--database", &missing_url, "--bpcer", "0.1", captures.to_str().unwrap()]);
+    assert!(ok, "{error}");
+    assert_eq!((lines[0]["threshold"].as_f64(), lines[0]["stored"].as_bool()), (Some(threshold), Some(false)));
     assert!((threshold - scores[1].0).abs() < 1e-6, "{threshold} against the second lowest {:?}", scores[1]);
 
     // Served: the lowest photo is now taken for an attack, saying by which threshold; the others pass.
