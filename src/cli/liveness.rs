@@ -163,16 +163,29 @@ pub fn run_eval(args: EvalLivenessArgs) -> anyhow::Result<ExitCode> {
 }
 
 /// MiniFASNet as shipped (`models/minifasnet-*.bin`), each network whose name `--only` and
-/// `--nested` select: the nested protocol, other cameras' live photos and simulated attacks.
+/// `--nested` select, and its fusion with the shipped LBP recipe ([`peer::FUSED_WITH_LBP`]): the
+/// nested protocol, other cameras' live photos and simulated attacks.
 fn run_peers(args: &EvalLivenessArgs, data: &LivenessData, progress: &super::Bar) -> anyhow::Result<()> {
     let selected: Vec<Network> = Network::ALL
         .into_iter()
         .filter(|n| args.only.as_ref().is_none_or(|o| n.name().contains(o.as_str())) && n.name().contains(args.nested.as_str()))
         .collect();
-    if selected.is_empty() {
+    let fused = peer::FUSED_WITH_LBP;
+    let with_fusion = args.only.as_ref().is_none_or(|o| fused.contains(o.as_str())) && fused.contains(args.nested.as_str());
+    if selected.is_empty() && !with_fusion {
         return Ok(());
     }
     let scores = PeerScores::compute(data, &args.data.cache, &crate::config::models_dir(), args.data.threads, progress)?;
+    if with_fusion {
+        let recipe = shipped().0;
+        print_nested(fused, &peer::fused_folds(data, &recipe, &scores, args.data.threads, progress), args.json)?;
+        let cameras = peer::fused_camera_thresholds(data, &recipe, &scores, progress);
+        if args.json {
+            super::print_json_line(&serde_json::json!({ "peer_camera_thresholds": cameras }));
+        } else {
+            print_camera_thresholds(&cameras);
+        }
+    }
     for network in selected {
         let folds = scores.folds(data, network, args.data.threads, progress);
         print_nested(network.name(), &folds, args.json)?;

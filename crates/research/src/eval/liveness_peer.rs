@@ -14,9 +14,9 @@ use crate::attack_sim::{AttackKind, simulate};
 use crate::cache::map_samples;
 use crate::dataset::Split;
 use crate::eval::liveness::{CameraThreshold, camera_threshold, eer_threshold};
-use crate::eval::liveness_subjects::{FitAndScore, Fold, folds};
+use crate::eval::liveness_subjects::{FitAndScore, Fold, folds, recipe_scores};
 use crate::train_deep::Set;
-use crate::train_liveness::LivenessData;
+use crate::train_liveness::{LivenessData, Recipe, columns, fit_recipe_without, out_of_fold_logits};
 
 /// Which of MiniFASNet's scores.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -168,6 +168,56 @@ pub fn camera_thresholds(data: &LivenessData, scores: &PeerScores, network: Netw
                 [&of(&scores.others_live), &prints, &screens],
                 nuaa_threshold,
             )
+        })
+        .collect()
+}
+
+/// The name of the shipped LBP recipe fused with MiniFASNet V2 + V1SE.
+pub const FUSED_WITH_LBP: &str = "shipped LBP + MiniFASNet V2 + V1SE (as shipped)";
+
+/// A probability as log-odds, kept finite.
+fn logit(p: f32) -> f32 {
+    let p = p.clamp(1e-6, 1.0 - 1e-6);
+    (p / (1.0 - p)).ln()
+}
+
+/// The LBP `recipe`'s logit plus MiniFASNet V2 + V1SE's (the log-odds of its fused live
+/// probability): two looks at one face added as independent evidence, as the frames of one
+/// capture are. Under the nested protocol the LBP part is fitted without the held-out subject.
+pub fn fused_folds(data: &LivenessData, recipe: &Recipe, scores: &PeerScores, threads: usize, progress: &dyn Progress) -> Vec<Fold> {
+    let lbp = recipe_scores(data, recipe);
+    let fused = move |train: &[usize], frames: &[usize]| -> Vec<Option<f32>> {
+        let lbp = lbp(train, frames);
+        lbp.into_iter().zip(frames).map(|(l, &i)| Some(l? + logit(scores.nuaa[i].as_ref()?.fused))).collect()
+    };
+    let fit: &FitAndScore = &fused;
+    folds(data, fit, threads, progress)
+}
+
+/// [`camera_thresholds`] of the fusion: per data set, the LBP recipe fitted without that set's
+/// live photos; NUAA's threshold the equal rates of its out-of-fold fused scores.
+pub fn fused_camera_thresholds(data: &LivenessData, recipe: &Recipe, scores: &PeerScores, progress: &dyn Progress) -> Vec<CameraThreshold> {
+    let cols = columns(&recipe.blocks);
+    let out_of_fold = out_of_fold_logits(data, recipe, progress);
+    let nuaa = |live: bool| -> Vec<f32> {
+        let frames = data.nuaa.iter().zip(&out_of_fold).zip(&scores.nuaa).filter(|((s, _), _)| s.live == live);
+        frames.filter_map(|((_, l), m)| Some(l.as_ref()? + logit(m.as_ref()?.fused))).collect()
+    };
+    let nuaa_threshold = eer_threshold(&nuaa(true), &nuaa(false));
+    let all: Vec<usize> = (0..data.nuaa.len()).collect();
+    [(Set::Imm, "IMM"), (Set::Orl, "ORL"), (Set::Lfw, "LFW")]
+        .into_iter()
+        .filter_map(|(set, name)| {
+            let fit = fit_recipe_without(data, recipe, &all, Some(set));
+            let of = |features: &[Option<Vec<f32>>], minifas: &[Option<MiniFasScores>]| -> Vec<f32> {
+                let photos = features.iter().zip(minifas).zip(&data.others).filter(|(_, o)| o.set == set);
+                photos.filter_map(|((x, m), _)| Some(fit.logit_at(&cols, x.as_ref()?) + logit(m.as_ref()?.fused))).collect()
+            };
+            let live = of(&data.other_features, &scores.others_live);
+            let development = of(&data.other_features, &scores.others_live_development);
+            let prints = of(&data.simulated_features[0], &scores.others_simulated[0]);
+            let screens = of(&data.simulated_features[1], &scores.others_simulated[1]);
+            camera_threshold((FUSED_WITH_LBP, name), &development, [&live, &prints, &screens], nuaa_threshold)
         })
         .collect()
 }
