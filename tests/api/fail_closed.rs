@@ -167,6 +167,16 @@ impl Served {
     pub(crate) fn log(&self) -> String {
         std::fs::read_to_string(&self.log).unwrap_or_default()
     }
+
+    /// POST alice with the IMM photo `photo` (JSON) to `path`.
+    pub(crate) async fn post_alice(&self, path: &str, photo: &str) -> reqwest::Response {
+        reqwest::Client::new()
+            .post(format!("{}{path}", self.base))
+            .json(&serde_json::json!({"subject": "alice", "image": crate::support::base64(&crate::support::imm(photo))}))
+            .send()
+            .await
+            .unwrap()
+    }
 }
 
 impl Drop for Served {

@@ -3,10 +3,10 @@
 //! decides with it in place of the model's, `--liveness-threshold` wins over it, and `--clear`
 //! takes it back.
 
-use serde_json::{Value, json};
+use serde_json::Value;
 
 use crate::fail_closed::{Scratch, Served};
-use crate::support::{base64, imm};
+use crate::support::imm;
 
 /// Run `facegate` with `args`: its exit status, JSON lines and standard error.
 fn facegate(args: &[&str]) -> (bool, Vec<Value>, String) {
@@ -18,12 +18,7 @@ fn facegate(args: &[&str]) -> (bool, Vec<Value>, String) {
 
 /// POST `photo` (an IMM file) to `path` for alice: the status and the body.
 async fn post(served: &Served, path: &str, photo: &str) -> (u16, Value) {
-    let r = reqwest::Client::new()
-        .post(format!("{}{path}", served.base))
-        .json(&json!({"subject": "alice", "image": base64(&imm(photo))}))
-        .send()
-        .await
-        .unwrap();
+    let r = served.post_alice(path, photo).await;
     (r.status().as_u16(), r.json().await.unwrap())
 }
 

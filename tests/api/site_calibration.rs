@@ -7,7 +7,6 @@ use facegate::store::Store;
 use serde_json::{Value, json};
 
 use crate::fail_closed::{Scratch, Served};
-use crate::support::{base64, imm};
 
 /// Run `facegate` with `args`: whether it succeeded and its JSON lines.
 fn facegate(args: &[&str]) -> (bool, Vec<Value>) {
@@ -24,12 +23,7 @@ async fn health_site(served: &Served) -> Value {
 
 /// POST alice with the IMM photo `photo` to `path`: the answer, its status checked to be `status`.
 async fn post_alice(served: &Served, path: &str, photo: &str, status: u16) -> reqwest::Response {
-    let r = reqwest::Client::new()
-        .post(format!("{}{path}", served.base))
-        .json(&json!({"subject": "alice", "image": base64(&imm(photo))}))
-        .send()
-        .await
-        .unwrap();
+    let r = served.post_alice(path, photo).await;
     assert_eq!(r.status(), status, "{}", served.log());
     r
 }
