@@ -179,22 +179,12 @@ fn run_peers(args: &EvalLivenessArgs, data: &LivenessData, progress: &super::Bar
     if with_fusion {
         let recipe = shipped().0;
         print_nested(fused, &peer::fused_folds(data, &recipe, &scores, args.data.threads, progress), args.json)?;
-        let cameras = peer::fused_camera_thresholds(data, &recipe, &scores, progress);
-        if args.json {
-            super::print_json_line(&serde_json::json!({ "peer_camera_thresholds": cameras }));
-        } else {
-            print_camera_thresholds(&cameras);
-        }
+        report_peer_camera_thresholds(&peer::fused_camera_thresholds(data, &recipe, &scores, progress), args.json);
     }
     for network in selected {
         let folds = scores.folds(data, network, args.data.threads, progress);
         print_nested(network.name(), &folds, args.json)?;
-        let cameras = peer::camera_thresholds(data, &scores, network);
-        if args.json {
-            super::print_json_line(&serde_json::json!({ "peer_camera_thresholds": cameras }));
-        } else {
-            print_camera_thresholds(&cameras);
-        }
+        report_peer_camera_thresholds(&peer::camera_thresholds(data, &scores, network), args.json);
         for o in peer::other_cameras(data, &scores, network) {
             if args.json {
                 super::print_json_line(&serde_json::json!({ "peer_other_cameras": o }));
@@ -213,6 +203,15 @@ fn run_peers(args: &EvalLivenessArgs, data: &LivenessData, progress: &super::Bar
         }
     }
     Ok(())
+}
+
+/// A peer's camera thresholds: one JSON line (`peer_camera_thresholds`), or the lines below.
+fn report_peer_camera_thresholds(cameras: &[research::CameraThreshold], json: bool) {
+    if json {
+        super::print_json_line(&serde_json::json!({ "peer_camera_thresholds": cameras }));
+    } else {
+        print_camera_thresholds(cameras);
+    }
 }
 
 /// Each camera's own threshold against NUAA's, on the camera's test persons.

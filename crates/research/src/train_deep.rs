@@ -29,6 +29,19 @@ pub enum Set {
     Lfw,
 }
 
+impl Set {
+    pub const ALL: [Set; 3] = [Set::Imm, Set::Orl, Set::Lfw];
+
+    /// Its name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Set::Imm => "IMM",
+            Set::Orl => "ORL",
+            Set::Lfw => "LFW",
+        }
+    }
+}
+
 #[derive(Debug, Clone)]
 pub struct Sample {
     pub label: String,

@@ -277,20 +277,32 @@ pub fn camera_threshold(
 }
 
 /// For a recipe trained with the other cameras' live photos: per data set, the recipe fitted on
-/// every NUAA frame and the other sets' live photos (that set's left out, so its camera is new),
-/// its threshold set on the set's non-test persons' live photos, measured on its test persons.
-fn camera_thresholds(data: &LivenessData, recipe: &Recipe, f: &FoldScores, calibration: (f32, f32)) -> Vec<CameraThreshold> {
+/// every NUAA frame and the other sets' live photos, that set's left out so that its camera is new
+/// (none for other recipes). The other-camera refusals and the camera thresholds both read them.
+fn unseen_camera_fits(data: &LivenessData, recipe: &Recipe) -> Vec<(Set, LogisticFit)> {
     if !recipe.other_cameras {
         return Vec::new();
     }
     let all: Vec<usize> = (0..data.nuaa.len()).collect();
+    Set::ALL.into_iter().map(|set| (set, fit_recipe_without(data, recipe, &all, Some(set)))).collect()
+}
+
+/// Per data set, the recipe's fit without it ([`unseen_camera_fits`]), its threshold set on the
+/// set's non-test persons' live photos, measured on its test persons.
+fn camera_thresholds(
+    data: &LivenessData,
+    recipe: &Recipe,
+    unseen_fits: &[(Set, LogisticFit)],
+    f: &FoldScores,
+    calibration: (f32, f32),
+) -> Vec<CameraThreshold> {
     let cols = columns(&recipe.blocks);
     let calibrated = |l: f32| platt_probability(calibration, l);
     let nuaa_threshold = calibrated(OperatingPoint::Eer.threshold(&f.live, &f.attacks));
-    [(Set::Imm, "IMM"), (Set::Orl, "ORL"), (Set::Lfw, "LFW")]
-        .into_iter()
-        .filter_map(|(set, name)| {
-            let fit = fit_recipe_without(data, recipe, &all, Some(set));
+    unseen_fits
+        .iter()
+        .filter_map(|(set, fit)| {
+            let set = *set;
             let score = |x: &Vec<f32>| calibrated(fit.logit_at(&cols, x));
             let of_set = |test: bool| {
                 (0..data.others.len()).filter(move |&i| data.others[i].set == set && (data.others[i].split == Split::Test) == test)
@@ -299,7 +311,12 @@ fn camera_thresholds(data: &LivenessData, recipe: &Recipe, f: &FoldScores, calib
             let simulated =
                 |kind: usize| -> Vec<f32> { of_set(true).filter_map(|i| data.simulated_features[kind][i].as_ref()).map(score).collect() };
             let (prints, screens) = (simulated(0), simulated(1));
-            camera_threshold(("shipped recipe, this camera left out", name), &live(false), [&live(true), &prints, &screens], nuaa_threshold)
+            camera_threshold(
+                ("shipped recipe, this camera left out", set.name()),
+                &live(false),
+                [&live(true), &prints, &screens],
+                nuaa_threshold,
+            )
         })
         .collect()
 }
@@ -439,6 +456,7 @@ pub fn evaluate(data: &LivenessData, name: &str, recipe: &Recipe, progress: &dyn
     );
     // The model fitted on every NUAA subject: the other cameras and the simulated attacks both read it.
     let full = fit_recipe(data, recipe, &(0..data.nuaa.len()).collect::<Vec<_>>());
+    let unseen_fits = unseen_camera_fits(data, recipe);
     let report = LivenessReport {
         name: name.to_string(),
         recipe: recipe.clone(),
@@ -452,9 +470,9 @@ pub fn evaluate(data: &LivenessData, name: &str, recipe: &Recipe, progress: &dyn
         at_eer_of_other_subjects: at,
         apcer_by_print_condition: share(by_condition),
         bpcer_by_live_session: share(by_session),
-        other_cameras_refused: other_camera_refusals(data, recipe, &full, &f, calibration),
+        other_cameras_refused: other_camera_refusals(data, recipe, &full, &unseen_fits, &f, calibration),
         simulated_accepted: simulated_acceptance(data, recipe, &full, &f, calibration),
-        camera_thresholds: camera_thresholds(data, recipe, &f, calibration),
+        camera_thresholds: camera_thresholds(data, recipe, &unseen_fits, &f, calibration),
         reverse: reverse_check(data, recipe),
         calibration,
         sequences: {
@@ -478,39 +496,23 @@ fn other_camera_refusals(
     data: &LivenessData,
     recipe: &Recipe,
     full: &LogisticFit,
+    unseen_fits: &[(Set, LogisticFit)],
     f: &FoldScores,
     calibration: (f32, f32),
 ) -> Vec<Refusals> {
-    let all: Vec<usize> = (0..data.nuaa.len()).collect();
     let cols = columns(&recipe.blocks);
     let test = data.others_in(Split::Test);
     let calibrated = |l: f32| platt_probability(calibration, l);
-    // The scores of the test persons' photos of `set` (all sets: None) by a model fitted without `without`.
-    let scores_of = |without: Option<Set>, only: Option<Set>| -> Vec<f32> {
-        let fit = fit_recipe_without(data, recipe, &all, without);
+    // The scores of the test persons' photos of `set` by `fit`.
+    let scores_of = |fit: &LogisticFit, set: Set| -> Vec<f32> {
         test.iter()
-            .filter(|&&i| only.is_none_or(|s| data.others[i].set == s))
+            .filter(|&&i| data.others[i].set == set)
             .map(|&i| calibrated(fit.logit_at(&cols, data.other_features[i].as_ref().expect("with features"))))
             .collect()
     };
     let umist: Vec<f32> = data.unseen_features.iter().flatten().map(|x| calibrated(full.logit_at(&cols, x))).collect();
-    let by_set: Vec<(Set, Vec<f32>)> = [Set::Imm, Set::Orl, Set::Lfw]
-        .into_iter()
-        .map(|set| {
-            (
-                set,
-                test.iter()
-                    .filter(|&&i| data.others[i].set == set)
-                    .map(|&i| calibrated(full.logit_at(&cols, data.other_features[i].as_ref().expect("with features"))))
-                    .collect(),
-            )
-        })
-        .collect();
-    let unseen: Vec<(Set, Vec<f32>)> = if recipe.other_cameras {
-        [Set::Imm, Set::Orl, Set::Lfw].into_iter().map(|set| (set, scores_of(Some(set), Some(set)))).collect()
-    } else {
-        Vec::new()
-    };
+    let by_set: Vec<(Set, Vec<f32>)> = Set::ALL.into_iter().map(|set| (set, scores_of(full, set))).collect();
+    let unseen: Vec<(Set, Vec<f32>)> = unseen_fits.iter().map(|(set, fit)| (*set, scores_of(fit, *set))).collect();
     let share_below = |v: &[f32], t: f32| v.iter().filter(|&&s| s < t).count() as f64 / v.len().max(1) as f64;
     OPERATING_POINTS
         .iter()

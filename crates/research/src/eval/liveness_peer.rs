@@ -124,16 +124,21 @@ pub struct OtherCameras {
     pub screen_accepted: f64,
 }
 
-/// `network` at its own 0.5 and at NUAA's equal-rates threshold.
-pub fn other_cameras(data: &LivenessData, scores: &PeerScores, network: Network) -> Vec<OtherCameras> {
+/// The threshold where `network`'s APCER and BPCER are equal on every NUAA frame.
+fn nuaa_eer_threshold(data: &LivenessData, scores: &PeerScores, network: Network) -> f32 {
     let nuaa = |live: bool| -> Vec<f32> {
         data.nuaa.iter().zip(&scores.nuaa).filter(|(s, _)| s.live == live).filter_map(|(_, x)| x.as_ref().map(|x| network.of(x))).collect()
     };
+    eer_threshold(&nuaa(true), &nuaa(false))
+}
+
+/// `network` at its own 0.5 and at NUAA's equal-rates threshold.
+pub fn other_cameras(data: &LivenessData, scores: &PeerScores, network: Network) -> Vec<OtherCameras> {
     let flat = |v: &[Option<MiniFasScores>]| -> Vec<f32> { v.iter().flatten().map(|s| network.of(s)).collect() };
     let live = flat(&scores.others_live);
     let sims: Vec<Vec<f32>> = scores.others_simulated.iter().map(|v| flat(v)).collect();
     let share = |v: &[f32], f: &dyn Fn(f32) -> bool| v.iter().filter(|&&s| f(s)).count() as f64 / v.len().max(1) as f64;
-    [("0.5 (the networks' own)".to_string(), 0.5), ("NUAA's equal rates".to_string(), eer_threshold(&nuaa(true), &nuaa(false)))]
+    [("0.5 (the networks' own)".to_string(), 0.5), ("NUAA's equal rates".to_string(), nuaa_eer_threshold(data, scores, network))]
         .into_iter()
         .map(|(from, t)| OtherCameras {
             network,
@@ -151,19 +156,16 @@ pub fn other_cameras(data: &LivenessData, scores: &PeerScores, network: Network)
 /// the data set's persons outside the test split (the networks never saw any), measured on its
 /// test persons, beside NUAA's equal-rates threshold.
 pub fn camera_thresholds(data: &LivenessData, scores: &PeerScores, network: Network) -> Vec<CameraThreshold> {
-    let nuaa = |live: bool| -> Vec<f32> {
-        data.nuaa.iter().zip(&scores.nuaa).filter(|(s, _)| s.live == live).filter_map(|(_, x)| x.as_ref().map(|x| network.of(x))).collect()
-    };
-    let nuaa_threshold = eer_threshold(&nuaa(true), &nuaa(false));
-    [(Set::Imm, "IMM"), (Set::Orl, "ORL"), (Set::Lfw, "LFW")]
+    let nuaa_threshold = nuaa_eer_threshold(data, scores, network);
+    Set::ALL
         .into_iter()
-        .filter_map(|(set, name)| {
+        .filter_map(|set| {
             let of = |v: &[Option<MiniFasScores>]| -> Vec<f32> {
                 v.iter().zip(&data.others).filter(|(_, o)| o.set == set).filter_map(|(x, _)| x.as_ref().map(|x| network.of(x))).collect()
             };
             let (prints, screens) = (of(&scores.others_simulated[0]), of(&scores.others_simulated[1]));
             camera_threshold(
-                (network.name(), name),
+                (network.name(), set.name()),
                 &of(&scores.others_live_development),
                 [&of(&scores.others_live), &prints, &screens],
                 nuaa_threshold,
@@ -205,9 +207,9 @@ pub fn fused_camera_thresholds(data: &LivenessData, recipe: &Recipe, scores: &Pe
     };
     let nuaa_threshold = eer_threshold(&nuaa(true), &nuaa(false));
     let all: Vec<usize> = (0..data.nuaa.len()).collect();
-    [(Set::Imm, "IMM"), (Set::Orl, "ORL"), (Set::Lfw, "LFW")]
+    Set::ALL
         .into_iter()
-        .filter_map(|(set, name)| {
+        .filter_map(|set| {
             let fit = fit_recipe_without(data, recipe, &all, Some(set));
             let of = |features: &[Option<Vec<f32>>], minifas: &[Option<MiniFasScores>]| -> Vec<f32> {
                 let photos = features.iter().zip(minifas).zip(&data.others).filter(|(_, o)| o.set == set);
@@ -217,7 +219,7 @@ pub fn fused_camera_thresholds(data: &LivenessData, recipe: &Recipe, scores: &Pe
             let development = of(&data.other_features, &scores.others_live_development);
             let prints = of(&data.simulated_features[0], &scores.others_simulated[0]);
             let screens = of(&data.simulated_features[1], &scores.others_simulated[1]);
-            camera_threshold((FUSED_WITH_LBP, name), &development, [&live, &prints, &screens], nuaa_threshold)
+            camera_threshold((FUSED_WITH_LBP, set.name()), &development, [&live, &prints, &screens], nuaa_threshold)
         })
         .collect()
 }
