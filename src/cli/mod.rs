@@ -9,6 +9,7 @@ pub mod detect;
 pub mod embed;
 pub mod landmarks;
 pub mod liveness;
+pub mod liveness_cnn;
 pub mod minifasnet;
 pub mod morph;
 pub mod networks;
@@ -132,6 +133,9 @@ pub enum EvalCommand {
     Challenge(liveness::EvalChallengeArgs),
     /// MiniFASNet V2, V1SE and fused on NUAA: APCER and BPCER at 0.5 and EER, per subject.
     Minifasnet(minifasnet::EvalMinifasnetArgs),
+    /// The liveness CNN trained in Rust against the LBP model: NUAA subject folds, other cameras'
+    /// live photos and simulated attacks, and the reverse (trained without NUAA, on NUAA).
+    LivenessCnn(liveness_cnn::EvalLivenessCnnArgs),
     /// Embedding networks alone, by alignment variant, and fused: EER and FNMR on held-out persons.
     Embedding(networks::EvalEmbeddingArgs),
     /// Stated against observed FMR per photo domain: raw cosine and cohort normalisation, by calibration persons.
@@ -181,6 +185,7 @@ pub fn main() -> ExitCode {
         Command::Train(TrainCommand::Liveness(args)) => liveness::run_train(args),
         Command::Eval(EvalCommand::Liveness(args)) => liveness::run_eval(args),
         Command::Eval(EvalCommand::Minifasnet(args)) => minifasnet::run_eval(args),
+        Command::Eval(EvalCommand::LivenessCnn(args)) => liveness_cnn::run_eval(args),
     };
     match result {
         Ok(code) => code,

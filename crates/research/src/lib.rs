@@ -10,6 +10,7 @@ pub mod dataset;
 pub mod dlda;
 pub mod eval;
 pub mod landmark_models;
+pub mod liveness_cnn;
 pub mod minifasnet;
 pub mod synthetic;
 pub mod train_asm;

@@ -7,6 +7,7 @@ pub mod detection;
 pub mod identification;
 pub mod landmarks;
 pub mod liveness;
+pub mod liveness_cnn;
 pub mod liveness_peer;
 pub mod liveness_subjects;
 pub mod pairs;
