@@ -4,6 +4,7 @@
 use std::process::ExitCode;
 
 use super::liveness::{LivenessDataArgs, shipped};
+use crate::research::eval::liveness::CameraThreshold;
 use crate::research::eval::liveness_cnn::{self as research, CnnInputs, CnnReport, Data, Learner};
 use crate::research::liveness_cnn::TrainingConfig;
 use crate::research::train_liveness::{LivenessData, Recipe};
@@ -16,6 +17,11 @@ pub struct EvalLivenessCnnArgs {
     /// Only the models whose name contains this.
     #[arg(long)]
     pub only: Option<String>,
+    /// Only each camera's own threshold (3 fits per model): per data set, the model fitted without
+    /// that set's persons, its threshold set on the set's non-test persons' live photos as
+    /// `facegate calibrate-liveness` sets it, measured on its test persons.
+    #[arg(long)]
+    pub camera_thresholds: bool,
     /// The CNN's training epochs.
     #[arg(long, default_value_t = TrainingConfig::default().epochs)]
     pub epochs: usize,
@@ -52,6 +58,16 @@ pub fn run_eval(args: EvalLivenessCnnArgs) -> anyhow::Result<ExitCode> {
     let inputs = CnnInputs::load(&features, &models, &args.data.cache, args.data.threads, &progress)?;
     let data = Data { features: &features, inputs: &inputs };
     for (name, learner) in learners(&args).into_iter().filter(|(n, _)| args.only.as_ref().is_none_or(|o| n.contains(o.as_str()))) {
+        if args.camera_thresholds {
+            for camera in research::camera_thresholds(&data, &name, &learner, &progress)? {
+                if args.json {
+                    super::print_json_line(&serde_json::to_value(&camera)?);
+                } else {
+                    print_camera_threshold(&camera);
+                }
+            }
+            continue;
+        }
         let report = research::evaluate(&data, &name, &learner, &progress)?;
         if args.json {
             super::print_json_line(&serde_json::to_value(&report)?);
@@ -96,4 +112,22 @@ fn print_report(r: &CnnReport) {
         Some(ms) => eprintln!(", {ms:.2} ms per face scored alone"),
         None => eprintln!(),
     }
+}
+
+/// One camera's own threshold against the model's even-odds point (`nuaa_threshold` is logit 0 here).
+fn print_camera_threshold(c: &CameraThreshold) {
+    eprintln!(
+        "{} on {}: its own threshold {:.4} from {} live faces: test persons' live refused {:.2}% of {}, simulated prints taken for live {:.2}%, screens {:.2}%; at logit 0: {:.2}%, {:.2}%, {:.2}%",
+        c.model,
+        c.set,
+        c.threshold,
+        c.calibration_faces,
+        100.0 * c.live_refused,
+        c.test_live,
+        100.0 * c.print_accepted,
+        100.0 * c.screen_accepted,
+        100.0 * c.nuaa_live_refused,
+        100.0 * c.nuaa_print_accepted,
+        100.0 * c.nuaa_screen_accepted
+    );
 }

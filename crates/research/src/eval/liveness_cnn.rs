@@ -21,11 +21,11 @@ use crate::Progress;
 use crate::attack_sim::simulate;
 use crate::cache::map_samples;
 use crate::dataset::Split;
-use crate::eval::liveness::Rates;
+use crate::eval::liveness::{CameraThreshold, Rates, camera_threshold};
 use crate::eval::verification::{eer, fnmr_at_fmr};
 use crate::liveness_cnn::{Group, Input, LivenessNet, TrainingConfig, input, train};
 use crate::train_deep::Set;
-use crate::train_liveness::{LivenessData, LogisticFit, Recipe, columns, fit_recipe, keypoints};
+use crate::train_liveness::{LivenessData, LogisticFit, Recipe, columns, fit_recipe_without, keypoints};
 
 /// NUAA's subjects fall into this many folds.
 pub const FOLDS: usize = 3;
@@ -130,15 +130,16 @@ impl Data<'_> {
         }
     }
 
-    /// `learner` fitted on the NUAA frames `nuaa` and the other cameras' training persons.
-    fn fit(&self, learner: &Learner, nuaa: &[usize], progress: &dyn Progress) -> anyhow::Result<Fitted> {
+    /// `learner` fitted on the NUAA frames `nuaa` and the other cameras' training persons, but
+    /// for those of the data set `without`.
+    fn fit(&self, learner: &Learner, nuaa: &[usize], without: Option<Set>, progress: &dyn Progress) -> anyhow::Result<Fitted> {
         match learner {
-            Learner::Lbp(recipe) => Ok(Fitted::Lbp(fit_recipe(self.features, recipe, nuaa), columns(&recipe.blocks))),
+            Learner::Lbp(recipe) => Ok(Fitted::Lbp(fit_recipe_without(self.features, recipe, nuaa, without), columns(&recipe.blocks))),
             Learner::Cnn { simulated_attacks, config } => {
                 let d = self.features;
                 let nuaa_of =
                     |live: bool| nuaa.iter().filter(|&&i| d.nuaa[i].live == live).filter_map(|&i| self.inputs.nuaa[i].as_ref()).collect();
-                let training = d.others_in(Split::Train);
+                let training: Vec<usize> = d.others_in(Split::Train).into_iter().filter(|&i| Some(d.others[i].set) != without).collect();
                 let mut groups = vec![
                     Group { inputs: nuaa_of(true), live: true },
                     Group { inputs: nuaa_of(false), live: false },
@@ -229,7 +230,7 @@ pub fn evaluate(data: &Data, name: &str, learner: &Learner, progress: &dyn Progr
     let started = Instant::now();
     for fold in 0..FOLDS {
         let train: Vec<usize> = (0..d.nuaa.len()).filter(|&i| fold_of(&d.nuaa[i].subject) != fold).collect();
-        let fitted = data.fit(learner, &train, progress)?;
+        let fitted = data.fit(learner, &train, None, progress)?;
         for subject in subjects.iter().filter(|s| fold_of(s) == fold) {
             let held: Vec<usize> = (0..d.nuaa.len()).filter(|&i| &d.nuaa[i].subject == subject).collect();
             let (live, attacks) = split_by_class(d, &held, &data.scores(&fitted, Source::Nuaa, &held)?);
@@ -248,7 +249,7 @@ pub fn evaluate(data: &Data, name: &str, learner: &Learner, progress: &dyn Progr
     let fit_seconds = started.elapsed().as_secs_f64() / FOLDS as f64;
     per_subject.sort_by(|a, b| a.subject.cmp(&b.subject));
     let all: Vec<usize> = (0..d.nuaa.len()).collect();
-    let full = data.fit(learner, &all, progress)?;
+    let full = data.fit(learner, &all, None, progress)?;
     let score_ms_per_face = match full {
         Fitted::Lbp(..) => None,
         Fitted::Cnn(_) => {
@@ -304,7 +305,7 @@ fn reverse(data: &Data, learner: &Learner, progress: &dyn Progress) -> anyhow::R
     if !simulated {
         return Ok(None);
     }
-    let fitted = data.fit(learner, &[], progress)?;
+    let fitted = data.fit(learner, &[], None, progress)?;
     let all: Vec<usize> = (0..data.features.nuaa.len()).collect();
     let (live, attacks) = split_by_class(data.features, &all, &data.scores(&fitted, Source::Nuaa, &all)?);
     Ok(Some(Reverse {
@@ -312,6 +313,31 @@ fn reverse(data: &Data, learner: &Learner, progress: &dyn Progress) -> anyhow::R
         bpcer_at_apcer_1: fnmr_at_fmr(&live, &attacks, 0.01).0,
         at_zero: rates_at_zero(&live, &attacks),
     }))
+}
+
+/// Per data set, `learner` fitted on every NUAA frame and the other sets' training persons (so
+/// the set's camera is new to it), its threshold set as `facegate calibrate-liveness` would on the
+/// live photos of the set's persons outside its test split, measured on its test persons' live
+/// photos and simulated attacks; beside it (in the `nuaa_*` fields), logit 0, the model's own
+/// even-odds point. Three fits.
+pub fn camera_thresholds(data: &Data, name: &str, learner: &Learner, progress: &dyn Progress) -> anyhow::Result<Vec<CameraThreshold>> {
+    let d = data.features;
+    let all: Vec<usize> = (0..d.nuaa.len()).collect();
+    let mut out = Vec::new();
+    for set in Set::ALL {
+        let fitted = data.fit(learner, &all, Some(set), progress)?;
+        let of_set = |test: bool| -> Vec<usize> {
+            (0..d.others.len()).filter(|&i| d.others[i].set == set && (d.others[i].split == Split::Test) == test).collect()
+        };
+        let scores = |source: Source, test: bool| -> anyhow::Result<Vec<f32>> {
+            Ok(data.scores(&fitted, source, &of_set(test))?.into_iter().flatten().collect())
+        };
+        let (prints, screens) = (scores(Source::Simulated(0), true)?, scores(Source::Simulated(1), true)?);
+        let measured =
+            camera_threshold((name, set.name()), &scores(Source::Others, false)?, [&scores(Source::Others, true)?, &prints, &screens], 0.0);
+        out.extend(measured);
+    }
+    Ok(out)
 }
 
 #[cfg(test)]
