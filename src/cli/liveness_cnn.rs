@@ -93,7 +93,7 @@ fn print_report(r: &CnnReport) {
         pct(r.bpcer_at_apcer_1)
     );
     for s in &r.subjects {
-        eprintln!("    {}: APCER {} of {} prints, BPCER {} of {} live", s.subject, pct(s.apcer), s.prints, pct(s.bpcer), s.live);
+        eprintln!("    {}: APCER {} of {} prints, BPCER {} of {} live", s.subject, pct(s.apcer), s.attacks, pct(s.bpcer), s.live);
     }
     for s in &r.other_cameras {
         eprintln!("    {}: {} of {}", s.what, pct(s.share), s.photos);

@@ -27,6 +27,16 @@ pub struct Rates {
     pub acer: f64,
 }
 
+impl Rates {
+    /// The rates at one `threshold` for every score (a score at the threshold is taken for live).
+    pub fn at(live: &[f32], attacks: &[f32], threshold: f32) -> Rates {
+        let apcer = attacks.iter().filter(|&&s| s >= threshold).count() as f64 / attacks.len().max(1) as f64;
+        let bpcer = live.iter().filter(|&&s| s < threshold).count() as f64 / live.len().max(1) as f64;
+        Rates { apcer, bpcer, acer: 0.5 * (apcer + bpcer) }
+    }
+}
+
+/// The rates with each score's own threshold, that of its subject fold.
 fn rates(live: &[f32], attacks: &[f32], threshold: impl Fn(usize) -> f32, live_fold: &[usize], attack_fold: &[usize]) -> Rates {
     let apcer = attacks.iter().zip(attack_fold).filter(|(s, f)| **s >= threshold(**f)).count() as f64 / attacks.len().max(1) as f64;
     let bpcer = live.iter().zip(live_fold).filter(|(s, f)| **s < threshold(**f)).count() as f64 / live.len().max(1) as f64;
@@ -279,7 +289,7 @@ pub fn camera_threshold(
 /// For a recipe trained with the other cameras' live photos: per data set, the recipe fitted on
 /// every NUAA frame and the other sets' live photos, that set's left out so that its camera is new
 /// (none for other recipes). The other-camera refusals and the camera thresholds both read them.
-fn unseen_camera_fits(data: &LivenessData, recipe: &Recipe) -> Vec<(Set, LogisticFit)> {
+pub fn unseen_camera_fits(data: &LivenessData, recipe: &Recipe) -> Vec<(Set, LogisticFit)> {
     if !recipe.other_cameras {
         return Vec::new();
     }
@@ -381,12 +391,11 @@ fn reverse_check(data: &LivenessData, recipe: &Recipe) -> Option<ReverseCheck> {
         let Some(x) = x else { continue };
         if s.live { live.push(logit(x)) } else { attacks.push(logit(x)) }
     }
-    let (lf, af) = (vec![0; live.len()], vec![0; attacks.len()]);
     Some(ReverseCheck {
         eer: eer(&live, &attacks),
         bpcer_at_apcer_1: fnmr_at_fmr(&live, &attacks, 0.01).0,
         threshold,
-        at_threshold: rates(&live, &attacks, |_| threshold, &lf, &af),
+        at_threshold: Rates::at(&live, &attacks, threshold),
     })
 }
 
@@ -572,6 +581,10 @@ mod tests {
         let attacks = [0.1, 0.6, 0.3, 0.05];
         let r = rates(&live, &attacks, |_| 0.5, &[0; 4], &[0; 4]);
         assert_eq!((r.apcer, r.bpcer, r.acer), (0.25, 0.25, 0.25));
+        assert_eq!(Rates::at(&live, &attacks, 0.5), r);
+        // A score at the threshold is taken for live.
+        let r = Rates::at(&[-1.0, 0.0, 2.0, 3.0], &[0.0, -2.0], 0.0);
+        assert_eq!((r.apcer, r.bpcer, r.acer), (0.5, 0.25, 0.375));
         let t = eer_threshold(&live, &attacks);
         assert!(t > 0.3 && t <= 0.7, "{t}");
         // The lowest threshold with no accepted attack sits just above the highest attack.

@@ -12,16 +12,17 @@
 //! - **The reverse**, for a recipe with simulated attacks: fitted without any NUAA frame, on
 //!   NUAA's real frames (does what it learnt of simulated prints find real ones?).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use serde::Serialize;
 
 use crate::Progress;
-use crate::attack_sim::simulate;
+use crate::attack_sim::{AttackKind, simulate};
 use crate::cache::map_samples;
 use crate::dataset::Split;
 use crate::eval::liveness::{CameraThreshold, Rates, camera_threshold};
+use crate::eval::liveness_subjects::SubjectRates;
 use crate::eval::verification::{eer, fnmr_at_fmr};
 use crate::liveness_cnn::{Group, Input, LivenessNet, TrainingConfig, input, train};
 use crate::train_deep::Set;
@@ -35,7 +36,7 @@ pub const FOLDS: usize = 3;
 pub struct CnnInputs {
     pub nuaa: Vec<Option<Input>>,
     pub others: Vec<Option<Input>>,
-    /// Per [`crate::attack_sim::AttackKind::ALL`], the other cameras' photos as that attack (the
+    /// Per [`AttackKind::ALL`], the other cameras' photos as that attack (the
     /// same seeds as the LBP model's simulated features).
     pub simulated: Vec<Vec<Option<Input>>>,
     pub unseen: Vec<Option<Input>>,
@@ -49,26 +50,31 @@ impl CnnInputs {
         threads: usize,
         progress: &dyn Progress,
     ) -> anyhow::Result<CnnInputs> {
-        let nuaa: Vec<_> = data.nuaa.iter().map(|s| s.image.clone()).collect();
-        let others: Vec<_> = data.others.iter().map(|s| s.image.clone()).collect();
-        let at = |images: &[std::path::PathBuf], kind: Option<crate::attack_sim::AttackKind>| -> anyhow::Result<Vec<Option<Input>>> {
+        // Each photo is opened once, its key points read once: as it is, and (the other cameras')
+        // as each simulated attack.
+        let of = |images: &[PathBuf], attacks: &[AttackKind]| -> anyhow::Result<Vec<Vec<Option<Input>>>> {
             let kp = keypoints(cache_dir, models_dir, images, threads, progress)?;
-            let items: Vec<(usize, &std::path::PathBuf, &Option<_>)> =
-                images.iter().zip(&kp).enumerate().map(|(i, (p, k))| (i, p, k)).collect();
-            Ok(map_samples(&items, threads, "liveness CNN inputs", progress, |(i, path, kp)| {
-                let kp = (*kp).as_ref()?;
-                let photo = image::open(path).ok()?.to_rgb8();
-                Some(match kind {
-                    Some(kind) => input(&simulate(&photo, kind, *i as u64), kp),
-                    None => input(&photo, kp),
-                })
-            }))
+            let items: Vec<(usize, &PathBuf, &Option<_>)> = images.iter().zip(&kp).enumerate().map(|(i, (p, k))| (i, p, k)).collect();
+            let per_photo = map_samples(&items, threads, "liveness CNN inputs", progress, |(i, path, kp)| {
+                let (Some(kp), Ok(photo)) = (kp, image::open(path)) else { return vec![None; 1 + attacks.len()] };
+                let photo = photo.to_rgb8();
+                let attacked = attacks.iter().map(|&kind| Some(input(&simulate(&photo, kind, *i as u64), kp)));
+                std::iter::once(Some(input(&photo, kp))).chain(attacked).collect()
+            });
+            let mut variants: Vec<Vec<Option<Input>>> = vec![Vec::with_capacity(images.len()); 1 + attacks.len()];
+            for photo in per_photo {
+                variants.iter_mut().zip(photo).for_each(|(v, x)| v.push(x));
+            }
+            Ok(variants)
         };
+        let nuaa: Vec<PathBuf> = data.nuaa.iter().map(|s| s.image.clone()).collect();
+        let others: Vec<PathBuf> = data.others.iter().map(|s| s.image.clone()).collect();
+        let mut others = of(&others, &AttackKind::ALL)?.into_iter();
         Ok(CnnInputs {
-            nuaa: at(&nuaa, None)?,
-            simulated: crate::attack_sim::AttackKind::ALL.iter().map(|&k| at(&others, Some(k))).collect::<anyhow::Result<_>>()?,
-            others: at(&others, None)?,
-            unseen: at(&data.unseen, None)?,
+            nuaa: of(&nuaa, &[])?.swap_remove(0),
+            others: others.next().expect("the photos as they are"),
+            simulated: others.collect(),
+            unseen: of(&data.unseen, &[])?.swap_remove(0),
         })
     }
 }
@@ -155,16 +161,6 @@ impl Data<'_> {
     }
 }
 
-/// One NUAA subject never given: its rates at logit 0.
-#[derive(Debug, Clone, Serialize)]
-pub struct SubjectRates {
-    pub subject: String,
-    pub prints: usize,
-    pub live: usize,
-    pub apcer: f64,
-    pub bpcer: f64,
-}
-
 /// How often photos of one kind are refused (live photos) or taken for live (attacks) at logit 0.
 #[derive(Debug, Clone, Serialize)]
 pub struct Share {
@@ -186,6 +182,7 @@ pub struct Reverse {
 pub struct CnnReport {
     pub name: String,
     pub learner: Learner,
+    /// Each NUAA subject never given, at logit 0.
     pub subjects: Vec<SubjectRates>,
     /// All held-out frames pooled, at logit 0.
     pub pooled: Rates,
@@ -203,12 +200,6 @@ pub struct CnnReport {
     /// fitted on all nine subjects; the crops are cut beforehand). `None` for the LBP model, whose
     /// features are computed once for every fit (its cost: `cargo bench --bench liveness`).
     pub score_ms_per_face: Option<f64>,
-}
-
-fn rates_at_zero(live: &[f32], attacks: &[f32]) -> Rates {
-    let apcer = attacks.iter().filter(|&&s| s >= 0.0).count() as f64 / attacks.len().max(1) as f64;
-    let bpcer = live.iter().filter(|&&s| s < 0.0).count() as f64 / live.len().max(1) as f64;
-    Rates { apcer, bpcer, acer: 0.5 * (apcer + bpcer) }
 }
 
 /// The live and attack logits of the NUAA frames `indices` with a face.
@@ -234,11 +225,12 @@ pub fn evaluate(data: &Data, name: &str, learner: &Learner, progress: &dyn Progr
         for subject in subjects.iter().filter(|s| fold_of(s) == fold) {
             let held: Vec<usize> = (0..d.nuaa.len()).filter(|&i| &d.nuaa[i].subject == subject).collect();
             let (live, attacks) = split_by_class(d, &held, &data.scores(&fitted, Source::Nuaa, &held)?);
-            let r = rates_at_zero(&live, &attacks);
+            let r = Rates::at(&live, &attacks, 0.0);
             per_subject.push(SubjectRates {
                 subject: subject.clone(),
-                prints: attacks.len(),
+                threshold: 0.0,
                 live: live.len(),
+                attacks: attacks.len(),
                 apcer: r.apcer,
                 bpcer: r.bpcer,
             });
@@ -263,7 +255,7 @@ pub fn evaluate(data: &Data, name: &str, learner: &Learner, progress: &dyn Progr
     Ok(CnnReport {
         name: name.to_string(),
         learner: learner.clone(),
-        pooled: rates_at_zero(&live_all, &attacks_all),
+        pooled: Rates::at(&live_all, &attacks_all, 0.0),
         eer: eer(&live_all, &attacks_all),
         bpcer_at_apcer_1: fnmr_at_fmr(&live_all, &attacks_all, 0.01).0,
         worst_apcer: per_subject.iter().map(|s| s.apcer).fold(0.0, f64::max),
@@ -291,7 +283,7 @@ fn other_cameras(data: &Data, full: &Fitted) -> anyhow::Result<Vec<Share>> {
     }
     let umist: Vec<usize> = (0..d.unseen.len()).collect();
     out.push(share("UMIST live refused".into(), data.scores(full, Source::Unseen, &umist)?, true));
-    for (k, kind) in crate::attack_sim::AttackKind::ALL.iter().enumerate() {
+    for (k, kind) in AttackKind::ALL.iter().enumerate() {
         out.push(share(format!("{} taken for live", kind.name()), data.scores(full, Source::Simulated(k), &test)?, false));
     }
     Ok(out)
@@ -311,7 +303,7 @@ fn reverse(data: &Data, learner: &Learner, progress: &dyn Progress) -> anyhow::R
     Ok(Some(Reverse {
         eer: eer(&live, &attacks),
         bpcer_at_apcer_1: fnmr_at_fmr(&live, &attacks, 0.01).0,
-        at_zero: rates_at_zero(&live, &attacks),
+        at_zero: Rates::at(&live, &attacks, 0.0),
     }))
 }
 
@@ -338,15 +330,4 @@ pub fn camera_thresholds(data: &Data, name: &str, learner: &Learner, progress: &
         out.extend(measured);
     }
     Ok(out)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn rates_at_zero_take_zero_for_live() {
-        let r = rates_at_zero(&[-1.0, 0.0, 2.0, 3.0], &[0.0, -2.0]);
-        assert_eq!((r.apcer, r.bpcer, r.acer), (0.5, 0.25, 0.375));
-    }
 }

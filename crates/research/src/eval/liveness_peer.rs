@@ -13,10 +13,10 @@ use crate::Progress;
 use crate::attack_sim::{AttackKind, simulate};
 use crate::cache::map_samples;
 use crate::dataset::Split;
-use crate::eval::liveness::{CameraThreshold, camera_threshold, eer_threshold};
+use crate::eval::liveness::{CameraThreshold, camera_threshold, eer_threshold, unseen_camera_fits};
 use crate::eval::liveness_subjects::{FitAndScore, Fold, folds, recipe_scores};
 use crate::train_deep::Set;
-use crate::train_liveness::{LivenessData, Recipe, columns, fit_recipe_without, out_of_fold_logits};
+use crate::train_liveness::{LivenessData, Recipe, columns, out_of_fold_logits};
 
 /// Which of MiniFASNet's scores.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -197,7 +197,8 @@ pub fn fused_folds(data: &LivenessData, recipe: &Recipe, scores: &PeerScores, th
 }
 
 /// [`camera_thresholds`] of the fusion: per data set, the LBP recipe fitted without that set's
-/// live photos; NUAA's threshold the equal rates of its out-of-fold fused scores.
+/// live photos ([`unseen_camera_fits`]: none for a recipe without other cameras' live photos);
+/// NUAA's threshold the equal rates of its out-of-fold fused scores.
 pub fn fused_camera_thresholds(data: &LivenessData, recipe: &Recipe, scores: &PeerScores, progress: &dyn Progress) -> Vec<CameraThreshold> {
     let cols = columns(&recipe.blocks);
     let out_of_fold = out_of_fold_logits(data, recipe, progress);
@@ -206,11 +207,9 @@ pub fn fused_camera_thresholds(data: &LivenessData, recipe: &Recipe, scores: &Pe
         frames.filter_map(|((_, l), m)| Some(l.as_ref()? + logit(m.as_ref()?.fused))).collect()
     };
     let nuaa_threshold = eer_threshold(&nuaa(true), &nuaa(false));
-    let all: Vec<usize> = (0..data.nuaa.len()).collect();
-    Set::ALL
+    unseen_camera_fits(data, recipe)
         .into_iter()
-        .filter_map(|set| {
-            let fit = fit_recipe_without(data, recipe, &all, Some(set));
+        .filter_map(|(set, fit)| {
             let of = |features: &[Option<Vec<f32>>], minifas: &[Option<MiniFasScores>]| -> Vec<f32> {
                 let photos = features.iter().zip(minifas).zip(&data.others).filter(|(_, o)| o.set == set);
                 photos.filter_map(|((x, m), _)| Some(fit.logit_at(&cols, x.as_ref()?) + logit(m.as_ref()?.fused))).collect()
