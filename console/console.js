@@ -375,8 +375,14 @@ $('#identify-form').addEventListener('submit', async (e) => {
 // ---------------------------------------------------------------- verify with the camera: the head-turn challenge
 
 const TURNS = { front: 'Look straight at the camera', left: 'Turn your head to your left', right: 'Turn your head to your right' };
-/// How long a step waits for a frame in its range before the last frame is sent anyway.
+/// How long a step waits for its burst before the best frames seen (else the last one) are sent anyway.
 const STEP_TIMEOUT_MS = 20000;
+/// A step's burst: at most this many frames (or the challenge's `max_frames_per_step`, if fewer);
+/// a burst of at least BURST_MIN ends when the person leaves the pose.
+const BURST_MAX = 5;
+const BURST_MIN = 3;
+/// Where a frame is well inside a step's range: |yaw| at most 6° ahead, 20° to 45° to the asked side.
+const BANDS = { front: [-6, 6], left: [20, 45], right: [-45, -20] };
 /// The pause between two looks at the camera (one /analyze at a time).
 const RETRY_MS = 300;
 /// The probe's range when the challenge has no `front` step to borrow one from.
@@ -445,18 +451,39 @@ async function yawOf(file) {
     }
 }
 
-/// A frame for `step`: the first whose yaw lies in the step's range, else the last one taken when
-/// the step's time is up (the server judges it).
-async function frameFor(run, step, seen) {
+/// The part of `step`'s range a frame should lie in: its band (BANDS) clamped into the range, or
+/// the whole range if they do not overlap.
+function band(step) {
+    const [lo, hi] = [Math.max(BANDS[step.turn][0], step.yaw_min), Math.min(BANDS[step.turn][1], step.yaw_max)];
+    return lo <= hi ? [lo, hi] : [step.yaw_min, step.yaw_max];
+}
+
+/// A burst of up to `want` frames for `step`, taken while the person holds the pose: frames whose
+/// yaw lies well inside the step's range (`band`), not the first past its boundary. When the
+/// step's time is up: those taken so far, else the in-range frames closest to the band's middle,
+/// else the last frame taken (the server judges it). `inRange` says whether the frames lie in the step's range, `late` that the
+/// time was up.
+async function burstFor(run, step, want, seen) {
     const deadline = Date.now() + STEP_TIMEOUT_MS;
+    const [lo, hi] = band(step);
+    const taken = [];
     for (;;) {
         if (run.cancelled) throw new Cancelled();
         const file = await grab(run.video);
         const yaw = await yawOf(file);
         if (run.cancelled) throw new Cancelled();
         const inRange = yaw !== null && yaw >= step.yaw_min && yaw <= step.yaw_max;
-        seen.textContent = yaw === null ? 'No face seen in the last frame' : `Seen: yaw ${degrees(yaw)}${inRange ? ', in range' : ''}`;
-        if (inRange || Date.now() >= deadline) return { file, yaw, inRange };
+        const inside = inRange && yaw >= lo && yaw <= hi;
+        if (inRange) taken.push({ file, yaw, inside });
+        const well = taken.filter((t) => t.inside);
+        seen.textContent = yaw === null ? 'No face seen in the last frame' : `Seen: yaw ${degrees(yaw)}${inside ? ', well inside' : inRange ? `, in range: aim for ${lo}° to ${hi}°` : ''} (${well.length} of ${want} taken)`;
+        if (well.length >= want || (well.length >= Math.min(BURST_MIN, want) && !inside)) return { frames: well, inRange: true };
+        if (Date.now() >= deadline) {
+            if (taken.length === 0) return { frames: [{ file, yaw }], inRange: false, late: true };
+            const middle = (lo + hi) / 2;
+            const best = well.length > 0 ? well : taken.sort((a, b) => Math.abs(a.yaw - middle) - Math.abs(b.yaw - middle)).slice(0, want);
+            return { frames: best, inRange: true, late: true };
+        }
         await sleep(RETRY_MS);
     }
 }
@@ -474,11 +501,12 @@ function challengeOutcome(r, steps) {
         return [el('p', { id: 'camera-challenge', class: 'muted', text: why })];
     }
     const verdict = el('p', { id: 'camera-challenge', class: `decision ${c.passed ? 'match' : 'nomatch'}`, text: c.passed ? 'Challenge passed' : `Challenge failed: ${c.reason || 'no reason given'}` });
-    const t = el('table', { id: 'camera-challenge-steps' }, el('caption', { class: 'muted', text: 'The head-turn challenge as the server read each frame' }),
-        el('tr', {}, ...['Step', 'Turn', 'Asked', 'Yaw', 'In range'].map((h) => el('th', { scope: 'col', text: h }))));
+    const t = el('table', { id: 'camera-challenge-steps' }, el('caption', { class: 'muted', text: 'The head-turn challenge as the server read each step\'s frames' }),
+        el('tr', {}, ...['Step', 'Turn', 'Asked', 'Frames', 'Median yaw', 'In range'].map((h) => el('th', { scope: 'col', text: h }))));
     c.steps.forEach((s, i) => {
         t.append(el('tr', { 'data-ok': String(s.ok) }, el('td', { text: String(i + 1) }), el('td', { text: s.turn }),
-            el('td', { text: steps[i] ? range(steps[i]) : '–' }), el('td', { text: degrees(s.yaw) }), el('td', { text: s.ok ? 'yes' : 'no' })));
+            el('td', { text: steps[i] ? range(steps[i]) : '–' }), el('td', { text: typeof s.frames === 'number' ? String(s.frames) : '–' }),
+            el('td', { text: degrees(s.yaw) }), el('td', { text: s.ok ? 'yes' : 'no' })));
     });
     return [verdict, t];
 }
@@ -495,6 +523,7 @@ async function runChallenge(run, subject, target) {
     list.dataset.steps = String(challenge.steps.length);
     list.replaceChildren(...items);
     target.replaceChildren(el('p', { class: 'muted', text: `Challenge of ${challenge.steps.length} steps, valid for ${challenge.expires_in} s.` }));
+    const burst = Math.min(BURST_MAX, challenge.max_frames_per_step ?? BURST_MAX);
     const taken = [];
     for (const [i, step] of plan.entries()) {
         items[i].dataset.state = 'current';
@@ -502,24 +531,32 @@ async function runChallenge(run, subject, target) {
         $('.state', items[i]).textContent = ' · now';
         $('#camera-seen').textContent = 'Looking…';
         $('#camera-instruction').textContent = `${step.probe ? 'Probe photo' : `Step ${i} of ${challenge.steps.length}`}: ${TURNS[step.turn]} (${range(step)})`;
-        const got = await frameFor(run, step, $('#camera-seen'));
+        const got = await burstFor(run, step, step.probe ? 1 : burst, $('#camera-seen'));
         items[i].removeAttribute('aria-current');
         items[i].dataset.state = got.inRange ? 'done' : 'timeout';
-        $('.state', items[i]).textContent = got.inRange ? ` · taken at yaw ${degrees(got.yaw)}` : ` · time up: the last frame (yaw ${degrees(got.yaw)}) goes to the server`;
-        taken.push(got);
+        const yaws = got.frames.map((f) => degrees(f.yaw)).join(', ');
+        $('.state', items[i]).textContent = !got.late ? ` · taken at yaw ${yaws}`
+            : got.inRange ? ` · time up: the best frame(s) in range (yaw ${yaws}) go to the server` : ` · time up: the last frame (yaw ${yaws}) goes to the server`;
+        taken.push(got.frames);
     }
     $('#camera-cancel').disabled = true;
     $('#camera-instruction').textContent = 'All frames taken.';
     target.replaceChildren(el('p', { class: 'muted', text: 'Verifying…' }));
     const body = new FormData();
     body.append('subject', subject);
-    body.append('image', taken[0].file, 'probe.jpg');
+    body.append('image', taken[0][0].file, 'probe.jpg');
     body.append('challenge', challenge.challenge);
-    taken.slice(1).forEach((t, i) => body.append('frame', t.file, `step-${i + 1}.jpg`));
+    // Each step's burst in step order, `frame_steps` naming each frame's step (0-based).
+    const frameSteps = [];
+    taken.slice(1).forEach((frames, i) => frames.forEach((f, j) => {
+        body.append('frame', f.file, `step-${i + 1}-${j + 1}.jpg`);
+        frameSteps.push(i);
+    }));
+    body.append('frame_steps', frameSteps.join(','));
     const r = await api('POST', '/verify', body);
     const decision = el('p', { class: `decision ${r.match ? 'match' : 'nomatch'}`, id: 'camera-decision', text: r.match ? `Match: ${r.subject}` : `No match: not ${r.subject}` });
     const why = el('p', { text: `Score ${fmt(r.score)} ${r.match ? '≥' : '<'} threshold ${fmt(r.threshold)} at false match rate ${fmtFmr(r.fmr)}.` });
-    target.replaceChildren(await reportView(taken[0].file, r, [decision, why, scoreBar(r.score, r.threshold), ...challengeOutcome(r, challenge.steps)]));
+    target.replaceChildren(await reportView(taken[0][0].file, r, [decision, why, scoreBar(r.score, r.threshold), ...challengeOutcome(r, challenge.steps)]));
     target.scrollIntoView({ block: 'start' });
 }
 

@@ -4,11 +4,13 @@ a head-turn challenge (active liveness).
 
     python facegate_example.py enroll alice alice-1.jpg alice-2.jpg
     python facegate_example.py verify alice probe.jpg [--fmr 1e-4]
-    python facegate_example.py verify-challenge alice probe.jpg --left l.jpg --right r.jpg [--front f.jpg]
+    python facegate_example.py verify-challenge alice probe.jpg --left l.jpg [--left l2.jpg] --right r.jpg [--front f.jpg]
 
-verify-challenge asks for a challenge (POST /liveness/challenge), answers each step with the photo
-given for its turn (`front` defaults to the probe; a real client takes a camera frame per step) and
-verifies the probe with them.
+verify-challenge asks for a challenge (POST /liveness/challenge), answers each step with the photos
+given for its turn (`front` defaults to the probe; a real client takes a short burst of camera
+frames per step, well inside the step's yaw range) and verifies the probe with them. An option
+given more than once makes a burst: each step gets all its turn's photos (at most the challenge's
+`max_frames_per_step`), sent with `frame_steps`; with one photo per turn, one frame per step.
 
 FACEGATE_URL (default http://127.0.0.1:8080) and FACEGATE_API_KEY (if the server has keys) set the
 server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo,
@@ -71,9 +73,10 @@ def main() -> int:
     challenge = commands.add_parser("verify-challenge", help="verify the probe with a head-turn challenge")
     challenge.add_argument("subject")
     challenge.add_argument("photo", type=Path, help="the probe, looking at the camera")
-    challenge.add_argument("--front", type=Path, help="a photo looking at the camera (default: the probe)")
-    challenge.add_argument("--left", type=Path, required=True, help="a photo turned to the person's own left")
-    challenge.add_argument("--right", type=Path, required=True, help="a photo turned to the person's own right")
+    # Each may be given more than once: the step's burst.
+    challenge.add_argument("--front", type=Path, action="append", help="a photo looking at the camera (default: the probe)")
+    challenge.add_argument("--left", type=Path, action="append", required=True, help="a photo turned to the person's own left")
+    challenge.add_argument("--right", type=Path, action="append", required=True, help="a photo turned to the person's own right")
     args = parser.parse_args()
 
     key = os.environ.get("FACEGATE_API_KEY")
@@ -112,13 +115,18 @@ def main() -> int:
 
 
 def verify_challenge(client: httpx.Client, args) -> int:
-    """Ask for a challenge, answer each step with the photo of its turn, verify; print the outcome."""
+    """Ask for a challenge, answer each step with the photos of its turn, verify; print the outcome."""
     c = post(client, "/liveness/challenge", {}, [])
-    photos = {"front": args.front or args.photo, "left": args.left, "right": args.right}
+    photos = {"front": args.front or [args.photo], "left": args.left, "right": args.right}
     steps = c["steps"]
     print(f"challenge of {len(steps)} steps: " + ", ".join(f"{s['turn']} ({s['yaw_min']:g}..{s['yaw_max']:g} deg)" for s in steps))
-    frames = [photos[s["turn"]] for s in steps]
-    v = post(client, "/verify", {"subject": args.subject, "challenge": c["challenge"]}, [args.photo], frames=frames)
+    bursts = [photos[s["turn"]][: c.get("max_frames_per_step", 5)] for s in steps]
+    frames = [photo for burst in bursts for photo in burst]
+    fields = {"subject": args.subject, "challenge": c["challenge"]}
+    if len(frames) > len(steps):
+        # Bursts: the 0-based step of each frame, in order.
+        fields["frame_steps"] = ",".join(str(i) for i, burst in enumerate(bursts) for _ in burst)
+    v = post(client, "/verify", fields, [args.photo], frames=frames)
     verdict = "match" if v["match"] else "no match"
     print(f"{verdict}: score {v['score']:.3f}, threshold {v['threshold']:.3f} at FMR {v['fmr']:g}")
     outcome = (v.get("liveness") or {}).get("challenge")
@@ -127,7 +135,7 @@ def verify_challenge(client: httpx.Client, args) -> int:
         return 4
     for s in outcome["steps"]:
         yaw = "unknown" if s["yaw"] is None else f"{s['yaw']:.1f} deg"
-        print(f"  {s['turn']}: yaw {yaw}, {'ok' if s['ok'] else 'not ok'}")
+        print(f"  {s['turn']}: yaw {yaw}, {s['frames']} frame(s), {'ok' if s['ok'] else 'not ok'}")
     if not outcome["passed"]:
         print(f"the head-turn challenge failed: {outcome['reason']}", file=sys.stderr)
         return 2

@@ -3,11 +3,14 @@
 #
 #   ./facegate_example.sh enroll alice alice-1.jpg alice-2.jpg
 #   ./facegate_example.sh verify alice probe.jpg [FMR]        # e.g. 1e-4
-#   ./facegate_example.sh verify-challenge alice probe.jpg --left l.jpg --right r.jpg [--front f.jpg]
+#   ./facegate_example.sh verify-challenge alice probe.jpg --left l.jpg [--left l2.jpg] --right r.jpg [--front f.jpg]
 #
-# verify-challenge asks for a challenge (POST /liveness/challenge), answers each step with the photo
-# given for its turn (`front` defaults to the probe; a real client takes a camera frame per step)
-# and verifies the probe with them.
+# verify-challenge asks for a challenge (POST /liveness/challenge), answers each step with the
+# photos given for its turn (`front` defaults to the probe; a real client takes a short burst of
+# camera frames per step, well inside the step's yaw range) and verifies the probe with them. An
+# option given more than once makes a burst: each step gets all its turn's photos (at most the
+# challenge's `max_frames_per_step`), sent with `frame_steps`; with one photo per turn, one frame
+# per step.
 #
 # FACEGATE_URL (default http://127.0.0.1:8080) and FACEGATE_API_KEY (if the server has keys) set the
 # server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo,
@@ -72,36 +75,48 @@ case "$command" in
         jq -r '"\(if .match then "match" else "no match" end): score \(.score), threshold \(.threshold) at FMR \(.fmr)"' "$body"
         jq -e .match "$body" >/dev/null || exit 1 ;;
     verify-challenge)
-        [[ $# -ge 3 ]] || { echo "usage: $0 verify-challenge SUBJECT PROBE --left PHOTO --right PHOTO [--front PHOTO]" >&2; exit 4; }
-        probe="$3" front="$3" left="" right=""
+        [[ $# -ge 3 ]] || { echo "usage: $0 verify-challenge SUBJECT PROBE --left PHOTO... --right PHOTO... [--front PHOTO...]" >&2; exit 4; }
+        # Each option may be given more than once: the photos of its turn's burst.
+        probe="$3" front=() left=() right=()
         shift 3
         while [[ $# -gt 0 ]]; do
             case "$1" in
-                --front) front="$2" ;;
-                --left) left="$2" ;;
-                --right) right="$2" ;;
+                --front) front+=("$2") ;;
+                --left) left+=("$2") ;;
+                --right) right+=("$2") ;;
                 *) echo "unknown option $1" >&2; exit 4 ;;
             esac
             shift 2
         done
-        [[ -n "$left" && -n "$right" ]] || { echo "verify-challenge needs --left and --right" >&2; exit 4; }
+        [[ ${#left[@]} -gt 0 && ${#right[@]} -gt 0 ]] || { echo "verify-challenge needs --left and --right" >&2; exit 4; }
+        [[ ${#front[@]} -gt 0 ]] || front=("$probe")
         post /liveness/challenge -X POST
         [[ "$status" == 201 ]] || { refused; exit $?; }
-        challenge="$(jq -r .challenge "$body")"
+        challenge="$(jq -r .challenge "$body")" most="$(jq -r '.max_frames_per_step // 5' "$body")"
         jq -r '"challenge of \(.steps | length) steps: \([.steps[] | "\(.turn) (\(.yaw_min)..\(.yaw_max) deg)"] | join(", "))"' "$body"
-        frames=()
+        # Each step's burst in step order, and the 0-based step of each frame.
+        frames=() steps=() step=0
         for turn in $(jq -r '.steps[].turn' "$body"); do
             case "$turn" in
-                front) frames+=(-F "frame=@$front") ;;
-                left) frames+=(-F "frame=@$left") ;;
-                right) frames+=(-F "frame=@$right") ;;
+                front) burst=("${front[@]}") ;;
+                left) burst=("${left[@]}") ;;
+                right) burst=("${right[@]}") ;;
             esac
+            for photo in "${burst[@]:0:$most}"; do
+                frames+=(-F "frame=@$photo")
+                steps+=("$step")
+            done
+            step=$((step + 1))
         done
-        post /verify -F "subject=$subject" -F "image=@$probe" -F "challenge=$challenge" "${frames[@]}"
+        bursts=()
+        if [[ ${#steps[@]} -gt $step ]]; then
+            bursts=(--form-string "frame_steps=$(IFS=,; echo "${steps[*]}")")
+        fi
+        post /verify -F "subject=$subject" -F "image=@$probe" -F "challenge=$challenge" "${frames[@]}" "${bursts[@]}"
         [[ "$status" == 200 ]] || { refused; exit $?; }
         jq -r '"\(if .match then "match" else "no match" end): score \(.score), threshold \(.threshold) at FMR \(.fmr)"' "$body"
         jq -e '.liveness.challenge' "$body" >/dev/null || { echo "the server judged no challenge (liveness is off)" >&2; exit 4; }
-        jq -r '.liveness.challenge.steps[] | "  \(.turn): yaw \(if .yaw == null then "unknown" else "\(.yaw * 10 | round / 10) deg" end), \(if .ok then "ok" else "not ok" end)"' "$body"
+        jq -r '.liveness.challenge.steps[] | "  \(.turn): yaw \(if .yaw == null then "unknown" else "\(.yaw * 10 | round / 10) deg" end), \(.frames) frame(s), \(if .ok then "ok" else "not ok" end)"' "$body"
         if ! jq -e .liveness.challenge.passed "$body" >/dev/null; then
             echo "the head-turn challenge failed: $(jq -r .liveness.challenge.reason "$body")" >&2
             exit 2
@@ -109,6 +124,6 @@ case "$command" in
         echo "challenge passed"
         jq -e .match "$body" >/dev/null || exit 1 ;;
     *)
-        echo "usage: $0 enroll SUBJECT PHOTO... | verify SUBJECT PHOTO [FMR] | verify-challenge SUBJECT PROBE --left PHOTO --right PHOTO [--front PHOTO]" >&2
+        echo "usage: $0 enroll SUBJECT PHOTO... | verify SUBJECT PHOTO [FMR] | verify-challenge SUBJECT PROBE --left PHOTO... --right PHOTO... [--front PHOTO...]" >&2
         exit 4 ;;
 esac

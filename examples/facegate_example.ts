@@ -4,11 +4,14 @@
 //
 //   node facegate_example.js enroll alice alice-1.jpg alice-2.jpg
 //   node facegate_example.js verify alice probe.jpg [--fmr 1e-4]
-//   node facegate_example.js verify-challenge alice probe.jpg --left l.jpg --right r.jpg [--front f.jpg]
+//   node facegate_example.js verify-challenge alice probe.jpg --left l.jpg [--left l2.jpg] --right r.jpg [--front f.jpg]
 //
 // verify-challenge asks for a challenge (POST /liveness/challenge), answers each step with the
-// photo given for its turn (`front` defaults to the probe; a real client takes a camera frame per
-// step) and verifies the probe with them.
+// photos given for its turn (`front` defaults to the probe; a real client takes a short burst of
+// camera frames per step, well inside the step's yaw range) and verifies the probe with them. An
+// option given more than once makes a burst: each step gets all its turn's photos (at most the
+// challenge's `max_frames_per_step`), sent with `frame_steps`; with one photo per turn, one frame
+// per step.
 //
 // FACEGATE_URL (default http://127.0.0.1:8080) and FACEGATE_API_KEY (if the server has keys) set
 // the server. Exit status: 0 enrolled / match, 1 no match, 2 a photo is unusable (no face, a printed photo,
@@ -57,28 +60,34 @@ async function post<T>(path: string, fields: Record<string, string>, photos: str
 }
 
 type Turn = "front" | "left" | "right";
-type Challenge = { challenge: string; expires_in: number; steps: { turn: Turn; yaw_min: number; yaw_max: number }[] };
+type Challenge = { challenge: string; expires_in: number; steps: { turn: Turn; yaw_min: number; yaw_max: number }[]; max_frames_per_step?: number };
 type Verdict = {
   match: boolean;
   score: number;
   threshold: number;
   fmr: number;
-  liveness?: { attack: boolean; challenge?: { passed: boolean; reason: string | null; steps: { turn: Turn; yaw: number | null; ok: boolean }[] } };
+  liveness?: { attack: boolean; challenge?: { passed: boolean; reason: string | null; steps: { turn: Turn; yaw: number | null; ok: boolean; frames: number }[] } };
 };
 
-/** Ask for a challenge, answer each step with the photo of its turn, verify; print the outcome. */
-async function verifyChallenge(subject: string, probe: string, photos: Record<Turn, string | undefined>): Promise<number> {
+/** Ask for a challenge, answer each step with the photos of its turn, verify; print the outcome. */
+async function verifyChallenge(subject: string, probe: string, photos: Record<Turn, string[]>): Promise<number> {
   const c = await post<Challenge>("/liveness/challenge", {}, []);
   console.log(`challenge of ${c.steps.length} steps: ${c.steps.map((s) => `${s.turn} (${s.yaw_min}..${s.yaw_max} deg)`).join(", ")}`);
-  const frames = c.steps.map((s) => photos[s.turn] ?? probe);
-  const v = await post<Verdict>("/verify", { subject, challenge: c.challenge }, [probe], frames);
+  const bursts = c.steps.map((s) => (photos[s.turn].length > 0 ? photos[s.turn] : [probe]).slice(0, c.max_frames_per_step ?? 5));
+  const frames = bursts.flat();
+  const fields: Record<string, string> = { subject, challenge: c.challenge };
+  // Bursts: the 0-based step of each frame, in order.
+  if (frames.length > c.steps.length) fields.frame_steps = bursts.flatMap((burst, i) => burst.map(() => i)).join(",");
+  const v = await post<Verdict>("/verify", fields, [probe], frames);
   console.log(`${v.match ? "match" : "no match"}: score ${v.score.toFixed(3)}, threshold ${v.threshold.toFixed(3)} at FMR ${v.fmr}`);
   const outcome = v.liveness?.challenge;
   if (!outcome) {
     console.error("the server judged no challenge (liveness is off)");
     return 4;
   }
-  for (const s of outcome.steps) console.log(`  ${s.turn}: yaw ${s.yaw === null ? "unknown" : `${s.yaw.toFixed(1)} deg`}, ${s.ok ? "ok" : "not ok"}`);
+  for (const s of outcome.steps) {
+    console.log(`  ${s.turn}: yaw ${s.yaw === null ? "unknown" : `${s.yaw.toFixed(1)} deg`}, ${s.frames} frame(s), ${s.ok ? "ok" : "not ok"}`);
+  }
   if (!outcome.passed) {
     console.error(`the head-turn challenge failed: ${outcome.reason}`);
     return 2;
@@ -93,15 +102,22 @@ function option(args: string[], name: string): string | undefined {
   return at >= 0 ? args.splice(at, 2)[1] : undefined;
 }
 
+/** Every value of the option `name`, which may be given more than once (removed from `args`). */
+function options(args: string[], name: string): string[] {
+  const values: string[] = [];
+  for (let value = option(args, name); value !== undefined; value = option(args, name)) values.push(value);
+  return values;
+}
+
 const USAGE =
-  "usage: facegate_example enroll SUBJECT PHOTO... | verify SUBJECT PHOTO [--fmr 1e-4] | verify-challenge SUBJECT PROBE --left PHOTO --right PHOTO [--front PHOTO]";
+  "usage: facegate_example enroll SUBJECT PHOTO... | verify SUBJECT PHOTO [--fmr 1e-4] | verify-challenge SUBJECT PROBE --left PHOTO... --right PHOTO... [--front PHOTO...] (each option once per photo)";
 
 async function main(argv: string[]): Promise<number> {
   const [command, subject, ...rest] = argv;
   const fmr = option(rest, "--fmr");
-  const turns: Record<Turn, string | undefined> = { front: option(rest, "--front"), left: option(rest, "--left"), right: option(rest, "--right") };
+  const turns: Record<Turn, string[]> = { front: options(rest, "--front"), left: options(rest, "--left"), right: options(rest, "--right") };
   const challenge = command === "verify-challenge";
-  if (!subject || rest.length === 0 || !["enroll", "verify", "verify-challenge"].includes(command ?? "") || (challenge && (!turns.left || !turns.right))) {
+  if (!subject || rest.length === 0 || !["enroll", "verify", "verify-challenge"].includes(command ?? "") || (challenge && (turns.left.length === 0 || turns.right.length === 0))) {
     console.error(USAGE);
     return 4;
   }

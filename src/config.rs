@@ -58,6 +58,8 @@ const DEFAULT_BODY_GRACE_SECS: f64 = 5.0;
 const DEFAULT_MIN_BODY_RATE_KIB: u64 = 8;
 const DEFAULT_MAX_UPLOADS_PER_ADDRESS: usize = 16;
 const DEFAULT_CHALLENGE_LIFETIME_SECS: u64 = 120;
+const DEFAULT_CHALLENGE_RATE: f64 = 10.0;
+const DEFAULT_MAX_OPEN_CHALLENGES: u64 = 2_000;
 const DEFAULT_HEADER_TIMEOUT_SECS: f64 = 10.0;
 const DEFAULT_MAX_CONNECTIONS: usize = 1024;
 const DEFAULT_SHUTDOWN_GRACE_SECS: f64 = 10.0;
@@ -92,6 +94,10 @@ pub struct Settings {
     /// Database URL: `sqlite://FILE` (created if missing) or `postgres://USER:PASSWORD@HOST/DB`.
     #[arg(long, env = "FACEGATE_DATABASE_URL", default_value = DEFAULT_DATABASE)]
     pub database: String,
+    /// A file whose first line is the PostgreSQL password, merged into the `--database` URL at
+    /// start-up (which then names the user but no password); never printed.
+    #[arg(long, env = "FACEGATE_DATABASE_PASSWORD_FILE")]
+    pub database_password_file: Option<PathBuf>,
     /// The project's trained models (default: `models/` in the working directory or the crate's).
     #[arg(long, env = "FACEGATE_MODELS")]
     pub models: Option<PathBuf>,
@@ -218,6 +224,14 @@ pub struct Settings {
     /// Seconds a liveness challenge (POST /liveness/challenge) may be answered in.
     #[arg(long, env = "FACEGATE_CHALLENGE_LIFETIME_SECS", default_value_t = DEFAULT_CHALLENGE_LIFETIME_SECS)]
     pub challenge_lifetime_secs: u64,
+    /// Challenges (POST /liveness/challenge) per second per client address (IPv6: its /64), in
+    /// bursts of twice as many; beyond → 429. 0: no rate.
+    #[arg(long, env = "FACEGATE_CHALLENGE_RATE", default_value_t = DEFAULT_CHALLENGE_RATE)]
+    pub challenge_rate: f64,
+    /// Most challenges open (issued, neither answered nor expired) at once in the database;
+    /// beyond → 429.
+    #[arg(long, env = "FACEGATE_MAX_OPEN_CHALLENGES", default_value_t = DEFAULT_MAX_OPEN_CHALLENGES)]
+    pub max_open_challenges: u64,
     #[command(flatten)]
     pub template_key: TemplateKeyArgs,
 }
@@ -246,6 +260,7 @@ impl Default for Settings {
         Settings {
             bind: DEFAULT_BIND.into(),
             database: DEFAULT_DATABASE.into(),
+            database_password_file: None,
             models: None,
             sfm: None,
             recognizer: RecognizerKind::default().into(),
@@ -282,6 +297,8 @@ impl Default for Settings {
             liveness: LivenessPolicy::default().into(),
             liveness_threshold: None,
             challenge_lifetime_secs: DEFAULT_CHALLENGE_LIFETIME_SECS,
+            challenge_rate: DEFAULT_CHALLENGE_RATE,
+            max_open_challenges: DEFAULT_MAX_OPEN_CHALLENGES,
         }
     }
 }
@@ -300,6 +317,8 @@ impl Settings {
         anyhow::ensure!(self.max_images >= 1, "--max-images must be at least 1");
         anyhow::ensure!((10..=3600).contains(&self.challenge_lifetime_secs), "--challenge-lifetime-secs must be between 10 and 3600");
         anyhow::ensure!(self.max_uploads_per_address >= 1, "--max-uploads-per-address must be at least 1");
+        anyhow::ensure!(self.challenge_rate.is_finite() && self.challenge_rate >= 0.0, "--challenge-rate must be 0 or more");
+        anyhow::ensure!(self.max_open_challenges >= 1, "--max-open-challenges must be at least 1");
         Ok(ApiConfig {
             max_body_bytes: self.max_body_mb << 20,
             request_timeout: timeout,
@@ -307,6 +326,7 @@ impl Settings {
             body_grace: seconds("--body-grace-secs", self.body_grace_secs)?,
             min_body_rate: self.min_body_rate_kib.saturating_mul(1024),
             max_uploads_per_address: self.max_uploads_per_address,
+            challenge_rate: self.challenge_rate,
             workers: self.workers.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2)).max(1),
             queue_depth: self.queue,
             enroll_queue_depth: self.enroll_queue,
@@ -326,6 +346,7 @@ impl Settings {
                 default_fmr: DEFAULT_FMR,
                 liveness: self.liveness.into(),
                 challenge: ChallengeConfig { lifetime: Duration::from_secs(self.challenge_lifetime_secs) },
+                max_open_challenges: self.max_open_challenges,
             },
         })
     }

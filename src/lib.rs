@@ -23,5 +23,6 @@ pub use facegate_vision::{embed, landmarks, liveness, pipeline, quality, recogni
 pub mod choices;
 pub mod cli;
 pub mod config;
+pub mod database_url;
 pub mod startup;
 pub mod telemetry;

@@ -194,7 +194,9 @@ async fn connect(settings: &Settings, template_keys: Option<Option<KeyRing>>) ->
         Some(keys) => info!(key_id = keys.current_id(), "templates are encrypted at rest"),
         None => warn!("no template key (FACEGATE_TEMPLATE_KEY_FILE): templates are stored UNENCRYPTED"),
     }
-    Store::connect(&settings.database, keys).await.with_context(|| format!("cannot open the database {}", settings.database))
+    let url = crate::database_url::database_url(&settings.database, settings.database_password_file.as_deref())?;
+    let shown = crate::database_url::redact_url(&url);
+    Store::connect(&url, keys).await.with_context(|| format!("cannot open the database {shown}"))
 }
 
 fn log_api_keys(config: &ApiConfig, bind: &str) {

@@ -55,6 +55,15 @@ checks its target and prints one result line; the script exits non-zero if any f
               restart; 0 wrong answers; 0 enrolments answered 201 missing at the end; 0 answered
               503/504 present at the end. Without initdb it is skipped with the reason, unless
               FACEGATE_REQUIRE_POSTGRES=1 (CI), which makes that a failure
+  secrets     `serve` (text and JSON logs) and `calibrate` on an unreachable PostgreSQL, the password
+              in the URL or in --database-password-file: each exits non-zero and prints no password
+  challenge-flood
+              POST /liveness/challenge from 8 keep-alive connections of 127.0.0.1 for 10 s: only
+              201 and 429 (with Retry-After), <= 2,000 challenge rows in the database, and 127.0.0.2
+              meanwhile gets its challenge (201)
+  db-vanish   the SQLite file deleted under the server after an enrolment: /health 503
+              `store-unavailable` within 2 s, none of 10 enrolments after it acknowledged, and the
+              restart on that path logs that it created a new, empty database
   overload    (not in the default set: long, and its figures want a release build) hey with
               8 clients for 20 s (the peak), then 200 clients for 60 s: 0 responses other than
               200/503, successful verifications/s at 200 clients >= 90% of the rate at 8, peak
@@ -101,7 +110,8 @@ def serve_command(binary, database_url, *flags):
 def serve_env():
     """The environment of the server: this one, without the settings a scenario gives as flags."""
     env = dict(os.environ, NO_COLOR="1", RUST_LOG="warn,facegate::cli::serve=info")
-    for name in ("FACEGATE_API_KEYS", "FACEGATE_API_KEYS_FILE", "FACEGATE_TEMPLATE_KEY_FILE", "FACEGATE_DATABASE_URL"):
+    for name in ("FACEGATE_API_KEYS", "FACEGATE_API_KEYS_FILE", "FACEGATE_TEMPLATE_KEY_FILE", "FACEGATE_DATABASE_URL",
+                 "FACEGATE_DATABASE_PASSWORD_FILE"):
         env.pop(name, None)
     return env
 
@@ -1159,13 +1169,129 @@ def duplicates(args, work):
     return scenario.duplicates(args, work, Server, SHARED, os.path.join(ROOT, "models"))
 
 
+def secrets_scenario(args, work):
+    """A start-up that fails on an unreachable PostgreSQL whose password is in the URL, or in
+    --database-password-file: no output of it may hold the password, in either log format."""
+    password = "s3cret" + secrets.token_hex(4)
+    password_file = os.path.join(work, "db-password")
+    with open(password_file, "w") as f:
+        f.write(password + "\n")
+    port = free_port()
+    cases = [
+        ("serve, text, password in the URL", ["serve", "--bind", "127.0.0.1:0", "--database", f"postgres://u:{password}@127.0.0.1:{port}/db"]),
+        ("serve, json, password in the URL",
+         ["serve", "--bind", "127.0.0.1:0", "--log-format", "json", "--database", f"postgres://u:{password}@127.0.0.1:{port}/db"]),
+        ("serve, json, password file",
+         ["serve", "--bind", "127.0.0.1:0", "--log-format", "json", "--database", f"postgres://u@127.0.0.1:{port}/db",
+          "--database-password-file", password_file]),
+        ("calibrate, password in the URL", ["calibrate", "--database", f"postgres://u:{password}@127.0.0.1:{port}/db"]),
+    ]
+    ok, results = True, []
+    for name, argv in cases:
+        started = time.monotonic()
+        done = subprocess.run([args.bin, *argv], capture_output=True, text=True, env=serve_env(), cwd=ROOT, timeout=60,
+                              stdin=subprocess.DEVNULL)
+        output = done.stdout + done.stderr
+        leaked = password in output
+        redacted = "u:***@" in output
+        ok &= done.returncode != 0 and not leaked
+        results.append(f"{name}: exit {done.returncode} after {time.monotonic() - started:.2f} s, "
+                       f"{'PASSWORD PRINTED' if leaked else 'no password'}{', the URL redacted' if redacted else ''}")
+    return ok, "; ".join(results)
+
+
+def challenge_flood(args, work, seconds=10.0, connections=8):
+    """`POST /liveness/challenge` from 8 keep-alive connections of 127.0.0.1 for 10 s: the rows in
+    the database stay within the cap (2,000), and 127.0.0.2 still gets its challenge."""
+    server = Server(args.bin, work)
+    counts = {}
+    lock = threading.Lock()
+    deadline = time.monotonic() + seconds
+
+    def flood():
+        conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=30)
+        while time.monotonic() < deadline:
+            try:
+                conn.request("POST", "/liveness/challenge")
+                response = conn.getresponse()
+                response.read()
+                key = f"{response.status}" + (" with Retry-After" if response.getheader("Retry-After") else "")
+            except OSError as e:
+                key = type(e).__name__
+                conn.close()
+                conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=30)
+            with lock:
+                counts[key] = counts.get(key, 0) + 1
+        conn.close()
+
+    try:
+        threads = [threading.Thread(target=flood) for _ in range(connections)]
+        for t in threads:
+            t.start()
+        time.sleep(seconds / 2)
+        other = http.client.HTTPConnection("127.0.0.1", server.port, timeout=30, source_address=("127.0.0.2", 0))
+        other.request("POST", "/liveness/challenge")
+        other_status = other.getresponse().status
+        other.close()
+        for t in threads:
+            t.join()
+        import sqlite3
+        with sqlite3.connect(server.database) as db:
+            rows = db.execute("SELECT count(*) FROM liveness_challenges").fetchone()[0]
+    finally:
+        server.stop()
+    answered = ", ".join(f"{n:,} × {k}" for k, n in sorted(counts.items()))
+    ok = rows <= 2000 and other_status == 201 and set(counts) <= {"201", "429 with Retry-After"}
+    return ok, (f"{sum(counts.values()):,} requests from 127.0.0.1 in {seconds:.0f} s at {connections} connections: {answered}; "
+                f"{rows:,} challenge rows in the database (target ≤ 2,000); 127.0.0.2 meanwhile got {other_status}")
+
+
+def db_vanish(args, work):
+    """The SQLite file deleted under the running server: /health 503 within 2 s, and no enrolment
+    acknowledged after; the restart on the path says loudly that it made a new database."""
+    server = Server(args.bin, work)
+    acknowledged_after = refused = 0
+    try:
+        body, ctype = multipart([("subject", None, b"before"), ("image", "p.jpg", photo("01-1m.jpg"))])
+        status, _ = server.request("POST", "/enroll", body, {"Content-Type": ctype})
+        assert status == 201, f"the enrolment before: {status}"
+        os.remove(server.database)
+        removed = time.monotonic()
+        health_503 = None
+        while time.monotonic() - removed < 5:
+            status, data = server.request("GET", "/health")
+            if status == 503 and problem_slug(data) == "store-unavailable":
+                health_503 = time.monotonic() - removed
+                break
+            time.sleep(0.05)
+        for n in range(10):
+            body, ctype = multipart([("subject", None, f"after-{n}".encode()), ("image", "p.jpg", photo("01-1m.jpg"))])
+            status, data = server.request("POST", "/enroll", body, {"Content-Type": ctype})
+            acknowledged_after += status == 201
+            refused += status == 503 and problem_slug(data) == "store-unavailable"
+    finally:
+        server.stop()
+    restarted = Server(args.bin, work, database=server.database)
+    try:
+        with open(restarted.log_path) as f:
+            warned = "NO DATABASE at" in f.read()
+    finally:
+        restarted.stop()
+    ok = health_503 is not None and health_503 <= 2.0 and acknowledged_after == 0 and warned
+    noticed = f"{health_503:.2f} s" if health_503 is not None else "NOT within 5 s"
+    return ok, (f"database file deleted after one enrolment: /health 503 store-unavailable after {noticed} (target 2 s); "
+                f"10 enrolments after: {acknowledged_after} acknowledged, {refused} refused 503 store-unavailable; the restart "
+                f"{'warned' if warned else 'did NOT warn'} that it created a new, empty database")
+
+
 SCENARIOS = {
     "slowloris": slowloris, "slow-body": slow_body, "kill9": kill9, "sigterm": sigterm, "stalled-heads": stalled_heads,
     "json-flood": json_flood, "trickle": trickle, "part-flood": part_flood, "duplicates": duplicates, "fail-closed": fail_closed,
-    "db-down": db_down, "overload": overload,
+    "db-down": db_down, "overload": overload, "secrets": secrets_scenario, "challenge-flood": challenge_flood,
+    "db-vanish": db_vanish,
 }
 DEFAULT = ["slowloris", "slow-body", "kill9", "sigterm", "stalled-heads", "json-flood", "trickle", "part-flood", "duplicates",
-           "fail-closed", "db-down"]
+           "fail-closed", "db-down", "secrets", "challenge-flood", "db-vanish"]
 
 
 def main():

@@ -311,9 +311,50 @@ pub fn run_train(args: TrainLivenessArgs) -> anyhow::Result<ExitCode> {
 }
 
 #[derive(clap::Args, Debug)]
+pub struct TrainRenderArgs {
+    /// Where to write the model.
+    #[arg(long, default_value = "models/render.bin")]
+    pub out: PathBuf,
+    /// LFW training persons taken (their first photo each; every other one also rendered).
+    #[arg(long, default_value_t = 400)]
+    pub lfw_persons: usize,
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+}
+
+/// `facegate train render`: the rendered-head detector the head-turn challenge holds its frames
+/// against (docs/liveness-challenge.md, "Rendered heads").
+pub fn run_train_render(args: TrainRenderArgs) -> anyhow::Result<ExitCode> {
+    use crate::research::train_render::{RenderTrainConfig, train};
+    let shared = crate::config::shared_dir();
+    let config = RenderTrainConfig {
+        imm: shared.join("data/imm"),
+        orl: shared.join("data/orl"),
+        lfw: shared.join("data/lfw"),
+        lfw_persons: args.lfw_persons,
+        threads: args.threads.max(1),
+    };
+    let mut pipeline = crate::pipeline::Pipeline::load(&crate::config::pipeline_config())?;
+    anyhow::ensure!(pipeline.face_model.is_some(), "renders need the 3D morphable model: the Surrey Face Model is needed");
+    pipeline.render = None;
+    let (model, report) = train(&pipeline, &config, &super::Bar::default())?;
+    facegate_core::model_file::write_model(&args.out, &model).map_err(anyhow::Error::msg)?;
+    eprintln!(
+        "wrote {}: {} camera faces, {} renders ({} without a face); out of fold at even odds: camera faces refused {:.2}%, renders passed {:.2}%",
+        args.out.display(),
+        report.camera_faces,
+        report.renders,
+        report.without_face,
+        100.0 * report.oof_camera_refused,
+        100.0 * report.oof_renders_passed
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+#[derive(clap::Args, Debug)]
 pub struct EvalChallengeArgs {
-    /// Which IMM persons: `test` (never trained on; with UMIST and NUAA) or `train` (where the
-    /// parallax threshold is chosen).
+    /// Which IMM persons: `test` (never trained on; with UMIST, the video clips and NUAA) or `train` (where the
+    /// challenge's limits were read).
     #[arg(long, value_parser = ["test", "train"], default_value = "test")]
     pub persons: String,
     /// Challenges drawn per person.
@@ -342,6 +383,7 @@ pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
         challenges_per_person: args.challenges,
         seed: args.seed,
         threads: args.threads.max(1),
+        video: shared.join("data/video"),
     };
     let pipeline = crate::pipeline::Pipeline::load(&crate::config::pipeline_config())?;
     anyhow::ensure!(pipeline.face_model.is_some(), "the challenge is judged on the 3D fit: the Surrey Face Model is needed");
@@ -352,50 +394,60 @@ pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     eprintln!("persons: {}; mean steps {:.2}", report.persons, report.mean_steps);
-    eprintln!("{:<28} {:>8} {:>18} {:>18} {:>10}  first reasons", "kind", "attempts", "pass challenge", "pass enforce", "parallax");
+    eprintln!("{:<44} {:>8} {:>16} {:>16} {:>7} {:>6}  first reasons", "kind", "attempts", "pass challenge", "pass enforce", "shift", "z");
     for row in &report.rows {
         let rate = |n: usize| format!("{n} ({:.1}%)", 100.0 * n as f64 / row.attempts.max(1) as f64);
-        let parallax = row.parallax_median.map_or("-".to_string(), |p| format!("{p:.4}"));
+        let shift = row.shift_median.map_or("-".to_string(), |p| format!("{p:.3}"));
+        let z = row.z_median.map_or("-".to_string(), |p| format!("{p:.1}"));
         let reasons: Vec<String> = row.reasons.iter().map(|(r, n)| format!("{r}: {n}")).collect();
         eprintln!(
-            "{:<28} {:>8} {:>18} {:>18} {:>10}  {}",
+            "{:<44} {:>8} {:>16} {:>16} {:>7} {:>6}  {}",
             row.kind,
             row.attempts,
             rate(row.passed_challenge),
             rate(row.passed_enforce),
-            parallax,
+            shift,
+            z,
             reasons.join("; ")
         );
     }
     eprintln!("reused challenge: {} of {} given out a second time", report.reused_passed, report.reused_attempts);
-    for (person, (n, reason)) in &report.live_refused {
-        eprintln!("live refused: {person}: {n}, first: {reason}");
+    for (person, (n, passed)) in &report.live_by_person {
+        let why = report.live_refused.get(person).map_or(String::new(), |(_, r)| format!("; first refusal: {r}"));
+        eprintln!("live {person}: {passed} of {n} pass{why}");
     }
     for (kind, [min, p5, median, p95, max]) in &report.yaw_quantiles {
         eprintln!("yaw {kind}: min {min:.1}° p5 {p5:.1}° median {median:.1}° p95 {p95:.1}° max {max:.1}°");
     }
-    let q = |v: &[f64], p: f64| {
-        let mut v = v.to_vec();
-        v.sort_by(f64::total_cmp);
-        v.get(((v.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(f64::NAN)
-    };
-    let (l, a, r) = (&report.live_parallax, &report.print_parallax, &report.avatar_parallax);
+    for (kind, depth) in &report.depth_by_kind {
+        let q = |i: usize, p: f64| {
+            let mut v: Vec<f64> = depth.iter().map(|d| [d.0, d.1, d.2][i]).collect();
+            v.sort_by(f64::total_cmp);
+            v.get(((v.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(f64::NAN)
+        };
+        eprintln!(
+            "depth, poses right, {kind} (n {}): shift min {:.3} p5 {:.3} median {:.3} max {:.3}; z min {:.1} p5 {:.1} median {:.1} max {:.1}; excess turn median {:.1}° p95 {:.1}° max {:.1}°",
+            depth.len(),
+            q(0, 0.0),
+            q(0, 0.05),
+            q(0, 0.5),
+            q(0, 1.0),
+            q(1, 0.0),
+            q(1, 0.05),
+            q(1, 0.5),
+            q(1, 1.0),
+            q(2, 0.5),
+            q(2, 0.95),
+            q(2, 1.0)
+        );
+    }
     eprintln!(
-        "nose depth, poses right: live min {:.3} p5 {:.3} median {:.3} (n {}); prints median {:.3} p95 {:.3} max {:.3} (n {}); \
-         avatars median {:.3} p90 {:.3} max {:.3} (n {}); threshold {:.3}",
-        q(l, 0.0),
-        q(l, 0.05),
-        q(l, 0.5),
-        l.len(),
-        q(a, 0.5),
-        q(a, 0.95),
-        q(a, 1.0),
-        a.len(),
-        q(r, 0.5),
-        q(r, 0.9),
-        q(r, 1.0),
-        r.len(),
-        crate::service::challenge::PARALLAX_MIN
+        "limits: excess turn <= {:.0}°, shift >= {:.3}, z >= {:.1} (noise floor {:.3}), identity at FMR {:e}",
+        crate::service::challenge::MAX_EXCESS_TURN,
+        crate::service::challenge::SHIFT_MIN,
+        crate::service::challenge::Z_MIN,
+        crate::service::challenge::NOISE_FLOOR,
+        crate::service::challenge::CAPTURE_FMR
     );
     eprintln!(
         "CPU: {:.0} ms per photo analysis, {:.3} ms per judgement: a challenge of {:.2} steps costs {:.2} plain verifications",

@@ -99,6 +99,8 @@ pub enum TrainCommand {
     Quality(quality::TrainQualityArgs),
     /// Train the passive liveness model (live face or printed photo) from NUAA → models/liveness.bin.
     Liveness(liveness::TrainLivenessArgs),
+    /// Train the rendered-head detector (a camera's face or a 3D head rendered from a photo) → models/render.bin.
+    Render(liveness::TrainRenderArgs),
     /// Calibrate a recognizer of one embedding network or the fusion of two → models/sface.bin, fusion.bin, custom.bin.
     Embedding(networks::TrainEmbeddingArgs),
 }
@@ -183,6 +185,7 @@ pub fn main() -> ExitCode {
         Command::Eval(EvalCommand::Pose(args)) => pose::run_eval(args),
         Command::Eval(EvalCommand::Challenge(args)) => liveness::run_eval_challenge(args),
         Command::Train(TrainCommand::Liveness(args)) => liveness::run_train(args),
+        Command::Train(TrainCommand::Render(args)) => liveness::run_train_render(args),
         Command::Eval(EvalCommand::Liveness(args)) => liveness::run_eval(args),
         Command::Eval(EvalCommand::Minifasnet(args)) => minifasnet::run_eval(args),
         Command::Eval(EvalCommand::LivenessCnn(args)) => liveness_cnn::run_eval(args),

@@ -8,6 +8,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 
 use crate::config::{DEFAULT_DATABASE, TemplateKeyArgs};
+use crate::database_url::{database_url, redact_url};
 use crate::liveness::LivenessModel;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::RecognizerKind;
@@ -25,6 +26,19 @@ pub struct DatabaseArgs {
     /// Database URL (`sqlite://...` or `postgres://...`), as `facegate serve --database`.
     #[arg(long, env = "FACEGATE_DATABASE_URL", default_value = DEFAULT_DATABASE)]
     pub database: String,
+    /// A file whose first line is the PostgreSQL password, as `facegate serve --database-password-file`.
+    #[arg(long, env = "FACEGATE_DATABASE_PASSWORD_FILE")]
+    pub database_password_file: Option<PathBuf>,
+}
+
+impl DatabaseArgs {
+    /// The URL to connect to (the password file's password merged in) and the URL as printed
+    /// (its password redacted).
+    fn url(&self) -> anyhow::Result<(String, String)> {
+        let url = database_url(&self.database, self.database_password_file.as_deref())?;
+        let shown = redact_url(&url);
+        Ok((url, shown))
+    }
 }
 
 #[derive(clap::Args, Debug)]
@@ -112,9 +126,9 @@ fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
 pub fn run_rekey(args: RekeyArgs) -> anyhow::Result<ExitCode> {
     let keys = args.key.key_ring()?.context("rekey needs the template key file (--template-key-file or FACEGATE_TEMPLATE_KEY_FILE)")?;
     let current = keys.current_id().to_string();
+    let (url, shown) = args.database.url()?;
     runtime()?.block_on(async {
-        let store =
-            Store::connect(&args.database.database, Some(keys)).await.with_context(|| format!("cannot open {}", args.database.database))?;
+        let store = Store::connect(&url, Some(keys)).await.with_context(|| format!("cannot open {shown}"))?;
         let bar = super::progress(0, "rekey");
         let report = store
             .rekey(|r| {
@@ -140,9 +154,9 @@ pub fn run_rekey(args: RekeyArgs) -> anyhow::Result<ExitCode> {
 /// start-up. The database must exist: a mistyped path is refused, never created.
 pub fn run_calibrate(args: CalibrateArgs) -> anyhow::Result<ExitCode> {
     let keys = args.key.key_ring()?;
+    let (url, shown) = args.database.url()?;
     runtime()?.block_on(async {
-        let url = &args.database.database;
-        let store = Store::connect_existing(url, keys).await.with_context(|| format!("cannot open {url}"))?;
+        let store = Store::connect_existing(&url, keys).await.with_context(|| format!("cannot open {shown}"))?;
         let result = if args.clear { clear(&store, &args).await } else { calibrate(&store, &args).await };
         store.close().await;
         result
@@ -208,11 +222,11 @@ pub fn run_calibrate_liveness(args: CalibrateLivenessArgs) -> anyhow::Result<Exi
     })?;
     let photos = if args.clear { Vec::new() } else { image_files(&args.live)? };
     anyhow::ensure!(args.clear || !photos.is_empty(), "no image files (.jpg, .jpeg, .png, .pgm, .ppm, .bmp, .webp) in {:?}", args.live);
-    let url = &args.database.database;
+    let (url, shown) = args.database.url()?;
     runtime()?.block_on(async {
         let store = match args.dry_run {
             true => None,
-            false => Some(Store::connect_existing(url, None).await.with_context(|| format!("cannot open {url}"))?),
+            false => Some(Store::connect_existing(&url, None).await.with_context(|| format!("cannot open {shown}"))?),
         };
         let done = match &store {
             Some(store) if args.clear => {
@@ -312,9 +326,9 @@ fn warn_of_duplicates(site: &SiteCalibration) {
 
 /// A consistent copy of the database while the service keeps running (SQLite; PostgreSQL has pg_dump).
 pub fn run_backup(args: BackupArgs) -> anyhow::Result<ExitCode> {
+    let (url, shown) = args.database.url()?;
     runtime()?.block_on(async {
-        let store =
-            Store::connect(&args.database.database, None).await.with_context(|| format!("cannot open {}", args.database.database))?;
+        let store = Store::connect(&url, None).await.with_context(|| format!("cannot open {shown}"))?;
         let done = store.backup(&args.out).await;
         store.close().await;
         done?;
@@ -333,8 +347,9 @@ pub fn run_backup(args: BackupArgs) -> anyhow::Result<ExitCode> {
 /// Replace the database with a backup (the service stopped; SQLite; PostgreSQL has pg_restore).
 pub fn run_restore(args: RestoreArgs) -> anyhow::Result<ExitCode> {
     runtime()?.block_on(async {
-        let (subjects, templates) = store::restore(&args.backup, &args.database.database, args.force).await?;
-        super::print_json_line(&serde_json::json!({"restored": args.database.database, "subjects": subjects, "templates": templates}));
+        let (url, shown) = args.database.url()?;
+        let (subjects, templates) = store::restore(&args.backup, &url, args.force).await?;
+        super::print_json_line(&serde_json::json!({"restored": shown, "subjects": subjects, "templates": templates}));
         Ok(ExitCode::SUCCESS)
     })
 }

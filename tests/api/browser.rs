@@ -11,9 +11,9 @@
 //! The camera view ("Verify with the camera", the head-turn challenge) runs on Chromium's fake camera
 //! playing a Y4M clip of IMM photos the test writes to a temporary folder: a person looking ahead
 //! and turning to each side passes the challenge; a still photo fails it with the server's reason.
-//! The person is IMM 05 (held out of training, nose depth 0.735): person 02's, 0.621 on the
-//! photos and less through the camera path (4:2:0 chroma, the page's JPEG), is under the
-//! challenge's threshold.
+//! The person is IMM 05 (held out of training). The page sends each step's burst of frames with
+//! `frame_steps`; a clip whose turns never reach the bursts' band (20°–45°) has its in-range
+//! frames sent when a step's wait runs out.
 //!
 //! Without Chromium the tests print why and pass, except under CI (`CI=true`), where they fail.
 
@@ -387,11 +387,17 @@ async fn the_console_enrolls_verifies_shows_the_avatar_and_deletes_in_chromium()
 /// `hold` frames, for Chromium's fake camera, which plays it in a loop. The planes are BT.601
 /// studio-range YCbCr of the photos' RGB, chroma averaged over 2 × 2 pixels.
 fn y4m_clip(path: &Path, names: &[&str], hold: usize) {
+    let photos: Vec<image::RgbImage> = names.iter().map(|name| image::open(imm_path(name)).unwrap().to_rgb8()).collect();
+    y4m_frames(path, &photos, hold, 2);
+}
+
+/// A Y4M clip of `frames` (each held for `hold` frames) at `fps` frames a second, 640 × 480.
+fn y4m_frames(path: &Path, frames: &[image::RgbImage], hold: usize, fps: u32) {
     const W: u32 = 640;
     const H: u32 = 480;
-    let mut clip = format!("YUV4MPEG2 W{W} H{H} F2:1 Ip A1:1 C420\n").into_bytes();
-    for name in names {
-        let mut rgb = image::open(imm_path(name)).unwrap().to_rgb8();
+    let mut clip = format!("YUV4MPEG2 W{W} H{H} F{fps}:1 Ip A1:1 C420\n").into_bytes();
+    for frame in frames {
+        let mut rgb = frame.clone();
         if rgb.dimensions() != (W, H) {
             rgb = image::imageops::resize(&rgb, W, H, image::imageops::FilterType::Triangle);
         }

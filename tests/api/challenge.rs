@@ -5,7 +5,9 @@
 //! one, and an expired one are `invalid-challenge`; the photo held still and the right photos in
 //! the wrong order fail it (reported under `report`, refused as `presentation-attack` with the
 //! reason under `enforce`); a wrong number of frames is malformed; with liveness off there are no
-//! challenges. The JSON form takes the same fields.
+//! challenges. The JSON form takes the same fields. Bursts: `frame_steps` names each frame's
+//! step; a burst with a stranger's photo fails the one-person check, and ill-formed `frame_steps`
+//! are malformed.
 
 use std::time::Duration;
 
@@ -60,14 +62,39 @@ fn live_frames(turns: &[String]) -> Vec<Vec<u8>> {
 }
 
 async fn verify(app: &TestApp, challenge: &str, frames: &[Vec<u8>]) -> Reply {
+    verify_bursts(app, challenge, frames, None).await
+}
+
+async fn verify_bursts(app: &TestApp, challenge: &str, frames: &[Vec<u8>], frame_steps: Option<&str>) -> Reply {
     let mut form = Form::new()
         .text("subject", SUBJECT)
         .part("image", Part::bytes(imm("15-2f.jpg")).file_name("probe.jpg"))
         .text("challenge", challenge.to_string());
+    if let Some(steps) = frame_steps {
+        form = form.text("frame_steps", steps.to_string());
+    }
     for (i, frame) in frames.iter().enumerate() {
         form = form.part("frame", Part::bytes(frame.clone()).file_name(format!("frame{i}.jpg")));
     }
     app.send(app.client.post(app.url("/verify")).multipart(form)).await
+}
+
+/// Person 15's bursts: each front step both frontal views (5 and 1), each turn its view twice (a
+/// head held still for two frames), and `frame_steps` naming them.
+fn live_bursts(turns: &[String]) -> (Vec<Vec<u8>>, String) {
+    let (mut frames, mut steps) = (Vec::new(), Vec::new());
+    for (i, turn) in turns.iter().enumerate() {
+        let burst: [&str; 2] = match turn.as_str() {
+            "front" => ["15-5f.jpg", "15-1f.jpg"],
+            "left" => ["15-4f.jpg", "15-4f.jpg"],
+            _ => ["15-3f.jpg", "15-3f.jpg"],
+        };
+        for name in burst {
+            frames.push(imm(name));
+            steps.push(i.to_string());
+        }
+    }
+    (frames, steps.join(","))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -203,4 +230,52 @@ async fn an_expired_challenge_never_passes_and_liveness_off_issues_none() {
 
     let off = app_with(Settings { liveness: Choice::Off, ..Settings::default() }.api_config().unwrap()).await;
     off.send(off.client.post(off.url("/liveness/challenge"))).await.assert_problem(422, "invalid-challenge");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bursts_with_frame_steps_pass_and_a_stranger_in_a_burst_does_not() {
+    let app = app(Choice::Enforce).await;
+    let c = challenge(&app).await;
+    assert!(c["max_frames_per_step"].as_u64().unwrap() >= 5, "{c}");
+    let turns = turns_of(&c);
+    let (frames, steps) = live_bursts(&turns);
+    let r = verify_bursts(&app, c["challenge"].as_str().unwrap(), &frames, Some(&steps)).await;
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let body = r.json();
+    let verdict = &body["liveness"]["challenge"];
+    assert_eq!((verdict["passed"].as_bool(), body["match"].as_bool()), (Some(true), Some(true)), "{body}");
+    assert!(verdict["steps"].as_array().unwrap().iter().all(|s| s["frames"] == 2), "{body}");
+    assert_eq!(body["liveness"]["frames"], frames.len() + 1, "{body}");
+
+    // Another person's turned photo in the last turned burst: refused, whatever its pose.
+    let c = challenge(&app).await;
+    let turns = turns_of(&c);
+    let (mut frames, steps) = live_bursts(&turns);
+    let last_turn = turns.iter().rposition(|t| t != "front").unwrap();
+    let stranger = if turns[last_turn] == "left" { "05-4m.jpg" } else { "05-3m.jpg" };
+    frames[2 * last_turn + 1] = imm(stranger);
+    let r = verify_bursts(&app, c["challenge"].as_str().unwrap(), &frames, Some(&steps)).await;
+    r.assert_problem(422, "presentation-attack");
+    assert!(r.json()["reason"].as_str().unwrap().contains("another person"), "{}", String::from_utf8_lossy(&r.body));
+
+    // Ill-formed frame_steps: each malformed, and each uses its challenge up.
+    let report = app_with(Settings { liveness: Choice::Report, ..Settings::default() }.api_config().unwrap()).await;
+    for (bad, why) in [("1,0", "must not decrease"), ("0,9", "names step 9"), ("0", "names 1 frames"), ("0,x", "comma-separated")] {
+        let c = challenge(&report).await;
+        let frames = vec![imm("15-5f.jpg"); bad.split(',').count().max(2)];
+        let r = verify_bursts(&report, c["challenge"].as_str().unwrap(), &frames, Some(bad)).await;
+        r.assert_problem(400, "malformed-request");
+        assert!(r.json()["detail"].as_str().unwrap().contains(why), "{bad}: {}", String::from_utf8_lossy(&r.body));
+    }
+    let c = challenge(&report).await;
+    let n = turns_of(&c).len();
+    let steps: Vec<String> = (0..n).flat_map(|i| std::iter::repeat_n(i.to_string(), if i == 0 { 6 } else { 1 })).collect();
+    let frames = vec![imm("15-5f.jpg"); steps.len()];
+    let r = verify_bursts(&report, c["challenge"].as_str().unwrap(), &frames, Some(&steps.join(","))).await;
+    r.assert_problem(400, "malformed-request");
+    assert!(r.json()["detail"].as_str().unwrap().contains("at most 5 a step"), "{}", String::from_utf8_lossy(&r.body));
+    // frame_steps without a challenge is malformed too.
+    let form =
+        Form::new().text("subject", SUBJECT).part("image", Part::bytes(imm("15-2f.jpg")).file_name("p.jpg")).text("frame_steps", "0");
+    report.send(report.client.post(report.url("/verify")).multipart(form)).await.assert_problem(400, "malformed-request");
 }

@@ -343,9 +343,16 @@ fn kubernetes_postgres_overlay_scales_on_cpu() {
     assert_eq!(deployment["spec"]["strategy"]["rollingUpdate"]["maxUnavailable"], 0);
     let c = &deployment["spec"]["template"]["spec"]["containers"][0];
     let url = named(&c["env"], "FACEGATE_DATABASE_URL");
-    assert!(url.get("value").is_none(), "the URL (and its password) only in a Secret: {url}");
+    assert!(url.get("value").is_none(), "the URL only in a Secret: {url}");
     let secret = &url["valueFrom"]["secretKeyRef"];
     assert!(secret["name"].is_string() && secret["key"].is_string(), "{url}");
+    // The password never in a variable (which a crash-looping pod's start-up would not print
+    // either, but `kubectl describe` and the process's environment would show): a file from the
+    // same Secret, merged into the URL by facegate (--database-password-file).
+    let pod = &deployment["spec"]["template"]["spec"];
+    let password = named(&c["env"], "FACEGATE_DATABASE_PASSWORD_FILE")["value"].as_str().expect("a path");
+    assert_eq!(secret_of_file(pod, c, password), secret["name"].as_str().unwrap(), "the password file from the database's Secret");
+    assert!(!c["env"].as_array().unwrap().iter().any(|e| e["name"] == "PGPASSWORD"), "no password in the environment");
     assert!(!c["volumeMounts"].as_array().unwrap().iter().any(|m| m["mountPath"] == "/data"), "no SQLite volume");
     let hpa = one(&resources, "HorizontalPodAutoscaler");
     assert_eq!(hpa["apiVersion"], "autoscaling/v2");

@@ -68,7 +68,7 @@ impl Drop for Scratch {
 
 /// `facegate` with `args`, none of the key settings inherited from the environment, run from the
 /// crate (where the models are); its output. Killed (and the test failed) after 120 s.
-fn facegate(args: &[&str]) -> Output {
+pub(crate) fn facegate(args: &[&str]) -> Output {
     let child = Command::new(env!("CARGO_BIN_EXE_facegate"))
         .args(args)
         .current_dir(env!("CARGO_MANIFEST_DIR"))

@@ -17,6 +17,8 @@
 //! - `fail_closed`: `facegate serve` refuses to start on an API-key setting with no key and on a sealed
 //!   database without the key that opens it; what a DELETE erases (`Facegate-Erasure`), and a backup
 //!   from before it restored with the same key.
+//! - `secrets`: a failed start-up (`serve` in both log formats, the store commands) prints no
+//!   database password, given in the URL or by `--database-password-file`.
 //! - `store_cli`: `facegate rekey`, `backup` and `restore`, the real binary on a real database.
 //! - `liveness`: `--liveness enforce`, `report` and `off` and an operator's threshold, through the
 //!   real pipeline and `models/liveness.bin` on NUAA print and live frames.
@@ -24,6 +26,10 @@
 //!   the probe's person), the liveness fused over them, enforced by the fused score; NUAA frames.
 //! - `challenge`: the head-turn liveness challenge: issued, answered by a person's own turns,
 //!   used once, expired; a still photo and the wrong order fail it; JSON and multipart.
+//! - `challenge_limits`: the rate per address and the cap on open challenges (429
+//!   `too-many-challenges` with `Retry-After`), and the bounded sweep of expired ones.
+//! - `store_vanished`: a SQLite file unlinked or emptied under the service: `/health` 503 within
+//!   2 s, enrolments refused 503; a file that is not a database is 503, not 500.
 //! - `telemetry`: OpenTelemetry traces of the real binary to an OTLP/HTTP receiver started by the
 //!   test: a `/verify`'s `traceparent` continued, its stages' spans.
 //! - `browser`: the web console in headless Chromium over WebDriver, against the real pipeline.
@@ -31,6 +37,7 @@
 mod admission;
 mod browser;
 mod challenge;
+mod challenge_limits;
 mod deploy;
 mod fail_closed;
 mod frames;
@@ -44,9 +51,11 @@ mod pipeline;
 mod postgres;
 mod recognizers;
 mod replicas;
+mod secrets;
 mod site_calibration;
 mod store_backends;
 mod store_cli;
 mod store_outage;
+mod store_vanished;
 mod support;
 mod telemetry;

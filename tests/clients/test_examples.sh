@@ -39,6 +39,21 @@ expect() {
     fi
 }
 
+# every_step N: every step line the last run printed says N frame(s) and ok (a step's burst as
+# the server counted it, `steps[i].frames`).
+every_step() {
+    local steps
+    steps="$(grep -E '^  (front|left|right): yaw ' "$out" || true)"
+    if [[ $(grep -c . <<<"$steps") -ge 3 ]] && ! grep -vqE ", $1 frame\(s\), ok$" <<<"$steps"; then
+        passed=$((passed + 1))
+        echo "ok   examples $lang every step answered by $1 frame(s)"
+    else
+        failed=$((failed + 1))
+        echo "FAIL examples $lang every step answered by $1 frame(s)"
+        sed 's/^/    stdout: /' "$out"
+    fi
+}
+
 for lang in python typescript curl; do
     s="ex-$lang"
     expect "$lang" 0 "^enrolled $s: 2 template" '' "$BASE" -- enroll "$s" "$IMM/01-1m.jpg" "$IMM/01-3m.jpg"
@@ -51,15 +66,24 @@ for lang in python typescript curl; do
     # Under --liveness enforce: a live frame enrols, a printed photo of the same person is refused.
     expect "$lang" 0 "^enrolled $s: 1 template" '' "$ENFORCE" -- enroll "$s" "$NUAA/real/0004/0004_01_00_02_134.jpg"
     expect "$lang" 2 '' 'presentation-attack' "$ENFORCE" -- verify "$s" "$NUAA/print/0004/0004_01_01_03_211.jpg"
-    # The head-turn challenge with IMM person 15: a photo per turn passes; frontal photos for the
-    # turns fail it (reported under --liveness report, refused under enforce), saying why.
+    # The head-turn challenge with IMM person 15: a burst of two photos per turn (frame_steps: both
+    # frontal views ahead, each turned view twice) passes, and so does one photo per turn (one
+    # frame per step, no frame_steps); frontal photos for the turns fail it (reported under
+    # --liveness report, refused under enforce), saying why.
     t="$s-turns" turns=(--front "$IMM/15-5f.jpg" --left "$IMM/15-4f.jpg" --right "$IMM/15-3f.jpg")
+    bursts=(--front "$IMM/15-5f.jpg" --front "$IMM/15-1f.jpg" --left "$IMM/15-4f.jpg" --left "$IMM/15-4f.jpg"
+        --right "$IMM/15-3f.jpg" --right "$IMM/15-3f.jpg")
     expect "$lang" 0 "^enrolled $t: 2 template" '' "$BASE" -- enroll "$t" "$IMM/15-1f.jpg" "$IMM/15-2f.jpg"
+    expect "$lang" 0 '^challenge passed' '' "$BASE" -- verify-challenge "$t" "$IMM/15-2f.jpg" "${bursts[@]}"
+    every_step 2
     expect "$lang" 0 '^challenge passed' '' "$BASE" -- verify-challenge "$t" "$IMM/15-2f.jpg" "${turns[@]}"
+    every_step 1
     expect "$lang" 2 '^match: ' 'challenge failed: .' "$BASE" -- verify-challenge "$t" "$IMM/15-2f.jpg" --left "$IMM/15-1f.jpg" --right "$IMM/15-1f.jpg"
     expect "$lang" 0 "^enrolled $t: 2 template" '' "$ENFORCE" -- enroll "$t" "$IMM/15-1f.jpg" "$IMM/15-2f.jpg"
-    expect "$lang" 0 '^challenge passed' '' "$ENFORCE" -- verify-challenge "$t" "$IMM/15-2f.jpg" "${turns[@]}"
-    expect "$lang" 2 '' 'challenge failed: .*presentation-attack' "$ENFORCE" -- verify-challenge "$t" "$IMM/15-2f.jpg" --left "$IMM/15-5f.jpg" --right "$IMM/15-1f.jpg"
+    expect "$lang" 0 '^challenge passed' '' "$ENFORCE" -- verify-challenge "$t" "$IMM/15-2f.jpg" "${bursts[@]}"
+    every_step 2
+    expect "$lang" 2 '' 'challenge failed: .*presentation-attack' "$ENFORCE" -- verify-challenge "$t" "$IMM/15-2f.jpg" \
+        --left "$IMM/15-5f.jpg" --left "$IMM/15-1f.jpg" --right "$IMM/15-1f.jpg" --right "$IMM/15-5f.jpg"
 done
 echo "examples: $passed passed, $failed failed"
 [[ $failed == 0 ]]

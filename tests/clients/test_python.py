@@ -122,12 +122,15 @@ def identify_by_multipart():
 # IMM person 15 (enrolled as py-15 from views 1 and 2): the photos a head-turn challenge's steps
 # take, by turn, and the probe looking ahead. The frontal ones are taken in turn.
 TURNED = {Turn.LEFT: ["15-4f.jpg"], Turn.RIGHT: ["15-3f.jpg"], Turn.FRONT: ["15-1f.jpg", "15-2f.jpg", "15-5f.jpg"]}
+# A step's burst of two frames (`frame_steps`): both frontal views ahead, each turned view twice.
+BURSTS = {Turn.LEFT: ["15-4f.jpg", "15-4f.jpg"], Turn.RIGHT: ["15-3f.jpg", "15-3f.jpg"], Turn.FRONT: ["15-5f.jpg", "15-1f.jpg"]}
 CHALLENGE_PROBE = "15-2f.jpg"
 
 
 def new_challenge() -> ChallengeResponse:
     c = parsed(create_challenge.sync_detailed(client=client), 201, ChallengeResponse)
     assert c.challenge and 30 <= c.expires_in <= 600, c
+    assert isinstance(c.max_frames_per_step, int) and c.max_frames_per_step >= 5, c
     turns = [step.turn for step in c.steps]
     assert 3 <= len(turns) <= 4 and Turn.LEFT in turns and Turn.RIGHT in turns, turns
     for step in c.steps:
@@ -153,24 +156,43 @@ def frames_for(c: ChallengeResponse) -> list[str]:
 
 
 def challenge_passed_by_multipart():
+    # Bursts: two frames a step, `frame_steps` (comma-separated) naming each frame's step.
     c = new_challenge()
     assert create_challenge.sync_detailed(client=client).parsed.challenge != c.challenge, "a fresh id per challenge"
-    names = frames_for(c)
-    body = VerifyFilesBody(subject="py-15", image=photo(CHALLENGE_PROBE), challenge=c.challenge, frame=[photo(n) for n in names])
-    v = parsed(verify.sync_detailed(client=client, body=body), 200, VerifyResponse)
+    bursts = [BURSTS[step.turn] for step in c.steps]
+    names = [name for burst in bursts for name in burst]
+    frame_steps = ",".join(str(i) for i, burst in enumerate(bursts) for _ in burst)
+
+    def body() -> VerifyFilesBody:
+        return VerifyFilesBody(subject="py-15", image=photo(CHALLENGE_PROBE), challenge=c.challenge,
+                               frame=[photo(n) for n in names], frame_steps=frame_steps)
+
+    v = parsed(verify.sync_detailed(client=client, body=body()), 200, VerifyResponse)
     assert v.match, v
     outcome = v.liveness.challenge
     assert isinstance(outcome, LivenessChallenge), outcome
     assert [s.turn for s in outcome.steps] == [s.turn for s in c.steps], (outcome.steps, c.steps)
-    for step, read in zip(c.steps, outcome.steps):
-        assert read.ok and step.yaw_min <= read.yaw <= step.yaw_max, (names, step, read)
+    for step, read, burst in zip(c.steps, outcome.steps, bursts):
+        assert read.ok and step.yaw_min <= read.yaw <= step.yaw_max, (burst, step, read)
+        assert read.frames == len(burst) == 2, (burst, read)
     assert outcome.passed and outcome.reason is None and not v.liveness.attack, outcome
-    assert v.liveness.frames == len(c.steps) + 1, v.liveness
+    assert v.liveness.frames == len(names) + 1, v.liveness
     # Used once: the same challenge again is refused, and so it stays.
     for _ in range(2):
-        p = problem(verify.sync_detailed(client=client, body=VerifyFilesBody(
-            subject="py-15", image=photo(CHALLENGE_PROBE), challenge=c.challenge, frame=[photo(n) for n in names])), 422, "invalid-challenge")
+        p = problem(verify.sync_detailed(client=client, body=body()), 422, "invalid-challenge")
         assert p.detail, p
+
+
+def challenge_passed_one_frame_per_step_by_json():
+    # The contract before bursts: one frame per step in step order, without frame_steps.
+    c = new_challenge()
+    names = frames_for(c)
+    body = VerifyJsonBody(subject="py-15", image=b64(CHALLENGE_PROBE), challenge=c.challenge, frames=[b64(n) for n in names])
+    v = parsed(verify.sync_detailed(client=client, body=body), 200, VerifyResponse)
+    outcome = v.liveness.challenge
+    assert v.match and isinstance(outcome, LivenessChallenge), v
+    assert [(s.turn, s.ok, s.frames) for s in outcome.steps] == [(s.turn, True, 1) for s in c.steps], (names, outcome.steps)
+    assert outcome.passed and not v.liveness.attack and v.liveness.frames == len(c.steps) + 1, (outcome, v.liveness)
 
 
 def challenge_failed_and_unknown_by_json():
@@ -183,6 +205,7 @@ def challenge_failed_and_unknown_by_json():
     assert isinstance(outcome, LivenessChallenge) and len(outcome.steps) == len(c.steps), outcome
     assert not outcome.passed and outcome.reason and v.liveness.attack, outcome
     assert [s.ok for s in outcome.steps] == [s.turn == Turn.FRONT for s in c.steps], outcome.steps
+    assert all(s.frames == 1 for s in outcome.steps), outcome.steps
     problem(verify.sync_detailed(client=client, body=body), 422, "invalid-challenge")
     # An id never issued.
     body = VerifyJsonBody(subject="py-15", image=b64(CHALLENGE_PROBE), challenge="0" * 32, frames=[b64("15-1f.jpg")] * 3)
@@ -192,6 +215,13 @@ def challenge_failed_and_unknown_by_json():
 def challenge_with_a_wrong_frame_count():
     c = new_challenge()
     body = VerifyJsonBody(subject="py-15", image=b64(CHALLENGE_PROBE), challenge=c.challenge, frames=[b64("15-1f.jpg")] * (len(c.steps) - 1))
+    problem(verify.sync_detailed(client=client, body=body), 400, "malformed-request")
+    # Bursts: one more frame than max_frames_per_step for the first step (a fresh challenge: a
+    # refused one is used up).
+    c = new_challenge()
+    frame_steps = [0] * (c.max_frames_per_step + 1) + list(range(1, len(c.steps)))
+    body = VerifyJsonBody(subject="py-15", image=b64(CHALLENGE_PROBE), challenge=c.challenge,
+                          frames=[b64("15-1f.jpg")] * len(frame_steps), frame_steps=frame_steps)
     problem(verify.sync_detailed(client=client, body=body), 400, "malformed-request")
 
 
@@ -237,6 +267,7 @@ CHECKS = [
     verify_no_match_by_json_with_fmr,
     identify_by_multipart,
     challenge_passed_by_multipart,
+    challenge_passed_one_frame_per_step_by_json,
     challenge_failed_and_unknown_by_json,
     challenge_with_a_wrong_frame_count,
     list_subjects_paged,

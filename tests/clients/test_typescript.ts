@@ -54,14 +54,16 @@ function problem(r: { error?: Problem; response: Response }, status: number, slu
   return p;
 }
 
-// IMM person 15 (enrolled as ts-15 from views 1 and 2): the photos a head-turn challenge's steps
-// take, by turn (the frontal ones in turn), and the probe looking ahead.
-const TURNED: Record<Turn, string[]> = { left: ["15-4f.jpg"], right: ["15-3f.jpg"], front: ["15-1f.jpg", "15-2f.jpg", "15-5f.jpg"] };
+// IMM person 15 (enrolled as ts-15 from views 1 and 2): a head-turn challenge step's burst of two
+// frames (`frame_steps`) by turn, both frontal views ahead, each turned view twice; and the probe
+// looking ahead.
+const BURSTS: Record<Turn, string[]> = { left: ["15-4f.jpg", "15-4f.jpg"], right: ["15-3f.jpg", "15-3f.jpg"], front: ["15-5f.jpg", "15-1f.jpg"] };
 const CHALLENGE_PROBE = "15-2f.jpg";
 
 async function newChallenge(): Promise<Challenge> {
   const c = ok(await client.POST("/liveness/challenge", {}), 201);
   assert(c.challenge.length > 0 && c.expires_in >= 30 && c.expires_in <= 600, JSON.stringify(c));
+  assert(Number.isInteger(c.max_frames_per_step) && c.max_frames_per_step >= 5, JSON.stringify(c));
   const turns = c.steps.map((s) => s.turn);
   assert(turns.length >= 3 && turns.length <= 4 && turns.includes("left") && turns.includes("right"), JSON.stringify(turns));
   for (const s of c.steps) {
@@ -69,15 +71,6 @@ async function newChallenge(): Promise<Challenge> {
     assert(s.yaw_min < s.yaw_max && side, JSON.stringify(s));
   }
   return c;
-}
-
-/** One photo per step, chosen by the step's turn. */
-function framesFor(c: Challenge): string[] {
-  const taken: Record<Turn, number> = { left: 0, right: 0, front: 0 };
-  return c.steps.map((s) => {
-    const choices = TURNED[s.turn];
-    return choices[taken[s.turn]++ % choices.length] as string;
-  });
 }
 
 const checks: Record<string, () => Promise<void>> = {
@@ -128,17 +121,21 @@ const checks: Record<string, () => Promise<void>> = {
   },
 
   async challenge_passed_by_json() {
+    // Bursts: two frames a step, `frame_steps` naming each frame's step (0-based).
     const c = await newChallenge();
-    const names = framesFor(c);
-    const body = { subject: "ts-15", image: b64(CHALLENGE_PROBE), challenge: c.challenge, frames: names.map(b64) };
+    const bursts = c.steps.map((s) => BURSTS[s.turn]);
+    const names = bursts.flat();
+    const frame_steps = bursts.flatMap((burst, i) => burst.map(() => i));
+    const body = { subject: "ts-15", image: b64(CHALLENGE_PROBE), challenge: c.challenge, frames: names.map(b64), frame_steps };
     const v = ok(await client.POST("/verify", { body }), 200);
     const outcome = v.liveness?.challenge;
     assert(v.match && outcome !== undefined, JSON.stringify(v.liveness));
-    assert(outcome.steps.length === c.steps.length, JSON.stringify(outcome));
+    assert(outcome.steps.length === c.steps.length && v.liveness?.frames === names.length + 1, JSON.stringify(v.liveness));
     outcome.steps.forEach((read, i) => {
       const step = c.steps[i];
       assert(step !== undefined && read.turn === step.turn && read.ok, JSON.stringify({ names, step, read }));
       assert(read.yaw !== null && read.yaw >= step.yaw_min && read.yaw <= step.yaw_max, JSON.stringify(read));
+      assert(read.frames === 2, JSON.stringify(read));
     });
     assert(outcome.passed && outcome.reason === null && !v.liveness?.attack, JSON.stringify(outcome));
     // Used once: the same challenge again is refused.
@@ -147,7 +144,8 @@ const checks: Record<string, () => Promise<void>> = {
   },
 
   async challenge_failed_by_multipart() {
-    // Every frame looking ahead: the turned steps are not ok and the challenge fails, saying why.
+    // Every frame looking ahead, one per step without frame_steps (the contract before bursts):
+    // the turned steps are not ok and the challenge fails, saying why.
     const c = await newChallenge();
     const frame = c.steps.map(() => photo("15-1f.jpg"));
     const body = { subject: "ts-15", image: photo(CHALLENGE_PROBE), challenge: c.challenge, frame };
@@ -155,7 +153,7 @@ const checks: Record<string, () => Promise<void>> = {
     const outcome = v.liveness?.challenge;
     assert(outcome !== undefined && outcome.steps.length === c.steps.length, JSON.stringify(v.liveness));
     assert(!outcome.passed && typeof outcome.reason === "string" && outcome.reason.length > 0 && v.liveness?.attack, JSON.stringify(outcome));
-    assert(outcome.steps.every((read, i) => read.ok === (c.steps[i]?.turn === "front")), JSON.stringify(outcome.steps));
+    assert(outcome.steps.every((read, i) => read.ok === (c.steps[i]?.turn === "front") && read.frames === 1), JSON.stringify(outcome.steps));
     problem(await client.POST("/verify", { body, ...multipart }), 422, "invalid-challenge");
   },
 

@@ -77,8 +77,8 @@ pub async fn enroll(
 /// `POST /verify`: is the probe's largest face the enrolled subject? Up to four further frames of
 /// the same capture (`frame` parts, `frames` in JSON) must show the probe's person and lend their
 /// liveness to the probe's: the response's `liveness` is then fused over all of them. With a
-/// `challenge` (`POST /liveness/challenge`) the frames are its steps' in order and the response's
-/// `liveness.challenge` carries the verdict.
+/// `challenge` (`POST /liveness/challenge`) the frames are its steps' in order (one each, or
+/// bursts with `frame_steps`) and the response's `liveness.challenge` carries the verdict.
 pub async fn verify(
     State(state): State<AppState>,
     audit: Audit,
@@ -93,9 +93,10 @@ pub async fn verify(
     audit.subject(&subject);
     let frames = std::mem::take(&mut upload.frames);
     let challenge = upload.challenge.take();
+    let frame_steps = if challenge.is_some() { upload.frame_steps.take() } else { None };
     let image = upload.single_image()?;
     let verification = match challenge {
-        Some(challenge) => facegate.verify_challenge(&subject, image, frames, &challenge, fmr).await?,
+        Some(challenge) => facegate.verify_challenge(&subject, image, frames, frame_steps, &challenge, fmr).await?,
         None => facegate.verify_capture(&subject, image, frames, fmr).await?,
     };
     std::iter::once(&verification.photo).chain(&verification.frames).for_each(|photo| observe(&state, photo));

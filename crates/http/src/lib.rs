@@ -34,6 +34,7 @@ mod intake;
 pub mod limits;
 pub mod metrics;
 pub mod problem;
+pub mod rate;
 mod responses;
 pub mod server;
 mod state;
@@ -94,20 +95,23 @@ fn presented_key(headers: &axum::http::HeaderMap) -> Option<&str> {
 }
 
 /// One operation of the API: method, route, whether it needs an API key, the admission queue of
-/// the photo work it runs (none for the others), and its handler.
+/// the photo work it runs (none for the others), whether each client address has a rate of it
+/// ([`rate::limit_challenges`]), and its handler.
 pub struct Operation {
     pub method: Method,
     pub path: &'static str,
     pub protected: bool,
     pub work: Option<WorkClass>,
+    pub rate_limited: bool,
     handler: MethodRouter<AppState>,
 }
 
 /// Every operation served. The router is built from this list alone, and `openapi.yaml` must
 /// list exactly these (the integration tests check it).
 pub fn operations() -> Vec<Operation> {
-    let op = |method: Method, path, protected, handler| Operation { method, path, protected, work: None, handler };
-    let work = |method: Method, path, class, handler| Operation { method, path, protected: true, work: Some(class), handler };
+    let op = |method: Method, path, protected, handler| Operation { method, path, protected, work: None, rate_limited: false, handler };
+    let work =
+        |method: Method, path, class, handler| Operation { method, path, protected: true, work: Some(class), rate_limited: false, handler };
     vec![
         work(Method::POST, "/enroll", WorkClass::Enroll, post(handlers::enroll)),
         work(Method::POST, "/verify", WorkClass::Probe, post(handlers::verify)),
@@ -115,7 +119,8 @@ pub fn operations() -> Vec<Operation> {
         work(Method::POST, "/analyze", WorkClass::Probe, post(inspect::analyze)),
         work(Method::POST, "/avatar", WorkClass::Probe, post(inspect::avatar)),
         work(Method::POST, "/frontalize", WorkClass::Probe, post(inspect::frontalize)),
-        op(Method::POST, "/liveness/challenge", true, post(handlers::issue_challenge)),
+        // Each issue stores a row: a rate per address, and a cap on the rows (the service's).
+        Operation { rate_limited: true, ..op(Method::POST, "/liveness/challenge", true, post(handlers::issue_challenge)) },
         op(Method::GET, "/subjects", true, get(handlers::list_subjects)),
         op(Method::GET, "/subjects/{id}", true, get(handlers::get_subject)),
         op(Method::DELETE, "/subjects/{id}", true, delete(handlers::delete_subject)),
@@ -140,6 +145,9 @@ pub fn router(state: AppState) -> Router {
     for operation in operations() {
         let handler = match operation.work {
             Some(class) => operation.handler.route_layer(middleware::from_fn_with_state((state.clone(), class), admission::admit)),
+            None if operation.rate_limited => {
+                operation.handler.route_layer(middleware::from_fn_with_state(state.clone(), rate::limit_challenges))
+            }
             None => operation.handler,
         };
         if operation.protected {

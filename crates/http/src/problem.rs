@@ -57,6 +57,9 @@ pub enum ProblemKind {
     NotFound,
     /// The route exists but not with this method.
     MethodNotAllowed,
+    /// `POST /liveness/challenge` from an address over its rate, or with as many challenges open
+    /// as the store keeps: retry after `Retry-After`.
+    TooManyChallenges,
     /// The bounded work queue is full: retry later.
     Overloaded,
     /// The template database cannot be reached: retry later.
@@ -74,7 +77,7 @@ pub enum ProblemKind {
 }
 
 impl ProblemKind {
-    pub const ALL: [ProblemKind; 26] = [
+    pub const ALL: [ProblemKind; 27] = [
         ProblemKind::NotAnImage,
         ProblemKind::UnsupportedFormat,
         ProblemKind::UnsupportedMediaType,
@@ -94,6 +97,7 @@ impl ProblemKind {
         ProblemKind::Unauthorized,
         ProblemKind::NotFound,
         ProblemKind::MethodNotAllowed,
+        ProblemKind::TooManyChallenges,
         ProblemKind::Overloaded,
         ProblemKind::StoreUnavailable,
         ProblemKind::Timeout,
@@ -125,6 +129,7 @@ impl ProblemKind {
             ProblemKind::Unauthorized => "unauthorized",
             ProblemKind::NotFound => "not-found",
             ProblemKind::MethodNotAllowed => "method-not-allowed",
+            ProblemKind::TooManyChallenges => "too-many-challenges",
             ProblemKind::Overloaded => "overloaded",
             ProblemKind::StoreUnavailable => "store-unavailable",
             ProblemKind::Timeout => "timeout",
@@ -160,6 +165,7 @@ impl ProblemKind {
             ProblemKind::Unauthorized => "Unauthorized",
             ProblemKind::NotFound => "Not found",
             ProblemKind::MethodNotAllowed => "Method not allowed",
+            ProblemKind::TooManyChallenges => "Too many challenges",
             ProblemKind::Overloaded => "Overloaded",
             ProblemKind::StoreUnavailable => "Template database unavailable",
             ProblemKind::Timeout => "Request timeout",
@@ -189,6 +195,7 @@ impl ProblemKind {
             ProblemKind::MalformedRequest => StatusCode::BAD_REQUEST,
             ProblemKind::Unauthorized => StatusCode::UNAUTHORIZED,
             ProblemKind::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
+            ProblemKind::TooManyChallenges => StatusCode::TOO_MANY_REQUESTS,
             ProblemKind::Overloaded | ProblemKind::StoreUnavailable => StatusCode::SERVICE_UNAVAILABLE,
             ProblemKind::Timeout => StatusCode::GATEWAY_TIMEOUT,
             ProblemKind::RequestTimeout => StatusCode::REQUEST_TIMEOUT,
@@ -216,6 +223,8 @@ pub struct Problem {
     pub attack: Option<Box<PresentationAttack>>,
     /// `presentation-attack` of a failed liveness challenge: why it failed (the body's `reason`).
     pub reason: Option<String>,
+    /// Seconds for the `Retry-After` header of a 429 or 503 (1 when not set).
+    pub retry_after: Option<u64>,
 }
 
 /// The JSON body of a problem response.
@@ -246,7 +255,22 @@ struct ProblemBody<'a> {
 
 impl Problem {
     pub fn new(kind: ProblemKind, detail: impl Into<String>) -> Problem {
-        Problem { kind, detail: detail.into(), image: None, frame: None, failures: Vec::new(), attack: None, reason: None }
+        Problem {
+            kind,
+            detail: detail.into(),
+            image: None,
+            frame: None,
+            failures: Vec::new(),
+            attack: None,
+            reason: None,
+            retry_after: None,
+        }
+    }
+
+    /// `too-many-challenges`: retry after `wait` (whole seconds, at least 1).
+    pub fn too_many_challenges(detail: impl Into<String>, wait: std::time::Duration) -> Problem {
+        let seconds = wait.as_secs() + u64::from(wait.subsec_nanos() > 0);
+        Problem { retry_after: Some(seconds.max(1)), ..Problem::new(ProblemKind::TooManyChallenges, detail) }
     }
 
     /// `presentation-attack`: the face's liveness score fell below the operating point.
@@ -373,6 +397,7 @@ impl From<ServiceError> for Problem {
             ServiceError::FramesMismatch(mismatch) => Problem::frames_mismatch(&mismatch),
             ServiceError::InvalidChallenge(e) => Problem::new(ProblemKind::InvalidChallenge, e.to_string()),
             ServiceError::Invalid(detail) => Problem::malformed(detail),
+            ServiceError::TooManyChallenges { retry_after, .. } => Problem::too_many_challenges(error.to_string(), retry_after),
             ServiceError::UnknownSubject(id) => Problem::new(ProblemKind::UnknownSubject, format!("subject {id} is not enrolled")),
             ServiceError::ModelMismatch(e) => Problem::new(ProblemKind::ModelMismatch, e.to_string()),
             ServiceError::Pool(e) => Problem::from(e),
@@ -395,8 +420,8 @@ impl IntoResponse for Problem {
             ProblemKind::Unauthorized => {
                 headers.insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer realm=\"facegate\""));
             }
-            ProblemKind::Overloaded | ProblemKind::StoreUnavailable => {
-                headers.insert(header::RETRY_AFTER, HeaderValue::from_static("1"));
+            ProblemKind::Overloaded | ProblemKind::StoreUnavailable | ProblemKind::TooManyChallenges => {
+                headers.insert(header::RETRY_AFTER, HeaderValue::from(self.retry_after.unwrap_or(1)));
             }
             // The body may still be arriving: this connection cannot carry another request.
             ProblemKind::RequestTimeout => {

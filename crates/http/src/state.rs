@@ -9,6 +9,7 @@ use facegate_service::{FaceEngine, Facegate, ServiceConfig, WorkPool};
 use facegate_store::Store;
 
 use super::admission::BodyBudget;
+use super::rate::RateLimiter;
 use super::{ApiKeys, Metrics};
 
 /// Limits and settings of the API (made from `config::Settings`, where the defaults are).
@@ -26,6 +27,9 @@ pub struct ApiConfig {
     pub min_body_rate: u64,
     /// Request bodies arriving at once from one client address (IPv6: its /64); beyond → 503.
     pub max_uploads_per_address: usize,
+    /// `POST /liveness/challenge` per second per client address (IPv6: its /64), in bursts of
+    /// twice as many; beyond → 429 `too-many-challenges`. 0: no limit.
+    pub challenge_rate: f64,
     /// Photos analysed at once on the blocking pool.
     pub workers: usize,
     /// Probe requests (verify, identify, inspection) that may wait for a worker; beyond → 503.
@@ -56,6 +60,7 @@ pub(crate) struct Shared {
     pub(crate) config: ApiConfig,
     pub(crate) keys: ApiKeys,
     pub(crate) body_budget: BodyBudget,
+    pub(crate) challenge_rate: RateLimiter,
     pub(crate) metrics: Arc<Metrics>,
 }
 
@@ -79,7 +84,8 @@ impl AppState {
         let facegate = Facegate::new(engine, store, pool, config.service.clone());
         let keys = ApiKeys::new(&config.api_keys);
         let body_budget = BodyBudget::new(config.max_buffered_bytes, config.max_body_bytes);
-        AppState(Arc::new(Shared { facegate, config, keys, body_budget, metrics }))
+        let challenge_rate = RateLimiter::new(config.challenge_rate, (config.challenge_rate * 2.0).ceil().min(f64::from(u32::MAX)) as u32);
+        AppState(Arc::new(Shared { facegate, config, keys, body_budget, challenge_rate, metrics }))
     }
 
     /// The use cases.

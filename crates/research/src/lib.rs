@@ -20,6 +20,7 @@ pub mod train_dlda;
 pub mod train_embedding;
 pub mod train_imm_sfm;
 pub mod train_liveness;
+pub mod train_render;
 
 /// Progress of a long loop, handed down by the caller (the CLI draws a bar; tests stay quiet).
 pub trait Progress: Sync {

@@ -2,14 +2,24 @@
 //! (front, left, right, at least one turn to each side, never the same turn twice in a row) and
 //! keeps them in the store under a random id for [`ChallengeConfig::lifetime`];
 //! [`Facegate::verify_challenge`] takes the challenge out of the store (once, on any replica),
-//! analyzes the probe and one frame per step, and [`judge`] decides:
+//! analyzes the probe and each step's burst of frames ([`FrameSteps`]), and [`judge`] decides.
+//! The challenge's limits all live here, beside the decision:
 //!
-//! - each frame's yaw from the 3D fit lies in its step's range (stops the still photo, the wrong
-//!   order, and a flat photo turned, whose fitted yaw stays under the turn range);
-//! - each frame shows the probe's person (stops a stranger's photo in a step);
-//! - the turns show a head's depth: the nose's parallax against the eyes and mouth between turned
-//!   views ([`PARALLAX_MIN`]; stops a print turned or bent far enough to read as turned, and most
-//!   heads rendered from one photo, whose nose the 3D model makes flatter than the person's).
+//! - each step's median yaw lies in its range ([`Turn::yaw_range`]; stops the still photo, the
+//!   wrong order, and a flat photo turned, whose key points' yaw stays under the turn range);
+//! - each turn's narrowing agrees with its yaw ([`MAX_EXCESS_TURN`]; stops a picture turned so
+//!   far, 60° or so, that its key points read a turn);
+//! - one capture, one person: every frame matches the probe, and the frames of every other step,
+//!   at [`CAPTURE_FMR`] (stops a stranger's photo in a step);
+//! - a head, not a plane ([`head_turn::depth_test`]): the nose crosses the face the way the turns
+//!   ask by at least [`SHIFT_MIN`] eye distances per step of turn, and by at least [`Z_MIN`]
+//!   standard errors of the noise the frames show ([`NOISE_FLOOR`] at the least). Neither reads
+//!   a person's nose depth: a live head whose key points read the turns' least yaw (12°) has
+//!   crossed about 0.15 (docs/liveness-challenge.md).
+//!
+//! - a camera's face, not a rendered head: the rendered-head detector (`render.bin`), fused over
+//!   the frames, at [`RENDER_MIN`] (a good 3D render turns like a head: the depth test cannot
+//!   tell it).
 //!
 //! The passive score of every frame is fused as for any capture ([`crate::fuse_liveness`]); the
 //! capture is an attack when either check says so.
@@ -23,23 +33,44 @@ use serde::Serialize;
 
 use facegate_core::SubjectId;
 use facegate_core::elapsed_ms;
-use facegate_vision::liveness::head_turn::{self, FramePose, HeadTurn, Step, StepReading, Turn};
+use facegate_core::template::Template;
+use facegate_vision::liveness::Liveness;
+use facegate_vision::liveness::head_turn::{self, DepthTest, FramePose, HeadTurn, Step, StepReading, Turn};
 use facegate_vision::pipeline::FaceAnalysis;
 
 use crate::facegate::{AnalyzedPhoto, Facegate, PhotoError, ServiceError, Verification, analyze_photo};
 use crate::liveness::LivenessPolicy;
-use crate::{Decision, FaceEngine, Matcher};
+use crate::{FaceEngine, Matcher};
 
-/// The least nose depth ([`HeadTurn::parallax`]: how far the nose stands out of the plane of the
-/// eyes and mouth corners, in eye distances, read from its parallax between turned views) a
-/// capture's flattest turn must show. Chosen on IMM training persons (`facegate eval challenge
-/// --persons train`) as the 5th percentile of their live sequences' depths, rounded down: the
-/// strictest threshold that passes at least 95% of them. Their live sequences measured 0.659 at
-/// the least and 0.690 at the 5th percentile; avatars rendered from one photo at whichever angle
-/// the console reads inside each step's range reached 0.741 (the 3D model's nose, from one
-/// frontal photo, mostly stands out less than the person's): 11.4% of those passed the midpoint
-/// threshold 0.62 used before, 4.3% pass this one (docs/liveness-challenge.md).
-pub const PARALLAX_MIN: f64 = 0.69;
+/// Most degrees a turned step's narrowing may say the face turned beyond its yaw
+/// ([`StepReading::excess_turn`]): a head's eyes draw together about as much as its nose says it
+/// turned; a picture turned far enough for its key points to read a turn narrows far more.
+/// Chosen on the development material (docs/liveness-challenge.md).
+pub const MAX_EXCESS_TURN: f32 = 30.0;
+/// Least crossing of the nose per step of turn ([`DepthTest::shift`], eye distances). A plane
+/// shows 0; a bent sheet a few hundredths; a live head whose key points read 12° about 0.15.
+/// Chosen on the development material (`facegate eval challenge`; docs/liveness-challenge.md).
+pub const SHIFT_MIN: f64 = 0.06;
+/// Least [`DepthTest::z`]: the crossing in standard errors of the frames' own noise (√F of the
+/// plane against the head).
+pub const Z_MIN: f64 = 4.0;
+/// Least noise one frame's canonical nose is taken to have (eye distances): the detector's key
+/// points move about this much between video frames of a still head, so identical frames (a
+/// print held still) do not make a small crossing count.
+pub const NOISE_FLOOR: f64 = 0.02;
+/// The operating point at which every frame must match the probe and the other steps' frames:
+/// the strictest calibrated one (the frames are seconds apart under one camera).
+pub const CAPTURE_FMR: f64 = 1e-4;
+/// Most frames answering one step (`frame_steps`); announced as `max_frames_per_step`.
+pub const MAX_FRAMES_PER_STEP: usize = 5;
+/// Most steps a challenge has ([`draw_steps`]).
+pub const MAX_STEPS: usize = 4;
+/// Most frames a challenge's capture takes beside its probe.
+pub const MAX_CHALLENGE_FRAMES: usize = MAX_STEPS * MAX_FRAMES_PER_STEP;
+/// Least probability that the frames show a face seen by a camera rather than a head rendered
+/// from a photo (the rendered-head detector, `render.bin`, fused over the frames as the passive
+/// liveness is): even odds, the detector being trained on equal weights of both.
+pub const RENDER_MIN: f32 = 0.5;
 
 /// How long an issued challenge may be answered.
 pub const DEFAULT_LIFETIME: Duration = Duration::from_secs(120);
@@ -84,8 +115,22 @@ pub struct ChallengeOutcome {
     /// Why it failed (the first check that failed); `None` when it passed.
     pub reason: Option<String>,
     pub steps: Vec<StepReading>,
-    /// The capture's parallax ([`HeadTurn::parallax`]).
-    pub parallax: Option<f64>,
+    /// The plane against the head over the capture's frames ([`head_turn::depth_test`]).
+    pub depth: Option<DepthTest>,
+    /// The frames' fused probability of a camera's view rather than a rendered head; `None`
+    /// without the detector.
+    pub rendered: Option<f32>,
+}
+
+/// A frame that does not show the probe's person at [`CAPTURE_FMR`]: which (0-based among the
+/// frames), against what, and the score.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mismatch {
+    pub frame: usize,
+    /// "the probe", or "step N's frames".
+    pub against: String,
+    pub score: f32,
+    pub threshold: f32,
 }
 
 /// 3 or 4 steps, each turn drawn among the two that differ from the step before, until the
@@ -115,11 +160,81 @@ pub fn well_formed_id(id: &str) -> bool {
     id.len() == 32 && id.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f'))
 }
 
-/// The verdict on `frames` (one per step, in order) answering `steps`, with `probe` the photo the
-/// verification is about and `same_person` each frame's decision against the probe.
-pub fn judge(steps: &[Step], probe: &FaceAnalysis, frames: &[&FaceAnalysis], same_person: &[Decision]) -> ChallengeOutcome {
-    let poses: Vec<FramePose> = frames.iter().map(|a| frame_pose(a)).collect();
-    let HeadTurn { steps: readings, parallax } = head_turn::read_head_turn(steps, frame_pose(probe), &poses);
+/// Which step each frame answers: `given` (`frame_steps`: one 0-based step per frame,
+/// non-decreasing, every step answered, at most [`MAX_FRAMES_PER_STEP`] frames a step) or, without
+/// it, one frame per step in order. The frames' indices grouped by step.
+pub fn frame_steps_of(steps: usize, frames: usize, given: Option<&[usize]>) -> Result<Vec<Vec<usize>>, String> {
+    let Some(given) = given else {
+        if frames != steps {
+            return Err(format!(
+                "the challenge has {steps} steps: send {steps} frames (field frame, or frames in JSON) in step order, or bursts with frame_steps, got {frames}"
+            ));
+        }
+        return Ok((0..steps).map(|i| vec![i]).collect());
+    };
+    if given.len() != frames {
+        return Err(format!("frame_steps names {} frames, but {frames} were sent: one step per frame", given.len()));
+    }
+    if given.windows(2).any(|w| w[1] < w[0]) {
+        return Err("frame_steps must not decrease: the frames of each step in turn, in step order".into());
+    }
+    let mut bursts = vec![Vec::new(); steps];
+    for (frame, &step) in given.iter().enumerate() {
+        let burst =
+            bursts.get_mut(step).ok_or_else(|| format!("frame_steps names step {step}, but the challenge has steps 0 to {}", steps - 1))?;
+        burst.push(frame);
+    }
+    if let Some(step) = bursts.iter().position(Vec::is_empty) {
+        return Err(format!("step {step} has no frame: every step needs at least one"));
+    }
+    if let Some(step) = bursts.iter().position(|b| b.len() > MAX_FRAMES_PER_STEP) {
+        return Err(format!("step {step} has {} frames: at most {MAX_FRAMES_PER_STEP} a step", bursts[step].len()));
+    }
+    Ok(bursts)
+}
+
+/// One capture, one person: every frame against the probe, then against the frames of every
+/// other step (its best score there), at the operating point [`CAPTURE_FMR`] for that many
+/// templates. The first frame that fails, if any.
+pub fn one_person(matcher: &dyn Matcher, probe: &Template, frames: &[&Template], bursts: &[Vec<usize>]) -> Option<Mismatch> {
+    let step_of = |frame: usize| bursts.iter().position(|b| b.contains(&frame));
+    for (i, frame) in frames.iter().enumerate() {
+        let d = crate::decide(matcher, frame, std::slice::from_ref(probe), CAPTURE_FMR);
+        if !d.is_match {
+            return Some(Mismatch { frame: i, against: "the probe".into(), score: d.score, threshold: d.threshold });
+        }
+        for (step, burst) in bursts.iter().enumerate() {
+            if Some(step) == step_of(i) {
+                continue;
+            }
+            let others: Vec<Template> = burst.iter().map(|&j| frames[j].clone()).collect();
+            let d = crate::decide(matcher, frame, &others, CAPTURE_FMR);
+            if !d.is_match {
+                return Some(Mismatch { frame: i, against: format!("step {}'s frames", step + 1), score: d.score, threshold: d.threshold });
+            }
+        }
+    }
+    None
+}
+
+/// The verdict on `bursts` (each step's frames, in order) answering `steps`, with `mismatch` the
+/// first frame that does not show the probe's person ([`one_person`]) and `rendered` the frames'
+/// rendered-head checks (`None` without the detector).
+pub fn judge(
+    steps: &[Step],
+    probe: &FaceAnalysis,
+    bursts: &[Vec<&FaceAnalysis>],
+    mismatch: Option<&Mismatch>,
+    rendered: Option<&[Liveness]>,
+) -> ChallengeOutcome {
+    let poses: Vec<Vec<FramePose>> = bursts.iter().map(|b| b.iter().map(|a| frame_pose(a)).collect()).collect();
+    let HeadTurn { steps: readings, depth } = head_turn::read_head_turn(steps, frame_pose(probe), &poses);
+    let narrowed = readings
+        .iter()
+        .enumerate()
+        .filter(|(_, r)| r.turn != Turn::Front)
+        .find(|(_, r)| r.excess_turn().is_some_and(|e| e > MAX_EXCESS_TURN));
+    let render = rendered.and_then(|r| crate::fuse_liveness(r, RENDER_MIN));
     let reason = if let Some((i, r)) = readings.iter().enumerate().find(|(_, r)| !r.ok) {
         let step = &steps[i];
         Some(match r.yaw {
@@ -132,24 +247,44 @@ pub fn judge(steps: &[Step], probe: &FaceAnalysis, frames: &[&FaceAnalysis], sam
             ),
             None => format!("step {} ({}): the head's pose could not be read", i + 1, step.turn.name()),
         })
-    } else if let Some((i, d)) = same_person.iter().enumerate().find(|(_, d)| !d.is_match) {
-        Some(format!("step {} shows another person than the probe: score {:.3} below the threshold {:.3}", i + 1, d.score, d.threshold))
+    } else if let Some((i, r)) = narrowed {
+        Some(format!(
+            "step {} ({}): the face narrowed as if turned {:.0}° further than its yaw {:.1}° (a picture turned in front of the camera), over {MAX_EXCESS_TURN:.0}°",
+            i + 1,
+            r.turn.name(),
+            r.excess_turn().unwrap_or(0.0),
+            r.yaw.unwrap_or(0.0)
+        ))
+    } else if let Some(m) = mismatch {
+        Some(format!(
+            "frame {} shows another person than {}: score {:.3} below the threshold {:.3}",
+            m.frame + 1,
+            m.against,
+            m.score,
+            m.threshold
+        ))
     } else {
-        match parallax {
-            Some(p) if p >= PARALLAX_MIN => None,
-            Some(p) => Some(format!(
-                "the turns show too little depth for a head (a picture moved in front of the camera, or a rendered one): nose depth {p:.3} below {PARALLAX_MIN:.3}"
+        match depth {
+            Some(_) if render.as_ref().is_some_and(|r| r.attack) => Some(format!(
+                "the frames look like a head rendered from a photo, not a camera's view of one: {:.3} below {RENDER_MIN:.2} ({})",
+                render.as_ref().map_or(0.0, |r| r.score),
+                render.as_ref().map_or("", |r| r.model.as_str())
             )),
-            None => Some("no turned frame could be measured against another view a turn away".to_string()),
+            Some(d) if d.shift >= SHIFT_MIN && d.z(NOISE_FLOOR) >= Z_MIN => None,
+            Some(d) => Some(format!(
+                "the turns show no head's depth (a picture moved in front of the camera): the nose crossed the face by {:.3} eye distances a turn ({:.1} standard errors), under {SHIFT_MIN:.2} or {Z_MIN:.0}",
+                d.shift,
+                d.z(NOISE_FLOOR)
+            )),
+            None => Some("no turned frame could be measured (no key points)".to_string()),
         }
     };
-    ChallengeOutcome { passed: reason.is_none(), reason, steps: readings, parallax }
+    ChallengeOutcome { passed: reason.is_none(), reason, steps: readings, depth, rendered: render.map(|r| r.score) }
 }
 
-/// A frame's step yaw is its key-point pose's ([`facegate_vision::pipeline::Pipeline::key_point_fit`]),
-/// its depth's yaw the 58-landmark fit's ([`FramePose`] says why).
+/// A frame's yaw is its key-point pose's ([`facegate_vision::pipeline::Pipeline::key_point_fit`]).
 fn frame_pose(a: &FaceAnalysis) -> FramePose {
-    FramePose { yaw: a.key_point_pose.map(|p| p.yaw), fit_yaw: a.pose.map(|p| p.yaw), keypoints: a.face.points }
+    FramePose { yaw: a.key_point_pose.map(|p| p.yaw), keypoints: a.face.points }
 }
 
 fn unix_ms(at: SystemTime) -> i64 {
@@ -157,7 +292,8 @@ fn unix_ms(at: SystemTime) -> i64 {
 }
 
 impl Facegate {
-    /// Draw a challenge and keep it in the store until it is answered or expires.
+    /// Draw a challenge and keep it in the store until it is answered or expires; refused with
+    /// [`ServiceError::TooManyChallenges`] while [`crate::ServiceConfig::max_open_challenges`] are open.
     pub async fn issue_challenge(&self) -> Result<IssuedChallenge, ServiceError> {
         if self.config().liveness == LivenessPolicy::Off {
             return Err(ServiceError::InvalidChallenge(InvalidChallenge::LivenessOff));
@@ -169,21 +305,30 @@ impl Facegate {
         let lifetime = self.config().challenge.lifetime;
         let now = SystemTime::now();
         let text = serde_json::to_string(&steps).expect("steps serialise");
-        let expires = unix_ms(now + lifetime);
-        self.with_store(self.store().insert_challenge(&id, &text, expires, unix_ms(now))).await?;
+        let (expires, now_ms) = (unix_ms(now + lifetime), unix_ms(now));
+        let open = self.config().max_open_challenges;
+        if !self.with_store(self.store().insert_challenge_within(&id, &text, expires, now_ms, open)).await? {
+            // Room comes back when the first open challenge expires (or sooner, when one is taken).
+            let first = self.with_store(self.store().next_challenge_expiry(now_ms)).await?;
+            let wait_ms = first.map_or(1000, |at| (at - now_ms).clamp(1000, (expires - now_ms).max(1000)));
+            let retry_after = std::time::Duration::from_secs((wait_ms as u64).div_ceil(1000));
+            return Err(ServiceError::TooManyChallenges { open, retry_after });
+        }
         Ok(IssuedChallenge { id, expires_in: lifetime, steps })
     }
 
     /// [`Facegate::verify_capture`] answering the challenge `challenge`: the challenge is taken
-    /// from the store first (used once, whatever the outcome), then the probe and one frame per
-    /// step are analyzed, the probe matched against the subject and the capture [`judge`]d. The
-    /// liveness of the verification is the capture's fused passive score, an attack when it or
-    /// the challenge says so; under `enforce` a failed challenge is refused with its reason.
+    /// from the store first (used once, whatever the outcome), then the probe and each step's
+    /// frames (`frame_steps`, or one frame per step) are analyzed, the probe matched against the
+    /// subject and the capture [`judge`]d. The liveness of the verification is the capture's
+    /// fused passive score, an attack when it or the challenge says so; under `enforce` a failed
+    /// challenge is refused with its reason.
     pub async fn verify_challenge(
         &self,
         subject: &SubjectId,
         image: Bytes,
         frames: Vec<Bytes>,
+        frame_steps: Option<Vec<usize>>,
         challenge: &str,
         fmr: Option<f64>,
     ) -> Result<Verification, ServiceError> {
@@ -197,15 +342,11 @@ impl Facegate {
         let matcher = self.matcher();
         let comparable = crate::comparable_templates(&matcher, subject, enrolled)?;
         let steps = self.take_challenge(challenge).await?;
-        if frames.len() != steps.len() {
-            let (n, m) = (steps.len(), frames.len());
-            return Err(ServiceError::Invalid(format!(
-                "the challenge has {n} steps: send {n} frames (field frame, or frames in JSON) in step order, got {m}; the challenge is used up, ask for a new one"
-            )));
-        }
+        let bursts = frame_steps_of(steps.len(), frames.len(), frame_steps.as_deref())
+            .map_err(|why| ServiceError::Invalid(format!("{why}; the challenge is used up, ask for a new one")))?;
         let (limits, scoring) = (self.config().decode_limits, matcher.clone());
         let (mut probe, analyzed, outcome) =
-            self.pool().run(move || challenge_photos(&scoring, &steps, &image, &frames, &limits, fmr)).await??;
+            self.pool().run(move || challenge_photos(&scoring, &steps, &bursts, &image, &frames, &limits)).await??;
         if policy == LivenessPolicy::Enforce && !outcome.passed {
             return Err(PhotoError::ChallengeFailed(outcome).into());
         }
@@ -237,29 +378,45 @@ impl Facegate {
 }
 
 /// Analyze a challenge's probe and frames (a frame with no usable face is refused with its
-/// index), decide each frame against the probe and judge the capture.
+/// index), hold every frame against the probe and the other steps ([`one_person`]) and judge
+/// the capture.
 fn challenge_photos(
     matcher: &crate::site::CalibratedMatcher<dyn FaceEngine>,
     steps: &[Step],
+    bursts: &[Vec<usize>],
     image: &[u8],
     frames: &[Bytes],
     limits: &facegate_core::imaging::DecodeLimits,
-    fmr: f64,
 ) -> Result<(AnalyzedPhoto, Vec<AnalyzedPhoto>, ChallengeOutcome), ServiceError> {
     let engine = matcher.inner.as_ref();
     let probe = analyze_photo(engine, image, limits)?;
-    let analyzed = frames
+    let (analyzed, rendered): (Vec<AnalyzedPhoto>, Vec<Option<Liveness>>) = frames
         .iter()
         .enumerate()
-        .map(|(i, bytes)| analyze_photo(engine, bytes, limits).map_err(|e| e.at_frame(i)))
-        .collect::<Result<Vec<_>, _>>()?;
-    let same: Vec<Decision> = analyzed
-        .iter()
-        .map(|f| crate::decide(matcher as &dyn Matcher, &f.analysis.template, std::slice::from_ref(&probe.analysis.template), fmr))
-        .collect();
-    let frame_analyses: Vec<&FaceAnalysis> = analyzed.iter().map(|p| &p.analysis).collect();
-    let outcome = tracing::info_span!("challenge").in_scope(|| judge(steps, &probe.analysis, &frame_analyses, &same));
+        .map(|(i, bytes)| analyze_frame(engine, bytes, limits).map_err(|e| e.at_frame(i)))
+        .collect::<Result<Vec<_>, _>>()?
+        .into_iter()
+        .unzip();
+    let outcome = tracing::info_span!("challenge").in_scope(|| {
+        let templates: Vec<&Template> = analyzed.iter().map(|p| &p.analysis.template).collect();
+        let mismatch = one_person(matcher as &dyn Matcher, &probe.analysis.template, &templates, bursts);
+        let by_step: Vec<Vec<&FaceAnalysis>> = bursts.iter().map(|b| b.iter().map(|&i| &analyzed[i].analysis).collect()).collect();
+        let rendered: Option<Vec<Liveness>> = rendered.into_iter().collect();
+        judge(steps, &probe.analysis, &by_step, mismatch.as_ref(), rendered.as_deref())
+    });
     Ok((probe, analyzed, outcome))
+}
+
+/// A challenge frame analyzed as any photo, and checked for a rendered head.
+fn analyze_frame(
+    engine: &dyn FaceEngine,
+    bytes: &[u8],
+    limits: &facegate_core::imaging::DecodeLimits,
+) -> Result<(AnalyzedPhoto, Option<Liveness>), PhotoError> {
+    let (photo, decode_ms) = crate::inspect::decode_photo(bytes, limits)?;
+    let analysis = engine.analyze(&photo).map_err(PhotoError::of_analysis)?;
+    let rendered = engine.render_check(&photo, &analysis);
+    Ok((AnalyzedPhoto { analysis, decode_ms }, rendered))
 }
 
 #[cfg(test)]
@@ -286,6 +443,24 @@ mod tests {
         // Of the 12 three-step and 24 four-step sequences without a repeat, those without a left
         // (FRF, RFR; FRFR, RFRF) or without a right are never drawn; all 8 + 20 others are.
         assert_eq!(sequences.len(), 8 + 20, "{sequences:?}");
+    }
+
+    #[test]
+    fn frame_steps_group_the_frames_by_step_and_refuse_what_is_ill_formed() {
+        assert_eq!(frame_steps_of(3, 3, None).unwrap(), vec![vec![0], vec![1], vec![2]]);
+        assert!(frame_steps_of(3, 4, None).unwrap_err().contains("has 3 steps"));
+        assert_eq!(frame_steps_of(3, 6, Some(&[0, 0, 1, 2, 2, 2])).unwrap(), vec![vec![0, 1], vec![2], vec![3, 4, 5]]);
+        for (given, frames, why) in [
+            (&[0, 1][..], 3, "names 2 frames"),
+            (&[1, 0, 2], 3, "must not decrease"),
+            (&[0, 2, 2], 3, "step 1 has no frame"),
+            (&[0, 1, 3], 3, "names step 3"),
+            (&[0, 0, 0, 0, 0, 0, 1, 2], 8, "at most 5 a step"),
+        ] {
+            let err = frame_steps_of(3, frames, Some(given)).unwrap_err();
+            assert!(err.contains(why), "{given:?}: {err}");
+        }
+        assert_eq!(MAX_CHALLENGE_FRAMES, 20);
     }
 
     #[test]

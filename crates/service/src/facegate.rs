@@ -39,6 +39,9 @@ pub struct ServiceConfig {
     pub liveness: LivenessPolicy,
     /// The head-turn challenges' settings.
     pub challenge: ChallengeConfig,
+    /// Most challenges open (issued, not yet taken or expired) at once in the store; beyond, an
+    /// issue is refused ([`ServiceError::TooManyChallenges`]).
+    pub max_open_challenges: u64,
 }
 
 /// What is wrong with one photo.
@@ -95,6 +98,10 @@ pub enum ServiceError {
     /// The request asks for something the service does not do (wrong photo count).
     #[error("{0}")]
     Invalid(String),
+    /// As many challenges as the store may hold are open: none is issued until one is taken or
+    /// expires, at the latest after `retry_after`.
+    #[error("{open} liveness challenges are open, the most the service keeps at once; retry when one has been answered or has expired")]
+    TooManyChallenges { open: u64, retry_after: std::time::Duration },
     #[error("subject {0} is not enrolled")]
     UnknownSubject(SubjectId),
     #[error(transparent)]
@@ -164,7 +171,7 @@ impl PhotoError {
     }
 
     /// A pipeline error where a template was asked for.
-    fn of_analysis(error: PipelineError) -> PhotoError {
+    pub(crate) fn of_analysis(error: PipelineError) -> PhotoError {
         match error {
             PipelineError::NoFace => PhotoError::NoFace,
             PipelineError::PoseCorrection(e) => PhotoError::NotPoseCorrected(e.to_string()),

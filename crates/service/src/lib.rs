@@ -29,7 +29,7 @@ use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline
 use facegate_vision::quality::{Failure, Quality, QualityPolicy};
 use facegate_vision::recognize::{ClassicalRecognizer, Recognizer};
 
-pub use challenge::{ChallengeConfig, ChallengeOutcome, InvalidChallenge, IssuedChallenge};
+pub use challenge::{ChallengeConfig, ChallengeOutcome, InvalidChallenge, IssuedChallenge, MAX_CHALLENGE_FRAMES, MAX_FRAMES_PER_STEP};
 pub use facegate::{
     AnalyzedPhoto, Enrollment, Facegate, FramesMismatch, Health, Identification, PhotoError, PreparedEnrollment, ServiceConfig,
     ServiceError, Verification, analyze_photo,
@@ -80,6 +80,11 @@ pub trait FaceEngine: Matcher + Send + Sync + 'static {
     /// The operating point of the liveness model behind the analyses' `liveness`; `None` when
     /// no liveness model is loaded (then no analysis carries one).
     fn liveness_point(&self) -> Option<LivenessPoint>;
+    /// A face seen by a camera or a head rendered from a photo: the probability of the former
+    /// (`render.bin`); `None` without the model. Only a challenge's frames are checked.
+    fn render_check(&self, _photo: &Photo, _analysis: &FaceAnalysis) -> Option<facegate_vision::liveness::Liveness> {
+        None
+    }
 }
 
 impl Matcher for Pipeline {
@@ -129,6 +134,9 @@ impl FaceEngine for Pipeline {
     }
     fn liveness_point(&self) -> Option<LivenessPoint> {
         self.liveness.as_ref().map(|m| LivenessPoint { threshold: m.threshold, operating_point: m.operating_point.clone() })
+    }
+    fn render_check(&self, photo: &Photo, analysis: &FaceAnalysis) -> Option<facegate_vision::liveness::Liveness> {
+        Pipeline::render_check(self, photo, analysis)
     }
 }
 

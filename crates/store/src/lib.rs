@@ -39,9 +39,11 @@ mod challenge;
 pub mod cipher;
 mod codec;
 mod feed;
+mod redact;
 mod site;
 mod sqlite;
 mod sqlite_scan;
+mod vanish;
 
 #[cfg(test)]
 mod at_rest;
@@ -65,11 +67,13 @@ use facegate_core::template::Template;
 
 use codec::{Sealing, StoredRow, encode_vector, open_vector, seal_subject, template_from_row};
 
-pub use challenge::TakenChallenge;
+pub use challenge::{SWEEP_BATCH, TakenChallenge};
 pub use cipher::{CipherError, KeyRing};
 pub use codec::{KeyCheck, SealingCounts, blob_to_vector, vector_to_blob};
 pub use feed::{ChangeFeed, StoreChange};
+pub use redact::redact_url;
 pub use sqlite::restore;
+pub use vanish::CHECK_EVERY as VANISH_CHECK_EVERY;
 
 /// Longest a query waits for a connection of the pool (sqlx's default is 30 s). A database that
 /// cannot be reached fails each request within this bound ([`StoreError::is_unavailable`]),
@@ -80,6 +84,7 @@ pub const ACQUIRE_TIMEOUT: Duration = Duration::from_millis(1500);
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
+    /// `url` is the URL as printed: its password redacted ([`redact_url`]).
     #[error("invalid database URL {url:?}: {source}")]
     Url { url: String, source: sqlx::Error },
     #[error("cannot migrate the database: {0}")]
@@ -100,6 +105,9 @@ pub enum StoreError {
     /// before it went away, so whether the write is stored is not known.
     #[error("the database went away during the commit, which may or may not have been stored: {0}")]
     CommitUnknown(sqlx::Error),
+    /// The SQLite file opened at start is no longer at its path (unlinked or replaced).
+    #[error("the database file is no longer where it was opened: {0}")]
+    Vanished(String),
 }
 
 impl StoreError {
@@ -123,6 +131,7 @@ impl StoreError {
     pub fn is_unavailable(&self) -> bool {
         match self {
             StoreError::Database(e) | StoreError::CommitUnknown(e) => sqlx_unavailable(e),
+            StoreError::Vanished(_) => true,
             StoreError::Migrate(sqlx::migrate::MigrateError::Execute(e) | sqlx::migrate::MigrateError::ExecuteMigration(e, _)) => {
                 sqlx_unavailable(e)
             }
@@ -142,8 +151,9 @@ fn sqlx_unavailable(error: &sqlx::Error) -> bool {
                 code.starts_with("08") || matches!(code, "57P01" | "57P02" | "57P03")
             } else if e.try_downcast_ref::<sqlx::sqlite::SqliteError>().is_some() {
                 // The extended result code; its low byte is the primary code: 10 SQLITE_IOERR,
-                // 14 SQLITE_CANTOPEN.
-                e.code().and_then(|code| code.parse::<i32>().ok()).is_some_and(|code| matches!(code & 0xff, 10 | 14))
+                // 11 SQLITE_CORRUPT, 14 SQLITE_CANTOPEN, 26 SQLITE_NOTADB (a file corrupted or
+                // truncated under the service: no request can be served from it).
+                e.code().and_then(|code| code.parse::<i32>().ok()).is_some_and(|code| matches!(code & 0xff, 10 | 11 | 14 | 26))
             } else {
                 false
             }
@@ -172,7 +182,7 @@ impl Backend {
             "sqlite" => Ok(Backend::Sqlite),
             "postgres" | "postgresql" => Ok(Backend::Postgres),
             _ => Err(StoreError::Url {
-                url: url.to_string(),
+                url: redact_url(url),
                 source: sqlx::Error::Configuration("the scheme must be sqlite:, postgres: or postgresql:".into()),
             }),
         }
@@ -285,6 +295,8 @@ pub struct Store {
     /// The SQLite database file, which the gallery's start-up read scans on a connection of its
     /// own ([`sqlite_scan`]); `None` on PostgreSQL.
     sqlite_file: Option<PathBuf>,
+    /// That file's identity at start, checked before writes and by [`Store::counts`].
+    file_watch: Option<Arc<vanish::FileWatch>>,
 }
 
 impl std::fmt::Debug for Store {
@@ -301,7 +313,7 @@ impl Store {
     /// subject sealed earlier cannot be read ([`StoreError::NoKey`]).
     pub async fn connect(url: &str, keys: Option<KeyRing>) -> Result<Store, StoreError> {
         sqlx::any::install_default_drivers();
-        let bad_url = |source| StoreError::Url { url: url.to_string(), source };
+        let bad_url = |source| StoreError::Url { url: redact_url(url), source };
         let backend = Backend::of(url)?;
         let (pool, listen) = match backend {
             Backend::Sqlite => {
@@ -320,7 +332,8 @@ impl Store {
             Backend::Sqlite => sqlite::file_of(url)?,
             Backend::Postgres => None,
         };
-        Ok(Store { pool, backend, listen, keys: keys.map(Arc::new), sqlite_file })
+        let file_watch = sqlite_file.as_deref().map(vanish::FileWatch::new).transpose()?.map(Arc::new);
+        Ok(Store { pool, backend, listen, keys: keys.map(Arc::new), sqlite_file, file_watch })
     }
 
     /// [`Store::connect`] to a database that must already exist: an SQLite file that is not there
@@ -347,6 +360,7 @@ impl Store {
 
     /// Is the database answering?
     pub async fn ping(&self) -> Result<(), StoreError> {
+        self.still_there()?;
         sqlx::query("SELECT 1").execute(&self.pool).await?;
         Ok(())
     }
@@ -357,6 +371,7 @@ impl Store {
     /// and a write that has not begun by then is refused rather than committed after its caller
     /// was told it failed.
     async fn begin_write(&self, begin_by: tokio::time::Instant) -> Result<sqlx::Transaction<'static, sqlx::Any>, StoreError> {
+        self.still_there()?;
         match tokio::time::timeout_at(begin_by, self.pool.begin()).await {
             Ok(tx) => Ok(tx?),
             Err(_) => Err(StoreError::timed_out()),
@@ -667,6 +682,7 @@ impl Store {
 
     /// Number of subjects and of templates (for metrics and health).
     pub async fn counts(&self) -> Result<(u64, u64), StoreError> {
+        self.still_there()?;
         let row =
             sqlx::query("SELECT (SELECT count(*) FROM subjects) AS s, (SELECT count(*) FROM templates) AS t").fetch_one(&self.pool).await?;
         Ok((row.try_get::<i64, _>("s")? as u64, row.try_get::<i64, _>("t")? as u64))

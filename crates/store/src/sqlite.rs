@@ -28,7 +28,7 @@ const SQLITE_PRAGMAS: [(&str, &str); 5] = [
 ];
 
 fn sqlite_options(url: &str) -> Result<SqliteConnectOptions, StoreError> {
-    let options = SqliteConnectOptions::from_str(url).map_err(|source| StoreError::Url { url: url.to_string(), source })?;
+    let options = SqliteConnectOptions::from_str(url).map_err(|source| StoreError::Url { url: crate::redact_url(url), source })?;
     Ok(SQLITE_PRAGMAS.iter().fold(options, |options, &(key, value)| options.pragma(key, value)))
 }
 
@@ -42,7 +42,18 @@ fn sqlite_session() -> String {
 pub(crate) async fn open(url: &str) -> Result<AnyPool, StoreError> {
     // The file is created (and put in WAL mode) through SQLite's own options; the
     // pool then opens the URL as given, parsed by the same code, so the same file.
+    let new = file_of(url)?.filter(|file| !file.exists());
     SqliteConnection::connect_with(&sqlite_options(url)?.create_if_missing(true)).await?.close().await?;
+    if let Some(file) = new {
+        // Said loudly: a database lost (deleted, or a volume not mounted) is otherwise replaced
+        // by an empty one without a word, and every enrolled subject is unknown from then on.
+        tracing::warn!(
+            path = %file.display(),
+            "NO DATABASE at {}: created a new, EMPTY one; if a database was expected there (a deleted file, a volume not \
+             mounted), stop the service and restore it (facegate restore)",
+            file.display()
+        );
+    }
     let pool = AnyPoolOptions::new()
         .max_connections(8)
         .acquire_timeout(ACQUIRE_TIMEOUT)
@@ -61,6 +72,12 @@ pub(crate) fn file_of(url: &str) -> Result<Option<PathBuf>, StoreError> {
 }
 
 impl Store {
+    /// `Err` ([`StoreError::Vanished`]) when the SQLite file opened at start is no longer at its
+    /// path (checked at most every [`crate::vanish::CHECK_EVERY`]); always `Ok` on PostgreSQL.
+    pub(crate) fn still_there(&self) -> Result<(), StoreError> {
+        self.file_watch.as_ref().map_or(Ok(()), |watch| watch.check())
+    }
+
     /// Copy the WAL into the database and truncate it (waits for readers, up to the busy
     /// timeout). Whether it completed. SQLite only.
     pub async fn checkpoint(&self) -> Result<bool, StoreError> {

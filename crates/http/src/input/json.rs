@@ -1,10 +1,10 @@
-//! The JSON form of an upload: `{"subject", "image", "images", "frames", "challenge"}`, an object and nothing
+//! The JSON form of an upload: `{"subject", "image", "images", "frames", "frame_steps", "challenge"}`, an object and nothing
 //! else (an array in the fields' order, which serde's derive would take for the struct, is
 //! malformed like any other body that is not the object), each field optional and `null` the same
 //! as leaving it out. It is parsed and its base64 decoded on the blocking pool, never on the async
 //! runtime. The parse counts the `images` entries as it goes and refuses the body at the first
 //! entry past the most photos any operation takes ([`JsonLimit`]), and the `frames` entries
-//! (`/verify`'s further frames of the probe's capture) past [`MAX_FRAMES`]; until then each entry
+//! (`/verify`'s further frames of the probe's capture) past [`MAX_CHALLENGE_FRAMES`]; until then each entry
 //! stays a slice of the body (a copy only where the JSON string has escapes), so a body of millions
 //! of tiny photos costs neither memory nor time beyond the body itself.
 
@@ -21,7 +21,7 @@ use serde::de::{self, DeserializeSeed, MapAccess, SeqAccess, Visitor};
 
 use super::{Upload, too_many_frames, too_many_photos};
 use crate::problem::{Problem, ProblemKind};
-use facegate_service::MAX_FRAMES;
+use facegate_service::MAX_CHALLENGE_FRAMES;
 
 /// Read a JSON body, then parse it and decode its photos on the blocking pool: a large body takes
 /// no time from the async runtime's other requests.
@@ -36,7 +36,7 @@ pub(super) async fn read_json(request: Request, max_photos: usize) -> Result<Upl
     tokio::task::spawn_blocking(move || parse_json(&body, max_photos)).await.map_err(Problem::internal)?
 }
 
-/// Parse a JSON body (at most `max_photos` entries in `images`, [`MAX_FRAMES`] in `frames`) and
+/// Parse a JSON body (at most `max_photos` entries in `images`, [`MAX_CHALLENGE_FRAMES`] in `frames`) and
 /// decode its photos, `image` first, then its frames.
 fn parse_json(body: &[u8], max_photos: usize) -> Result<Upload, Problem> {
     let (over, frames_over) = (Cell::new(false), Cell::new(false));
@@ -56,7 +56,8 @@ fn parse_json(body: &[u8], max_photos: usize) -> Result<Upload, Problem> {
     let images = strings.enumerate().map(|(index, s)| decode_base64(&s.0).map_err(|p| p.for_image(index))).collect::<Result<_, _>>()?;
     let frames = json.frames.iter().flatten().enumerate().map(|(index, s)| decode_base64(&s.0).map_err(|p| p.for_frame(index)));
     let challenge = json.challenge.map(|c| c.chars().take(64).collect());
-    Ok(Upload { subject: json.subject, images, frames: frames.collect::<Result<_, _>>()?, challenge })
+    let frame_steps = json.frame_steps.map(|v| v.into_iter().map(usize::from).collect());
+    Ok(Upload { subject: json.subject, images, frames: frames.collect::<Result<_, _>>()?, frame_steps, challenge })
 }
 
 /// The JSON form of a request: base64 photos (a `data:` URL prefix is allowed), each still the
@@ -69,9 +70,10 @@ struct JsonUpload<'a> {
     images: Option<Vec<Base64Text<'a>>>,
     frames: Option<Vec<Base64Text<'a>>>,
     challenge: Option<String>,
+    frame_steps: Option<Vec<u8>>,
 }
 
-const FIELDS: &[&str] = &["subject", "image", "images", "frames", "challenge"];
+const FIELDS: &[&str] = &["subject", "image", "images", "frames", "challenge", "frame_steps"];
 
 /// One photo's base64 text, borrowed from the body (owned only when the JSON string has escapes).
 #[derive(Debug)]
@@ -102,7 +104,7 @@ impl<'de> Deserialize<'de> for Base64Text<'de> {
 /// Deserializes a [`JsonUpload`] as `#[derive(Deserialize)] #[serde(deny_unknown_fields)]` would
 /// (same errors), except that an array is refused (the derive takes one as the struct's fields in
 /// order) and that `images` is refused at its entry `max_photos + 1` and `frames` at its entry
-/// `MAX_FRAMES + 1`, before that entry is kept; `over` or `frames_over` then says so.
+/// `MAX_CHALLENGE_FRAMES + 1`, before that entry is kept; `over` or `frames_over` then says so.
 #[derive(Clone, Copy)]
 struct JsonLimit<'c> {
     max_photos: usize,
@@ -126,8 +128,8 @@ impl<'de> Visitor<'de> for JsonLimit<'_> {
     }
 
     fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<JsonUpload<'de>, A::Error> {
-        let mut json = JsonUpload { subject: None, image: None, images: None, frames: None, challenge: None };
-        let mut seen = [false; 5];
+        let mut json = JsonUpload { subject: None, image: None, images: None, frames: None, challenge: None, frame_steps: None };
+        let mut seen = [false; FIELDS.len()];
         while let Some(Field(index)) = map.next_key::<Field>()? {
             if std::mem::replace(&mut seen[index], true) {
                 return Err(de::Error::duplicate_field(FIELDS[index]));
@@ -137,7 +139,8 @@ impl<'de> Visitor<'de> for JsonLimit<'_> {
                 1 => json.image = map.next_value()?,
                 2 => json.images = map.next_value_seed(NullOr(PhotoList { max: self.max_photos, over: self.over }))?,
                 4 => json.challenge = map.next_value()?,
-                _ => json.frames = map.next_value_seed(NullOr(PhotoList { max: MAX_FRAMES, over: self.frames_over }))?,
+                5 => json.frame_steps = map.next_value_seed(StepList)?,
+                _ => json.frames = map.next_value_seed(NullOr(PhotoList { max: MAX_CHALLENGE_FRAMES, over: self.frames_over }))?,
             }
         }
         Ok(json)
@@ -230,6 +233,49 @@ impl<'de> Visitor<'de> for PhotoList<'_> {
     }
 }
 
+/// `frame_steps`: null (as if left out) or an array of step numbers, refused past
+/// [`MAX_CHALLENGE_FRAMES`] entries before they are kept.
+struct StepList;
+
+impl<'de> DeserializeSeed<'de> for StepList {
+    type Value = Option<Vec<u8>>;
+
+    fn deserialize<D: de::Deserializer<'de>>(self, deserializer: D) -> Result<Self::Value, D::Error> {
+        deserializer.deserialize_option(self)
+    }
+}
+
+impl<'de> Visitor<'de> for StepList {
+    type Value = Option<Vec<u8>>;
+
+    fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+        f.write_str("an array of step numbers (0-based), one per frame")
+    }
+
+    fn visit_none<E: de::Error>(self) -> Result<Self::Value, E> {
+        Ok(None)
+    }
+
+    fn visit_unit<E: de::Error>(self) -> Result<Self::Value, E> {
+        Ok(None)
+    }
+
+    fn visit_some<D: de::Deserializer<'de>>(self, deserializer: D) -> Result<Self::Value, D::Error> {
+        deserializer.deserialize_seq(self)
+    }
+
+    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
+        let mut steps = Vec::new();
+        while let Some(step) = seq.next_element::<u8>()? {
+            if steps.len() == MAX_CHALLENGE_FRAMES {
+                return Err(de::Error::custom(format_args!("frame_steps names more than {MAX_CHALLENGE_FRAMES} frames")));
+            }
+            steps.push(step);
+        }
+        Ok(Some(steps))
+    }
+}
+
 pub(super) fn decode_base64(s: &str) -> Result<Bytes, Problem> {
     // Accept `data:image/jpeg;base64,...` as browsers produce it.
     let payload = if s.starts_with("data:") { s.split_once(',').map(|(_, p)| p).unwrap_or("") } else { s };
@@ -272,6 +318,7 @@ mod tests {
         images: Option<Vec<String>>,
         frames: Option<Vec<String>>,
         challenge: Option<String>,
+        frame_steps: Option<Vec<u8>>,
     }
 
     fn detail(body: &str, max_photos: usize) -> String {
@@ -310,6 +357,8 @@ mod tests {
             r#"{"frames": ["aGVsbG8="], "extra": 1}"#,
             r#"{"challenge": 1}"#,
             r#"{"challenge": "a", "challenge": "b"}"#,
+            r#"{"frame_steps": [0], "frame_steps": [0]}"#,
+            r#"{"frame_steps": ["0"]}"#,
         ];
         for body in bodies {
             let reference = serde_json::from_str::<JsonUpload>(body).expect_err(body);
@@ -360,14 +409,27 @@ mod tests {
     }
 
     #[test]
-    fn json_frames_are_refused_past_four_while_parsed() {
+    fn json_frames_are_refused_past_a_challenges_bursts_while_parsed() {
         let many = |n: usize, tail: &str| format!(r#"{{"image": "AA", "frames": [{}]{tail}"#, vec![r#""AA""#; n].join(","));
-        assert_eq!(parse_json(many(MAX_FRAMES, "}").as_bytes(), 16).unwrap().frames.len(), 4);
-        let over = "at most 4 frames besides the probe (field frames), got more than 4";
-        for body in [many(5, "}"), many(5, ", not json at all"), many(3_000_000, "}")] {
+        assert_eq!(parse_json(many(MAX_CHALLENGE_FRAMES, "}").as_bytes(), 16).unwrap().frames.len(), 20);
+        let over = "at most 20 frames besides the probe (field frames), got more than 20";
+        for body in [many(21, "}"), many(21, ", not json at all"), many(3_000_000, "}")] {
             let p = parse_json(body.as_bytes(), 16).unwrap_err();
             assert_eq!((p.kind, p.detail.as_str(), p.frame), (ProblemKind::MalformedRequest, over, None));
         }
+    }
+
+    #[test]
+    fn json_frame_steps_are_step_numbers_or_null_and_bounded() {
+        let upload = parse_json(br#"{"image": "AA", "frames": ["AA", "AA"], "frame_steps": [0, 1]}"#, 16).unwrap();
+        assert_eq!(upload.frame_steps, Some(vec![0, 1]));
+        let upload = parse_json(br#"{"image": "AA", "frame_steps": null}"#, 16).unwrap();
+        assert_eq!(upload.frame_steps, None);
+        for body in [r#"{"frame_steps": [-1]}"#, r#"{"frame_steps": [256]}"#, r#"{"frame_steps": "0,1"}"#, r#"{"frame_steps": [0.5]}"#] {
+            assert_eq!(parse_json(body.as_bytes(), 16).unwrap_err().kind, ProblemKind::MalformedRequest, "{body}");
+        }
+        let many = format!(r#"{{"frame_steps": [{}]}}"#, vec!["0"; 21].join(","));
+        assert!(parse_json(many.as_bytes(), 16).unwrap_err().detail.contains("more than 20"));
     }
 
     #[test]

@@ -177,11 +177,13 @@ pub(crate) struct ChallengeStep {
     turn: &'static str,
     yaw: Option<f32>,
     ok: bool,
+    /// How many frames answered the step.
+    frames: usize,
 }
 
 impl From<&ChallengeOutcome> for Challenge {
     fn from(o: &ChallengeOutcome) -> Challenge {
-        let steps = o.steps.iter().map(|s| ChallengeStep { turn: s.turn.name(), yaw: s.yaw, ok: s.ok }).collect();
+        let steps = o.steps.iter().map(|s| ChallengeStep { turn: s.turn.name(), yaw: s.yaw, ok: s.ok, frames: s.frames }).collect();
         Challenge { passed: o.passed, reason: o.reason.clone(), steps }
     }
 }

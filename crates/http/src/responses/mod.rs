@@ -114,6 +114,8 @@ pub(crate) struct ChallengeResponse {
     challenge: String,
     expires_in: u64,
     steps: Vec<ChallengeStepRange>,
+    /// Most frames `/verify` takes for one step (`frame_steps`).
+    max_frames_per_step: usize,
 }
 
 #[derive(Debug, Serialize)]
@@ -128,7 +130,7 @@ impl From<IssuedChallenge> for ChallengeResponse {
         let steps = c.steps.iter().map(|s| ChallengeStepRange { turn: s.turn.name(), yaw_min: s.yaw_min, yaw_max: s.yaw_max }).collect();
         // Whole seconds, rounded up: a challenge is never announced as expired when it is not.
         let expires_in = (c.expires_in.as_millis() as u64).div_ceil(1000);
-        ChallengeResponse { challenge: c.id, expires_in, steps }
+        ChallengeResponse { challenge: c.id, expires_in, steps, max_frames_per_step: facegate_service::MAX_FRAMES_PER_STEP }
     }
 }
 

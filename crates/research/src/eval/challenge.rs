@@ -2,8 +2,9 @@
 //! style: for persons never used in training, live sequences made from their own photos against
 //! each attack type, every capture judged by the service's own rule
 //! ([`facegate_service::challenge::judge`]) on the runtime's one pipeline. Reports BPCER of the
-//! live sequences and APCER per attack, with and without the passive score, the parallax
-//! distributions the threshold is read from, and the CPU of a challenge.
+//! live sequences and APCER per attack, with and without the passive score, the depth test's
+//! distributions the limits are read from, and the CPU of a challenge. The video clips'
+//! captures and attacks (in bursts) are [`video`]'s.
 //!
 //! Live: IMM (enrolled with view 1, the probe view 2, front steps views 5 and 1, left view 4,
 //! right view 3) and UMIST (enrolled with photo 18, the probe photo 19, turned steps drawn among
@@ -28,13 +29,21 @@ use rand::seq::{IndexedRandom, SliceRandom};
 use serde::Serialize;
 
 use facegate_core::imaging::{self, GrayF32, Photo};
+use facegate_core::template::Template;
 use facegate_service::challenge::{self as rule, ChallengeOutcome};
-use facegate_service::{Decision, Matcher, decide};
+use facegate_service::{Matcher, decide};
+use facegate_vision::liveness::Liveness;
 use facegate_vision::liveness::head_turn::{Step, Turn};
 use facegate_vision::morph::{FitOptions, Pose};
 use facegate_vision::pipeline::{FaceAnalysis, Pipeline};
 
 use crate::Progress;
+
+#[path = "challenge_tally.rs"]
+mod tally;
+#[path = "challenge_video.rs"]
+mod video;
+use tally::Tally;
 
 /// Where one frame of a sequence comes from: a photo as it is, its mirror image, the photo as a
 /// print held turned (and bent), or its fitted head rendered at a yaw.
@@ -54,17 +63,39 @@ pub enum Source {
         path: PathBuf,
         yaw: i32,
     },
+    /// Another source in grey at a quarter of its size (at least 92 pixels wide): a small old
+    /// camera's frame, as UMIST's.
+    Grey(Box<Source>),
 }
 
-/// One attempt: the enrolled photo, the probe, the frames answering `steps`, and its kind.
+/// One attempt: the enrolled photo, the probe, the frames answering `steps` (for each step, its
+/// burst: one frame or several), and its kind.
 #[derive(Debug, Clone)]
 pub struct Attempt {
-    pub kind: &'static str,
+    pub kind: String,
     pub person: String,
     pub enrolled: Source,
     pub probe: Source,
     pub steps: Vec<Step>,
-    pub frames: Vec<Source>,
+    pub frames: Vec<Vec<Source>>,
+}
+
+impl Attempt {
+    /// One frame per step.
+    fn single(kind: &str, person: &str, enrolled: &Source, probe: &Source, steps: &[Step], frames: Vec<Source>) -> Attempt {
+        Attempt::bursts(kind, person, enrolled, probe, steps, frames.into_iter().map(|f| vec![f]).collect())
+    }
+
+    fn bursts(kind: &str, person: &str, enrolled: &Source, probe: &Source, steps: &[Step], frames: Vec<Vec<Source>>) -> Attempt {
+        Attempt {
+            kind: kind.to_string(),
+            person: person.to_string(),
+            enrolled: enrolled.clone(),
+            probe: probe.clone(),
+            steps: steps.to_vec(),
+            frames,
+        }
+    }
 }
 
 /// The data sets and how many challenges each person answers.
@@ -74,11 +105,13 @@ pub struct ChallengeEvalConfig {
     pub umist: PathBuf,
     pub nuaa: PathBuf,
     /// IMM persons to use: the test persons (never trained on) or the training ones (to choose
-    /// the parallax threshold on).
+    /// the limits on).
     pub test_persons: bool,
     pub challenges_per_person: usize,
     pub seed: u64,
     pub threads: usize,
+    /// Real video of people turning (`data/video/<clip>/NNNN.jpg`), used with `test_persons`.
+    pub video: PathBuf,
 }
 
 /// Attempts of one kind and how many passed.
@@ -86,13 +119,15 @@ pub struct ChallengeEvalConfig {
 pub struct KindRow {
     pub kind: String,
     pub attempts: usize,
-    /// Passed the challenge (the 3D rule: poses, same person, parallax).
+    /// Passed the challenge (poses, narrowing, same person, depth, render).
     pub passed_challenge: usize,
     /// Passed the challenge, matched the enrolled subject and the fused passive score was live:
     /// what `--liveness enforce` lets through.
     pub passed_enforce: usize,
-    /// Median parallax of the attempts whose poses were all right (`None`: none were).
-    pub parallax_median: Option<f64>,
+    /// Median nose crossing per step of turn ([`facegate_vision::liveness::head_turn::DepthTest::shift`]) and
+    /// median z of the attempts whose poses were all right (`None`: none were).
+    pub shift_median: Option<f64>,
+    pub z_median: Option<f64>,
     /// The first failure reasons, by how often (a few).
     pub reasons: Vec<(String, usize)>,
 }
@@ -101,10 +136,9 @@ pub struct KindRow {
 pub struct ChallengeReport {
     pub persons: String,
     pub rows: Vec<KindRow>,
-    /// The live sequences' and flat prints' parallax (only attempts whose poses were right).
-    pub live_parallax: Vec<f64>,
-    pub print_parallax: Vec<f64>,
-    pub avatar_parallax: Vec<f64>,
+    /// The depth test's (shift, z) and the turned steps' largest excess turn (degrees) by kind, of
+    /// the attempts whose poses were right.
+    pub depth_by_kind: BTreeMap<String, Vec<(f64, f64, f64)>>,
     /// The yaw the pipeline read on each source kind (degrees): min, 5th percentile, median,
     /// 95th percentile, max.
     pub yaw_quantiles: BTreeMap<String, [f32; 5]>,
@@ -117,6 +151,8 @@ pub struct ChallengeReport {
     pub reused_attempts: usize,
     /// The live sequences refused, by person: how many and the first reason.
     pub live_refused: BTreeMap<String, (usize, String)>,
+    /// Live attempts by person and kind: (attempts, passed under enforce).
+    pub live_by_person: BTreeMap<String, (usize, usize)>,
 }
 
 /// A photo as an opened, decoded image, mirrored, printed or rendered as `source` says.
@@ -139,7 +175,20 @@ pub fn render_source(pipeline: &Pipeline, source: &Source) -> Option<Photo> {
             let head = model.render_posed(&photo, &fit, pose, size, size.max(512)).ok()?.image;
             Some(photo_of(on_backdrop(&head, photo.width(), photo.height())))
         }
+        Source::Grey(inner) => render_source(pipeline, inner).map(|p| photo_of(grey_small(&p.rgb))),
     }
+}
+
+/// `rgb` in grey (as RGB) at a quarter of its size, at least 92 pixels wide.
+fn grey_small(rgb: &RgbImage) -> RgbImage {
+    let width = (rgb.width() / 4).max(92.min(rgb.width()));
+    let height = (rgb.height() * width / rgb.width()).max(1);
+    let small = image::imageops::resize(rgb, width, height, image::imageops::FilterType::Triangle);
+    RgbImage::from_fn(width, height, |x, y| {
+        let [r, g, b] = small.get_pixel(x, y).0.map(f32::from);
+        let l = (0.299 * r + 0.587 * g + 0.114 * b).round().clamp(0.0, 255.0) as u8;
+        Rgb([l, l, l])
+    })
 }
 
 fn photo_of(rgb: RgbImage) -> Photo {
@@ -239,14 +288,8 @@ pub fn attempts(config: &ChallengeEvalConfig, yaw_of: &dyn Fn(&Source) -> Option
         let name = format!("imm-{person:02}");
         for _ in 0..config.challenges_per_person {
             let steps = rule::draw_steps(&mut rng);
-            let attempt = |kind, frames: Vec<Source>| Attempt {
-                kind,
-                person: name.clone(),
-                enrolled: Source::File(enrolled.clone()),
-                probe: Source::File(probe.clone()),
-                steps: steps.clone(),
-                frames,
-            };
+            let (enrolled_source, probe_source) = (Source::File(enrolled.clone()), Source::File(probe.clone()));
+            let attempt = |kind: &str, frames: Vec<Source>| Attempt::single(kind, &name, &enrolled_source, &probe_source, &steps, frames);
             let nth_front = |i: usize| steps[..i].iter().filter(|s| s.turn == Turn::Front).count();
             let live: Option<Vec<Source>> =
                 steps.iter().enumerate().map(|(i, s)| imm_live(&config.imm, person, s.turn, nth_front(i))).collect();
@@ -414,14 +457,8 @@ fn umist_attempts(
             }
             made += 1;
             let frames = steps.iter().map(|step| console_pick(&mut candidates, step, rng, yaw_of)).collect();
-            out.push(Attempt {
-                kind: "live",
-                person: format!("umist-{person}"),
-                enrolled: Source::File(enrolled.clone()),
-                probe: Source::File(probe.clone()),
-                steps,
-                frames,
-            });
+            let (enrolled, probe) = (Source::File(enrolled.clone()), Source::File(probe.clone()));
+            out.push(Attempt::single("live", &format!("umist-{person}"), &enrolled, &probe, &steps, frames));
         }
     }
     Ok(out)
@@ -457,14 +494,9 @@ fn nuaa_attempts(config: &ChallengeEvalConfig, rng: &mut rand_chacha::ChaCha8Rng
         let steps = rule::draw_steps(rng);
         // Spread the steps over the capture: the print as the attacker moved it.
         let pick = |i: usize| frames[(i * (frames.len() - 1)) / steps.len()].clone();
-        out.push(Attempt {
-            kind: "NUAA print capture",
-            person: format!("nuaa-{subject}"),
-            enrolled: Source::File(enrolled.clone()),
-            probe: Source::File(pick(0)),
-            frames: (1..=steps.len()).map(|i| Source::File(pick(i))).collect(),
-            steps,
-        });
+        let frames = (1..=steps.len()).map(|i| Source::File(pick(i))).collect();
+        let (enrolled, probe) = (Source::File(enrolled.clone()), Source::File(pick(0)));
+        out.push(Attempt::single("NUAA print capture", &format!("nuaa-{subject}"), &enrolled, &probe, &steps, frames));
     }
     Ok(out)
 }
@@ -473,37 +505,62 @@ fn nuaa_frame(path: &Path) -> u32 {
     path.file_stem().and_then(|s| s.to_str()).and_then(|s| s.rsplit('_').next()).and_then(|n| n.parse().ok()).unwrap_or(0)
 }
 
-type Analyses = HashMap<Source, (Option<FaceAnalysis>, f64)>;
+/// Each source's analysis, its time (ms) and its rendered-head check (with `render.bin`).
+type Analyses = HashMap<Source, (Option<FaceAnalysis>, f64, Option<Liveness>)>;
 
 /// The analysis of every source, on `threads` threads, with each one's time.
 pub fn analyze_sources(pipeline: &Pipeline, mut sources: Vec<Source>, threads: usize, progress: &dyn Progress) -> Analyses {
     sources.sort();
     sources.dedup();
     let analyses = crate::cache::map_samples(&sources, threads, "frames", progress, |source| {
-        let Some(photo) = render_source(pipeline, source) else { return (None, 0.0) };
+        let Some(photo) = render_source(pipeline, source) else { return (None, 0.0, None) };
         let start = Instant::now();
         let analysis = pipeline.analyze(&photo).ok();
-        (analysis, start.elapsed().as_secs_f64() * 1e3)
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        let rendered = analysis.as_ref().and_then(|a| pipeline.render_check(&photo, a));
+        (analysis, ms, rendered)
     });
     sources.into_iter().zip(analyses).collect()
 }
 
-/// One attempt judged: the challenge's verdict and whether enforcement would let it through.
-pub fn judge_attempt(pipeline: &Pipeline, attempt: &Attempt, analyses: &Analyses) -> Option<(ChallengeOutcome, bool, f64)> {
-    let get = |s: &Source| analyses.get(s).and_then(|(a, _)| a.as_ref());
+/// One attempt judged: the challenge's verdict, whether enforcement would let it through, the
+/// judgement's time and, for a passed challenge refused under enforcement, why.
+pub fn judge_attempt(
+    pipeline: &Pipeline,
+    attempt: &Attempt,
+    analyses: &Analyses,
+) -> Option<(ChallengeOutcome, bool, f64, Option<&'static str>)> {
+    let get = |s: &Source| analyses.get(s).and_then(|(a, ..)| a.as_ref());
     let enrolled = get(&attempt.enrolled)?;
     let probe = get(&attempt.probe);
-    let frames: Option<Vec<&FaceAnalysis>> = attempt.frames.iter().map(get).collect();
+    let bursts: Option<Vec<Vec<&FaceAnalysis>>> = attempt.frames.iter().map(|b| b.iter().map(get).collect()).collect();
     let fmr = facegate_vision::recognize::DEFAULT_FMR;
-    let (Some(probe), Some(frames)) = (probe, frames) else {
+    let (Some(probe), Some(bursts)) = (probe, bursts) else {
         // A frame without a face is refused (`no-face`): the attempt does not pass.
-        let outcome = ChallengeOutcome { passed: false, reason: Some("a frame shows no face".into()), steps: Vec::new(), parallax: None };
-        return Some((outcome, false, 0.0));
+        let outcome = ChallengeOutcome {
+            passed: false,
+            reason: Some("a frame shows no face".into()),
+            steps: Vec::new(),
+            depth: None,
+            rendered: None,
+        };
+        return Some((outcome, false, 0.0, None));
     };
     let start = Instant::now();
     let matcher: &dyn Matcher = pipeline;
-    let same: Vec<Decision> = frames.iter().map(|f| decide(matcher, &f.template, std::slice::from_ref(&probe.template), fmr)).collect();
-    let outcome = rule::judge(&attempt.steps, probe, &frames, &same);
+    let frames: Vec<&FaceAnalysis> = bursts.iter().flatten().copied().collect();
+    let mut next = 0;
+    let groups: Vec<Vec<usize>> = bursts
+        .iter()
+        .map(|b| {
+            next += b.len();
+            (next - b.len()..next).collect()
+        })
+        .collect();
+    let templates: Vec<&Template> = frames.iter().map(|a| &a.template).collect();
+    let mismatch = rule::one_person(matcher, &probe.template, &templates, &groups);
+    let rendered: Option<Vec<Liveness>> = attempt.frames.iter().flatten().map(|s| analyses.get(s).and_then(|(.., r)| r.clone())).collect();
+    let outcome = rule::judge(&attempt.steps, probe, &bursts, mismatch.as_ref(), rendered.as_deref());
     let judge_ms = start.elapsed().as_secs_f64() * 1e3;
     let matched = decide(matcher, &probe.template, std::slice::from_ref(&enrolled.template), fmr).is_match;
     let each: Option<Vec<_>> = std::iter::once(probe).chain(frames.iter().copied()).map(|a| a.liveness.clone()).collect();
@@ -512,118 +569,66 @@ pub fn judge_attempt(pipeline: &Pipeline, attempt: &Attempt, analyses: &Analyses
         _ => false,
     };
     let enforce = outcome.passed && matched && live;
-    Some((outcome, enforce, judge_ms))
+    let refusal = match (outcome.passed, matched, live) {
+        (false, ..) => None,
+        (true, false, _) => Some("passed the challenge; the probe does not match the enrolled photo"),
+        (true, true, false) => Some("passed the challenge; the fused passive score took it for an attack"),
+        (true, true, true) => None,
+    };
+    Some((outcome, enforce, judge_ms, refusal))
 }
 
 /// Judge every attempt and tally them by kind.
 pub fn evaluate(pipeline: &Pipeline, config: &ChallengeEvalConfig, progress: &dyn Progress) -> anyhow::Result<ChallengeReport> {
-    let candidates = umist_candidates(config)?.into_iter().chain(adaptive_candidates(config)).collect();
+    let candidates =
+        umist_candidates(config)?.into_iter().chain(adaptive_candidates(config)).chain(video::frame_sources(config)?).collect();
     let mut analyses = analyze_sources(pipeline, candidates, config.threads, progress);
-    let yaw_of = |s: &Source| analyses.get(s).and_then(|(a, _)| a.as_ref()).and_then(|a| a.key_point_pose).map(|p| p.yaw);
-    let attempts = attempts(config, &yaw_of)?;
-    let used = attempts.iter().flat_map(|a| [a.enrolled.clone(), a.probe.clone()].into_iter().chain(a.frames.iter().cloned()));
+    let clips = {
+        let yaw_of = |s: &Source| analyses.get(s).and_then(|(a, ..)| a.as_ref()).and_then(|a| a.key_point_pose).map(|p| p.yaw);
+        video::clips(config, &yaw_of)?
+    };
+    let adaptive = clips.iter().flat_map(|c| video::attack_candidates(&c.probe)).collect();
+    analyses.extend(analyze_sources(pipeline, adaptive, config.threads, progress));
+    let yaw_of = |s: &Source| analyses.get(s).and_then(|(a, ..)| a.as_ref()).and_then(|a| a.key_point_pose).map(|p| p.yaw);
+    let mut attempts = attempts(config, &yaw_of)?;
+    attempts.extend(video::attempts(config, &clips, &yaw_of));
+    let used = attempts.iter().flat_map(|a| [a.enrolled.clone(), a.probe.clone()].into_iter().chain(a.frames.iter().flatten().cloned()));
     let missing: Vec<Source> = used.filter(|s| !analyses.contains_key(s)).collect();
     analyses.extend(analyze_sources(pipeline, missing, config.threads, progress));
-    let mut rows: BTreeMap<&str, (KindRow, Vec<f64>, BTreeMap<String, usize>)> = BTreeMap::new();
-    let (mut live_parallax, mut print_parallax, mut judge_ms, mut judged, mut steps) = (Vec::new(), Vec::new(), 0.0, 0usize, 0usize);
-    let mut live_refused: BTreeMap<String, (usize, String)> = BTreeMap::new();
-    let mut avatar_parallax = Vec::new();
+    let mut tally = Tally::default();
     for attempt in &attempts {
-        let Some((outcome, enforce, ms)) = judge_attempt(pipeline, attempt, &analyses) else { continue };
-        judge_ms += ms;
-        judged += 1;
-        steps += attempt.steps.len();
-        let entry = rows.entry(attempt.kind).or_insert_with(|| {
-            (
-                KindRow {
-                    kind: attempt.kind.to_string(),
-                    attempts: 0,
-                    passed_challenge: 0,
-                    passed_enforce: 0,
-                    parallax_median: None,
-                    reasons: Vec::new(),
-                },
-                Vec::new(),
-                BTreeMap::new(),
-            )
-        });
-        entry.0.attempts += 1;
-        entry.0.passed_challenge += outcome.passed as usize;
-        entry.0.passed_enforce += enforce as usize;
-        let poses_right = !outcome.steps.is_empty() && outcome.steps.iter().all(|s| s.ok);
-        if let (true, Some(p)) = (poses_right, outcome.parallax) {
-            entry.1.push(p);
-            match attempt.kind {
-                "live" => live_parallax.push(p),
-                k if k.contains("print") => print_parallax.push(p),
-                k if k.starts_with("avatar") => avatar_parallax.push(p),
-                _ => {}
-            }
-        }
-        if let Some(reason) = &outcome.reason {
-            *entry.2.entry(reason_class(reason)).or_default() += 1;
-            if attempt.kind == "live" {
-                live_refused.entry(attempt.person.clone()).or_insert_with(|| (0, reason.clone())).0 += 1;
-            }
+        if let Some(judged) = judge_attempt(pipeline, attempt, &analyses) {
+            tally.add(attempt, judged);
         }
     }
-    let rows = rows
-        .into_values()
-        .map(|(mut row, parallax, reasons)| {
-            row.parallax_median = median(&parallax);
-            let mut reasons: Vec<(String, usize)> = reasons.into_iter().collect();
-            reasons.sort_by(|a, b| b.1.cmp(&a.1));
-            reasons.truncate(3);
-            row.reasons = reasons;
-            row
-        })
-        .collect();
-    let timed: Vec<f64> = analyses.values().filter(|(a, _)| a.is_some()).map(|(_, ms)| *ms).collect();
+    let timed: Vec<f64> = analyses.values().filter(|(a, ..)| a.is_some()).map(|(_, ms, _)| *ms).collect();
     let (reused_passed, reused_attempts) = reused_challenges(attempts.len().min(50))?;
     Ok(ChallengeReport {
         persons: if config.test_persons { "test".into() } else { "train".into() },
-        rows,
-        live_parallax,
-        print_parallax,
-        avatar_parallax,
+        rows: tally.rows(),
+        depth_by_kind: tally.depth,
         yaw_quantiles: yaw_quantiles(&analyses),
         analysis_ms: timed.iter().sum::<f64>() / timed.len().max(1) as f64,
-        judge_ms: judge_ms / judged.max(1) as f64,
-        mean_steps: steps as f64 / judged.max(1) as f64,
+        judge_ms: tally.judge_ms / tally.judged.max(1) as f64,
+        mean_steps: tally.steps as f64 / tally.judged.max(1) as f64,
         reused_passed,
         reused_attempts,
-        live_refused,
+        live_refused: tally.live_refused,
+        live_by_person: tally.live_by_person,
     })
-}
-
-/// A failure reason without its numbers, to count alike ones together.
-fn reason_class(reason: &str) -> String {
-    if reason.contains("yaw") {
-        "a step's yaw outside its range".into()
-    } else if reason.contains("another person") {
-        "a step shows another person".into()
-    } else if reason.contains("too little depth") {
-        "too little depth for a head".into()
-    } else {
-        reason.chars().take(60).collect()
-    }
-}
-
-fn median(values: &[f64]) -> Option<f64> {
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied()
 }
 
 /// The yaw read on each kind of source: min, 5th percentile, median, 95th percentile, max.
 fn yaw_quantiles(analyses: &Analyses) -> BTreeMap<String, [f32; 5]> {
     let mut by: BTreeMap<String, Vec<f32>> = BTreeMap::new();
-    for (source, (analysis, _)) in analyses {
+    for (source, (analysis, ..)) in analyses {
         let Some(yaw) = analysis.as_ref().and_then(|a| a.key_point_pose).map(|p| p.yaw) else { continue };
         let key = match source {
             Source::File(p) | Source::Mirror(p) => {
                 let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
-                let kind = if name.len() > 4 && name.as_bytes()[2] == b'-' {
+                let kind = if p.components().any(|c| c.as_os_str() == "video") {
+                    "video frames".to_string()
+                } else if name.len() > 4 && name.as_bytes()[2] == b'-' {
                     format!("IMM view {}", &name[3..4])
                 } else if name.ends_with(".pgm") {
                     format!("UMIST {}", &name[..2])
@@ -636,6 +641,7 @@ fn yaw_quantiles(analyses: &Analyses) -> BTreeMap<String, [f32; 5]> {
                 format!("print {} turned {turn:+}°", if *bend_radius_pct > 0 { "bent" } else { "flat" })
             }
             Source::Avatar { yaw, .. } => format!("avatar rendered at {yaw:+}°"),
+            Source::Grey(_) => "grey, small".to_string(),
         };
         by.entry(key).or_default().push(yaw);
     }
@@ -711,6 +717,7 @@ mod tests {
             challenges_per_person: 2,
             seed: 3,
             threads: 1,
+            video: shared.join("data/video"),
         };
         // A stand-in for `/analyze`: a print reads half its turn, an avatar its render's yaw.
         let yaw_of = |s: &Source| match s {
@@ -719,7 +726,7 @@ mod tests {
             _ => Some(20.0),
         };
         let attempts = attempts(&config, &yaw_of).unwrap();
-        let kinds: std::collections::BTreeSet<&str> = attempts.iter().map(|a| a.kind).collect();
+        let kinds: std::collections::BTreeSet<&str> = attempts.iter().map(|a| a.kind.as_str()).collect();
         for kind in [
             "live",
             "still photo",
@@ -735,14 +742,16 @@ mod tests {
         }
         for a in &attempts {
             assert_eq!(a.frames.len(), a.steps.len(), "{a:?}");
+            assert!(a.frames.iter().all(|b| b.len() == 1), "IMM, UMIST and NUAA answer one frame a step: {a:?}");
+            let frames: Vec<&Source> = a.frames.iter().flatten().collect();
             if a.kind.ends_with("until in range") {
                 // Every step has a candidate inside its range here, and the attacker sends it.
-                for (step, frame) in a.steps.iter().zip(&a.frames) {
+                for (step, frame) in a.steps.iter().zip(frames.iter().copied()) {
                     assert!(step.admits(yaw_of(frame).unwrap()), "{step:?} answered by {frame:?}");
                 }
             }
             if a.kind == "live" && a.person.starts_with("imm-") {
-                for (step, frame) in a.steps.iter().zip(&a.frames) {
+                for (step, frame) in a.steps.iter().zip(frames.iter().copied()) {
                     let Source::File(path) = frame else { panic!("{frame:?}") };
                     let view = path.file_name().unwrap().to_str().unwrap().as_bytes()[3];
                     let expected: &[u8] = match step.turn {

@@ -20,6 +20,10 @@ pub use features::Block;
 
 /// The liveness model's file.
 pub const FILE: &str = "liveness.bin";
+/// The rendered-head detector's file: a [`LivenessModel`] whose live class is a face seen by a
+/// camera and whose attack class is a 3D head rendered from a photo (`facegate train render`);
+/// the head-turn challenge holds its frames against it.
+pub const RENDER_FILE: &str = "render.bin";
 /// The layout of [`LivenessModel`].
 pub const FORMAT: u32 = 1;
 

@@ -104,6 +104,9 @@ pub struct Pipeline {
     /// The liveness model (`liveness.bin`); `None` when the file is missing, or when the caller
     /// has no use for it (the service with liveness off drops it: no time is spent on it).
     pub liveness: Option<LivenessModel>,
+    /// The rendered-head detector (`render.bin`), for the head-turn challenge's frames only
+    /// ([`Pipeline::render_check`]); `None` when the file is missing.
+    pub render: Option<LivenessModel>,
 }
 
 impl Pipeline {
@@ -130,7 +133,9 @@ impl Pipeline {
         let quality = QualityModel::load(&config.models_dir.join(crate::quality::FILE))?;
         let liveness_path = config.models_dir.join(crate::liveness::FILE);
         let liveness = if liveness_path.exists() { Some(LivenessModel::load(&liveness_path)?) } else { None };
-        Ok(Pipeline { finder, face_model, recognizer, quality, liveness })
+        let render_path = config.models_dir.join(crate::liveness::RENDER_FILE);
+        let render = if render_path.exists() { Some(LivenessModel::load(&render_path)?) } else { None };
+        Ok(Pipeline { finder, face_model, recognizer, quality, liveness, render })
     }
 
     /// Detect, landmark, pose-correct and template the largest face of `photo`. Each stage runs
@@ -266,6 +271,13 @@ impl Pipeline {
     /// detectors) or without the model.
     pub fn key_point_fit(&self, photo: &Photo, face: &Face) -> Option<FittedFace> {
         self.face_model.as_ref()?.fit_key_points(face.points.as_ref()?, photo.width(), photo.height()).ok()
+    }
+
+    /// A face seen by a camera, or a head rendered from a photo ([`crate::liveness::RENDER_FILE`]),
+    /// measured where the liveness is (the eye and mouth centres of `analysis`); `None` without
+    /// the model. Not part of [`Pipeline::analyze`]: only a challenge's frames need it.
+    pub fn render_check(&self, photo: &Photo, analysis: &FaceAnalysis) -> Option<Liveness> {
+        self.render.as_ref().map(|model| model.assess(&photo.rgb, &analysis.landmarks.keypoints))
     }
 
     /// The liveness of the face with `landmarks`, measured where the recognizer cuts its chip.
