@@ -93,7 +93,9 @@ pub async fn verify(
     audit.subject(&subject);
     let frames = std::mem::take(&mut upload.frames);
     let challenge = upload.challenge.take();
-    let frame_steps = if challenge.is_some() { upload.frame_steps.take() } else { None };
+    // `frame_steps` names the challenge's steps: without a challenge it has nothing to name and
+    // is not read (openapi.yaml: "With `challenge`").
+    let frame_steps = upload.frame_steps.take().filter(|_| challenge.is_some());
     let image = upload.single_image()?;
     let verification = match challenge {
         Some(challenge) => facegate.verify_challenge(&subject, image, frames, frame_steps, &challenge, fmr).await?,
