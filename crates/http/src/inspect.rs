@@ -16,7 +16,7 @@ use super::input::{Params, Upload};
 use super::problem::Problem;
 use super::responses::AnalyzeResponse;
 use facegate_core::elapsed_ms;
-use facegate_vision::morph::AvatarFormat;
+use facegate_morph::AvatarFormat;
 use facegate_vision::pipeline::FaceChoice;
 
 #[derive(Debug, Deserialize)]

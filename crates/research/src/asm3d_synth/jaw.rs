@@ -2,7 +2,7 @@
 
 use facegate_core::face::{IMM_POINTS, JAW};
 use facegate_core::geometry::Point;
-use facegate_vision::morph::{Camera, FaceModel};
+use facegate_morph::{Camera, FaceModel};
 
 /// |cos| between a vertex normal and the viewing direction below which the vertex is on the
 /// occluding outline (as in the morph fit).
@@ -31,10 +31,9 @@ pub fn contour_jaw_vertices(fm: &FaceModel) -> JawVertices {
 /// it (nearest projected contour or outline vertex to the annotation) most often over the
 /// near-frontal fits (|yaw| < 10°; all fits when fewer than 3 are); the contour rule when there
 /// are no fits.
-pub fn annotated_jaw_vertices(fm: &FaceModel, fits: &[&facegate_vision::morph::FittedFace]) -> JawVertices {
-    let frontal: Vec<&&facegate_vision::morph::FittedFace> = fits.iter().filter(|f| f.pose.yaw.abs() < 10.0).collect();
-    let used: Vec<&facegate_vision::morph::FittedFace> =
-        if frontal.len() >= 3 { frontal.into_iter().copied().collect() } else { fits.to_vec() };
+pub fn annotated_jaw_vertices(fm: &FaceModel, fits: &[&facegate_morph::FittedFace]) -> JawVertices {
+    let frontal: Vec<&&facegate_morph::FittedFace> = fits.iter().filter(|f| f.pose.yaw.abs() < 10.0).collect();
+    let used: Vec<&facegate_morph::FittedFace> = if frontal.len() >= 3 { frontal.into_iter().copied().collect() } else { fits.to_vec() };
     let mut jaw = contour_jaw_vertices(fm);
     for (j, slot) in jaw.iter_mut().enumerate() {
         let mut counts: std::collections::BTreeMap<u32, usize> = std::collections::BTreeMap::new();
@@ -94,7 +93,7 @@ pub fn view_correspondence(fm: &FaceModel, vertex: &dyn Fn(u32) -> [f64; 3], cam
 /// nearest to the photo's annotation) where it is on the model contour, else (a point the fit put on
 /// the occluding outline of a turned face: not where it would be from the front) the learnt
 /// convention `annotated`; near-frontal photos (|yaw| < 10°) keep all of theirs.
-pub fn photo_jaw_vertices(fm: &FaceModel, fit: &facegate_vision::morph::FittedFace, annotated: &JawVertices) -> JawVertices {
+pub fn photo_jaw_vertices(fm: &FaceModel, fit: &facegate_morph::FittedFace, annotated: &JawVertices) -> JawVertices {
     let mut jaw = *annotated;
     for (j, slot) in jaw.iter_mut().enumerate() {
         let v = fit.correspondence[j];
@@ -110,7 +109,7 @@ pub fn photo_jaw_vertices(fm: &FaceModel, fit: &facegate_vision::morph::FittedFa
 /// plane facing the photo's camera): the 3DMM cannot follow the IMM annotation convention exactly
 /// (about 4 px RMS residual), and moving the synthetic landmarks by these offsets keeps the texture
 /// models on the annotated positions rather than on the mapped vertices.
-pub fn annotation_offsets(fm: &FaceModel, fit: &facegate_vision::morph::FittedFace, annotated: &[Point]) -> Vec<[f64; 3]> {
+pub fn annotation_offsets(fm: &FaceModel, fit: &facegate_morph::FittedFace, annotated: &[Point]) -> Vec<[f64; 3]> {
     let projected = fm.projected_landmarks(fit);
     let (r0, r1, s) = (fit.camera.rotation[0], fit.camera.rotation[1], fit.camera.scale.max(1e-9));
     projected

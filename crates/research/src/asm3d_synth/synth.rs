@@ -5,7 +5,7 @@ use super::jaw::*;
 use facegate_core::face::{IMM_POINTS, JAW};
 use facegate_core::geometry::{Point, centroid};
 use facegate_core::imaging::GrayF32;
-use facegate_vision::morph::{Camera, FaceModel, Pose, render};
+use facegate_morph::{Camera, FaceModel, Pose, render};
 
 /// A synthetic training view: the render, its exact landmarks and the camera that made it.
 pub struct SyntheticView {
@@ -24,7 +24,7 @@ pub struct SyntheticView {
 #[allow(clippy::too_many_arguments)]
 pub fn synthesise_view(
     fm: &FaceModel,
-    fit: &facegate_vision::morph::FittedFace,
+    fit: &facegate_morph::FittedFace,
     texture: &image::RgbaImage,
     pose: Pose,
     background: [u8; 3],
