@@ -7,7 +7,15 @@ use std::path::Path;
 
 use anyhow::Context;
 
-pub use crate::store::redact_url;
+use crate::store::redact_url;
+
+/// [`database_url`] and the same URL as printed (its password redacted): what every command that
+/// opens the database connects to, and names in its messages.
+pub fn connect_and_shown(url: &str, password_file: Option<&Path>) -> anyhow::Result<(String, String)> {
+    let url = database_url(url, password_file)?;
+    let shown = redact_url(&url);
+    Ok((url, shown))
+}
 
 /// `url` with the password of `password_file` (its first line) in it, or `url` as it is without a
 /// file. Refused: a file for a SQLite URL (which has no password), a URL that already holds a

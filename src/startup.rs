@@ -194,8 +194,7 @@ async fn connect(settings: &Settings, template_keys: Option<Option<KeyRing>>) ->
         Some(keys) => info!(key_id = keys.current_id(), "templates are encrypted at rest"),
         None => warn!("no template key (FACEGATE_TEMPLATE_KEY_FILE): templates are stored UNENCRYPTED"),
     }
-    let url = crate::database_url::database_url(&settings.database, settings.database_password_file.as_deref())?;
-    let shown = crate::database_url::redact_url(&url);
+    let (url, shown) = crate::database_url::connect_and_shown(&settings.database, settings.database_password_file.as_deref())?;
     Store::connect(&url, keys).await.with_context(|| format!("cannot open the database {shown}"))
 }
 

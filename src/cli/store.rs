@@ -8,7 +8,6 @@ use std::process::ExitCode;
 use anyhow::Context;
 
 use crate::config::{DEFAULT_DATABASE, TemplateKeyArgs};
-use crate::database_url::{database_url, redact_url};
 use crate::liveness::LivenessModel;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::RecognizerKind;
@@ -35,9 +34,7 @@ impl DatabaseArgs {
     /// The URL to connect to (the password file's password merged in) and the URL as printed
     /// (its password redacted).
     fn url(&self) -> anyhow::Result<(String, String)> {
-        let url = database_url(&self.database, self.database_password_file.as_deref())?;
-        let shown = redact_url(&url);
-        Ok((url, shown))
+        crate::database_url::connect_and_shown(&self.database, self.database_password_file.as_deref())
     }
 }
 

@@ -11,6 +11,20 @@ out="$(mktemp)" err="$(mktemp)"
 trap 'rm -f "$out" "$err"' EXIT
 passed=0 failed=0
 
+# record OK NAME: count a check (OK 0 passed) and say so; a failed one shows the last run's
+# stdout and stderr.
+record() {
+    if [[ $1 == 0 ]]; then
+        passed=$((passed + 1))
+        echo "ok   examples $lang $2"
+    else
+        failed=$((failed + 1))
+        echo "FAIL examples $lang $2"
+        sed 's/^/    stdout: /' "$out"
+        sed 's/^/    stderr: /' "$err"
+    fi
+}
+
 # expect LANG STATUS STDOUT-PATTERN STDERR-PATTERN URL -- ARGS...: run the example of LANG with ARGS
 # against URL; its exit status must be STATUS and its outputs must match the (grep -E) patterns
 # (an empty pattern checks nothing).
@@ -29,13 +43,9 @@ expect() {
     esac
     if [[ $status == "$want" ]] && { [[ -z "$out_pattern" ]] || grep -Eq "$out_pattern" "$out"; } &&
         { [[ -z "$err_pattern" ]] || grep -Eq "$err_pattern" "$err"; }; then
-        passed=$((passed + 1))
-        echo "ok   examples $lang $*"
+        record 0 "$*"
     else
-        failed=$((failed + 1))
-        echo "FAIL examples $lang $*: exit $status (wanted $want)"
-        sed 's/^/    stdout: /' "$out"
-        sed 's/^/    stderr: /' "$err"
+        record 1 "$*: exit $status (wanted $want)"
     fi
 }
 
@@ -44,14 +54,8 @@ expect() {
 every_step() {
     local steps
     steps="$(grep -E '^  (front|left|right): yaw ' "$out" || true)"
-    if [[ $(grep -c . <<<"$steps") -ge 3 ]] && ! grep -vqE ", $1 frame\(s\), ok$" <<<"$steps"; then
-        passed=$((passed + 1))
-        echo "ok   examples $lang every step answered by $1 frame(s)"
-    else
-        failed=$((failed + 1))
-        echo "FAIL examples $lang every step answered by $1 frame(s)"
-        sed 's/^/    stdout: /' "$out"
-    fi
+    [[ $(grep -c . <<<"$steps") -ge 3 ]] && ! grep -vqE ", $1 frame\(s\), ok$" <<<"$steps"
+    record $? "every step answered by $1 frame(s)"
 }
 
 for lang in python typescript curl; do

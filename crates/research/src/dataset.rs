@@ -158,6 +158,11 @@ pub enum Split {
     Test,
 }
 
+/// One IMM photo: `<dir>/<person>-<view>m.jpg` (or `f` for the women); `None` when absent.
+pub fn imm_photo(dir: &Path, person: u32, view: u32) -> Option<PathBuf> {
+    ["m", "f"].iter().map(|g| dir.join(format!("{person:02}-{view}{g}.jpg"))).find(|p| p.is_file())
+}
+
 /// LFW's person-disjoint split, by a hash of the person's name: 60% train, 20% calibration,
 /// 20% test. Stable across machines and independent of the listing order.
 pub fn lfw_split(person: &str) -> Split {

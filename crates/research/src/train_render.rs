@@ -15,7 +15,7 @@
 //! photos (camera faces) and every other one of them rendered at ±15° and ±30°. IMM's and ORL's
 //! test persons, LFW's other persons, UMIST and every video clip are never used.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use facegate_vision::liveness::features::{crops, features};
 use facegate_vision::liveness::{Block, LivenessModel};
@@ -68,10 +68,6 @@ pub struct RenderReport {
     pub oof_renders_passed: f64,
 }
 
-fn imm_photo(dir: &Path, person: u32, view: u32) -> Option<PathBuf> {
-    ["m", "f"].iter().map(|g| dir.join(format!("{person:02}-{view}{g}.jpg"))).find(|p| p.is_file())
-}
-
 /// The training photos of `config`.
 pub fn samples(config: &RenderTrainConfig) -> anyhow::Result<Vec<RenderSample>> {
     let mut out = Vec::new();
@@ -79,7 +75,7 @@ pub fn samples(config: &RenderTrainConfig) -> anyhow::Result<Vec<RenderSample>> 
     for person in (1..=40).filter(|&p| !crate::dataset::imm_is_test_person(p)) {
         let name = format!("imm-{person:02}");
         for view in 1..=6 {
-            let Some(path) = imm_photo(&config.imm, person, view) else { continue };
+            let Some(path) = crate::dataset::imm_photo(&config.imm, person, view) else { continue };
             out.push(sample(Source::File(path.clone()), true, false, &name));
             out.push(sample(Source::Mirror(path.clone()), true, false, &name));
             if view <= 2 {

@@ -38,7 +38,7 @@ use facegate_vision::liveness::Liveness;
 use facegate_vision::liveness::head_turn::{self, DepthTest, FramePose, HeadTurn, Step, StepReading, Turn};
 use facegate_vision::pipeline::FaceAnalysis;
 
-use crate::facegate::{AnalyzedPhoto, Facegate, PhotoError, ServiceError, Verification, analyze_photo};
+use crate::facegate::{AnalyzedPhoto, Facegate, PhotoError, ServiceError, Verification, analyze_photo, decode_and_analyze};
 use crate::liveness::LivenessPolicy;
 use crate::{FaceEngine, Matcher};
 
@@ -197,20 +197,23 @@ pub fn frame_steps_of(steps: usize, frames: usize, given: Option<&[usize]>) -> R
 /// other step (its best score there), at the operating point [`CAPTURE_FMR`] for that many
 /// templates. The first frame that fails, if any.
 pub fn one_person(matcher: &dyn Matcher, probe: &Template, frames: &[&Template], bursts: &[Vec<usize>]) -> Option<Mismatch> {
-    let step_of = |frame: usize| bursts.iter().position(|b| b.contains(&frame));
-    for (i, frame) in frames.iter().enumerate() {
-        let d = crate::decide(matcher, frame, std::slice::from_ref(probe), CAPTURE_FMR);
-        if !d.is_match {
-            return Some(Mismatch { frame: i, against: "the probe".into(), score: d.score, threshold: d.threshold });
-        }
-        for (step, burst) in bursts.iter().enumerate() {
-            if Some(step) == step_of(i) {
-                continue;
-            }
-            let others: Vec<Template> = burst.iter().map(|&j| frames[j].clone()).collect();
-            let d = crate::decide(matcher, frame, &others, CAPTURE_FMR);
+    let by_step: Vec<Vec<Template>> = bursts.iter().map(|b| b.iter().map(|&j| frames[j].clone()).collect()).collect();
+    for (own, burst) in bursts.iter().enumerate() {
+        for &i in burst {
+            let d = crate::decide(matcher, frames[i], std::slice::from_ref(probe), CAPTURE_FMR);
             if !d.is_match {
-                return Some(Mismatch { frame: i, against: format!("step {}'s frames", step + 1), score: d.score, threshold: d.threshold });
+                return Some(Mismatch { frame: i, against: "the probe".into(), score: d.score, threshold: d.threshold });
+            }
+            for (step, others) in by_step.iter().enumerate().filter(|(step, _)| *step != own) {
+                let d = crate::decide(matcher, frames[i], others, CAPTURE_FMR);
+                if !d.is_match {
+                    return Some(Mismatch {
+                        frame: i,
+                        against: format!("step {}'s frames", step + 1),
+                        score: d.score,
+                        threshold: d.threshold,
+                    });
+                }
             }
         }
     }
@@ -413,10 +416,9 @@ fn analyze_frame(
     bytes: &[u8],
     limits: &facegate_core::imaging::DecodeLimits,
 ) -> Result<(AnalyzedPhoto, Option<Liveness>), PhotoError> {
-    let (photo, decode_ms) = crate::inspect::decode_photo(bytes, limits)?;
-    let analysis = engine.analyze(&photo).map_err(PhotoError::of_analysis)?;
-    let rendered = engine.render_check(&photo, &analysis);
-    Ok((AnalyzedPhoto { analysis, decode_ms }, rendered))
+    let (photo, analyzed) = decode_and_analyze(engine, bytes, limits)?;
+    let rendered = engine.render_check(&photo, &analyzed.analysis);
+    Ok((analyzed, rendered))
 }
 
 #[cfg(test)]

@@ -10,7 +10,7 @@ use bytes::Bytes;
 
 use facegate_core::SubjectId;
 use facegate_core::elapsed_ms;
-use facegate_core::imaging::{DecodeError, DecodeLimits};
+use facegate_core::imaging::{DecodeError, DecodeLimits, Photo};
 use facegate_core::template::{OperatingPoint, Template};
 use facegate_store::{Backend, Store, StoreError, SubjectDetail, SubjectSummary};
 use facegate_vision::morph::AvatarFormat;
@@ -171,7 +171,7 @@ impl PhotoError {
     }
 
     /// A pipeline error where a template was asked for.
-    pub(crate) fn of_analysis(error: PipelineError) -> PhotoError {
+    fn of_analysis(error: PipelineError) -> PhotoError {
         match error {
             PipelineError::NoFace => PhotoError::NoFace,
             PipelineError::PoseCorrection(e) => PhotoError::NotPoseCorrected(e.to_string()),
@@ -201,9 +201,19 @@ pub struct AnalyzedPhoto {
 /// Decode `bytes` within `limits` and analyze the largest face: the one path from a photo's bytes
 /// to a template (call it on the work pool).
 pub fn analyze_photo(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits) -> Result<AnalyzedPhoto, PhotoError> {
+    decode_and_analyze(engine, bytes, limits).map(|(_, analyzed)| analyzed)
+}
+
+/// [`analyze_photo`], keeping the decoded photo for a further look at it (a challenge frame's
+/// rendered-head check).
+pub(crate) fn decode_and_analyze(
+    engine: &dyn FaceEngine,
+    bytes: &[u8],
+    limits: &DecodeLimits,
+) -> Result<(Photo, AnalyzedPhoto), PhotoError> {
     let (photo, decode_ms) = inspect::decode_photo(bytes, limits)?;
     let analysis = engine.analyze(&photo).map_err(PhotoError::of_analysis)?;
-    Ok(AnalyzedPhoto { analysis, decode_ms })
+    Ok((photo, AnalyzedPhoto { analysis, decode_ms }))
 }
 
 /// A completed enrolment.

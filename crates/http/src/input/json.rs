@@ -139,7 +139,7 @@ impl<'de> Visitor<'de> for JsonLimit<'_> {
                 1 => json.image = map.next_value()?,
                 2 => json.images = map.next_value_seed(NullOr(PhotoList { max: self.max_photos, over: self.over }))?,
                 4 => json.challenge = map.next_value()?,
-                5 => json.frame_steps = map.next_value_seed(StepList)?,
+                5 => json.frame_steps = map.next_value_seed(NullOr(StepList))?,
                 _ => json.frames = map.next_value_seed(NullOr(PhotoList { max: MAX_CHALLENGE_FRAMES, over: self.frames_over }))?,
             }
         }
@@ -166,19 +166,20 @@ impl<'de> Deserialize<'de> for Field {
     }
 }
 
-/// The `images` and `frames` fields: null (as if left out) or an array of photos.
-struct NullOr<'c>(PhotoList<'c>);
+/// A field that is null (as if left out) or what `S` reads: the `images` and `frames` arrays of
+/// photos ([`PhotoList`]), the `frame_steps` array of step numbers ([`StepList`]).
+struct NullOr<S>(S);
 
-impl<'de> DeserializeSeed<'de> for NullOr<'_> {
-    type Value = Option<Vec<Base64Text<'de>>>;
+impl<'de, S: DeserializeSeed<'de>> DeserializeSeed<'de> for NullOr<S> {
+    type Value = Option<S::Value>;
 
     fn deserialize<D: de::Deserializer<'de>>(self, deserializer: D) -> Result<Self::Value, D::Error> {
         deserializer.deserialize_option(self)
     }
 }
 
-impl<'de> Visitor<'de> for NullOr<'_> {
-    type Value = Option<Vec<Base64Text<'de>>>;
+impl<'de, S: DeserializeSeed<'de>> Visitor<'de> for NullOr<S> {
+    type Value = Option<S::Value>;
 
     fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
         f.write_str("option")
@@ -233,35 +234,23 @@ impl<'de> Visitor<'de> for PhotoList<'_> {
     }
 }
 
-/// `frame_steps`: null (as if left out) or an array of step numbers, refused past
-/// [`MAX_CHALLENGE_FRAMES`] entries before they are kept.
+/// The `frame_steps` array of step numbers, refused past [`MAX_CHALLENGE_FRAMES`] entries before
+/// they are kept.
 struct StepList;
 
 impl<'de> DeserializeSeed<'de> for StepList {
-    type Value = Option<Vec<u8>>;
+    type Value = Vec<u8>;
 
     fn deserialize<D: de::Deserializer<'de>>(self, deserializer: D) -> Result<Self::Value, D::Error> {
-        deserializer.deserialize_option(self)
+        deserializer.deserialize_seq(self)
     }
 }
 
 impl<'de> Visitor<'de> for StepList {
-    type Value = Option<Vec<u8>>;
+    type Value = Vec<u8>;
 
     fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
         f.write_str("an array of step numbers (0-based), one per frame")
-    }
-
-    fn visit_none<E: de::Error>(self) -> Result<Self::Value, E> {
-        Ok(None)
-    }
-
-    fn visit_unit<E: de::Error>(self) -> Result<Self::Value, E> {
-        Ok(None)
-    }
-
-    fn visit_some<D: de::Deserializer<'de>>(self, deserializer: D) -> Result<Self::Value, D::Error> {
-        deserializer.deserialize_seq(self)
     }
 
     fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
@@ -272,7 +261,7 @@ impl<'de> Visitor<'de> for StepList {
             }
             steps.push(step);
         }
-        Ok(Some(steps))
+        Ok(steps)
     }
 }
 

@@ -38,6 +38,7 @@ use facegate_vision::morph::{FitOptions, Pose};
 use facegate_vision::pipeline::{FaceAnalysis, Pipeline};
 
 use crate::Progress;
+use crate::dataset::imm_photo;
 
 #[path = "challenge_tally.rs"]
 mod tally;
@@ -257,11 +258,6 @@ pub fn print_held(photo: &RgbImage, turn: f32, bend_radius: Option<f32>) -> RgbI
 /// The IMM persons `config` evaluates: the test persons, or the training ones.
 fn imm_persons(config: &ChallengeEvalConfig) -> Vec<u32> {
     (1..=30).filter(|&p| crate::dataset::imm_is_test_person(p) == config.test_persons).collect()
-}
-
-/// One IMM photo: `<dir>/<person>-<view>m.jpg` (or `f` for the women).
-fn imm_photo(dir: &Path, person: u32, view: u32) -> Option<PathBuf> {
-    ["m", "f"].iter().map(|g| dir.join(format!("{person:02}-{view}{g}.jpg"))).find(|p| p.is_file())
 }
 
 /// The frame answering `step` of a live IMM person: views 5 and 1 for the front (alternately), 4
