@@ -158,6 +158,10 @@ async fn the_persons_own_turns_pass_once_and_the_challenge_is_used_up() {
     // Never issued, and not even an id.
     verify(&app, &"0".repeat(32), &live_frames(&turns)).await.assert_problem(422, "invalid-challenge");
     verify(&app, "' OR 1=1 --", &live_frames(&turns)).await.assert_problem(422, "invalid-challenge");
+    // Steps the schema allows (up to three digits) but no challenge has: the unknown challenge is
+    // what is wrong, found before its steps are counted.
+    let frames = live_frames(&turns);
+    verify_bursts(&app, &"0".repeat(32), &frames, Some("0, 5,\t979")).await.assert_problem(422, "invalid-challenge");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -165,19 +165,20 @@ async fn a_frame_of_another_person_or_without_a_face_is_refused_by_its_index() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn five_frames_or_frames_elsewhere_than_verify_are_malformed() {
+async fn frames_past_twenty_or_frames_elsewhere_than_verify_are_malformed() {
     let app = app(Choice::Report).await;
-    let five: Vec<Vec<u8>> = (0..5).map(|_| nuaa(LIVE_FRAMES[0])).collect();
-    let r = verify_frames(&app, &nuaa(LIVE_PROBE), &five).await;
+    // A plain capture takes as many frames as a challenge's bursts: 20 besides the probe.
+    let many: Vec<Vec<u8>> = (0..21).map(|i| nuaa(LIVE_FRAMES[i % LIVE_FRAMES.len()])).collect();
+    let r = verify_frames(&app, &nuaa(LIVE_PROBE), &many).await;
     r.assert_problem(400, "malformed-request");
-    assert!(r.json()["detail"].as_str().unwrap().contains("at most 4 frames"), "{}", r.json());
-    let frames: Vec<String> = five.iter().map(|f| base64(f)).collect();
+    assert!(r.json()["detail"].as_str().unwrap().contains("at most 20 frames"), "{}", r.json());
+    let frames: Vec<String> = many.iter().map(|f| base64(f)).collect();
     let r = app.post_json("/verify", &json!({"subject": SUBJECT, "image": base64(&nuaa(LIVE_PROBE)), "frames": frames})).await;
     r.assert_problem(400, "malformed-request");
-    assert!(r.json()["detail"].as_str().unwrap().contains("at most 4 frames"), "{}", r.json());
-    // Four are taken.
-    let r = verify_frames(&app, &nuaa(LIVE_PROBE), &five[..4]).await;
-    assert_eq!((r.status, &r.json()["liveness"]["frames"]), (200, &json!(5)), "{}", String::from_utf8_lossy(&r.body));
+    assert!(r.json()["detail"].as_str().unwrap().contains("at most 20 frames"), "{}", r.json());
+    // Twenty are taken, and fused with the probe.
+    let r = verify_frames(&app, &nuaa(LIVE_PROBE), &many[..20]).await;
+    assert_eq!((r.status, &r.json()["liveness"]["frames"]), (200, &json!(21)), "{}", String::from_utf8_lossy(&r.body));
     // Only /verify takes frames.
     let frame = json!([base64(&nuaa(LIVE_FRAMES[0]))]);
     for (path, body) in [

@@ -7,7 +7,7 @@
 //! received them at their pace and within the body budget); reading them here is parsing. Both
 //! forms count the photos as they go and refuse the request at the first one past the most any
 //! operation takes, before it is kept: the `image` parts of a multipart body, the `images` entries
-//! of a JSON one ([`json`]), and the frames past [`MAX_CHALLENGE_FRAMES`]; so a body of thousands of tiny
+//! of a JSON one ([`json`]), and the frames past [`MAX_CAPTURE_FRAMES`]; so a body of thousands of tiny
 //! photos costs no memory beyond the body itself.
 
 use axum::body::Bytes;
@@ -19,7 +19,7 @@ use serde::de::DeserializeOwned;
 
 use super::AppState;
 use super::problem::{Problem, ProblemKind};
-use facegate_service::{MAX_CHALLENGE_FRAMES, SubjectId};
+use facegate_service::{MAX_CAPTURE_FRAMES, SubjectId};
 
 mod json;
 
@@ -38,7 +38,7 @@ pub struct Upload {
     pub subject: Option<String>,
     pub images: Vec<Bytes>,
     /// Further frames of the probe's capture (`frame` parts, `frames` entries), at most
-    /// [`MAX_CHALLENGE_FRAMES`] (a challenge's bursts); only `/verify` takes them.
+    /// [`MAX_CAPTURE_FRAMES`] (a challenge's bursts); only `/verify` takes them.
     pub frames: Vec<Bytes>,
     /// The 0-based challenge step of each frame (`frame_steps`: multipart, comma-separated; JSON,
     /// an array); only `/verify` with a challenge takes it.
@@ -89,7 +89,7 @@ impl<S: Send + Sync> FromRequestParts<S> for SubjectPath {
 /// Read the body of `request` as multipart or JSON. The body limit (axum's `DefaultBodyLimit`)
 /// applies while reading; exceeding it is a `too-large` problem. A body with more than
 /// `max_photos` photos (multipart `image` parts, JSON `images` entries), or more than
-/// [`MAX_CHALLENGE_FRAMES`] frames, is malformed, refused as soon as the read reaches the first one too many.
+/// [`MAX_CAPTURE_FRAMES`] frames, is malformed, refused as soon as the read reaches the first one too many.
 pub async fn read_upload(request: Request, max_photos: usize) -> Result<Upload, Problem> {
     let content_type = request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
     let essence = content_type.split(';').next().unwrap_or("").trim().to_string();
@@ -144,7 +144,7 @@ async fn read_multipart(request: Request, max_photos: usize) -> Result<Upload, P
             }
             "frame" => {
                 // Refused at the first frame too many, before its bytes are copied.
-                if upload.frames.len() == MAX_CHALLENGE_FRAMES {
+                if upload.frames.len() == MAX_CAPTURE_FRAMES {
                     return Err(too_many_frames("frame"));
                 }
                 let bytes = field.bytes().await.map_err(multipart_problem)?;
@@ -173,22 +173,22 @@ fn too_many_photos(field: &str, max_photos: usize) -> Problem {
 }
 
 fn too_many_frames(field: &str) -> Problem {
-    Problem::malformed(format!(
-        "at most {MAX_CHALLENGE_FRAMES} frames besides the probe (field {field}), got more than {MAX_CHALLENGE_FRAMES}"
-    ))
+    Problem::malformed(format!("at most {MAX_CAPTURE_FRAMES} frames besides the probe (field {field}), got more than {MAX_CAPTURE_FRAMES}"))
 }
 
 /// The multipart `frame_steps`: comma-separated 0-based step numbers, one per frame (spaces
-/// allowed), at most [`MAX_CHALLENGE_FRAMES`] of them.
+/// allowed), at most [`MAX_CAPTURE_FRAMES`] of them.
 fn parse_frame_steps(text: &str) -> Result<Vec<usize>, Problem> {
     let entries: Vec<&str> = text.split(',').map(str::trim).collect();
-    if entries.len() > MAX_CHALLENGE_FRAMES {
-        return Err(Problem::malformed(format!("frame_steps names more than {MAX_CHALLENGE_FRAMES} frames")));
+    if entries.len() > MAX_CAPTURE_FRAMES {
+        return Err(Problem::malformed(format!("frame_steps names more than {MAX_CAPTURE_FRAMES} frames")));
     }
     entries
         .iter()
         .map(|e| {
-            e.parse::<u8>().map(usize::from).map_err(|_| {
+            // Up to 999, as the schema's pattern allows: a step past the challenge's is the
+            // service's to refuse, after the challenge itself is looked up.
+            e.parse::<u16>().map(usize::from).map_err(|_| {
                 Problem::malformed(format!(
                     "frame_steps must be comma-separated step numbers (0-based), one per frame, e.g. 0,0,1,1,2; got {:?}",
                     truncate(e, 20)

@@ -65,8 +65,10 @@ pub const CAPTURE_FMR: f64 = 1e-4;
 pub const MAX_FRAMES_PER_STEP: usize = 5;
 /// Most steps a challenge has ([`draw_steps`]).
 pub const MAX_STEPS: usize = 4;
-/// Most frames a challenge's capture takes beside its probe.
-pub const MAX_CHALLENGE_FRAMES: usize = MAX_STEPS * MAX_FRAMES_PER_STEP;
+/// Most frames a capture takes beside its probe: a challenge's bursts, and as many on a plain
+/// `/verify` (its passive liveness is fused over them, [`crate::fuse_liveness`]), so that one limit
+/// holds whether or not a challenge is named.
+pub const MAX_CAPTURE_FRAMES: usize = MAX_STEPS * MAX_FRAMES_PER_STEP;
 /// Least probability that the frames show a face seen by a camera rather than a head rendered
 /// from a photo (the rendered-head detector, `render.bin`, fused over the frames as the passive
 /// liveness is): even odds, the detector being trained on equal weights of both.
@@ -462,7 +464,7 @@ mod tests {
             let err = frame_steps_of(3, frames, Some(given)).unwrap_err();
             assert!(err.contains(why), "{given:?}: {err}");
         }
-        assert_eq!(MAX_CHALLENGE_FRAMES, 20);
+        assert_eq!(MAX_CAPTURE_FRAMES, 20);
     }
 
     #[test]

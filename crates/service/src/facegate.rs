@@ -452,7 +452,7 @@ impl Facegate {
         self.verify_capture(subject, image, Vec::new(), fmr).await
     }
 
-    /// [`Facegate::verify`] of a probe with up to [`crate::MAX_FRAMES`] further `frames` of the
+    /// [`Facegate::verify`] of a probe with up to [`crate::MAX_CAPTURE_FRAMES`] further `frames` of the
     /// same capture. The probe alone is matched against the subject's templates; each frame must
     /// show a face (else `Frame` with its index) of the probe's person ([`FramesMismatch`]), and
     /// the liveness the policy judges is the capture's, fused over the probe and the frames.
@@ -464,8 +464,8 @@ impl Facegate {
         frames: Vec<Bytes>,
         fmr: Option<f64>,
     ) -> Result<Verification, ServiceError> {
-        if frames.len() > crate::MAX_FRAMES {
-            let (max, n) = (crate::MAX_FRAMES, frames.len());
+        if frames.len() > crate::MAX_CAPTURE_FRAMES {
+            let (max, n) = (crate::MAX_CAPTURE_FRAMES, frames.len());
             return Err(ServiceError::Invalid(format!("at most {max} frames besides the probe, got {n}")));
         }
         let fmr = self.fmr(fmr);

@@ -29,13 +29,13 @@ use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline
 use facegate_vision::quality::{Failure, Quality, QualityPolicy};
 use facegate_vision::recognize::{ClassicalRecognizer, Recognizer};
 
-pub use challenge::{ChallengeConfig, ChallengeOutcome, InvalidChallenge, IssuedChallenge, MAX_CHALLENGE_FRAMES, MAX_FRAMES_PER_STEP};
+pub use challenge::{ChallengeConfig, ChallengeOutcome, InvalidChallenge, IssuedChallenge, MAX_CAPTURE_FRAMES, MAX_FRAMES_PER_STEP};
 pub use facegate::{
     AnalyzedPhoto, Enrollment, Facegate, FramesMismatch, Health, Identification, PhotoError, PreparedEnrollment, ServiceConfig,
     ServiceError, Verification, analyze_photo,
 };
 pub use facegate_core::{InvalidSubjectId, MAX_SUBJECT_LEN, SubjectId};
-pub use liveness::{LivenessPoint, LivenessPolicy, MAX_FRAMES, PresentationAttack, check_liveness, fuse_liveness};
+pub use liveness::{LivenessPoint, LivenessPolicy, PresentationAttack, check_liveness, fuse_liveness};
 pub use pool::{Admission, PoolError, WorkClass, WorkPool};
 
 /// How templates are compared: what the verify and identify decisions need of a recognizer.

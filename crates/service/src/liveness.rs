@@ -78,9 +78,6 @@ pub fn check_liveness(policy: LivenessPolicy, point: Option<LivenessPoint>, live
     }
 }
 
-/// Most further frames of one capture a verification takes beside its probe ([`fuse_liveness`]).
-pub const MAX_FRAMES: usize = 4;
-
 /// Scores are clamped into `[SCORE_CLAMP, 1 − SCORE_CLAMP]` before their logit, so that a score of
 /// exactly 0 or 1 cannot outvote every other frame.
 const SCORE_CLAMP: f64 = 1e-6;

@@ -4,7 +4,7 @@
 //! as leaving it out. It is parsed and its base64 decoded on the blocking pool, never on the async
 //! runtime. The parse counts the `images` entries as it goes and refuses the body at the first
 //! entry past the most photos any operation takes ([`JsonLimit`]), and the `frames` entries
-//! (`/verify`'s further frames of the probe's capture) past [`MAX_CHALLENGE_FRAMES`]; until then each entry
+//! (`/verify`'s further frames of the probe's capture) past [`MAX_CAPTURE_FRAMES`]; until then each entry
 //! stays a slice of the body (a copy only where the JSON string has escapes), so a body of millions
 //! of tiny photos costs neither memory nor time beyond the body itself.
 
@@ -21,7 +21,7 @@ use serde::de::{self, DeserializeSeed, MapAccess, SeqAccess, Visitor};
 
 use super::{Upload, too_many_frames, too_many_photos};
 use crate::problem::{Problem, ProblemKind};
-use facegate_service::MAX_CHALLENGE_FRAMES;
+use facegate_service::MAX_CAPTURE_FRAMES;
 
 /// Read a JSON body, then parse it and decode its photos on the blocking pool: a large body takes
 /// no time from the async runtime's other requests.
@@ -36,7 +36,7 @@ pub(super) async fn read_json(request: Request, max_photos: usize) -> Result<Upl
     tokio::task::spawn_blocking(move || parse_json(&body, max_photos)).await.map_err(Problem::internal)?
 }
 
-/// Parse a JSON body (at most `max_photos` entries in `images`, [`MAX_CHALLENGE_FRAMES`] in `frames`) and
+/// Parse a JSON body (at most `max_photos` entries in `images`, [`MAX_CAPTURE_FRAMES`] in `frames`) and
 /// decode its photos, `image` first, then its frames.
 fn parse_json(body: &[u8], max_photos: usize) -> Result<Upload, Problem> {
     let (over, frames_over) = (Cell::new(false), Cell::new(false));
@@ -104,7 +104,7 @@ impl<'de> Deserialize<'de> for Base64Text<'de> {
 /// Deserializes a [`JsonUpload`] as `#[derive(Deserialize)] #[serde(deny_unknown_fields)]` would
 /// (same errors), except that an array is refused (the derive takes one as the struct's fields in
 /// order) and that `images` is refused at its entry `max_photos + 1` and `frames` at its entry
-/// `MAX_CHALLENGE_FRAMES + 1`, before that entry is kept; `over` or `frames_over` then says so.
+/// `MAX_CAPTURE_FRAMES + 1`, before that entry is kept; `over` or `frames_over` then says so.
 #[derive(Clone, Copy)]
 struct JsonLimit<'c> {
     max_photos: usize,
@@ -140,7 +140,7 @@ impl<'de> Visitor<'de> for JsonLimit<'_> {
                 2 => json.images = map.next_value_seed(NullOr(PhotoList { max: self.max_photos, over: self.over }))?,
                 4 => json.challenge = map.next_value()?,
                 5 => json.frame_steps = map.next_value_seed(NullOr(StepList))?,
-                _ => json.frames = map.next_value_seed(NullOr(PhotoList { max: MAX_CHALLENGE_FRAMES, over: self.frames_over }))?,
+                _ => json.frames = map.next_value_seed(NullOr(PhotoList { max: MAX_CAPTURE_FRAMES, over: self.frames_over }))?,
             }
         }
         Ok(json)
@@ -234,7 +234,7 @@ impl<'de> Visitor<'de> for PhotoList<'_> {
     }
 }
 
-/// The `frame_steps` array of step numbers, refused past [`MAX_CHALLENGE_FRAMES`] entries before
+/// The `frame_steps` array of step numbers, refused past [`MAX_CAPTURE_FRAMES`] entries before
 /// they are kept.
 struct StepList;
 
@@ -255,13 +255,47 @@ impl<'de> Visitor<'de> for StepList {
 
     fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
         let mut steps = Vec::new();
-        while let Some(step) = seq.next_element::<u8>()? {
-            if steps.len() == MAX_CHALLENGE_FRAMES {
-                return Err(de::Error::custom(format_args!("frame_steps names more than {MAX_CHALLENGE_FRAMES} frames")));
+        while let Some(StepNumber(step)) = seq.next_element()? {
+            if steps.len() == MAX_CAPTURE_FRAMES {
+                return Err(de::Error::custom(format_args!("frame_steps names more than {MAX_CAPTURE_FRAMES} frames")));
             }
             steps.push(step);
         }
         Ok(steps)
+    }
+}
+
+/// One step number, 0 to 255: JSON Schema's integer, so `2.0` is the step 2 as `2` is.
+#[derive(Debug)]
+struct StepNumber(u8);
+
+impl<'de> Deserialize<'de> for StepNumber {
+    fn deserialize<D: de::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        struct Step;
+        impl Visitor<'_> for Step {
+            type Value = StepNumber;
+
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str("a step number, an integer from 0 to 255")
+            }
+
+            fn visit_u64<E: de::Error>(self, v: u64) -> Result<StepNumber, E> {
+                u8::try_from(v).map(StepNumber).map_err(|_| E::invalid_value(de::Unexpected::Unsigned(v), &self))
+            }
+
+            fn visit_i64<E: de::Error>(self, v: i64) -> Result<StepNumber, E> {
+                u8::try_from(v).map(StepNumber).map_err(|_| E::invalid_value(de::Unexpected::Signed(v), &self))
+            }
+
+            fn visit_f64<E: de::Error>(self, v: f64) -> Result<StepNumber, E> {
+                if v.fract() == 0.0 && (0.0..=255.0).contains(&v) {
+                    Ok(StepNumber(v as u8))
+                } else {
+                    Err(E::invalid_value(de::Unexpected::Float(v), &self))
+                }
+            }
+        }
+        deserializer.deserialize_any(Step)
     }
 }
 
@@ -307,7 +341,7 @@ mod tests {
         images: Option<Vec<String>>,
         frames: Option<Vec<String>>,
         challenge: Option<String>,
-        frame_steps: Option<Vec<u8>>,
+        frame_steps: Option<Vec<StepNumber>>,
     }
 
     fn detail(body: &str, max_photos: usize) -> String {
@@ -400,7 +434,7 @@ mod tests {
     #[test]
     fn json_frames_are_refused_past_a_challenges_bursts_while_parsed() {
         let many = |n: usize, tail: &str| format!(r#"{{"image": "AA", "frames": [{}]{tail}"#, vec![r#""AA""#; n].join(","));
-        assert_eq!(parse_json(many(MAX_CHALLENGE_FRAMES, "}").as_bytes(), 16).unwrap().frames.len(), 20);
+        assert_eq!(parse_json(many(MAX_CAPTURE_FRAMES, "}").as_bytes(), 16).unwrap().frames.len(), 20);
         let over = "at most 20 frames besides the probe (field frames), got more than 20";
         for body in [many(21, "}"), many(21, ", not json at all"), many(3_000_000, "}")] {
             let p = parse_json(body.as_bytes(), 16).unwrap_err();
@@ -414,7 +448,12 @@ mod tests {
         assert_eq!(upload.frame_steps, Some(vec![0, 1]));
         let upload = parse_json(br#"{"image": "AA", "frame_steps": null}"#, 16).unwrap();
         assert_eq!(upload.frame_steps, None);
-        for body in [r#"{"frame_steps": [-1]}"#, r#"{"frame_steps": [256]}"#, r#"{"frame_steps": "0,1"}"#, r#"{"frame_steps": [0.5]}"#] {
+        // JSON Schema's integers: 2.0 is 2.
+        let upload = parse_json(br#"{"image": "AA", "frame_steps": [0, 1.0, 2e0]}"#, 16).unwrap();
+        assert_eq!(upload.frame_steps, Some(vec![0, 1, 2]));
+        let refused =
+            [r#"{"frame_steps": [-1]}"#, r#"{"frame_steps": [256]}"#, r#"{"frame_steps": [256.0]}"#, r#"{"frame_steps": [-1.0]}"#];
+        for body in refused.into_iter().chain([r#"{"frame_steps": "0,1"}"#, r#"{"frame_steps": [0.5]}"#, r#"{"frame_steps": [null]}"#]) {
             assert_eq!(parse_json(body.as_bytes(), 16).unwrap_err().kind, ProblemKind::MalformedRequest, "{body}");
         }
         let many = format!(r#"{{"frame_steps": [{}]}}"#, vec!["0"; 21].join(","));
