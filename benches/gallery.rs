@@ -12,7 +12,7 @@
 //! `cargo run --release --example gallery_scale`.
 
 use criterion::{BatchSize, BenchmarkId, Criterion, black_box};
-use facegate::recognize::{OperatingPoint, Template};
+use facegate_core::template::{OperatingPoint, Template};
 use facegate::service::Matcher;
 use facegate::service::gallery::{Found, Gallery, Precision};
 use rand::{Rng, SeedableRng};

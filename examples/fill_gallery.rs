@@ -16,7 +16,7 @@
 
 use std::time::Instant;
 
-use facegate::recognize::Template;
+use facegate_core::template::Template;
 use facegate::service::SubjectId;
 use facegate::store::Store;
 use rand::{Rng, SeedableRng};

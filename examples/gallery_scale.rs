@@ -19,7 +19,7 @@
 //! store's gallery (`LiveGallery::load`, quantised) and its resident growth, then a search
 //! (filled by `examples/fill_gallery.rs --bulk`).
 
-use facegate::recognize::{OperatingPoint, Template};
+use facegate_core::template::{OperatingPoint, Template};
 use facegate::service::Matcher;
 use facegate::service::gallery::{Found, Gallery, Precision};
 use rand::{Rng, SeedableRng};

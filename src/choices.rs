@@ -47,7 +47,7 @@ value_enum! {
 
 value_enum! {
     /// Which detector to run.
-    Detector => facegate_vision::detect::DetectorKind {
+    Detector => facegate_detect::DetectorKind {
         /// OpenCV Viola–Jones Haar cascades (frontal, then profile and mirrored profile).
         Haar,
         /// SeetaFace funnel-structured cascade through the `rustface` crate.
@@ -71,7 +71,7 @@ value_enum! {
 
 value_enum! {
     /// When the Haar detector also runs the profile cascade.
-    Profile => facegate_vision::detect::ProfileMode {
+    Profile => facegate_detect::ProfileMode {
         /// Frontal cascade only.
         Off,
         /// Profile cascades only when the frontal one finds nothing (cheap on frontal photos).

@@ -101,7 +101,7 @@ pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
         args.threads,
         &crate::cli::Bar::default(),
     );
-    let score = |p: &crate::recognize::Template, e: &[crate::recognize::Template]| pipeline.recognizer.score(p, e);
+    let score = |p: &facegate_core::template::Template, e: &[facegate_core::template::Template]| pipeline.recognizer.score(p, e);
     let mut strategies = vec![Strategy::Own];
     if !args.synthetic_yaws.is_empty() {
         strategies.push(Strategy::WithSynthetic);

@@ -8,14 +8,13 @@ use anyhow::Context;
 use crate::choices;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::calibration::DEFAULT_FMR;
-use crate::recognize::{
-    ClassicalModel, ClassicalRecognizer, FeatureKind, Normalization, NormalizeParams, Photometric, RecognizerKind, Template,
-};
+use crate::recognize::{ClassicalModel, ClassicalRecognizer, FeatureKind, Normalization, NormalizeParams, Photometric, RecognizerKind};
 use crate::research::dlda::DldaParams;
 use crate::research::eval::identification;
 use crate::research::eval::pairs::{read_pairs, score_pairs};
 use crate::research::eval::verification::{self, summarize};
 use crate::research::train_dlda::{self as train, AlignedFace, FaceRegion, FrontEnd, HeldOutReport, TrainConfig};
+use facegate_core::template::Template;
 
 #[derive(clap::Args, Debug)]
 pub struct CompareArgs {

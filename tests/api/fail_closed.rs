@@ -16,10 +16,10 @@ use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use facegate::http::ApiConfig;
-use facegate::recognize::Template;
 use facegate::service::SubjectId;
 use facegate::startup::Application;
 use facegate::store::{KeyCheck, KeyRing, Store};
+use facegate_core::template::Template;
 use serde_json::Value;
 
 use crate::on_both_backends;

@@ -4,11 +4,11 @@
 
 use std::time::Duration;
 
-use facegate::recognize::{OperatingPoint, Template};
 use facegate::service::liveness_site::{self, LivenessCalibration};
 use facegate::service::site::{self, SiteCalibration, SiteStatus};
 use facegate::service::{Matcher, SubjectId};
 use facegate::store::{Backend, CipherError, KeyRing, RekeyReport, Store, StoreChange, StoreError, VersionCount};
+use facegate_core::template::{OperatingPoint, Template};
 use sqlx::AnyPool;
 
 const K1: &str = "000102030405060708090a0b0c0d0e0f101112131415161718191a1b1c1d1e1f";

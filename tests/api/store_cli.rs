@@ -2,9 +2,9 @@
 
 use std::path::Path;
 
-use facegate::recognize::Template;
 use facegate::service::SubjectId;
 use facegate::store::{KeyRing, Store};
+use facegate_core::template::Template;
 use serde_json::Value;
 
 /// Run `facegate` with `args`; its exit status and stdout's JSON line (null when none).

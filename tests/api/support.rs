@@ -19,10 +19,10 @@ use facegate::landmarks::Landmarks;
 use facegate::morph::AvatarFormat;
 use facegate::pipeline::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, PipelineError, StageTimings};
 use facegate::quality::Quality;
-use facegate::recognize::{OperatingPoint, Template};
 use facegate::service::{LivenessPoint, Matcher};
 use facegate::startup::{Application, ApplicationBuilder};
 use facegate::store::{KeyRing, Store};
+use facegate_core::template::{OperatingPoint, Template};
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
 

@@ -78,7 +78,7 @@ impl ModelFiles {
     /// compiled-in copies where absent, as the detector falls back to them), `asm.bin`,
     /// `asm3d.bin` and `asm3d-profile.bin` (when present).
     pub fn finder(self, models_dir: &Path) -> ModelFiles {
-        use facegate_vision::detect::{
+        use facegate_detect::{
             EMBEDDED_FRONTAL, EMBEDDED_PROFILE, EMBEDDED_SEETA, EMBEDDED_YUNET, FRONTAL_CASCADE, PROFILE_CASCADE, SEETA_MODEL, YUNET_MODEL,
         };
         let cascades =
@@ -98,15 +98,15 @@ impl ModelFiles {
         self.with(name.to_string(), Some(models_dir.join(name)), None)
     }
 
-    /// The Surrey Face Model as [`facegate_vision::morph::FaceModel::load`] reads `sfm_dir` (shape,
+    /// The Surrey Face Model as [`facegate_morph::FaceModel::load`] reads `sfm_dir` (shape,
     /// expression blendshapes, contours, reference symmetry), and the compiled-in IMM → SFM
     /// correspondence (`models/imm_to_sfm.txt`) its fit uses.
     pub fn sfm(self, sfm_dir: &Path) -> ModelFiles {
-        use facegate_vision::morph::{BLENDSHAPES_FILE, CONTOURS_FILE, SHAPE_FILE, SYMMETRY_FILE};
+        use facegate_morph::{BLENDSHAPES_FILE, CONTOURS_FILE, SHAPE_FILE, SYMMETRY_FILE};
         let files = [SHAPE_FILE, BLENDSHAPES_FILE, CONTOURS_FILE, SYMMETRY_FILE]
             .into_iter()
             .fold(self, |files, name| files.with(format!("sfm/{name}"), Some(sfm_dir.join(name)), None));
-        let table = facegate_vision::morph::correspondence::DERIVED_TABLE.as_bytes();
+        let table = facegate_morph::correspondence::DERIVED_TABLE.as_bytes();
         files.with("imm_to_sfm.txt".to_string(), None, Some(table))
     }
 }
@@ -275,10 +275,10 @@ mod tests {
             models.join("asm.bin"),
             models.join("asm3d.bin"),
             models.join("asm3d-profile.bin"),
-            models.join(facegate_vision::detect::YUNET_MODEL),
+            models.join(facegate_detect::YUNET_MODEL),
             models.join("embedding.bin"),
-            models.join("cascades").join(facegate_vision::detect::FRONTAL_CASCADE),
-            sfm.join(facegate_vision::morph::SHAPE_FILE),
+            models.join("cascades").join(facegate_detect::FRONTAL_CASCADE),
+            sfm.join(facegate_morph::SHAPE_FILE),
         ];
         for file in changes {
             std::fs::write(&file, b"weights").unwrap();

@@ -9,10 +9,11 @@ use facegate_core::imaging::{GrayF32, Photo};
 
 use facegate_core::geometry::Point;
 
+use facegate_core::template::Template;
+use facegate_morph::{FaceModel, FittedFace, Pose, TEXTURE_SIZE};
 use facegate_vision::landmarks::Landmarks;
-use facegate_vision::morph::{FaceModel, FittedFace, Pose, TEXTURE_SIZE};
 use facegate_vision::pipeline::{FaceAnalysis, Pipeline};
-use facegate_vision::recognize::{Recognizer, Template};
+use facegate_vision::recognize::Recognizer;
 
 use crate::asm3d_synth as asm3d;
 

@@ -7,7 +7,7 @@ use crate::dataset::{self, INTERNAL, ImmSample, JAW};
 use crate::landmark_models::{train_full_gaussian, train_pca_gaussian, train_shape_model};
 use facegate_core::geometry::{Point, Rect, Similarity};
 use facegate_core::imaging::{self, GrayF32};
-use facegate_vision::detect::Detector;
+use facegate_detect::Detector;
 
 use facegate_vision::landmarks::pdm::ShapeModel;
 use facegate_vision::landmarks::search::{Frame, normals, pyramid, to_level};

@@ -10,11 +10,11 @@ use crate::landmark_models::{train_full_gaussian, train_pca_gaussian, train_pdm3
 use facegate_core::face::{IMM_POINTS, JAW};
 use facegate_core::geometry::{Point, Rect, centroid};
 use facegate_core::imaging::{self, GrayF32};
-use facegate_vision::detect::Detector;
+use facegate_detect::Detector;
+use facegate_morph::{Camera, FaceModel, Pose};
 use facegate_vision::landmarks::asm3d::*;
 use facegate_vision::landmarks::search::{normals, pyramid, to_level};
 use facegate_vision::landmarks::{AsmModel, BoxSource, LandmarkError, Placement, SearchParams, TrainInfo, profile, sift};
-use facegate_vision::morph::{Camera, FaceModel, Pose};
 
 /// Training settings.
 #[derive(Debug, Clone)]
@@ -336,7 +336,7 @@ fn train_with_jaw(
 }
 
 /// The 3DMM fitted to every photo's annotated landmarks (`None` where the fit fails).
-fn fit_annotations(samples: &[ImmSample], fm: &FaceModel) -> Result<Vec<Option<facegate_vision::morph::FittedFace>>, LandmarkError> {
+fn fit_annotations(samples: &[ImmSample], fm: &FaceModel) -> Result<Vec<Option<facegate_morph::FittedFace>>, LandmarkError> {
     let mut fits = Vec::with_capacity(samples.len());
     for sample in samples {
         let shape = sample.landmarks().map_err(|e| LandmarkError::Training(e.to_string()))?;
@@ -350,7 +350,7 @@ fn fit_annotations(samples: &[ImmSample], fm: &FaceModel) -> Result<Vec<Option<f
 /// offsets, and the crop scale and contour neighbours the texture samples are taken with.
 struct Renders<'a> {
     fm: &'a FaceModel,
-    fit: &'a facegate_vision::morph::FittedFace,
+    fit: &'a facegate_morph::FittedFace,
     jaw: &'a JawVertices,
     offsets: &'a [[f64; 3]],
     crop_px_per_mm: f32,

@@ -14,12 +14,12 @@ use super::Progress;
 use super::cache::{self, CacheKey, ModelFiles, map_samples};
 use super::dataset::{self, Split, imm_is_test_person, lfw_split};
 use super::eval::protocol::{all_pairs_by, enrollment_scores_by};
+use facegate_morph::FaceModel;
 use facegate_vision::embed::{Embedder, face_embedding};
-use facegate_vision::morph::FaceModel;
 use facegate_vision::pipeline::{FaceFinder, load_face_model};
 use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
 use facegate_vision::recognize::dlib::{ChipSource, DeepProvenance, DlibModel, FORMAT};
-use facegate_vision::recognize::template::Combine;
+use facegate_vision::recognize::Combine;
 use facegate_vision::recognize::{Calibration, Dlda, EnrolledCalibration, MAX_CALIBRATED_ENROLLMENT};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

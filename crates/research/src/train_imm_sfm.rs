@@ -2,8 +2,8 @@
 //! (`facegate train imm-sfm`, `models/imm_to_sfm.txt`).
 
 use facegate_core::face::IMM_POINTS;
-use facegate_vision::morph::correspondence::{Anchor, imm_anchors};
-use facegate_vision::morph::{FaceModel, FittedFace, MorphError};
+use facegate_morph::correspondence::{Anchor, imm_anchors};
+use facegate_morph::{FaceModel, FittedFace, MorphError};
 
 /// Refine the fixed correspondences on annotated photos (step 2 of the method, data-driven): fit
 /// every shape, then move each fixed IMM point (all but the 12 sliding jaw points) to the vertex,

@@ -1,13 +1,13 @@
 use facegate_core::face::{IMM_POINTS, JAW, KeyPoints};
 use facegate_core::geometry::{Point, Rect, centroid};
 use facegate_core::imaging::{self, GrayF32};
+use facegate_morph::{Camera, FaceModel, Pose};
 use facegate_research::asm3d_synth::*;
 use facegate_research::dataset::list_imm;
 use facegate_research::dataset::{self, ImmSample};
 use facegate_research::train_asm3d::*;
 use facegate_vision::landmarks::asm3d::*;
 use facegate_vision::landmarks::{BoxSource, LandmarkError, Variant};
-use facegate_vision::morph::{Camera, FaceModel, Pose};
 use std::sync::OnceLock;
 
 fn face_model() -> &'static FaceModel {
@@ -72,7 +72,7 @@ fn learnt_jaw_vertices_follow_the_annotation() {
         .take(8)
         .collect();
     let shapes: Vec<Vec<Point>> = samples.iter().map(|s| s.landmarks().unwrap()).collect();
-    let fits: Vec<facegate_vision::morph::FittedFace> = shapes.iter().map(|p| fm.fit(p, 640, 480).unwrap()).collect();
+    let fits: Vec<facegate_morph::FittedFace> = shapes.iter().map(|p| fm.fit(p, 640, 480).unwrap()).collect();
     let learnt = annotated_jaw_vertices(fm, &fits.iter().collect::<Vec<_>>());
     let contour = contour_jaw_vertices(fm);
     let error = |jaw: &JawVertices| {
@@ -248,7 +248,7 @@ fn views_hide_the_far_side_as_the_head_turns() {
 fn the_profile_model_finds_a_turned_render_from_the_detectors_points() {
     let fm = face_model();
     let models = facegate_paths::models_dir();
-    let detector = facegate_vision::detect::Detector::load(&models).unwrap();
+    let detector = facegate_detect::Detector::load(&models).unwrap();
     let casm = facegate_vision::landmarks::Landmarker::load(&models.join("asm.bin")).unwrap();
     let thesis = Asm3dLandmarker::load(&models.join("asm3d.bin")).unwrap();
     let profile = Asm3dLandmarker::load_profile(&models.join("asm3d-profile.bin")).unwrap();

@@ -1,5 +1,5 @@
+use facegate_detect::*;
 use facegate_paths::{models_dir, shared_dir};
-use facegate_vision::detect::*;
 use std::path::PathBuf;
 
 use facegate_core::geometry::Rect;

@@ -1,8 +1,8 @@
 //! The YuNet detector on real photos: frontal (IMM), full profile (UMIST), small grey crops (ORL)
 //! and face-free images.
 
+use facegate_detect::{DetectOptions, Detector, DetectorKind, Face, YUNET_MODEL};
 use facegate_paths::{models_dir, shared_dir};
-use facegate_vision::detect::{DetectOptions, Detector, DetectorKind, Face, YUNET_MODEL};
 
 use facegate_core::geometry::{Rect, distance};
 use facegate_core::imaging::{GrayF32, open};
@@ -24,7 +24,7 @@ fn holds_points(face: &Face) -> bool {
 fn the_model_file_is_the_converted_one() {
     let bytes = std::fs::read(models_dir().join(YUNET_MODEL)).unwrap();
     assert_eq!(facegate_research::convert::yunet::sha256_hex(&bytes), facegate_research::convert::yunet::SHA256);
-    assert_eq!(bytes, facegate_vision::detect::EMBEDDED_YUNET);
+    assert_eq!(bytes, facegate_detect::EMBEDDED_YUNET);
 }
 
 #[test]

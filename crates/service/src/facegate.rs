@@ -12,8 +12,8 @@ use facegate_core::SubjectId;
 use facegate_core::elapsed_ms;
 use facegate_core::imaging::{DecodeError, DecodeLimits, Photo};
 use facegate_core::template::{OperatingPoint, Template};
+use facegate_morph::AvatarFormat;
 use facegate_store::{Backend, Store, StoreError, SubjectDetail, SubjectSummary};
-use facegate_vision::morph::AvatarFormat;
 use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PipelineError};
 use facegate_vision::quality::{Failure, QualityPolicy};
 

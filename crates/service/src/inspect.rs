@@ -8,7 +8,7 @@ use std::time::Instant;
 use super::FaceEngine;
 use facegate_core::elapsed_ms;
 use facegate_core::imaging::{self, DecodeError, DecodeLimits, Photo};
-use facegate_vision::morph::AvatarFormat;
+use facegate_morph::AvatarFormat;
 use facegate_vision::pipeline::{FaceChoice, PhotoReading, PipelineError};
 
 /// Why a photo could not be shown.

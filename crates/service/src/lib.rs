@@ -24,7 +24,7 @@ use serde::Serialize;
 
 use facegate_core::imaging::Photo;
 use facegate_core::template::{OperatingPoint, Template};
-use facegate_vision::morph::AvatarFormat;
+use facegate_morph::AvatarFormat;
 use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline, PipelineError};
 use facegate_vision::quality::{Failure, Quality, QualityPolicy};
 use facegate_vision::recognize::{ClassicalRecognizer, Recognizer};

@@ -15,10 +15,4 @@ pub mod liveness;
 pub mod quality;
 pub mod recognize;
 
-/// Face detection ([`facegate_detect`]) and the 3D morphable model ([`facegate_morph`]): the
-/// pipeline's types name them, so their paths stay `facegate_vision::detect::…` and
-/// `facegate_vision::morph::…` as well.
-pub use facegate_detect as detect;
-pub use facegate_morph as morph;
-
 pub mod pipeline;

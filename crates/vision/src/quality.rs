@@ -15,8 +15,8 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::embed::{FaceChip, MirrorPair};
-use crate::morph::Pose;
 use facegate_core::face::KeyPoints;
+use facegate_morph::Pose;
 
 /// The inner face of the 150-pixel chip (eyebrows to chin, cheek to cheek), where the image
 /// components are measured: the chip's corners are background or black padding.

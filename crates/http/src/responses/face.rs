@@ -5,7 +5,7 @@
 use serde::Serialize;
 
 use facegate_service::{AnalyzedPhoto, ChallengeOutcome};
-use facegate_vision::{detect, landmarks, liveness, morph, pipeline, quality};
+use facegate_vision::{landmarks, liveness, pipeline, quality};
 
 /// A point in image pixels, `[x, y]`.
 type Point = [f32; 2];
@@ -36,8 +36,8 @@ pub(crate) struct Face {
     points: Option<[Point; 5]>,
 }
 
-impl From<detect::Face> for Face {
-    fn from(f: detect::Face) -> Face {
+impl From<facegate_detect::Face> for Face {
+    fn from(f: facegate_detect::Face) -> Face {
         Face { rect: f.rect.into(), score: f.score, points: f.points }
     }
 }
@@ -77,8 +77,8 @@ pub(crate) struct Pose {
     roll: f32,
 }
 
-impl From<morph::Pose> for Pose {
-    fn from(p: morph::Pose) -> Pose {
+impl From<facegate_morph::Pose> for Pose {
+    fn from(p: facegate_morph::Pose) -> Pose {
         Pose { yaw: p.yaw, pitch: p.pitch, roll: p.roll }
     }
 }

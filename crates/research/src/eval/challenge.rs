@@ -30,11 +30,11 @@ use serde::Serialize;
 
 use facegate_core::imaging::{self, GrayF32, Photo};
 use facegate_core::template::Template;
+use facegate_morph::{FitOptions, Pose};
 use facegate_service::challenge::{self as rule, ChallengeOutcome};
 use facegate_service::{Matcher, decide};
 use facegate_vision::liveness::Liveness;
 use facegate_vision::liveness::head_turn::{Step, Turn};
-use facegate_vision::morph::{FitOptions, Pose};
 use facegate_vision::pipeline::{FaceAnalysis, Pipeline};
 
 use crate::Progress;

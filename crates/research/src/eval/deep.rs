@@ -16,7 +16,7 @@ use facegate_vision::pipeline::FaceFinder;
 use facegate_vision::recognize::Dlda;
 use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
 use facegate_vision::recognize::dlib::DlibModel;
-use facegate_vision::recognize::template::Combine;
+use facegate_vision::recognize::Combine;
 
 /// How two embeddings are scored (higher: more alike).
 #[derive(Debug, Clone)]
@@ -273,8 +273,8 @@ pub fn rank1_by_view(
     progress: &dyn crate::Progress,
 ) -> anyhow::Result<RankTable> {
     progress.begin(imm.len() as u64, "identify");
-    let mut gallery: Vec<(&str, facegate_vision::recognize::Template)> = Vec::new();
-    let mut probes: Vec<(&Sample, facegate_vision::recognize::Template)> = Vec::new();
+    let mut gallery: Vec<(&str, facegate_core::template::Template)> = Vec::new();
+    let mut probes: Vec<(&Sample, facegate_core::template::Template)> = Vec::new();
     for s in imm {
         let in_gallery = s.view == Some(1) && (s.split == Split::Test || distractors);
         if in_gallery || s.split == Split::Test {

@@ -12,7 +12,7 @@ use serde::Serialize;
 use crate::dataset::{KeyPoints, imm_is_test_person, list_imm};
 use facegate_core::geometry::Rect;
 use facegate_core::imaging::{GrayF32, open};
-use facegate_vision::detect::{Detector, Face};
+use facegate_detect::{Detector, Face};
 
 use super::thread_cpu_ns;
 

@@ -8,7 +8,8 @@ use std::collections::BTreeMap;
 use super::verification::rank1;
 use crate::Progress;
 use crate::train_dlda::{self as train, AlignedFace, FaceImage, FrontEnd, TrainConfig};
-use facegate_vision::recognize::{ClassicalRecognizer, Normalization, Template};
+use facegate_core::template::Template;
+use facegate_vision::recognize::{ClassicalRecognizer, Normalization};
 
 /// Rank-1 hits per bin: bin → (probes, hits per normalisation path, in the order measured).
 pub struct IdentificationTable {

@@ -12,8 +12,8 @@ use crate::dataset::{self, ImmSample, KeyPoints};
 use crate::train_asm as train;
 use facegate_core::geometry::{Rect, distance};
 use facegate_core::imaging::GrayF32;
-use facegate_vision::detect::Detector;
-use facegate_vision::detect::Face;
+use facegate_detect::Detector;
+use facegate_detect::Face;
 use facegate_vision::landmarks::{BoxSource, Landmarker, Variant};
 
 use super::plot::{Chart, Scale, Series, cumulative, line_chart};
@@ -378,7 +378,7 @@ fn measure_asm3d(
     progress: &dyn Progress,
 ) -> Option<Asm3dMeasurements> {
     use facegate_vision::landmarks::asm3d;
-    let fm = match facegate_vision::morph::FaceModel::load(&facegate_paths::sfm_dir()) {
+    let fm = match facegate_morph::FaceModel::load(&facegate_paths::sfm_dir()) {
         Ok(m) => m,
         Err(e) => {
             progress.note(&format!("facegate: 3D-ASM not measured: {e}"));
@@ -522,7 +522,7 @@ pub struct CrossoverRow {
 /// render. Rows by |yaw|. (The renders favour the 3D-ASM, whose view models were trained on
 /// renders of other persons.)
 pub fn crossover(
-    fm: &facegate_vision::morph::FaceModel,
+    fm: &facegate_morph::FaceModel,
     test: &[ImmSample],
     detector: &Detector,
     casm: &Landmarker,

@@ -7,7 +7,7 @@ use std::path::Path;
 
 use anyhow::Context;
 
-use facegate_vision::recognize::Template;
+use facegate_core::template::Template;
 
 /// One pair of the pairs CSV.
 #[derive(Debug, Clone, PartialEq)]

@@ -10,8 +10,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use facegate_core::imaging;
+use facegate_core::template::Template;
 use facegate_vision::pipeline::Pipeline;
-use facegate_vision::recognize::Template;
 
 use crate::Progress;
 use crate::eval::verification::{eer, fnmr_at_fmr};
@@ -543,7 +543,7 @@ pub fn render_curve(
             let analysis = pipeline.analyze(&photo).ok()?;
             let model = pipeline.face_model.as_ref()?;
             let fit = model.fit(&analysis.landmarks.points, photo.width(), photo.height()).ok()?;
-            let poses: Vec<_> = yaws.iter().map(|&yaw| facegate_vision::morph::Pose { yaw, ..fit.pose }).collect();
+            let poses: Vec<_> = yaws.iter().map(|&yaw| facegate_morph::Pose { yaw, ..fit.pose }).collect();
             let views = crate::synthetic::render_at(model, &photo, &fit, &analysis.landmarks.points, &poses);
             Some(
                 views

@@ -10,7 +10,7 @@ use serde::Serialize;
 use crate::dataset::{ImmSample, KeyPoints};
 use facegate_core::geometry::{Point, distance};
 use facegate_core::imaging::GrayF32;
-use facegate_vision::detect::{Detector, Face};
+use facegate_detect::{Detector, Face};
 use facegate_vision::landmarks::Landmarker;
 
 /// A landmark search from a detected face (box and, from YuNet, five points) to 58 points.
@@ -41,7 +41,7 @@ pub struct ProfileRow {
 /// the view shows (the profile model `asm3d`'s view of that yaw), since a hidden point has no
 /// position to find in the photo. Rows per search, in the order given.
 pub fn profile_renders(
-    fm: &facegate_vision::morph::FaceModel,
+    fm: &facegate_morph::FaceModel,
     test: &[ImmSample],
     detector: &Detector,
     asm3d: &facegate_vision::landmarks::asm3d::Asm3dLandmarker,
@@ -112,7 +112,7 @@ pub(super) fn bands(yaws: &[f32]) -> Vec<f32> {
 /// 3D-ASM training's renderer (landmarks: the projected model points moved by the photo's
 /// annotation residual), handed to `each` with its yaw.
 pub(super) fn for_each_render(
-    fm: &facegate_vision::morph::FaceModel,
+    fm: &facegate_morph::FaceModel,
     test: &[ImmSample],
     yaws: &[f32],
     each: &mut dyn FnMut(f32, &crate::asm3d_synth::SyntheticView),
@@ -130,7 +130,7 @@ pub(super) fn for_each_render(
         let jaw = photo_jaw_vertices(fm, &fit, &contour_jaw_vertices(fm));
         let background = background_colour(&photo.rgb);
         for &yaw in yaws {
-            let pose = facegate_vision::morph::Pose { yaw, pitch: fit.pose.pitch, roll: 0.0 };
+            let pose = facegate_morph::Pose { yaw, pitch: fit.pose.pitch, roll: 0.0 };
             each(yaw, &synthesise_view(fm, &fit, &texture, pose, background, 0.0, &jaw, &offsets));
         }
     }
@@ -155,7 +155,7 @@ pub struct ProfilePoseRow {
 /// points, and from the 3DMM fitted to the profile model's points seeded by them (all points, or
 /// the shown ones weighted up).
 pub fn profile_poses(
-    fm: &facegate_vision::morph::FaceModel,
+    fm: &facegate_morph::FaceModel,
     test: &[ImmSample],
     detector: &Detector,
     profile: &facegate_vision::landmarks::asm3d::Asm3dLandmarker,
@@ -175,10 +175,9 @@ pub fn profile_poses(
                 *w = facegate_vision::landmarks::asm3d::HIDDEN_POINT_WEIGHT;
             }
         }
-        let fit =
-            |point_weights| fm.fit_with(&found.points, w, h, &facegate_vision::morph::FitOptions { point_weights, ..Default::default() });
+        let fit = |point_weights| fm.fit_with(&found.points, w, h, &facegate_morph::FitOptions { point_weights, ..Default::default() });
         let (Ok(all), Ok(shown)) = (fit(None), fit(Some(weights))) else { return };
-        let error = |p: facegate_vision::morph::Pose| (p.yaw - yaw).abs() as f64;
+        let error = |p: facegate_morph::Pose| (p.yaw - yaw).abs() as f64;
         errors[band].push([error(five.pose), error(all.pose), error(shown.pose)]);
     })?;
     Ok(bands

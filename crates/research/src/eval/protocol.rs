@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 
-use facegate_vision::recognize::template::Combine;
+use facegate_vision::recognize::Combine;
 
 /// Genuine and impostor scores of all pairs (one template each).
 pub fn all_pairs_by(labels: &[&str], score: &(dyn Fn(usize, usize) -> f32 + Sync)) -> (Vec<f32>, Vec<f32>) {

@@ -17,8 +17,8 @@ use crate::Progress;
 use crate::cache::{self, CacheKey, map_samples};
 use crate::dataset::Split;
 use crate::train_deep::{FrontEndModels, Sample, Set, cache_id};
+use facegate_morph::FaceModel;
 use facegate_vision::embed::Embedder;
-use facegate_vision::morph::FaceModel;
 use facegate_vision::pipeline::FaceFinder;
 use facegate_vision::quality::{Components, QualityModel, features};
 

@@ -11,7 +11,7 @@ use super::*;
 use crate::Progress;
 use crate::cache::{self, CacheKey, map_samples};
 use facegate_core::imaging::GrayF32;
-use facegate_vision::morph::Pose;
+use facegate_morph::Pose;
 use facegate_vision::pipeline::recognition_input;
 use facegate_vision::recognize::Normalization;
 use facegate_vision::recognize::normalize::{self, NormalizeParams};

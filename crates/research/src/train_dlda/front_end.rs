@@ -8,8 +8,8 @@ use super::*;
 use crate::cache::ModelFiles;
 use crate::dataset::{self, IMM_POINTS, KeyPoints};
 use facegate_core::imaging::{self, GrayF32};
+use facegate_morph::{FaceModel, Pose};
 use facegate_vision::landmarks::Landmarks;
-use facegate_vision::morph::{FaceModel, Pose};
 use facegate_vision::pipeline::{FaceFinder, PipelineError, load_face_model, recognition_input};
 use facegate_vision::recognize::Normalization;
 
@@ -37,7 +37,7 @@ pub enum FrontEndError {
     #[error("the re-posed copies need the Surrey Face Model, which is not loaded")]
     NoFaceModel,
     #[error("the 3DMM cannot be fitted to the landmarks: {0}")]
-    Fit(#[from] facegate_vision::morph::MorphError),
+    Fit(#[from] facegate_morph::MorphError),
 }
 
 /// A photo ready for normalisation: the grey image (the frontal rendering on the 3DMM path), the

@@ -2,8 +2,9 @@
 
 use super::*;
 use facegate_core::imaging::GrayF32;
+use facegate_core::template::Template;
 use facegate_vision::recognize::normalize;
-use facegate_vision::recognize::template::{Combine, Template};
+use facegate_vision::recognize::Combine;
 use facegate_vision::recognize::{ClassicalRecognizer, Views};
 
 /// Template of an aligned face under a model (photometric normalisation, features, projection; the

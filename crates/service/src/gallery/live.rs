@@ -8,8 +8,8 @@ use tokio::sync::watch;
 
 use super::{Found, Gallery, Precision, UnreadableTemplates};
 use crate::{Candidate, Matcher, SubjectId};
+use facegate_core::template::Template;
 use facegate_store::{ChangeFeed, Store, StoreChange, StoreError};
-use facegate_vision::recognize::Template;
 
 /// Longest an identification waits for the gallery to apply the store's latest change before it
 /// searches the gallery as it is (and logs a warning).

@@ -25,8 +25,8 @@ use std::hash::BuildHasher;
 use hashbrown::{DefaultHashBuilder, HashTable};
 
 use crate::{Candidate, Decision, Matcher};
+use facegate_core::template::Template;
 use facegate_core::vector::dot;
-use facegate_vision::recognize::Template;
 
 pub use live::LiveGallery;
 

@@ -10,15 +10,14 @@ use serde::Serialize;
 use super::finder::FaceFinder;
 use super::input::{RecognitionInput, load_face_model, quality_components, recognition_input, reconstruct};
 use super::{PipelineConfig, PipelineError, TWO_D_MODEL_FILE};
-use crate::detect::Face;
 use crate::landmarks::Landmarks;
 use crate::liveness::{Liveness, LivenessModel};
-use crate::morph::key_points::HIDDEN_SIDE_YAW;
-use crate::morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, FittedFace, Pose};
 use crate::quality::{Quality, QualityModel};
-use crate::recognize::{
-    ClassicalRecognizer, DlibRecognizer, EmbeddingRecognizer, Normalization, Recognizer, RecognizerKind, Template, Views,
-};
+use crate::recognize::{ClassicalRecognizer, DlibRecognizer, EmbeddingRecognizer, Normalization, Recognizer, RecognizerKind, Views};
+use facegate_core::template::Template;
+use facegate_detect::Face;
+use facegate_morph::key_points::HIDDEN_SIDE_YAW;
+use facegate_morph::{AVATAR_TEXTURE_SIZE, AvatarFormat, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, FittedFace, Pose};
 
 /// Milliseconds spent in each stage of one analysis.
 #[derive(Debug, Clone, Copy, Default, Serialize)]

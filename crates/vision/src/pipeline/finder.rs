@@ -8,9 +8,9 @@ use facegate_core::geometry::{Point, Rect};
 use facegate_core::imaging::GrayF32;
 
 use super::PipelineError;
-use crate::detect::{Detector, DetectorKind, Face};
 use crate::landmarks::asm3d::{Asm3dLandmarker, DETECTOR_SEED_MIN_YAW, SERVICE_MIN_YAW};
 use crate::landmarks::{Landmarker, Landmarks, Variant};
+use facegate_detect::{Detector, DetectorKind, Face};
 
 /// The stages that find a face and its 58 landmarks: the detector, the C-ASM and, on turned
 /// faces, the 3D-ASM. The service's [`Pipeline`] and the training and evaluation tools use this one

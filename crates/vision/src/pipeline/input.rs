@@ -11,9 +11,9 @@ use super::PipelineError;
 use super::finder::FaceFinder;
 use crate::embed::FaceChip;
 use crate::landmarks::Landmarks;
-use crate::morph::{FaceModel, FitOptions, Pose};
 use crate::quality::Components;
 use crate::recognize::Normalization;
+use facegate_morph::{FaceModel, FitOptions, Pose};
 
 /// The face [`FaceModel`] when `sfm_dir` holds one; `None` (with a warning) when it does not:
 /// 2D alignment only.
@@ -35,7 +35,7 @@ pub fn reconstruct(
     photo: &Photo,
     options: &FitOptions,
     texture_size: usize,
-) -> Result<crate::morph::Avatar, PipelineError> {
+) -> Result<facegate_morph::Avatar, PipelineError> {
     let located = finder.locate(&photo.gray)?;
     model.avatar(photo, &located.landmarks.points, options, texture_size).map_err(PipelineError::PoseCorrection)
 }

@@ -9,8 +9,8 @@
 
 use std::path::PathBuf;
 
-use crate::detect::DetectorKind;
 use crate::recognize::RecognizerKind;
+use facegate_detect::DetectorKind;
 
 mod analyze;
 mod finder;
@@ -45,11 +45,11 @@ pub enum PipelineError {
     #[error("no face was found in the image")]
     NoFace,
     #[error("the face could not be pose-corrected: {0}")]
-    PoseCorrection(crate::morph::MorphError),
+    PoseCorrection(facegate_morph::MorphError),
     #[error("this needs the 3D morphable model, which is not loaded (the Surrey Face Model folder: --sfm, FACEGATE_SFM)")]
     NoFaceModel,
     #[error(transparent)]
-    Detect(#[from] crate::detect::DetectError),
+    Detect(#[from] facegate_detect::DetectError),
     #[error(transparent)]
     Landmarks(#[from] crate::landmarks::LandmarkError),
     #[error(transparent)]

@@ -19,7 +19,7 @@ pub mod features;
 pub mod normalize;
 mod recognizer;
 pub mod score_norm;
-pub mod template;
+mod template;
 
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -27,11 +27,13 @@ use sha2::{Digest, Sha256};
 pub use calibration::{Calibration, DEFAULT_FMR, EnrolledCalibration, MAX_CALIBRATED_ENROLLMENT};
 pub use classical::{ClassicalModel, ClassicalRecognizer, LocalPart, MODEL_FILE, Provenance, SecondaryPath};
 pub use dlda::Dlda;
-pub use facegate_core::template::OperatingPoint;
 pub use features::{FeatureKind, Region};
 pub use normalize::{NormalizeParams, Photometric};
 pub use score_norm::{Cohort, CohortStats};
-pub use template::{Combine, Template};
+pub use template::Combine;
+// Template and OperatingPoint are core's, named from there by every crate; imported here for the
+// recognizers below.
+use facegate_core::template::{OperatingPoint, Template};
 
 pub use dlib::DlibRecognizer;
 pub use embedding::EmbeddingRecognizer;

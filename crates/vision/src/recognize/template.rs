@@ -1,9 +1,8 @@
-//! How the scores of a probe against several templates of one person combine. [`Template`] itself
+//! How the scores of a probe against several templates of one person combine.
+//! [`facegate_core::template::Template`] itself
 //! lives in facegate-core, so that the store and the service need nothing of the stages.
 
 use serde::{Deserialize, Serialize};
-
-pub use facegate_core::template::Template;
 
 /// How the scores of a probe against several templates of one person combine.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

@@ -2,7 +2,7 @@
 
 use super::super::*;
 use super::*;
-use facegate_vision::recognize::OperatingPoint;
+use facegate_core::template::OperatingPoint;
 use rand::{Rng, SeedableRng};
 
 /// Scores by the best cosine, like the deep recognizer; `general` turns the fast path off.

@@ -5,10 +5,10 @@ use std::path::Path;
 use crate::landmarks::asm3d::*;
 use crate::landmarks::search::{self, Frame, Level, Workspace, from_level, pyramid, to_level};
 use crate::landmarks::{AsmModel, LandmarkError, Variant};
-use crate::morph::{Camera, Pose};
 use facegate_core::face::{IMM_POINTS, KeyPoints};
 use facegate_core::geometry::{Point, Rect, centroid};
 use facegate_core::imaging::GrayF32;
+use facegate_morph::{Camera, Pose};
 
 /// The crop frame with `scale` crop pixels per image pixel and `centre` (image) in the middle.
 pub fn crop_frame(scale: f32, centre: Point, crop_size: usize) -> Frame {
@@ -84,21 +84,21 @@ pub const HIDDEN_POINT_WEIGHT: f64 = 0.05;
 /// held-out faces (`facegate eval landmarks`): the seeded search wins from 60° on and is level at
 /// 45°; a 30° threshold did better at 60° but moved the points (and the fitted pose) of UMIST's
 /// 30–40° photos, where the two searches are level.
-pub const DETECTOR_SEED_MIN_YAW: f32 = crate::morph::key_points::HIDDEN_SIDE_YAW;
+pub const DETECTOR_SEED_MIN_YAW: f32 = facegate_morph::key_points::HIDDEN_SIDE_YAW;
 
 /// |yaw| of the chosen view beyond which the refinement is the view's own 3D search on the fine
 /// level instead of a 2D model: the 2D models' texture suggestions for the points it hides pull
 /// the shape, where the 3D fit weights them by [`HIDDEN_POINT_WEIGHT`].
 pub const REFINE_3D_BEYOND_YAW: f32 = 45.0;
 
-/// The camera of [`morph::key_points::key_point_camera`](crate::morph::key_points::key_point_camera)
+/// The camera of [`morph::key_points::key_point_camera`](facegate_morph::key_points::key_point_camera)
 /// (the far eye and mouth corner down-weighted past 40°), `None` for non-finite points or a
 /// degenerate camera.
 fn key_point_camera(model: &[[f64; 3]; 5], points: &[Point; 5]) -> Option<Camera> {
     if points.iter().any(|p| !p[0].is_finite() || !p[1].is_finite()) {
         return None;
     }
-    let camera = crate::morph::key_points::key_point_camera(model, points).ok()?;
+    let camera = facegate_morph::key_points::key_point_camera(model, points).ok()?;
     (camera.scale.is_finite() && camera.scale > 0.0).then_some(camera)
 }
 

@@ -3,8 +3,8 @@
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
-use crate::morph::{Camera, fit::estimate_camera};
 use facegate_core::geometry::Point;
+use facegate_morph::{Camera, fit::estimate_camera};
 
 /// A 3D point distribution model of the 58 IMM points (model millimetres: x to the subject's left,
 /// y up, z towards the camera), coefficients limited to ±`constrain`·√λ.
