@@ -12,9 +12,9 @@
 //! `cargo run --release --example gallery_scale`.
 
 use criterion::{BatchSize, BenchmarkId, Criterion, black_box};
-use facegate_core::template::{OperatingPoint, Template};
 use facegate::service::Matcher;
 use facegate::service::gallery::{Found, Gallery, Precision};
+use facegate_core::template::{OperatingPoint, Template};
 use rand::{Rng, SeedableRng};
 
 mod common;

@@ -16,9 +16,9 @@
 
 use std::time::Instant;
 
-use facegate_core::template::Template;
 use facegate::service::SubjectId;
 use facegate::store::Store;
+use facegate_core::template::Template;
 use rand::{Rng, SeedableRng};
 
 #[tokio::main]

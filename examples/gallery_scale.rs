@@ -19,9 +19,9 @@
 //! store's gallery (`LiveGallery::load`, quantised) and its resident growth, then a search
 //! (filled by `examples/fill_gallery.rs --bulk`).
 
-use facegate_core::template::{OperatingPoint, Template};
 use facegate::service::Matcher;
 use facegate::service::gallery::{Found, Gallery, Precision};
+use facegate_core::template::{OperatingPoint, Template};
 use rand::{Rng, SeedableRng};
 
 /// The deep recognizers' scoring (the best cosine) for templates of one model version.

@@ -52,6 +52,14 @@ for package in meta["packages"]:
         if dep["name"] in forbidden and dep["kind"] is None:
             failures.append(f"{package['name']} depends on {dep['name']}: the runtime must not")
 
+# Research is handed its paths (by the binary's commands); the settings' paths are only its
+# tests' (a dev-dependency).
+for package in meta["packages"]:
+    if package["name"] == "facegate-research":
+        for dep in package["dependencies"]:
+            if dep["name"] == "facegate-paths" and dep["kind"] is None:
+                failures.append("facegate-research depends on facegate-paths: research takes the paths it is handed")
+
 for failure in failures:
     print(f"layout: {failure}", file=sys.stderr)
 if failures:

@@ -56,6 +56,10 @@ pub struct EvalLandmarksArgs {
     /// size, faces about as wide as ORL's), to measure small faces.
     #[arg(long, default_value_t = 0)]
     pub halvings: usize,
+    /// Surrey Face Model folder for the 3D-ASM's rows (default: `FACEGATE_SFM` or
+    /// `../shared/models/sfm`).
+    #[arg(long)]
+    pub sfm: Option<PathBuf>,
 }
 
 /// The detector, or `None` with a warning when it cannot be loaded.
@@ -176,6 +180,7 @@ pub fn run_eval(args: EvalLandmarksArgs) -> anyhow::Result<ExitCode> {
         None => {
             crate::research::eval::landmarks::run_scaled(
                 &args.imm,
+                &args.sfm.clone().unwrap_or_else(crate::config::sfm_dir),
                 detector.as_ref(),
                 &args.out,
                 args.halvings,

@@ -17,9 +17,9 @@ use super::eval::protocol::{all_pairs_by, enrollment_scores_by};
 use facegate_morph::FaceModel;
 use facegate_vision::embed::{Embedder, face_embedding};
 use facegate_vision::pipeline::{FaceFinder, load_face_model};
+use facegate_vision::recognize::Combine;
 use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
 use facegate_vision::recognize::dlib::{ChipSource, DeepProvenance, DlibModel, FORMAT};
-use facegate_vision::recognize::Combine;
 use facegate_vision::recognize::{Calibration, Dlda, EnrolledCalibration, MAX_CALIBRATED_ENROLLMENT};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

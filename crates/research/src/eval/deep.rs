@@ -13,10 +13,10 @@ use crate::train_deep::{PhotoEmbeddings, Sample, Set};
 use facegate_core::vector::{dot, unit};
 use facegate_vision::embed::{CHIP_SIZE, Embedder, Embedding, chip};
 use facegate_vision::pipeline::FaceFinder;
+use facegate_vision::recognize::Combine;
 use facegate_vision::recognize::Dlda;
 use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
 use facegate_vision::recognize::dlib::DlibModel;
-use facegate_vision::recognize::Combine;
 
 /// How two embeddings are scored (higher: more alike).
 #[derive(Debug, Clone)]

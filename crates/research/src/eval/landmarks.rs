@@ -76,18 +76,6 @@ pub fn measure(
     measure_fn(photos, variant.name(), &|gray, rect| landmarker.fit(gray, rect, variant).keypoints)
 }
 
-/// Train on the training persons, measure the three variants on the held-out persons, print the
-/// table, write `summary.json`, `landmarks-d_eye.svg` and `landmarks-mouth.svg` into `out`.
-pub fn run(
-    imm: &Path,
-    detector: Option<&Detector>,
-    out: &Path,
-    progress: &dyn Progress,
-    report: &mut dyn Write,
-) -> anyhow::Result<Vec<VariantSummary>> {
-    run_scaled(imm, detector, out, 0, progress, report)
-}
-
 type TestPhoto = (ImmSample, facegate_core::imaging::GrayF32, Vec<facegate_core::geometry::Point>, Option<Rect>);
 
 /// Load test photos, halved `halvings` times (2×2 means, the pyramid's convention: a point `p` goes
@@ -188,9 +176,12 @@ fn print_table(summaries: &[VariantSummary], report: &mut dyn Write) -> std::io:
     Ok(())
 }
 
-/// [`run`] with the test photos halved `halvings` times (0: exactly [`run`]).
+/// Train on the training persons, measure the three variants (and the 3D-ASM with the Surrey Face
+/// Model in `sfm`) on the held-out persons, their test photos halved `halvings` times, print the
+/// table, write `summary.json`, `landmarks-d_eye.svg` and `landmarks-mouth.svg` into `out`.
 pub fn run_scaled(
     imm: &Path,
+    sfm: &Path,
     detector: Option<&Detector>,
     out: &Path,
     halvings: usize,
@@ -212,7 +203,7 @@ pub fn run_scaled(
     let mut summaries: Vec<VariantSummary> = Variant::ALL.iter().map(|&v| measure(&landmarker, &photos, v)).collect();
     // The 3D-ASM beside them, and the head yaw of each photo for the per-view table.
     let (yaws, crossover_rows, profile_rows, pose_rows) =
-        match measure_asm3d(&training, if halvings == 0 { &test } else { &[] }, detector, &photos, &landmarker, progress) {
+        match measure_asm3d(sfm, &training, if halvings == 0 { &test } else { &[] }, detector, &photos, &landmarker, progress) {
             Some(m) => {
                 summaries.push(m.asm3d);
                 summaries.push(m.switch);
@@ -370,6 +361,7 @@ struct Asm3dMeasurements {
 /// `asm3d::SERVICE_MIN_YAW`); with a detector, both also against C-ASM on turned renders of the
 /// `test` persons ([`crossover`]).
 fn measure_asm3d(
+    sfm: &Path,
     training: &[ImmSample],
     test: &[ImmSample],
     detector: Option<&Detector>,
@@ -378,7 +370,7 @@ fn measure_asm3d(
     progress: &dyn Progress,
 ) -> Option<Asm3dMeasurements> {
     use facegate_vision::landmarks::asm3d;
-    let fm = match facegate_morph::FaceModel::load(&facegate_paths::sfm_dir()) {
+    let fm = match facegate_morph::FaceModel::load(sfm) {
         Ok(m) => m,
         Err(e) => {
             progress.note(&format!("facegate: 3D-ASM not measured: {e}"));

@@ -15,11 +15,11 @@ use crate::dlda::DldaParams;
 use crate::eval::verification::{VerificationSummary, eer, summarize};
 use facegate_core::imaging::GrayF32;
 use facegate_core::template::Template;
+use facegate_vision::recognize::Combine;
 use facegate_vision::recognize::calibration::{CALIBRATED_FMRS, Calibration, EnrolledCalibration, MAX_CALIBRATED_ENROLLMENT};
 use facegate_vision::recognize::dlda::Dlda;
 use facegate_vision::recognize::features::{self, FeatureKind, Region};
 use facegate_vision::recognize::normalize::{self, NormalizeParams};
-use facegate_vision::recognize::Combine;
 use facegate_vision::recognize::{ClassicalModel, ClassicalRecognizer, Cohort, LocalPart, Normalization, Provenance, SecondaryPath};
 
 pub mod crops;

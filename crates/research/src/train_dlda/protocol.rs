@@ -3,8 +3,8 @@
 use super::*;
 use facegate_core::imaging::GrayF32;
 use facegate_core::template::Template;
-use facegate_vision::recognize::normalize;
 use facegate_vision::recognize::Combine;
+use facegate_vision::recognize::normalize;
 use facegate_vision::recognize::{ClassicalRecognizer, Views};
 
 /// Template of an aligned face under a model (photometric normalisation, features, projection; the
