@@ -5,7 +5,8 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use crate::liveness::Block;
-use crate::research::eval::liveness::{self as research, OperatingPoint};
+use crate::research::eval::liveness as research;
+use crate::research::eval::liveness_measures::OperatingPoint;
 use crate::research::eval::liveness_peer::{self as peer, Network, PeerScores};
 use crate::research::eval::liveness_subjects as subjects;
 use crate::research::train_liveness::{self, LivenessData, Recipe};

@@ -7,7 +7,6 @@ use faer::linalg::matmul::matmul;
 use faer::{Accum, MatMut, MatRef, Par};
 
 use crate::int8::{self, Epilogue, Int8Weights, Quantisation};
-use crate::resnet::NetworkError;
 use crate::weights::Conv;
 
 /// Products per output below which a layer stays in floats ([`int8_weights`]).
@@ -56,10 +55,10 @@ pub(crate) struct FoldedConv {
 }
 
 impl FoldedConv {
-    pub(crate) fn new(conv: &Conv, gamma: &[f32], beta: &[f32]) -> Result<FoldedConv, NetworkError> {
+    pub(crate) fn new(conv: &Conv, gamma: &[f32], beta: &[f32]) -> Result<FoldedConv, String> {
         let (f, c, k) = (conv.filters, conv.channels, conv.size);
         if gamma.len() != f || beta.len() != f {
-            return Err(NetworkError::Layout(format!("affine of {} channels after {f} filters", gamma.len())));
+            return Err(format!("affine of {} channels after {f} filters", gamma.len()));
         }
         let mut rhs = vec![0.0f32; k * k * c * f];
         for o in 0..f {

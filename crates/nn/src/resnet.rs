@@ -109,7 +109,7 @@ impl<'a> Layers<'a> {
         let Layer::Affine { gamma, beta } = self.next("affine layer")? else {
             return Err(NetworkError::Layout("expected an affine layer after a convolution".into()));
         };
-        FoldedConv::new(conv, gamma, beta)
+        FoldedConv::new(conv, gamma, beta).map_err(NetworkError::Layout)
     }
 
     fn relu(&mut self) -> Result<(), NetworkError> {

@@ -11,6 +11,7 @@ use serde::Serialize;
 
 use crate::Progress;
 use crate::dataset::Split;
+use crate::eval::liveness_measures::{CAMERA_BPCER, OPERATING_POINTS, OperatingPoint, Rates, eer_threshold};
 use crate::eval::plot::{Chart, Scale, Series, line_chart};
 use crate::eval::verification::{eer, error_curve, fnmr_at_fmr};
 use crate::train_deep::Set;
@@ -19,62 +20,12 @@ use crate::train_liveness::{
     platt_probability,
 };
 
-/// The ISO/IEC 30107-3 error rates at one threshold.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct Rates {
-    pub apcer: f64,
-    pub bpcer: f64,
-    pub acer: f64,
-}
-
-impl Rates {
-    /// The rates at one `threshold` for every score (a score at the threshold is taken for live).
-    pub fn at(live: &[f32], attacks: &[f32], threshold: f32) -> Rates {
-        let apcer = attacks.iter().filter(|&&s| s >= threshold).count() as f64 / attacks.len().max(1) as f64;
-        let bpcer = live.iter().filter(|&&s| s < threshold).count() as f64 / live.len().max(1) as f64;
-        Rates { apcer, bpcer, acer: 0.5 * (apcer + bpcer) }
-    }
-}
-
 /// The rates with each score's own threshold, that of its subject fold.
 fn rates(live: &[f32], attacks: &[f32], threshold: impl Fn(usize) -> f32, live_fold: &[usize], attack_fold: &[usize]) -> Rates {
     let apcer = attacks.iter().zip(attack_fold).filter(|(s, f)| **s >= threshold(**f)).count() as f64 / attacks.len().max(1) as f64;
     let bpcer = live.iter().zip(live_fold).filter(|(s, f)| **s < threshold(**f)).count() as f64 / live.len().max(1) as f64;
     Rates { apcer, bpcer, acer: 0.5 * (apcer + bpcer) }
 }
-
-/// The threshold where APCER and BPCER are closest.
-pub fn eer_threshold(live: &[f32], attacks: &[f32]) -> f32 {
-    error_curve(live, attacks).iter().min_by(|a, b| (a.fmr - a.fnmr).abs().total_cmp(&(b.fmr - b.fnmr).abs())).map_or(0.0, |p| p.threshold)
-}
-
-/// Where a model's threshold is put, on out-of-fold scores.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub enum OperatingPoint {
-    /// APCER = BPCER.
-    Eer,
-    /// The lowest threshold with APCER at most this.
-    Apcer(f64),
-}
-
-impl OperatingPoint {
-    pub fn threshold(self, live: &[f32], attacks: &[f32]) -> f32 {
-        match self {
-            OperatingPoint::Eer => eer_threshold(live, attacks),
-            OperatingPoint::Apcer(a) => fnmr_at_fmr(live, attacks, a).1,
-        }
-    }
-
-    pub fn name(self) -> String {
-        match self {
-            OperatingPoint::Eer => "EER".to_string(),
-            OperatingPoint::Apcer(a) => format!("APCER {}%", a * 100.0),
-        }
-    }
-}
-
-/// The operating points reported.
-pub const OPERATING_POINTS: [OperatingPoint; 3] = [OperatingPoint::Eer, OperatingPoint::Apcer(0.05), OperatingPoint::Apcer(0.01)];
 
 /// One recipe's measures.
 #[derive(Debug, Clone, Serialize)]
@@ -254,9 +205,6 @@ pub struct CameraThreshold {
     pub nuaa_print_accepted: f64,
     pub nuaa_screen_accepted: f64,
 }
-
-/// The share of the camera's live photos `facegate calibrate-liveness` refuses at most.
-pub const CAMERA_BPCER: f64 = facegate_service::liveness_site::DEFAULT_BPCER;
 
 /// [`CameraThreshold`] of scores: the calibration persons' live faces, the test persons' live
 /// faces and their simulated prints and screens; `None` when too few faces calibrate.

@@ -8,6 +8,7 @@ pub mod identification;
 pub mod landmarks;
 pub mod liveness;
 pub mod liveness_cnn;
+pub mod liveness_measures;
 pub mod liveness_peer;
 pub mod liveness_subjects;
 pub mod pairs;

@@ -18,6 +18,8 @@ use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PipelineError};
 use facegate_vision::quality::{Failure, QualityPolicy};
 
 use crate::challenge::{ChallengeConfig, ChallengeOutcome, InvalidChallenge};
+
+mod challenge;
 use crate::gallery::{LiveGallery, Precision, UnreadableTemplates};
 use crate::inspect::{self, Analysis, InspectError};
 use crate::liveness::{LivenessPoint, LivenessPolicy, PresentationAttack};
@@ -261,6 +263,16 @@ pub struct Verification {
     pub match_ms: f64,
 }
 
+impl Verification {
+    /// The decision on `photo` against the subject's `comparable` templates at `fmr`, timed: the
+    /// last step of every verification, with or without frames or a challenge.
+    fn of_probe(matcher: &dyn Matcher, comparable: &[Template], fmr: f64, photo: AnalyzedPhoto) -> Verification {
+        let start = Instant::now();
+        let decision = crate::decide(matcher, &photo.analysis.template, comparable, fmr);
+        Verification { decision, photo, frames: Vec::new(), frame_scores: Vec::new(), challenge: None, match_ms: elapsed_ms(start) }
+    }
+}
+
 /// A completed identification.
 #[derive(Debug)]
 pub struct Identification {
@@ -469,18 +481,24 @@ impl Facegate {
             return Err(ServiceError::Invalid(format!("at most {max} frames besides the probe, got {n}")));
         }
         let fmr = self.fmr(fmr);
-        let enrolled =
-            self.read_store(self.0.store.templates(subject)).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))?;
-        let matcher = self.matcher();
-        let comparable = crate::comparable_templates(&matcher, subject, enrolled)?;
+        let (matcher, comparable) = self.comparable_of(subject).await?;
         let (photo, frames, frame_scores) = if frames.is_empty() {
             (self.analyze_probe(image).await?, Vec::new(), Vec::new())
         } else {
             self.analyze_capture(image, frames, fmr).await?
         };
-        let start = Instant::now();
-        let decision = crate::decide(&matcher, &photo.analysis.template, &comparable, fmr);
-        Ok(Verification { decision, photo, frames, frame_scores, challenge: None, match_ms: elapsed_ms(start) })
+        Ok(Verification { frames, frame_scores, ..Verification::of_probe(&matcher, &comparable, fmr, photo) })
+    }
+
+    /// The matcher in use and the subject's templates it can compare with, what a verification
+    /// holds its probe against: an unknown subject, or one without a template of the model in
+    /// use, is refused.
+    async fn comparable_of(&self, subject: &SubjectId) -> Result<(CalibratedMatcher<dyn FaceEngine>, Vec<Template>), ServiceError> {
+        let enrolled =
+            self.read_store(self.0.store.templates(subject)).await?.ok_or_else(|| ServiceError::UnknownSubject(subject.clone()))?;
+        let matcher = self.matcher();
+        let comparable = crate::comparable_templates(&matcher, subject, enrolled)?;
+        Ok((matcher, comparable))
     }
 
     /// The best `k` enrolled subjects for the largest face of `image`. What the store holds when
