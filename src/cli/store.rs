@@ -310,13 +310,19 @@ fn warn_of_duplicates(site: &SiteCalibration) {
     if site.suspected_duplicates.is_empty() {
         return;
     }
+    const SHOWN: usize = 20;
+    let pairs = site.duplicate_id_pairs.max(site.suspected_duplicates.len());
     eprintln!(
-        "warning: {} pair(s) of ids score like one person (at or above {:.4}); their {} template pair(s) were left out of the calibration:",
-        site.suspected_duplicates.len(),
+        "warning: {pairs} pair(s) of ids score like one person (at or above {:.4}); their {} template pair(s) were left out of the calibration; {}:",
         site.duplicate_threshold.unwrap_or(f32::INFINITY),
-        site.duplicate_pairs_left_out
+        site.duplicate_pairs_left_out,
+        if pairs > SHOWN {
+            format!("the {SHOWN} highest (the JSON line lists up to {})", site.suspected_duplicates.len())
+        } else {
+            "they are".into()
+        }
     );
-    for d in site.suspected_duplicates.iter().take(20) {
+    for d in site.suspected_duplicates.iter().take(SHOWN) {
         eprintln!("  {} and {} ({:.4})", d.subjects[0], d.subjects[1], d.score);
     }
 }

@@ -102,7 +102,7 @@ async fn a_site_calibration_raises_the_served_threshold_and_clear_takes_it_back(
     );
     // alice and alice-again are one person: their pair is left out, and named.
     assert_eq!(site["impostor_pairs"].as_u64(), Some(152 * 151 / 2 - 1));
-    assert_eq!(site["duplicate_pairs_left_out"].as_u64(), Some(1));
+    assert_eq!((site["duplicate_pairs_left_out"].as_u64(), site["duplicate_id_pairs"].as_u64()), (Some(1), Some(1)));
     assert_eq!(site["suspected_duplicates"][0]["subjects"], json!(["alice", "alice-again"]));
     // 11,475 pairs show 1e-2 and 1e-3 (at least ten false matches each), not 1e-4.
     let points: Vec<f64> = site["points"].as_array().unwrap().iter().map(|p| p["fmr"].as_f64().unwrap()).collect();
@@ -123,6 +123,8 @@ async fn a_site_calibration_raises_the_served_threshold_and_clear_takes_it_back(
         v["points"].as_array().unwrap().iter().map(|p| (p["fmr"].as_f64().unwrap(), p["threshold"].as_f64().unwrap() as f32)).collect()
     };
     assert_eq!((in_use["impostor_pairs"].as_u64(), points(&in_use)), (Some(152 * 151 / 2 - 1), points(site)));
+    // The stored calibration keeps the count of suspected pairs of ids, not their names.
+    assert_eq!((in_use["duplicate_id_pairs"].as_u64(), in_use.get("suspected_duplicates")), (Some(1), None));
     drop(served);
 
     let (_, lines) = facegate(&["calibrate", "--database", &database, "--clear"]);

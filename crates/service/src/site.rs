@@ -80,6 +80,10 @@ pub struct SiteCalibration {
     /// Template pairs left out because their two ids are suspected to be one person.
     #[serde(default)]
     pub duplicate_pairs_left_out: usize,
+    /// The pairs of ids suspected to be one person, all of them (the list below stops at
+    /// [`MAX_LISTED_DUPLICATES`]).
+    #[serde(default)]
+    pub duplicate_id_pairs: usize,
     /// The suspected pairs of ids, highest score first (at most [`MAX_LISTED_DUPLICATES`]); never
     /// stored ([`save`]).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -100,6 +104,7 @@ impl SiteCalibration {
         let mut suspected: Vec<SuspectedDuplicate> =
             pairs.duplicates.iter().map(|(&(a, b), &score)| SuspectedDuplicate { subjects: [name(a), name(b)], score }).collect();
         suspected.sort_by(|x, y| y.score.total_cmp(&x.score).then_with(|| x.subjects.cmp(&y.subjects)));
+        let duplicate_id_pairs = suspected.len();
         suspected.truncate(MAX_LISTED_DUPLICATES);
         SiteCalibration {
             model_version: model_version.to_string(),
@@ -109,6 +114,7 @@ impl SiteCalibration {
             points,
             duplicate_threshold: pairs.duplicate_threshold.is_finite().then_some(pairs.duplicate_threshold),
             duplicate_pairs_left_out: pairs.duplicate_pairs,
+            duplicate_id_pairs,
             suspected_duplicates: suspected,
         }
     }
@@ -339,6 +345,7 @@ mod tests {
             points: points.iter().map(|&(fmr, threshold)| SitePoint { fmr, threshold }).collect(),
             duplicate_threshold: None,
             duplicate_pairs_left_out: 0,
+            duplicate_id_pairs: 0,
             suspected_duplicates: Vec::new(),
         }
     }
@@ -411,6 +418,8 @@ mod tests {
         assert_eq!(s.duplicate_pairs_left_out, 114 * 113 / 2);
         assert!(s.points.iter().all(|p| p.threshold < 0.999), "{:?}", s.points);
         assert_eq!(s.suspected_duplicates.len(), MAX_LISTED_DUPLICATES);
+        // The count is of every pair, not of those listed.
+        assert_eq!(s.duplicate_id_pairs, 114 * 113 / 2);
     }
 
     #[test]

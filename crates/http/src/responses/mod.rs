@@ -299,6 +299,8 @@ struct SiteCalibration {
     duplicate_threshold: Option<f32>,
     /// Template pairs left out as suspected duplicates.
     duplicate_pairs_left_out: usize,
+    /// Pairs of ids suspected to be one person.
+    duplicate_id_pairs: usize,
 }
 
 impl From<&facegate_service::site::SiteCalibration> for SiteCalibration {
@@ -311,6 +313,7 @@ impl From<&facegate_service::site::SiteCalibration> for SiteCalibration {
             points: s.points.iter().map(|p| SitePoint { fmr: p.fmr, threshold: p.threshold }).collect(),
             duplicate_threshold: s.duplicate_threshold,
             duplicate_pairs_left_out: s.duplicate_pairs_left_out,
+            duplicate_id_pairs: s.duplicate_id_pairs,
         }
     }
 }
