@@ -311,7 +311,7 @@ fn warn_of_duplicates(site: &SiteCalibration) {
         return;
     }
     const SHOWN: usize = 20;
-    let pairs = site.duplicate_id_pairs.max(site.suspected_duplicates.len());
+    let pairs = site.duplicate_id_pairs;
     eprintln!(
         "warning: {pairs} pair(s) of ids score like one person (at or above {:.4}); their {} template pair(s) were left out of the calibration; {}:",
         site.duplicate_threshold.unwrap_or(f32::INFINITY),

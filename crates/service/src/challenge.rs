@@ -20,9 +20,6 @@
 //! - a camera's face, not a rendered head: the rendered-head detector (`render.bin`), fused over
 //!   the frames, at [`RENDER_MIN`] (a good 3D render turns like a head: the depth test cannot
 //!   tell it).
-//!
-//! The passive score of every frame is fused as for any capture ([`crate::fuse_liveness`]); the
-//! capture is an attack when either check says so.
 
 use std::time::Duration;
 

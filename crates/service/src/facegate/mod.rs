@@ -18,13 +18,14 @@ use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PipelineError};
 use facegate_vision::quality::{Failure, QualityPolicy};
 
 use crate::challenge::{ChallengeConfig, ChallengeOutcome, InvalidChallenge};
-
-mod challenge;
 use crate::gallery::{LiveGallery, Precision, UnreadableTemplates};
 use crate::inspect::{self, Analysis, InspectError};
 use crate::liveness::{LivenessPoint, LivenessPolicy, PresentationAttack};
 use crate::site::{CalibratedMatcher, SiteCalibration, SiteStatus};
 use crate::{Candidate, Decision, FaceEngine, Matcher, PoolError, VerifyError, WorkPool};
+
+/// The head-turn challenge's use cases (issue, verify), on the rules of [`crate::challenge`].
+mod challenge;
 
 /// The service's policies (made from the binary's settings, where the defaults are).
 #[derive(Debug, Clone)]
