@@ -53,6 +53,8 @@ const DEFAULT_CONSOLE: bool = true;
 const DEFAULT_ENROLL_QUEUE: usize = 16;
 const DEFAULT_ADMISSION_WAIT_MS: u64 = 1000;
 const DEFAULT_MAX_BUFFERED_MB: usize = 128;
+/// A quarter of the default body memory: two of the largest bodies at once.
+const DEFAULT_MAX_BUFFERED_PER_ADDRESS_MB: usize = 32;
 const DEFAULT_BODY_TIMEOUT_SECS: f64 = 15.0;
 const DEFAULT_BODY_GRACE_SECS: f64 = 5.0;
 const DEFAULT_MIN_BODY_RATE_KIB: u64 = 8;
@@ -62,6 +64,8 @@ const DEFAULT_CHALLENGE_RATE: f64 = 10.0;
 const DEFAULT_MAX_OPEN_CHALLENGES: u64 = 2_000;
 const DEFAULT_HEADER_TIMEOUT_SECS: f64 = 10.0;
 const DEFAULT_MAX_CONNECTIONS: usize = 1024;
+/// A quarter of the default connection cap.
+const DEFAULT_MAX_CONNECTIONS_PER_ADDRESS: usize = 256;
 const DEFAULT_SHUTDOWN_GRACE_SECS: f64 = 10.0;
 /// Shortest API key accepted: a shorter one is guessable and refused at start-up.
 pub const MIN_API_KEY_LEN: usize = 16;
@@ -142,6 +146,10 @@ pub struct Settings {
     /// Request bodies held in memory at once, in MiB; a request that would exceed it gets 503.
     #[arg(long, env = "FACEGATE_MAX_BUFFERED_MB", default_value_t = DEFAULT_MAX_BUFFERED_MB)]
     pub max_buffered_mb: usize,
+    /// Of --max-buffered-mb, most MiB held by the request bodies of one client address (IPv6: its
+    /// /64); a request that would exceed it gets 503. At least --max-body-mb.
+    #[arg(long, env = "FACEGATE_MAX_BUFFERED_PER_ADDRESS_MB", default_value_t = DEFAULT_MAX_BUFFERED_PER_ADDRESS_MB)]
+    pub max_buffered_per_address_mb: usize,
     /// Largest request body, in MiB.
     #[arg(long, env = "FACEGATE_MAX_BODY_MB", default_value_t = DEFAULT_MAX_BODY_MB)]
     pub max_body_mb: usize,
@@ -164,12 +172,12 @@ pub struct Settings {
     /// Seconds a request body may take before --min-body-rate-kib applies.
     #[arg(long, env = "FACEGATE_BODY_GRACE_SECS", default_value_t = DEFAULT_BODY_GRACE_SECS)]
     pub body_grace_secs: f64,
-    /// Least average rate of a request body after the grace period, KiB/s (answered with 408 when
-    /// slower); 0 checks no rate.
+    /// Least rate of a request body after the grace period, KiB/s over the last grace period's
+    /// length (answered with 408 when slower); 0 checks no rate.
     #[arg(long, env = "FACEGATE_MIN_BODY_RATE_KIB", default_value_t = DEFAULT_MIN_BODY_RATE_KIB)]
     pub min_body_rate_kib: u64,
-    /// Request bodies arriving at once from one client address (IPv6: its /64); more wait up to
-    /// the admission wait, then get 503.
+    /// Request bodies awaited (a head sent, its body not begun) or arriving at once from one client
+    /// address (IPv6: its /64); more wait up to the admission wait, then get 503.
     #[arg(long, env = "FACEGATE_MAX_UPLOADS_PER_ADDRESS", default_value_t = DEFAULT_MAX_UPLOADS_PER_ADDRESS)]
     pub max_uploads_per_address: usize,
     /// Seconds for a connection to send a complete request head; also the longest a keep-alive
@@ -179,6 +187,11 @@ pub struct Settings {
     /// Connections open at once; further ones wait in the listen backlog.
     #[arg(long, env = "FACEGATE_MAX_CONNECTIONS", default_value_t = DEFAULT_MAX_CONNECTIONS)]
     pub max_connections: usize,
+    /// Connections open at once from one client address (IPv6: its /64), at most
+    /// --max-connections; a further one is answered 503 and closed. Behind a proxy that hides the
+    /// clients' addresses, set it to --max-connections.
+    #[arg(long, env = "FACEGATE_MAX_CONNECTIONS_PER_ADDRESS", default_value_t = DEFAULT_MAX_CONNECTIONS_PER_ADDRESS)]
+    pub max_connections_per_address: usize,
     /// Seconds in-flight connections get to finish after SIGTERM or Ctrl-C before they are dropped.
     #[arg(long, env = "FACEGATE_SHUTDOWN_GRACE_SECS", default_value_t = DEFAULT_SHUTDOWN_GRACE_SECS)]
     pub shutdown_grace_secs: f64,
@@ -232,6 +245,11 @@ pub struct Settings {
     /// beyond → 429.
     #[arg(long, env = "FACEGATE_MAX_OPEN_CHALLENGES", default_value_t = DEFAULT_MAX_OPEN_CHALLENGES)]
     pub max_open_challenges: u64,
+    /// With `--liveness enforce`: `/verify` only with a passed head-turn challenge; a verification
+    /// without `challenge` is refused (422 `invalid-challenge`). Identification and enrolment are
+    /// not affected.
+    #[arg(long, env = "FACEGATE_REQUIRE_CHALLENGE")]
+    pub require_challenge: bool,
     #[command(flatten)]
     pub template_key: TemplateKeyArgs,
 }
@@ -272,6 +290,7 @@ impl Default for Settings {
             enroll_queue: DEFAULT_ENROLL_QUEUE,
             admission_wait_ms: DEFAULT_ADMISSION_WAIT_MS,
             max_buffered_mb: DEFAULT_MAX_BUFFERED_MB,
+            max_buffered_per_address_mb: DEFAULT_MAX_BUFFERED_PER_ADDRESS_MB,
             max_body_mb: DEFAULT_MAX_BODY_MB,
             max_pixels: DEFAULT_MAX_PIXELS,
             max_decode_mb: DEFAULT_MAX_DECODE_MB,
@@ -283,6 +302,7 @@ impl Default for Settings {
             max_uploads_per_address: DEFAULT_MAX_UPLOADS_PER_ADDRESS,
             header_timeout_secs: DEFAULT_HEADER_TIMEOUT_SECS,
             max_connections: DEFAULT_MAX_CONNECTIONS,
+            max_connections_per_address: DEFAULT_MAX_CONNECTIONS_PER_ADDRESS,
             shutdown_grace_secs: DEFAULT_SHUTDOWN_GRACE_SECS,
             log_format: LogFormat::default(),
             console: DEFAULT_CONSOLE,
@@ -299,6 +319,7 @@ impl Default for Settings {
             challenge_lifetime_secs: DEFAULT_CHALLENGE_LIFETIME_SECS,
             challenge_rate: DEFAULT_CHALLENGE_RATE,
             max_open_challenges: DEFAULT_MAX_OPEN_CHALLENGES,
+            require_challenge: false,
         }
     }
 }
@@ -317,8 +338,16 @@ impl Settings {
         anyhow::ensure!(self.max_images >= 1, "--max-images must be at least 1");
         anyhow::ensure!((10..=3600).contains(&self.challenge_lifetime_secs), "--challenge-lifetime-secs must be between 10 and 3600");
         anyhow::ensure!(self.max_uploads_per_address >= 1, "--max-uploads-per-address must be at least 1");
+        anyhow::ensure!(
+            self.max_buffered_per_address_mb >= self.max_body_mb,
+            "--max-buffered-per-address-mb must be at least --max-body-mb: else a body at the limit could never be held"
+        );
         anyhow::ensure!(self.challenge_rate.is_finite() && self.challenge_rate >= 0.0, "--challenge-rate must be 0 or more");
         anyhow::ensure!(self.max_open_challenges >= 1, "--max-open-challenges must be at least 1");
+        anyhow::ensure!(
+            !self.require_challenge || LivenessPolicy::from(self.liveness) == LivenessPolicy::Enforce,
+            "--require-challenge (FACEGATE_REQUIRE_CHALLENGE) needs --liveness enforce: a challenge is only required where its verdict is"
+        );
         Ok(ApiConfig {
             max_body_bytes: self.max_body_mb << 20,
             request_timeout: timeout,
@@ -332,6 +361,7 @@ impl Settings {
             enroll_queue_depth: self.enroll_queue,
             admission_wait: Duration::from_millis(self.admission_wait_ms),
             max_buffered_bytes: self.max_buffered_mb << 20,
+            max_buffered_per_address: self.max_buffered_per_address_mb << 20,
             api_keys: self.api_keys()?,
             console: self.console,
             service: ServiceConfig {
@@ -347,6 +377,7 @@ impl Settings {
                 liveness: self.liveness.into(),
                 challenge: ChallengeConfig { lifetime: Duration::from_secs(self.challenge_lifetime_secs) },
                 max_open_challenges: self.max_open_challenges,
+                require_challenge: self.require_challenge,
             },
         })
     }
@@ -407,8 +438,10 @@ impl Settings {
     /// The connection loop's limits.
     pub fn server_limits(&self) -> anyhow::Result<ServerLimits> {
         anyhow::ensure!(self.max_connections >= 1, "--max-connections must be at least 1");
+        anyhow::ensure!(self.max_connections_per_address >= 1, "--max-connections-per-address must be at least 1");
         Ok(ServerLimits {
             max_connections: self.max_connections,
+            max_connections_per_address: self.max_connections_per_address.min(self.max_connections),
             header_timeout: seconds("--header-timeout-secs", self.header_timeout_secs)?,
             shutdown_grace: seconds("--shutdown-grace-secs", self.shutdown_grace_secs)?,
         })

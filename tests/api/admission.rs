@@ -1,8 +1,10 @@
 //! Admission that idle and slow clients cannot hold: a declared body over the limit is refused
 //! from the head, heads whose bodies never begin hold no queue place and no body budget, bodies
 //! that trickle hold no queue place and only the budget of what they sent, are cut after the grace
-//! period and are capped per client address, and the request deadline never answers 504 for an
-//! enrollment that is stored.
+//! period and are capped per client address, one address has its share of the connections, a
+//! body sent fast then stalled holds its share of the budget only a window long, under connection
+//! pressure the slowest bodies are cut for a new client, and the request deadline never answers
+//! 504 for an enrollment that is stored.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -56,14 +58,15 @@ async fn a_body_declared_over_the_limit_is_refused_413_from_its_head() {
 #[tokio::test]
 async fn stalled_heads_hold_no_queue_place_and_no_body_budget() {
     // Two workers, two waiting places, a body budget of four full bodies: before, a handful of
-    // heads that never send their body took every place until the body timeout.
+    // heads that never send their body took every place until the body timeout. The heads come
+    // from another address: an address's own stalled heads count against its own places.
     let tight = ApiConfig { workers: 2, queue_depth: 2, enroll_queue_depth: 2, max_buffered_bytes: 8 << 20, ..config() };
     let app = TestApp::start(StandInEngine::new("v1"), tight).await;
     let photo = pattern_jpeg(320, 240, 4);
     assert_eq!(app.post_form("/enroll", Some("ana"), std::slice::from_ref(&photo)).await.status, 201);
     let mut attackers = Vec::new();
     for (i, path) in ["/verify", "/enroll", "/identify", "/analyze"].iter().cycle().take(70).enumerate() {
-        let mut s = connect(&app).await;
+        let mut s = connect_from(&app, [127, 0, 0, 2]).await;
         let length = if i % 2 == 0 { 2 << 20 } else { 125_000 };
         s.write_all(&stalled_head(path, length)).await.unwrap();
         attackers.push(s);
@@ -268,4 +271,96 @@ async fn a_flood_of_half_open_connections_over_the_cap_does_not_starve_health() 
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     attackers.iter().for_each(|a| a.abort());
     assert!(slowest < Duration::from_millis(3000), "health took {slowest:?} under the flood");
+}
+
+#[tokio::test]
+async fn one_address_has_its_share_of_the_connections_and_the_others_are_served() {
+    let limits = facegate::http::server::ServerLimits {
+        max_connections: 40,
+        max_connections_per_address: 8,
+        ..facegate::config::Settings::default().server_limits().unwrap()
+    };
+    let app = TestApp::start_with(StandInEngine::new("v1"), config(), limits).await;
+    let photo = pattern_jpeg(320, 240, 4);
+    assert_eq!(app.post_form("/enroll", Some("ana"), std::slice::from_ref(&photo)).await.status, 201);
+    // Eight heads from 127.0.0.2 without their bodies: its share.
+    let mut held = Vec::new();
+    for _ in 0..8 {
+        let mut s = connect_from(&app, [127, 0, 0, 2]).await;
+        s.write_all(&stalled_head("/verify", 100_000)).await.unwrap();
+        held.push(s);
+    }
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    // A ninth is answered at once, before it sends anything, and closed.
+    let mut ninth = connect_from(&app, [127, 0, 0, 2]).await;
+    let refused = read_to_close(&mut ninth).await;
+    assert!(refused.starts_with("HTTP/1.1 503") && refused.contains("application/problem+json"), "{refused}");
+    assert!(refused.contains("/problems/overloaded") && refused.contains("already has 8 connections open"), "{refused}");
+    let body = &refused[refused.find("\r\n\r\n").unwrap() + 4..];
+    let problem: serde_json::Value = serde_json::from_str(body).unwrap();
+    assert_eq!((problem["status"].as_u64(), problem["title"].as_str()), (Some(503), Some("Overloaded")), "{problem}");
+    // Another address is served meanwhile, and the address has its places again once they close.
+    assert_eq!(app.post_form("/verify", Some("ana"), std::slice::from_ref(&photo)).await.status, 200);
+    drop(held);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let mut again = connect_from(&app, [127, 0, 0, 2]).await;
+    let head = "GET /livez HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n";
+    again.write_all(head.as_bytes()).await.unwrap();
+    let answered = read_to_close(&mut again).await;
+    assert!(answered.starts_with("HTTP/1.1 200"), "{answered}");
+}
+
+#[tokio::test]
+async fn under_connection_pressure_the_slowest_bodies_are_cut_for_a_new_client() {
+    // 32 connections, all held by bodies from 127.0.0.2 crawling at 10 KiB/s (above the minimum
+    // rate, within a 30 s body timeout): before, a new client waited in the backlog until the
+    // body timeout cut them.
+    let limits =
+        facegate::http::server::ServerLimits { max_connections: 32, ..facegate::config::Settings::default().server_limits().unwrap() };
+    let patient = ApiConfig {
+        max_uploads_per_address: 64,
+        body_timeout: Duration::from_secs(30),
+        request_timeout: Duration::from_secs(30),
+        ..config()
+    };
+    let app = TestApp::start_with(StandInEngine::new("v1"), patient, limits).await;
+    let photo = pattern_jpeg(320, 240, 4);
+    assert_eq!(app.post_form("/enroll", Some("ana"), std::slice::from_ref(&photo)).await.status, 201);
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut crawlers = Vec::new();
+    for _ in 0..32 {
+        let mut s = connect_from(&app, [127, 0, 0, 2]).await;
+        let stop = stop.clone();
+        crawlers.push(tokio::spawn(async move {
+            s.write_all(&stalled_head("/verify", 1 << 20)).await.unwrap();
+            let mut reply = [0u8; 1024];
+            while !stop.load(Ordering::Relaxed) {
+                if s.write_all(&[b'-'; 1024]).await.is_err() {
+                    break;
+                }
+                if let Ok(Ok(n)) = tokio::time::timeout(Duration::from_millis(100), s.read(&mut reply)).await {
+                    return String::from_utf8_lossy(&reply[..n]).into_owned();
+                }
+            }
+            String::new()
+        }));
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let started = Instant::now();
+    // A new client, on a new connection (the enrolment's keep-alive connection is not used).
+    let form = reqwest::multipart::Form::new()
+        .text("subject", "ana")
+        .part("image", reqwest::multipart::Part::bytes(photo.clone()).file_name("probe.jpg"));
+    let request = reqwest::Client::new().post(app.url("/verify")).multipart(form).send();
+    let reply = tokio::time::timeout(Duration::from_secs(10), request).await;
+    let took = started.elapsed();
+    stop.store(true, Ordering::Relaxed);
+    assert_eq!(reply.expect("answered before the body timeout").unwrap().status(), 200);
+    assert!(took < Duration::from_secs(4), "the new client waited {took:?}");
+    let mut cut = Vec::new();
+    for c in crawlers {
+        cut.push(c.await.unwrap());
+    }
+    let shed = cut.iter().filter(|r| r.starts_with("HTTP/1.1 503") && r.contains("arrived the slowest")).count();
+    assert!(shed >= 1, "{cut:?}");
 }

@@ -7,7 +7,8 @@
 //! reason under `enforce`); a wrong number of frames is malformed; with liveness off there are no
 //! challenges. The JSON form takes the same fields. Bursts: `frame_steps` names each frame's
 //! step; a burst with a stranger's photo fails the one-person check, and ill-formed `frame_steps`
-//! are malformed.
+//! are malformed. With `--require-challenge` a plain `/verify` is refused, and the audit log
+//! names each issued challenge and the verdict on its answer.
 
 use std::time::Duration;
 
@@ -285,4 +286,82 @@ async fn bursts_with_frame_steps_pass_and_a_stranger_in_a_burst_does_not() {
     let r = report.send(report.client.post(report.url("/verify")).multipart(form)).await;
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     assert!(r.json()["liveness"].get("challenge").is_none(), "{}", String::from_utf8_lossy(&r.body));
+}
+
+/// The audit events of this binary's log whose request id starts with `prefix`, by request id.
+fn audit_events(prefix: &str) -> std::collections::BTreeMap<String, Value> {
+    let text = String::from_utf8(crate::hostile::captured_log().0.lock().unwrap().clone()).unwrap();
+    text.lines()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .filter(|v| v["target"] == "facegate::audit")
+        .map(|v| v["fields"].clone())
+        .filter_map(|f| Some((f["request_id"].as_str()?.to_string(), f.clone())))
+        .filter(|(id, _)| id.starts_with(prefix))
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_required_challenge_refuses_a_plain_verify_and_the_audit_log_follows_each_challenge() {
+    crate::hostile::captured_log();
+    assert!(
+        Settings { liveness: Choice::Report, require_challenge: true, ..Settings::default() }.api_config().is_err(),
+        "only enforce can require a challenge: under report its verdict refuses nothing"
+    );
+    let app = app_with(Settings { liveness: Choice::Enforce, require_challenge: true, ..Settings::default() }.api_config().unwrap()).await;
+    let with_id = |form: Form, id: &str| app.client.post(app.url("/verify")).header("x-request-id", id).multipart(form);
+
+    // A verification without a challenge, even of the person's own photo with frames.
+    let plain = Form::new()
+        .text("subject", SUBJECT)
+        .part("image", Part::bytes(imm("15-2f.jpg")).file_name("probe.jpg"))
+        .part("frame", Part::bytes(imm("15-1f.jpg")).file_name("frame.jpg"));
+    let r = app.send(with_id(plain, "challenge-audit-plain")).await;
+    r.assert_problem(422, "invalid-challenge");
+    assert!(r.json()["detail"].as_str().unwrap().contains("requires a head-turn challenge"), "{}", String::from_utf8_lossy(&r.body));
+
+    // A challenge answered by the person's turns, and one answered by a photo held still.
+    let mut issued = Vec::new();
+    for (answer, issue_id) in [("live", "challenge-audit-issue-live"), ("still", "challenge-audit-issue-still")] {
+        let r = app.send(app.client.post(app.url("/liveness/challenge")).header("x-request-id", issue_id)).await;
+        assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+        let c = r.json();
+        let (id, turns) = (c["challenge"].as_str().unwrap().to_string(), turns_of(&c));
+        let frames = if answer == "live" { live_frames(&turns) } else { vec![imm("15-2f.jpg"); turns.len()] };
+        let mut form = Form::new()
+            .text("subject", SUBJECT)
+            .part("image", Part::bytes(imm("15-2f.jpg")).file_name("probe.jpg"))
+            .text("challenge", id.clone());
+        for frame in frames {
+            form = form.part("frame", Part::bytes(frame).file_name("frame.jpg"));
+        }
+        let r = app.send(with_id(form, &format!("challenge-audit-verify-{answer}"))).await;
+        match answer {
+            "live" => assert_eq!((r.status, r.json()["liveness"]["challenge"]["passed"].as_bool()), (200, Some(true))),
+            _ => r.assert_problem(422, "presentation-attack"),
+        }
+        issued.push(id);
+    }
+
+    let events = audit_events("challenge-audit-");
+    assert_eq!(events.len(), 5, "{events:?}");
+    let plain = &events["challenge-audit-plain"];
+    assert_eq!((plain["op"].as_str(), plain["outcome"].as_str()), (Some("verify"), Some("invalid-challenge")), "{plain}");
+    assert!(plain["challenge"].is_null(), "{plain}");
+    for (answer, id) in ["live", "still"].iter().zip(&issued) {
+        let issue = &events[&format!("challenge-audit-issue-{answer}")];
+        assert_eq!(
+            (issue["op"].as_str(), issue["outcome"].as_str(), issue["challenge"].as_str()),
+            (Some("challenge"), Some("ok"), Some(id.as_str()))
+        );
+        let verify = &events[&format!("challenge-audit-verify-{answer}")];
+        assert_eq!((verify["op"].as_str(), verify["challenge"].as_str()), (Some("verify"), Some(id.as_str())), "{verify}");
+        assert_eq!(verify["challenge_passed"].as_bool(), Some(*answer == "live"), "{verify}");
+        match *answer {
+            "live" => assert!(verify["challenge_reason"].is_null() && verify["decision"] == "match", "{verify}"),
+            _ => assert!(
+                verify["challenge_reason"].as_str().unwrap().contains("yaw") && verify["outcome"] == "presentation-attack",
+                "{verify}"
+            ),
+        }
+    }
 }

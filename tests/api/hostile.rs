@@ -202,7 +202,7 @@ async fn subject_ids_clients_cannot_address_are_refused_the_same_way_in_json_and
 
 /// A `MakeWriter` collecting the log in memory.
 #[derive(Clone, Default)]
-struct Captured(Arc<Mutex<Vec<u8>>>);
+pub(crate) struct Captured(pub(crate) Arc<Mutex<Vec<u8>>>);
 
 impl Write for Captured {
     fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
@@ -223,7 +223,7 @@ impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for Captured {
 
 /// The test binary's log, as JSON lines in memory. A global subscriber, set once: a thread-local
 /// one (`set_default`) misses events when another test thread registers the same callsites first.
-fn captured_log() -> &'static Captured {
+pub(crate) fn captured_log() -> &'static Captured {
     static LOG: OnceLock<Captured> = OnceLock::new();
     LOG.get_or_init(|| {
         let log = Captured::default();

@@ -3,7 +3,8 @@
 //! at it by `OTEL_EXPORTER_OTLP_ENDPOINT`, and a `/verify` sent with a W3C `traceparent`. Its
 //! spans arrive under that trace id: the request's server span, a child of the caller's span,
 //! with the route, the request id and the outcome, and the stages' spans inside it; none carries
-//! a photo, a template or the subject.
+//! a photo, a template or the subject. A collector that refuses every export costs no request,
+//! and its failures are logged, once per interval.
 
 use std::collections::BTreeSet;
 use std::sync::{Arc, Mutex};
@@ -133,6 +134,28 @@ async fn a_verify_with_a_traceparent_sends_its_spans_under_that_trace() {
     }
     // The enrolment was its own trace, not this one.
     assert!(spans(&received).iter().any(|(_, s)| s.name == "POST /enroll" && hex(&s.trace_id) != trace_id));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refusing_collector_costs_no_request_and_its_failures_are_logged_once_per_interval() {
+    // A port that was just free: connections to it are refused.
+    let refused = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap();
+    let endpoint = format!("http://{refused}");
+    let dir = Scratch::new("traces-refused");
+    let env = [("OTEL_EXPORTER_OTLP_ENDPOINT", endpoint.as_str()), ("OTEL_BSP_SCHEDULE_DELAY", "100")];
+    let served = Served::start_with_env(&dir.url("facegate.db"), &[], dir.0.join("serve.log"), &env).await;
+    let client = reqwest::Client::new();
+    // Batches of spans every 100 ms for 2 s, every one refused.
+    let started = Instant::now();
+    while started.elapsed() < Duration::from_secs(2) {
+        let r = client.get(format!("{}/health", served.base)).send().await.unwrap();
+        assert_eq!(r.status(), 200);
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let log = served.log();
+    let lines: Vec<&str> = log.lines().filter(|l| l.contains("trace export failed")).collect();
+    assert_eq!(lines.len(), 1, "one line per {} s, however many batches fail:\n{log}", facegate::telemetry::FAILURE_LOG_INTERVAL.as_secs());
+    assert!(lines[0].contains("WARN") && lines[0].contains("1 batch(es)"), "{}", lines[0]);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

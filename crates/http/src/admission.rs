@@ -2,23 +2,24 @@
 //! route that runs photo work:
 //!
 //! 1. is refused from its head (413) when it declares a body over the size limit;
-//! 2. waits at most [`FIRST_BYTE_WAIT`] for its body to begin, else 408 holding nothing;
-//! 3. is refused (503 `overloaded`, `Retry-After`, its body unread) when its queue stays full for
+//! 2. takes a place among the bodies awaited or arriving from its client address
+//!    (`--max-uploads-per-address`, waiting at most the admission wait, else 503), and becomes a
+//!    holder that connection pressure may cut, slowest first ([`crate::shedding`], 503);
+//! 3. waits at most [`FIRST_BYTE_WAIT`] for its body to begin, else 408 holding nothing;
+//! 4. is refused (503 `overloaded`, `Retry-After`, its body unread) when its queue stays full for
 //!    the admission wait — it only looks: no place is kept while the body arrives;
-//! 4. takes a place among the bodies arriving from its client address (`--max-uploads-per-address`,
-//!    the same wait, else 503);
-//! 5. receives its body ([`intake::receive`]): the body budget charged as the bytes arrive (503
-//!    when it is spent), a minimum rate after a grace period and the body timeout (408), the body
-//!    limit (413);
+//! 5. receives its body ([`intake::receive`]): the body budget and its address's share of it
+//!    charged as the bytes arrive (503 naming which is spent), a minimum rate over a moving window
+//!    after a grace period and the body timeout (408), the body limit (413);
 //! 6. only then takes its place in the work queue ([`WorkPool::admit_within`], the admission wait,
 //!    else 503) and runs with the body in memory.
 //!
-//! So a client that trickles its body holds no queue place and budget only for what it has sent,
-//! is cut after the grace period, and can open only so many such requests from one address. A
-//! refusal answers at once and discards (never keeps) what the client sends meanwhile, bounded, so
-//! that the answer is not lost to a connection reset; a refusal under a flood waits the admission
-//! wait first, which keeps the successful throughput near its peak when far more clients arrive
-//! than the workers can serve.
+//! So a client that trickles or stalls its body holds no queue place and budget only for what it
+//! has sent, is cut after the grace period, and can open only so many such requests from one
+//! address (a stalled head counts as one). A refusal answers at once and discards (never keeps)
+//! what the client sends meanwhile, bounded, so that the answer is not lost to a connection
+//! reset; a refusal under a flood waits the admission wait first, which keeps the successful
+//! throughput near its peak when far more clients arrive than the workers can serve.
 
 use std::net::SocketAddr;
 use std::time::Duration;
@@ -34,7 +35,8 @@ use http_body_util::BodyExt;
 use super::AppState;
 use super::intake::{self, Cut, Pace};
 use super::problem::{Problem, ProblemKind};
-use facegate_service::{PoolError, WorkClass};
+use super::shedding::Holders;
+use facegate_service::WorkClass;
 
 pub use super::intake::BodyBudget;
 
@@ -62,17 +64,10 @@ pub async fn admit(State((state, class)): State<(AppState, WorkClass)>, request:
         let detail = format!("the request body is declared larger than the {} MiB limit", limit as f64 / (1 << 20) as f64);
         return closing(refuse(request, Problem::new(ProblemKind::TooLarge, detail)));
     }
-    let request = match body_begun(request, FIRST_BYTE_WAIT.min(config.body_timeout)).await {
-        Ok(request) => request,
-        Err(request) => return refuse(request, body_timed_out()),
-    };
-    // Room in the queue, or the refusal before the body; the place itself is taken once the body
-    // has arrived, so a slow body holds none.
-    let pool = state.0.facegate.pool();
-    if let Err(e) = pool.admit_within(class, config.admission_wait).await {
-        return refuse(request, Problem::from(e));
-    }
+    // From here the request holds a connection for its body: it is counted against its address
+    // and, under connection pressure, may be cut for the slowest.
     let address = request.extensions().get::<ConnectInfo<SocketAddr>>().map(|ConnectInfo(a)| a.ip());
+    let holding = request.extensions().get::<Holders>().cloned().unwrap_or_default().hold();
     let budget = &state.0.body_budget;
     let slot = match address {
         Some(address) => match budget.arrival_slot(address, config.max_uploads_per_address, config.admission_wait).await {
@@ -84,13 +79,26 @@ pub async fn admit(State((state, class)): State<(AppState, WorkClass)>, request:
         },
         None => None,
     };
+    let request = match body_begun(request, FIRST_BYTE_WAIT.min(config.body_timeout), &holding.cut).await {
+        Ok(request) => request,
+        Err((request, Cut::Shed)) => return refuse_cut(Cut::Shed, request.into_body(), &state),
+        Err((request, _)) => return refuse(request, body_timed_out()),
+    };
+    // Room in the queue, or the refusal before the body; the place itself is taken once the body
+    // has arrived, so a slow body holds none.
+    let pool = state.0.facegate.pool();
+    if let Err(e) = pool.admit_within(class, config.admission_wait).await {
+        return refuse(request, Problem::from(e));
+    }
     let (parts, mut body) = request.into_parts();
     let pace = Pace { timeout: config.body_timeout, grace: config.body_grace, min_rate: config.min_body_rate };
-    let (bytes, share) = match intake::receive(&mut body, declared, limit, pace, budget).await {
+    let share = budget.share(address);
+    let received = intake::receive(&mut body, declared, limit, pace, budget, share, &holding.progress, &holding.cut).await;
+    let (bytes, share) = match received {
         Ok(received) => (received.bytes, received.share),
         Err(cut) => return refuse_cut(cut, body, &state),
     };
-    drop((slot, body));
+    drop((slot, body, holding));
     let admission = match pool.admit_within(class, config.admission_wait).await {
         Ok(admission) => admission,
         Err(e) => return Problem::from(e).into_response(),
@@ -115,15 +123,27 @@ fn refuse_cut(cut: Cut, body: Body, state: &AppState) -> Response {
             Problem::new(
                 ProblemKind::RequestTimeout,
                 format!(
-                    "the request body arrived slower than {} KiB/s after its first {} s; send it faster or smaller",
+                    "the request body arrived slower than {} KiB/s after its first {} s (over the last {} s); send it faster or smaller",
                     config.min_body_rate as f64 / 1024.0,
+                    config.body_grace.as_secs_f64(),
                     config.body_grace.as_secs_f64()
                 ),
             )
         }
-        Cut::BudgetSpent => {
+        Cut::BudgetSpent | Cut::AddressBudgetSpent | Cut::Shed => {
             state.0.metrics.queue_rejections.inc();
-            return refuse(Request::new(body), Problem::new(ProblemKind::Overloaded, PoolError::Overloaded.to_string()));
+            let detail = match cut {
+                Cut::BudgetSpent => format!(
+                    "the {} MiB the server keeps for request bodies are in use by bodies arriving or waiting for their answers; retry shortly",
+                    state.0.config.max_buffered_bytes >> 20
+                ),
+                Cut::AddressBudgetSpent => format!(
+                    "this client address holds its share ({} MiB) of the memory the server keeps for request bodies; retry when its other requests are answered",
+                    state.0.config.max_buffered_per_address >> 20
+                ),
+                _ => "the server is at its connection cap and this request's body arrived the slowest; retry shortly".to_string(),
+            };
+            return closing(refuse(Request::new(body), Problem::new(ProblemKind::Overloaded, detail)));
         }
         Cut::Broken(e) => return closing(Problem::malformed(format!("cannot read the body: {e}")).into_response()),
     };
@@ -146,12 +166,17 @@ fn closing(mut response: Response) -> Response {
 }
 
 /// `request` once the first frame of its body has arrived (or the body has ended), that frame put
-/// back in front of the rest; the request itself when nothing arrived within `wait`.
-async fn body_begun(request: Request, wait: Duration) -> Result<Request, Request> {
+/// back in front of the rest; the request itself, with why, when nothing arrived within `wait`
+/// (`Cut::TimedOut`) or `cut` was notified first (`Cut::Shed`).
+async fn body_begun(request: Request, wait: Duration, cut: &tokio::sync::Notify) -> Result<Request, (Request, Cut)> {
     let (parts, mut body) = request.into_parts();
-    let first = match tokio::time::timeout(wait, body.frame()).await {
+    let first = tokio::select! {
+        first = tokio::time::timeout(wait, body.frame()) => first,
+        () = cut.notified() => return Err((Request::from_parts(parts, body), Cut::Shed)),
+    };
+    let first = match first {
         Ok(first) => first,
-        Err(_) => return Err(Request::from_parts(parts, body)),
+        Err(_) => return Err((Request::from_parts(parts, body), Cut::TimedOut)),
     };
     let Some(first) = first else { return Ok(Request::from_parts(parts, Body::empty())) };
     let first = first.map(|frame| frame.into_data().unwrap_or_default());

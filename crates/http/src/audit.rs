@@ -1,7 +1,10 @@
-//! The audit log: one structured event per enrolment, verification, identification and deletion,
-//! refusals included, on the tracing target [`AUDIT_TARGET`]. It names who asked (the key id, a
-//! prefix of the key's SHA-256, never the key), the request id, the subject, the decision with its
-//! score, threshold and model version, and the outcome (`ok` or the problem type); never photo bytes.
+//! The audit log: one structured event per enrolment, verification, identification, deletion and
+//! issued liveness challenge, refusals included, on the tracing target [`AUDIT_TARGET`]. It names
+//! who asked (the key id, a prefix of the key's SHA-256, never the key), the request id, the
+//! subject, the decision with its score, threshold and model version, the challenge a
+//! verification answered (its id, passed or not and why), and the outcome (`ok` or the problem
+//! type); never photo bytes. A challenge's id is a one-time nonce, worthless once used or
+//! expired: logged, it ties the verification to the issue that drew it.
 //!
 //! The layer ([`record`]) wraps the audited routes outside the API-key check, so refused keys are
 //! logged too. Handlers add what they learn to the request's [`Audit`] as they go.
@@ -34,6 +37,9 @@ struct Facts {
     model_version: Option<String>,
     templates_added: Option<usize>,
     candidates: Option<usize>,
+    challenge: Option<String>,
+    challenge_passed: Option<bool>,
+    challenge_reason: Option<String>,
 }
 
 /// A request's audit facts, shared between the layer and the handler (a request extension).
@@ -73,6 +79,16 @@ impl Audit {
     pub fn candidates(&self, candidates: usize) {
         self.update(|facts| facts.candidates = Some(candidates));
     }
+
+    /// The liveness challenge the request issued or answers.
+    pub fn challenge(&self, id: &str) {
+        self.update(|facts| facts.challenge = Some(id.to_string()));
+    }
+
+    /// The verdict on the capture that answered the challenge.
+    pub fn challenge_outcome(&self, passed: bool, reason: Option<&str>) {
+        self.update(|facts| (facts.challenge_passed, facts.challenge_reason) = (Some(passed), reason.map(str::to_string)));
+    }
 }
 
 /// The operation an audited route performs, by method and route template.
@@ -82,6 +98,7 @@ fn operation(method: &Method, route: &str) -> Option<&'static str> {
         ("POST", "/verify") => Some("verify"),
         ("POST", "/identify") => Some("identify"),
         ("DELETE", "/subjects/{id}") => Some("delete"),
+        ("POST", "/liveness/challenge") => Some("challenge"),
         _ => None,
     }
 }
@@ -112,6 +129,9 @@ pub async fn record(mut request: Request, next: Next) -> Response {
         model_version = facts.model_version.as_deref(),
         templates_added = facts.templates_added,
         candidates = facts.candidates,
+        challenge = facts.challenge.as_deref(),
+        challenge_passed = facts.challenge_passed,
+        challenge_reason = facts.challenge_reason.as_deref(),
         key_id,
         request_id = request_id.as_deref(),
         "audit"

@@ -17,7 +17,7 @@ use super::responses::{ChallengeResponse, EnrollResponse, Health, IdentifyRespon
 use super::timeout::CommitPoint;
 use super::{AppState, OPENAPI_YAML};
 use facegate_core::elapsed_ms;
-use facegate_service::AnalyzedPhoto;
+use facegate_service::{AnalyzedPhoto, PhotoError, ServiceError};
 use facegate_store::Backend;
 
 /// Record a photo's stage timings in the metrics.
@@ -98,7 +98,19 @@ pub async fn verify(
     let frame_steps = upload.frame_steps.take().filter(|_| challenge.is_some());
     let image = upload.single_image()?;
     let verification = match challenge {
-        Some(challenge) => facegate.verify_challenge(&subject, image, frames, frame_steps, &challenge, fmr).await?,
+        Some(challenge) => {
+            audit.challenge(&challenge);
+            let verified = facegate.verify_challenge(&subject, image, frames, frame_steps, &challenge, fmr).await;
+            let outcome = match &verified {
+                Ok(verification) => verification.challenge.as_ref(),
+                Err(ServiceError::Photo { error: PhotoError::ChallengeFailed(outcome), .. }) => Some(outcome),
+                Err(_) => None,
+            };
+            if let Some(outcome) = outcome {
+                audit.challenge_outcome(outcome.passed, outcome.reason.as_deref());
+            }
+            verified?
+        }
         None => facegate.verify_capture(&subject, image, frames, fmr).await?,
     };
     std::iter::once(&verification.photo).chain(&verification.frames).for_each(|photo| observe(&state, photo));
@@ -109,8 +121,13 @@ pub async fn verify(
 }
 
 /// `POST /liveness/challenge`: a new head-turn challenge, 201 with its id, lifetime and steps.
-pub async fn issue_challenge(State(state): State<AppState>, Params(NoParams {}): Params<NoParams>) -> Result<Response, Problem> {
+pub async fn issue_challenge(
+    State(state): State<AppState>,
+    audit: Audit,
+    Params(NoParams {}): Params<NoParams>,
+) -> Result<Response, Problem> {
     let issued = state.facegate().issue_challenge().await?;
+    audit.challenge(&issued.id);
     Ok((StatusCode::CREATED, Json(ChallengeResponse::from(issued))).into_response())
 }
 

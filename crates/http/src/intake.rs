@@ -3,16 +3,22 @@
 //!
 //! - the body-memory budget ([`BodyBudget`]) is charged for the buffer the arrived bytes fill, not
 //!   for the length the head declares;
-//! - the body keeps a pace ([`Pace`]): after a grace period it must average a minimum rate, and it
-//!   must be complete within the body timeout, else 408 — the deadline moves with the bytes
-//!   received, so a trickle is cut after the grace period while a slow steady upload goes on;
-//! - at most so many bodies arrive at once from one client address ([`ArrivalSlot`]; IPv6 by its
-//!   /64), so a few slow clients cannot take the server's connections and budget from the others.
+//! - and per client address: one address holds at most its share of the budget
+//!   ([`BodyBudget::new`]'s `per_address_bytes`), so that a few fast-then-stalled bodies from one
+//!   client cannot hold the memory every other client's bodies need;
+//! - the body keeps a pace ([`Pace`]): after a grace period it must keep a minimum rate over a
+//!   window that moves with time (the last grace period's length), and it must be complete within
+//!   the body timeout, else 408 — so a trickle is cut after the grace period, a body sent fast and
+//!   then stalled a window after it stalled, while a slow steady upload goes on;
+//! - at most so many bodies wait for their first byte or arrive at once from one client address
+//!   ([`ArrivalSlot`]; IPv6 by its /64), so a few slow clients cannot take the server's
+//!   connections and budget from the others;
+//! - under connection pressure the slowest body is cut first ([`crate::shedding`]).
 //!
 //! The bytes are copied into one buffer of the request's own as they arrive: the connection's read
 //! buffers are not held by the many small pieces a trickle sends.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::net::{IpAddr, Ipv6Addr};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
@@ -25,8 +31,10 @@ use tokio::time::Instant;
 /// The least room a body's buffer is given at once (less when the declared length is smaller).
 const MIN_ROOM: usize = 8 << 10;
 
-/// How fast a body must arrive: all of it within `timeout`, and after `grace` at least
-/// `min_rate` bytes per second on average since it began (0: no rate).
+/// How fast a body must arrive: all of it within `timeout`; and from `grace` after it began, at
+/// least `min_rate` bytes a second over the last `grace` (a moving window: what a body sent before
+/// does not pay for a stall now), the amount owed growing from 0 over the first window after the
+/// grace period (0: no rate).
 #[derive(Debug, Clone, Copy)]
 pub struct Pace {
     pub timeout: Duration,
@@ -34,19 +42,62 @@ pub struct Pace {
     pub min_rate: u64,
 }
 
-impl Pace {
-    /// The instant by which more than `received` bytes must have arrived, for a body that began
-    /// at `start`; and whether that is the body timeout (rather than the rate).
-    fn deadline(&self, start: Instant, received: usize) -> (Instant, bool) {
-        let end = start + self.timeout;
-        if self.min_rate == 0 {
-            return (end, true);
+/// How often a body's rate is checked once it is owed one.
+const RATE_CHECK: Duration = Duration::from_millis(250);
+
+/// The bytes a body has received over time: the running total, with a mark per piece kept as long
+/// as it is inside the longest window asked about (and the last one before it).
+#[derive(Debug)]
+pub struct Progress {
+    start: Instant,
+    received: usize,
+    marks: VecDeque<(Instant, usize)>,
+    window: Duration,
+}
+
+impl Progress {
+    /// A body that began at `start`, asked about over windows up to `window`.
+    pub fn new(start: Instant, window: Duration) -> Progress {
+        Progress { start, received: 0, marks: VecDeque::new(), window }
+    }
+
+    /// `total` bytes received by `at`.
+    pub fn arrived(&mut self, at: Instant, total: usize) {
+        self.received = total;
+        self.marks.push_back((at, total));
+        // Keep the last mark at or before the window's start: it says what had arrived by then.
+        while self.marks.len() > 1 && self.marks[1].0 + self.window <= at {
+            self.marks.pop_front();
         }
-        let earned = Duration::try_from_secs_f64(received as f64 / self.min_rate as f64).unwrap_or(Duration::MAX);
-        match start.checked_add(self.grace.saturating_add(earned)) {
-            Some(by_rate) if by_rate < end => (by_rate, false),
-            _ => (end, true),
-        }
+    }
+
+    /// Bytes received after `since` (everything when `since` is before the start).
+    fn received_after(&self, since: Instant) -> usize {
+        let before = self.marks.iter().rev().find(|(at, _)| *at <= since).map_or(0, |&(_, total)| total);
+        self.received - before
+    }
+
+    /// Whether the body is behind `pace` at `now`: from the end of the grace period, fewer bytes
+    /// over the last `grace` than `min_rate` owes (over the time since the grace period ended,
+    /// when that is shorter).
+    fn behind(&self, pace: &Pace, now: Instant) -> bool {
+        let Some(owed_for) = now.checked_duration_since(self.start + pace.grace) else { return false };
+        let owed = pace.min_rate as f64 * owed_for.min(pace.grace).as_secs_f64();
+        let window_start = now.checked_sub(pace.grace).unwrap_or(self.start);
+        (self.received_after(window_start) as f64) < owed
+    }
+
+    /// Bytes a second over the last `window` (since the start, when younger): how fast the body
+    /// arrives now, which the shedding compares.
+    pub fn recent_rate(&self, now: Instant, window: Duration) -> f64 {
+        let since = now.checked_sub(window).unwrap_or(self.start).max(self.start);
+        let span = now.saturating_duration_since(since).as_secs_f64().max(1e-3);
+        self.received_after(since) as f64 / span
+    }
+
+    /// How long ago the body began.
+    pub fn age(&self, now: Instant) -> Duration {
+        now.saturating_duration_since(self.start)
     }
 }
 
@@ -61,6 +112,11 @@ pub enum Cut {
     TooSlow,
     /// The body-memory budget cannot hold the bytes that arrived.
     BudgetSpent,
+    /// The client address's share of the budget cannot.
+    AddressBudgetSpent,
+    /// Cut to free a connection: the server is at its connection cap and this body arrived the
+    /// slowest ([`crate::shedding`]).
+    Shed,
     /// The connection failed (reset, or closed before the declared length).
     Broken(String),
 }
@@ -74,33 +130,59 @@ pub struct Received {
 }
 
 /// Bytes of request bodies held in memory at once, in KiB permits (a semaphore counts `u32`s),
-/// and the bodies arriving at once per client address.
+/// overall and per client address, and the bodies arriving at once per client address.
 #[derive(Debug, Clone)]
 pub struct BodyBudget {
     kib: Arc<Semaphore>,
     max_body_bytes: usize,
+    per_address_kib: usize,
+    held: Arc<Mutex<HashMap<IpAddr, usize>>>,
     arriving: Arc<Mutex<HashMap<IpAddr, Arc<Semaphore>>>>,
 }
 
 impl BodyBudget {
-    pub fn new(max_buffered_bytes: usize, max_body_bytes: usize) -> BodyBudget {
+    /// `max_buffered_bytes` in all, of which one client address holds at most `per_address_bytes`.
+    pub fn new(max_buffered_bytes: usize, per_address_bytes: usize, max_body_bytes: usize) -> BodyBudget {
+        let per_address_kib = kib(per_address_bytes);
         let kib = Arc::new(Semaphore::new(kib(max_buffered_bytes).min(Semaphore::MAX_PERMITS)));
-        BodyBudget { kib, max_body_bytes, arriving: Arc::default() }
+        BodyBudget { kib, max_body_bytes, per_address_kib, held: Arc::default(), arriving: Arc::default() }
     }
 
-    /// Grow `share` to cover `bytes`; false when the budget cannot (the share is left as it was).
-    fn charge(&self, share: &mut Share, bytes: usize) -> bool {
+    /// Grow `share` to cover `bytes`; the cut when the budget or the address's share cannot (the
+    /// share is left as it was).
+    fn charge(&self, share: &mut Share, bytes: usize) -> Result<(), Cut> {
         let wanted = u32::try_from(kib(bytes)).unwrap_or(u32::MAX);
-        let held = share.0.as_ref().map_or(0, |p| p.num_permits() as u32);
+        let held = share.permit.as_ref().map_or(0, |p| p.num_permits() as u32);
         if wanted <= held {
-            return true;
+            return Ok(());
         }
-        let Ok(more) = self.kib.clone().try_acquire_many_owned(wanted - held) else { return false };
-        match &mut share.0 {
-            Some(permit) => permit.merge(more),
-            None => share.0 = Some(more),
+        let more = (wanted - held) as usize;
+        if let Some(address) = share.address {
+            let mut by_address = self.held.lock().unwrap_or_else(PoisonError::into_inner);
+            let of_address = by_address.entry(address).or_insert(0);
+            if *of_address + more > self.per_address_kib {
+                if *of_address == 0 {
+                    by_address.remove(&address);
+                }
+                return Err(Cut::AddressBudgetSpent);
+            }
+            *of_address += more;
         }
-        true
+        let Ok(permit) = self.kib.clone().try_acquire_many_owned(more as u32) else {
+            share.give_back_address(more);
+            return Err(Cut::BudgetSpent);
+        };
+        share.of_address += more;
+        match &mut share.permit {
+            Some(held) => held.merge(permit),
+            None => share.permit = Some(permit),
+        }
+        Ok(())
+    }
+
+    /// A share of this budget charged to `address` (`None`: to no address).
+    pub fn share(&self, address: Option<IpAddr>) -> Share {
+        Share { permit: None, address: address.map(client_key), of_address: 0, held: self.held.clone() }
     }
 
     /// A place among the bodies arriving from `address` (at most `cap` at once), waiting up to
@@ -161,26 +243,72 @@ pub fn client_key(address: IpAddr) -> IpAddr {
     }
 }
 
-/// A share of the body budget, in KiB permits, given back when dropped.
-#[derive(Debug, Default)]
-pub struct Share(Option<OwnedSemaphorePermit>);
+/// A share of the body budget, in KiB permits, and its charge to its client address; both given
+/// back when dropped.
+#[derive(Debug)]
+pub struct Share {
+    permit: Option<OwnedSemaphorePermit>,
+    address: Option<IpAddr>,
+    /// KiB charged to `address`.
+    of_address: usize,
+    held: Arc<Mutex<HashMap<IpAddr, usize>>>,
+}
+
+impl Share {
+    /// Take `kib` back from the address's charge (forgetting an address that holds nothing).
+    fn give_back_address(&mut self, kib: usize) {
+        let Some(address) = self.address else { return };
+        let mut by_address = self.held.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(of_address) = by_address.get_mut(&address) {
+            *of_address = of_address.saturating_sub(kib);
+            if *of_address == 0 {
+                by_address.remove(&address);
+            }
+        }
+    }
+}
+
+impl Drop for Share {
+    fn drop(&mut self) {
+        let charged = std::mem::take(&mut self.of_address);
+        self.give_back_address(charged);
+    }
+}
 
 fn kib(bytes: usize) -> usize {
     bytes.div_ceil(1024)
 }
 
 /// Read `body` to its end at `pace`: at most `limit` bytes (the declared length, when the head
-/// gave one, sizes the buffer), each piece charged to `budget` as it is kept.
-pub async fn receive(body: &mut Body, declared: Option<u64>, limit: usize, pace: Pace, budget: &BodyBudget) -> Result<Received, Cut> {
-    let start = Instant::now();
+/// gave one, sizes the buffer), each piece charged to `share` of `budget` as it is kept, its
+/// arrival recorded in `progress`; cut at once when `shed` is notified.
+pub async fn receive(
+    body: &mut Body,
+    declared: Option<u64>,
+    limit: usize,
+    pace: Pace,
+    budget: &BodyBudget,
+    mut share: Share,
+    progress: &Mutex<Progress>,
+    shed: &tokio::sync::Notify,
+) -> Result<Received, Cut> {
+    let start = progress.lock().unwrap_or_else(PoisonError::into_inner).start;
+    let end = start + pace.timeout;
     let bound = declared.map_or(limit, |n| usize::try_from(n).unwrap_or(usize::MAX)).min(limit).min(budget.max_body_bytes);
     let mut buffer: Vec<u8> = Vec::new();
-    let mut share = Share::default();
     loop {
-        let (deadline, is_timeout) = pace.deadline(start, buffer.len());
-        let frame = match tokio::time::timeout_at(deadline, body.frame()).await {
-            Err(_) if is_timeout => return Err(Cut::TimedOut),
-            Err(_) => return Err(Cut::TooSlow),
+        let now = Instant::now();
+        if pace.min_rate > 0 && progress.lock().unwrap_or_else(PoisonError::into_inner).behind(&pace, now) {
+            return Err(Cut::TooSlow);
+        }
+        let check = if pace.min_rate > 0 { now.max(start + pace.grace) + RATE_CHECK } else { end };
+        let frame = tokio::select! {
+            frame = tokio::time::timeout_at(check.min(end), body.frame()) => frame,
+            () = shed.notified() => return Err(Cut::Shed),
+        };
+        let frame = match frame {
+            Err(_) if check >= end => return Err(Cut::TimedOut),
+            Err(_) => continue,
             Ok(None) => break,
             Ok(Some(Err(e))) => return Err(Cut::Broken(e.to_string())),
             Ok(Some(Ok(frame))) => frame,
@@ -192,38 +320,57 @@ pub async fn receive(body: &mut Body, declared: Option<u64>, limit: usize, pace:
         }
         if len > buffer.capacity() {
             let room = len.max(bound.min(MIN_ROOM.max(2 * buffer.capacity())));
-            if !budget.charge(&mut share, room) {
-                return Err(Cut::BudgetSpent);
-            }
+            budget.charge(&mut share, room)?;
             buffer.reserve_exact(room - buffer.len());
         }
         buffer.extend_from_slice(&data);
+        progress.lock().unwrap_or_else(PoisonError::into_inner).arrived(Instant::now(), buffer.len());
     }
     Ok(Received { bytes: Bytes::from(buffer), share })
 }
 
 #[cfg(test)]
 mod tests {
+    use futures_util::StreamExt as _;
+
     use super::*;
 
     fn pace() -> Pace {
         Pace { timeout: Duration::from_secs(15), grace: Duration::from_secs(5), min_rate: 8192 }
     }
 
+    /// `body` received from 192.0.2.1 at `pace` (never shed).
+    async fn receive_at(mut body: Body, declared: Option<u64>, limit: usize, pace: Pace, budget: &BodyBudget) -> Result<Received, Cut> {
+        let progress = Mutex::new(Progress::new(Instant::now(), pace.grace));
+        let share = budget.share(Some("192.0.2.1".parse().unwrap()));
+        receive(&mut body, declared, limit, pace, budget, share, &progress, &tokio::sync::Notify::new()).await
+    }
+
     #[test]
-    fn the_deadline_moves_with_the_bytes_received() {
+    fn the_rate_is_owed_over_a_moving_window_from_the_end_of_the_grace_period() {
         let start = Instant::now();
-        let at = |received| {
-            let (deadline, is_timeout) = pace().deadline(start, received);
-            ((deadline - start).as_secs_f64(), is_timeout)
-        };
-        assert_eq!(at(0), (5.0, false));
-        assert_eq!(at(8192), (6.0, false));
-        assert_eq!(at(64 * 1000), (5.0 + 64_000.0 / 8192.0, false));
-        // Past the body timeout the timeout is the deadline.
-        assert_eq!(at(1 << 20), (15.0, true));
-        let no_rate = Pace { min_rate: 0, ..pace() };
-        assert_eq!(no_rate.deadline(start, 0), (start + Duration::from_secs(15), true));
+        let s = |secs: f64| start + Duration::from_secs_f64(secs);
+        let mut progress = Progress::new(start, pace().grace);
+        // Within the grace period nothing is owed.
+        assert!(!progress.behind(&pace(), s(4.9)));
+        // 1 s after it, 8 KiB are owed over the last 5 s.
+        progress.arrived(s(1.5), 8000);
+        assert!(progress.behind(&pace(), s(6.0)), "8,000 bytes are less than 8 KiB");
+        progress.arrived(s(5.5), 9000);
+        assert!(!progress.behind(&pace(), s(6.0)));
+        // 16 MiB sent at once, then nothing: behind once the window no longer holds them.
+        let mut burst = Progress::new(start, pace().grace);
+        burst.arrived(s(0.1), 16 << 20);
+        assert!(!burst.behind(&pace(), s(5.0)));
+        assert!(burst.behind(&pace(), s(5.2)), "what was sent before does not pay for the stall");
+        // A steady 10 KiB/s is never behind.
+        let mut steady = Progress::new(start, pace().grace);
+        for tenth in 1..=150 {
+            steady.arrived(s(tenth as f64 / 10.0), tenth * 1024);
+            assert!(!steady.behind(&pace(), s(tenth as f64 / 10.0 + 0.05)), "at {tenth}");
+        }
+        assert!(steady.marks.len() <= 52, "marks older than the window are dropped: {}", steady.marks.len());
+        assert!((steady.recent_rate(s(15.0), Duration::from_secs(5)) - 10240.0).abs() < 300.0);
     }
 
     #[test]
@@ -236,37 +383,60 @@ mod tests {
         assert_ne!(key("2001:db8:1:2::1"), key("2001:db8:1:3::1"));
     }
 
+    fn chunks() -> Body {
+        Body::from_stream(futures_util::stream::iter((0..3).map(|_| Ok::<_, std::io::Error>(Bytes::from(vec![7u8; 20_000])))))
+    }
+
     #[tokio::test]
     async fn the_budget_is_charged_for_what_arrives() {
-        let budget = BodyBudget::new(64 << 10, 1 << 20);
-        let chunks = || futures_util::stream::iter((0..3).map(|_| Ok::<_, std::io::Error>(Bytes::from(vec![7u8; 20_000]))));
-        let received = receive(&mut Body::from_stream(chunks()), Some(60_000), 1 << 20, pace(), &budget).await.unwrap();
+        let budget = BodyBudget::new(64 << 10, 64 << 10, 1 << 20);
+        let received = receive_at(chunks(), Some(60_000), 1 << 20, pace(), &budget).await.unwrap();
         assert_eq!(received.bytes.len(), 60_000);
         // The buffer grew to the declared length and no further: 59 KiB of the 64 held.
         assert_eq!(budget.kib.available_permits(), 64 - 59);
         // A second body cannot be held beside it; the first gives its share back when dropped.
-        let second = receive(&mut Body::from_stream(chunks()), Some(60_000), 1 << 20, pace(), &budget).await;
-        assert!(matches!(second, Err(Cut::BudgetSpent)), "{second:?}");
+        let second = receive_at(chunks(), Some(60_000), 1 << 20, pace(), &budget).await;
+        assert!(matches!(second, Err(Cut::AddressBudgetSpent)), "{second:?}");
         drop(received);
         assert_eq!(budget.kib.available_permits(), 64);
+        assert!(budget.held.lock().unwrap().is_empty(), "an address holding nothing is forgotten");
         // Without a declared length the buffer doubles, bounded by the limit.
-        let over = receive(&mut Body::from_stream(chunks()), None, 50_000, pace(), &budget).await;
+        let over = receive_at(chunks(), None, 50_000, pace(), &budget).await;
         assert!(matches!(over, Err(Cut::TooLarge)), "{over:?}");
         assert_eq!(budget.kib.available_permits(), 64);
+    }
+
+    #[tokio::test]
+    async fn one_address_holds_at_most_its_share_and_the_others_the_rest() {
+        // 160 KiB in all, 64 KiB per address.
+        let budget = BodyBudget::new(160 << 10, 64 << 10, 1 << 20);
+        let (a, b, c): (IpAddr, IpAddr, IpAddr) =
+            ("192.0.2.1".parse().unwrap(), "192.0.2.2".parse().unwrap(), "192.0.2.3".parse().unwrap());
+        let mut shares: Vec<Share> = [a, a, b, c].iter().map(|&x| budget.share(Some(x))).collect();
+        assert!(budget.charge(&mut shares[0], 60_000).is_ok());
+        assert!(matches!(budget.charge(&mut shares[1], 10_000), Err(Cut::AddressBudgetSpent)), "a's share is spent");
+        assert!(budget.charge(&mut shares[2], 60_000).is_ok(), "b has its own");
+        assert!(matches!(budget.charge(&mut shares[3], 60_000), Err(Cut::BudgetSpent)), "the whole budget is spent");
+        assert_eq!(budget.held.lock().unwrap().get(&c), None, "a refused charge leaves nothing behind");
+        shares.remove(0);
+        assert!(budget.charge(&mut shares[0], 10_000).is_ok(), "a's share came back");
+        drop(shares);
+        assert_eq!(budget.kib.available_permits(), 160);
+        assert!(budget.held.lock().unwrap().is_empty());
     }
 
     #[tokio::test]
     async fn a_trickle_is_cut_after_the_grace_period_and_a_steady_upload_is_not() {
         // The defaults' rule, scaled in time: 8 KiB/s after 0.3 s, all of it within 1.5 s.
         let quick = Pace { timeout: Duration::from_millis(1500), grace: Duration::from_millis(300), min_rate: 8192 };
-        let budget = BodyBudget::new(16 << 20, 16 << 20);
-        // A byte every 50 ms: cut by the rate at the end of the grace period, not by the timeout.
+        let budget = BodyBudget::new(16 << 20, 16 << 20, 16 << 20);
+        // A byte every 50 ms: cut by the rate soon after the grace period, not by the timeout.
         let trickle = futures_util::stream::unfold((), |()| async {
             tokio::time::sleep(Duration::from_millis(50)).await;
             Some((Ok::<_, std::io::Error>(Bytes::from_static(b"x")), ()))
         });
         let start = Instant::now();
-        let cut = receive(&mut Body::from_stream(trickle), Some(16 << 20), 16 << 20, quick, &budget).await;
+        let cut = receive_at(Body::from_stream(trickle), Some(16 << 20), 16 << 20, quick, &budget).await;
         assert!(matches!(cut, Err(Cut::TooSlow)), "{cut:?}");
         assert!((300..900).contains(&start.elapsed().as_millis()), "{:?}", start.elapsed());
         // 80 kB/s after a 0.2 s pause: received whole; the same pace for longer than the body
@@ -277,15 +447,33 @@ mod tests {
                 (n < pieces).then(|| (Ok::<_, std::io::Error>(Bytes::from(vec![1u8; 4000])), n + 1))
             })
         };
-        let received = receive(&mut Body::from_stream(steady(10)), None, 16 << 20, quick, &budget).await.unwrap();
+        let received = receive_at(Body::from_stream(steady(10)), None, 16 << 20, quick, &budget).await.unwrap();
         assert_eq!(received.bytes.len(), 40_000);
-        let late = receive(&mut Body::from_stream(steady(40)), None, 16 << 20, quick, &budget).await;
+        let late = receive_at(Body::from_stream(steady(40)), None, 16 << 20, quick, &budget).await;
         assert!(matches!(late, Err(Cut::TimedOut)), "{late:?}");
+        // 1 MiB at once, then a stall: cut about a window after the stall, not at the timeout.
+        let stalled = futures_util::stream::once(async { Ok::<_, std::io::Error>(Bytes::from(vec![2u8; 1 << 20])) })
+            .chain(futures_util::stream::pending());
+        let start = Instant::now();
+        let cut = receive_at(Body::from_stream(stalled), Some(2 << 20), 16 << 20, quick, &budget).await;
+        assert!(matches!(cut, Err(Cut::TooSlow)), "{cut:?}");
+        assert!((300..900).contains(&start.elapsed().as_millis()), "{:?}", start.elapsed());
+    }
+
+    #[tokio::test]
+    async fn a_shed_body_is_cut_at_once() {
+        let budget = BodyBudget::new(1 << 20, 1 << 20, 1 << 20);
+        let progress = Mutex::new(Progress::new(Instant::now(), pace().grace));
+        let shed = tokio::sync::Notify::new();
+        shed.notify_one();
+        let mut pending = Body::from_stream(futures_util::stream::pending::<Result<Bytes, std::io::Error>>());
+        let cut = receive(&mut pending, Some(1000), 1 << 20, pace(), &budget, budget.share(None), &progress, &shed).await;
+        assert!(matches!(cut, Err(Cut::Shed)), "{cut:?}");
     }
 
     #[tokio::test]
     async fn each_address_has_its_cap_of_arriving_bodies() {
-        let budget = BodyBudget::new(1 << 20, 1 << 20);
+        let budget = BodyBudget::new(1 << 20, 1 << 20, 1 << 20);
         let (a, b): (IpAddr, IpAddr) = ("192.0.2.1".parse().unwrap(), "192.0.2.2".parse().unwrap());
         let held = [budget.arrival_slot(a, 2, Duration::ZERO).await.unwrap(), budget.arrival_slot(a, 2, Duration::ZERO).await.unwrap()];
         assert!(budget.arrival_slot(a, 2, Duration::from_millis(20)).await.is_none());

@@ -37,6 +37,7 @@ pub mod problem;
 pub mod rate;
 mod responses;
 pub mod server;
+pub mod shedding;
 mod state;
 pub mod timeout;
 pub mod trace;

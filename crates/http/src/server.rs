@@ -3,6 +3,12 @@
 //!
 //! - A connection cap: a permit is taken before `accept`, so beyond the cap new connections wait
 //!   in the kernel's backlog instead of costing memory here.
+//! - A share of it per client address (IPv6: its /64): a connection beyond its address's share
+//!   is answered a canned 503 problem and closed before any of its request is read, so one client
+//!   cannot hold the connections every other client needs.
+//! - Under pressure (fewer than [`shedding::reserve`] connections free), the requests whose
+//!   bodies arrive slowest are cut first ([`shedding`]), so connections held by stalled or
+//!   crawling uploads from many addresses turn over.
 //! - A header-read timeout: a connection that has not sent a complete request head within it is
 //!   closed. Hyper starts this timer whenever it waits for a request head, so it also bounds how
 //!   long an idle keep-alive connection stays open.
@@ -12,14 +18,15 @@
 //!   empty body, which hyper offers no way to fill: `head_errors::ProblemHeads` replaces that
 //!   answer with problem+json on its way out.
 //! - The client's address on each request (`ConnectInfo<SocketAddr>`), which admission counts
-//!   arriving bodies by.
+//!   arriving bodies by, and the registry of body holders ([`shedding::Holders`]).
 //! - Graceful shutdown: on the signal, stop accepting, let in-flight requests finish, and give up
 //!   on connections still open after the grace period (idle keep-alives, stalled uploads).
 
+use std::collections::HashMap;
 use std::convert::Infallible;
 use std::future::Future;
-use std::net::SocketAddr;
-use std::sync::Arc;
+use std::net::{IpAddr, SocketAddr};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 use axum::Router;
@@ -27,17 +34,22 @@ use axum::extract::ConnectInfo;
 use hyper::body::Incoming;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::server::graceful::GracefulShutdown;
-use tokio::net::TcpListener;
+use tokio::io::AsyncWriteExt as _;
+use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::Semaphore;
 use tower_service::Service as _;
 
 use super::head_errors::ProblemHeads;
+use super::intake::client_key;
+use super::shedding::{self, Holders};
 
 /// Connection-level limits (made from `config::Settings`, where the defaults are).
 #[derive(Debug, Clone, Copy)]
 pub struct ServerLimits {
     /// Most connections open at once.
     pub max_connections: usize,
+    /// Most of them from one client address (IPv6: its /64).
+    pub max_connections_per_address: usize,
     /// Time to receive a complete request head, and most time a keep-alive connection stays idle.
     pub header_timeout: Duration,
     /// After the shutdown signal, how long in-flight connections may take before they are dropped.
@@ -56,15 +68,80 @@ const HYPER_MAX_BUF: usize = 4 * (super::limits::MAX_URI_BYTES + super::limits::
 /// waits about this long for a place instead of the whole header timeout.
 const PRESSED_HEADER_TIMEOUT: Duration = Duration::from_secs(1);
 
-/// `router` as hyper's service of one connection, each request carrying the client's address.
+/// `router` as hyper's service of one connection, each request carrying the client's address and
+/// the body holders' registry.
 fn with_peer(
     router: Router,
     peer: SocketAddr,
+    holders: Holders,
 ) -> impl hyper::service::Service<hyper::Request<Incoming>, Response = axum::response::Response, Error = Infallible, Future: Send> {
     hyper::service::service_fn(move |mut request: hyper::Request<Incoming>| {
         request.extensions_mut().insert(ConnectInfo(peer));
+        request.extensions_mut().insert(holders.clone());
         router.clone().call(request.map(axum::body::Body::new))
     })
+}
+
+/// Connections open per client address.
+#[derive(Debug, Clone, Default)]
+struct PerAddress(Arc<Mutex<HashMap<IpAddr, usize>>>);
+
+/// A connection counted against its address until dropped.
+struct Counted {
+    per_address: PerAddress,
+    key: IpAddr,
+}
+
+impl PerAddress {
+    /// A count for a new connection from `peer`, unless its address has `cap` open.
+    fn admit(&self, peer: IpAddr, cap: usize) -> Option<Counted> {
+        let key = client_key(peer);
+        let mut open = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+        let count = open.entry(key).or_insert(0);
+        if *count >= cap {
+            return None;
+        }
+        *count += 1;
+        Some(Counted { per_address: self.clone(), key })
+    }
+}
+
+impl Drop for Counted {
+    fn drop(&mut self) {
+        let mut open = self.per_address.0.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(count) = open.get_mut(&self.key) {
+            *count -= 1;
+            if *count == 0 {
+                open.remove(&self.key);
+            }
+        }
+    }
+}
+
+/// The answer to a connection beyond its address's share, written before any request is read.
+fn over_share(cap: usize) -> Vec<u8> {
+    let body = format!(
+        "{{\"type\":\"https://facegate.dev/problems/overloaded\",\"title\":\"Overloaded\",\"status\":503,\"detail\":\"this client address already has {cap} connections open, the most one address may have; reuse them or retry shortly\"}}"
+    );
+    format!(
+        "HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/problem+json\r\nretry-after: 1\r\nconnection: close\r\ncontent-length: {}\r\n\r\n{body}",
+        body.len()
+    )
+    .into_bytes()
+}
+
+/// Longest a refused connection is given to take its 503.
+const REFUSAL_WRITE: Duration = Duration::from_secs(1);
+
+/// Answer `stream` with `answer` and close it, in the background.
+fn refuse_connection(mut stream: TcpStream, answer: Vec<u8>) {
+    tokio::spawn(async move {
+        let _ = tokio::time::timeout(REFUSAL_WRITE, async {
+            stream.write_all(&answer).await?;
+            stream.shutdown().await
+        })
+        .await;
+    });
 }
 
 /// How the server stopped.
@@ -85,6 +162,9 @@ pub async fn serve(listener: TcpListener, router: Router, limits: ServerLimits, 
     let mut pressed = builder.clone();
     pressed.header_read_timeout(limits.header_timeout.min(PRESSED_HEADER_TIMEOUT));
     let pressure_below = limits.max_connections.max(1) / 2;
+    let (holders, per_address) = (Holders::default(), PerAddress::default());
+    let shedder =
+        tokio::spawn(shedding::shed_under_pressure(connections.clone(), holders.clone(), shedding::reserve(limits.max_connections)));
     tokio::pin!(shutdown);
     loop {
         let permit = tokio::select! {
@@ -104,15 +184,21 @@ pub async fn serve(listener: TcpListener, router: Router, limits: ServerLimits, 
             _ = &mut shutdown => break,
         };
         let _ = stream.set_nodelay(true);
-        let service = with_peer(router.clone(), peer);
+        let Some(counted) = per_address.admit(peer.ip(), limits.max_connections_per_address.max(1)) else {
+            refuse_connection(stream, over_share(limits.max_connections_per_address));
+            drop(permit);
+            continue;
+        };
+        let service = with_peer(router.clone(), peer, holders.clone());
         let builder = if connections.available_permits() < pressure_below { &pressed } else { &builder };
         let connection = graceful.watch(builder.serve_connection(TokioIo::new(ProblemHeads::new(stream)), service));
         tokio::spawn(async move {
             // Errors here are the client's (reset, timeout, malformed head): nothing to report.
             let _ = connection.await;
-            drop(permit);
+            drop((permit, counted));
         });
     }
+    shedder.abort();
     drop(listener);
     tokio::select! {
         _ = graceful.shutdown() => Stopped::Drained,

@@ -23,9 +23,11 @@ pub struct ApiConfig {
     pub body_timeout: Duration,
     /// Time a body may take before `min_body_rate` applies.
     pub body_grace: Duration,
-    /// Least average rate of a body after `body_grace`, bytes per second (0: none); slower → 408.
+    /// Least rate of a body after `body_grace`, bytes per second over the last `body_grace` (0:
+    /// none); slower → 408.
     pub min_body_rate: u64,
-    /// Request bodies arriving at once from one client address (IPv6: its /64); beyond → 503.
+    /// Request bodies awaited (a head waiting for its first byte) or arriving at once from one
+    /// client address (IPv6: its /64); beyond → 503.
     pub max_uploads_per_address: usize,
     /// `POST /liveness/challenge` per second per client address (IPv6: its /64), in bursts of
     /// twice as many; beyond → 429 `too-many-challenges`. 0: no limit.
@@ -43,6 +45,9 @@ pub struct ApiConfig {
     /// Request bodies held in memory at once, in bytes (each request counts what has arrived of
     /// its body, from its first byte until it is answered); beyond → 503.
     pub max_buffered_bytes: usize,
+    /// Of `max_buffered_bytes`, most held by the bodies of one client address (IPv6: its /64);
+    /// beyond → 503.
+    pub max_buffered_per_address: usize,
     /// Accepted API keys; empty means the API is open (`config` refuses keys under 16 characters).
     pub api_keys: Vec<String>,
     /// Serve the web console at `/` (pages only; the API is the same either way).
@@ -83,7 +88,7 @@ impl AppState {
         // The service owns its policies; the state keeps the whole configuration it was made from.
         let facegate = Facegate::new(engine, store, pool, config.service.clone());
         let keys = ApiKeys::new(&config.api_keys);
-        let body_budget = BodyBudget::new(config.max_buffered_bytes, config.max_body_bytes);
+        let body_budget = BodyBudget::new(config.max_buffered_bytes, config.max_buffered_per_address, config.max_body_bytes);
         let challenge_rate = RateLimiter::new(config.challenge_rate, (config.challenge_rate * 2.0).ceil().min(f64::from(u32::MAX)) as u32);
         AppState(Arc::new(Shared { facegate, config, keys, body_budget, challenge_rate, metrics }))
     }

@@ -100,6 +100,12 @@ pub enum InvalidChallenge {
     Expired(i64),
     #[error("liveness is off on this server: it issues and judges no challenges")]
     LivenessOff,
+    /// A `/verify` without a challenge where the server requires one
+    /// ([`crate::ServiceConfig::require_challenge`]).
+    #[error(
+        "this server requires a head-turn challenge on /verify: ask for one (POST /liveness/challenge) and send its id as `challenge` with the frames of its steps"
+    )]
+    Required,
 }
 
 /// The verdict on a capture answering a challenge.

@@ -45,6 +45,10 @@ pub struct ServiceConfig {
     /// Most challenges open (issued, not yet taken or expired) at once in the store; beyond, an
     /// issue is refused ([`ServiceError::TooManyChallenges`]).
     pub max_open_challenges: u64,
+    /// `/verify` only with a passed head-turn challenge (`liveness` must be `Enforce`): a
+    /// verification without one is refused ([`InvalidChallenge::Required`]), so that a client app
+    /// cannot forget to ask for it. Identification and enrolment are not affected.
+    pub require_challenge: bool,
 }
 
 /// What is wrong with one photo.
@@ -477,6 +481,9 @@ impl Facegate {
         frames: Vec<Bytes>,
         fmr: Option<f64>,
     ) -> Result<Verification, ServiceError> {
+        if self.0.config.require_challenge {
+            return Err(InvalidChallenge::Required.into());
+        }
         if frames.len() > crate::MAX_CAPTURE_FRAMES {
             let (max, n) = (crate::MAX_CAPTURE_FRAMES, frames.len());
             return Err(ServiceError::Invalid(format!("at most {max} frames besides the probe, got {n}")));
