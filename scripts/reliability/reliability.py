@@ -64,6 +64,13 @@ checks its target and prints one result line; the script exits non-zero if any f
   db-vanish   the SQLite file deleted under the server after an enrolment: /health 503
               `store-unavailable` within 2 s, none of 10 enrolments after it acknowledged, and the
               restart on that path logs that it created a new, empty database
+  head-flood  4,000 heads without a body from 127.0.0.2 and 8 bodies of 16 MiB - 1 byte sent at
+              once then stalled from 127.0.0.3, all reopened when answered, for 20 s: 4 clients of
+              127.0.0.1 (a new connection per request) get >= 95 % of their verifications answered
+              200 at >= 50 % of their unattacked throughput, and VmHWM grows <= 200 MB
+              (scripts/reliability/fairness.py)
+  slow-bodies 64 addresses x 16 bodies at 8.5 KiB/s (just above the minimum rate), reopened when
+              answered, for 20 s: the 4 clients keep >= 50 % of their unattacked throughput
   overload    (not in the default set: long, and its figures want a release build) hey with
               8 clients for 20 s (the peak), then 200 clients for 60 s: 0 responses other than
               200/503, successful verifications/s at 200 clients >= 90% of the rate at 8, peak
@@ -1169,6 +1176,18 @@ def duplicates(args, work):
     return scenario.duplicates(args, work, Server, SHARED, os.path.join(ROOT, "models"))
 
 
+def head_flood(args, work):
+    import fairness  # beside this script (scripts/reliability/fairness.py)
+
+    return fairness.head_flood(args, work, Server, multipart, photo, verify_multipart)
+
+
+def slow_bodies(args, work):
+    import fairness
+
+    return fairness.slow_bodies(args, work, Server, multipart, photo, verify_multipart)
+
+
 def secrets_scenario(args, work):
     """A start-up that fails on an unreachable PostgreSQL whose password is in the URL, or in
     --database-password-file: no output of it may hold the password, in either log format."""
@@ -1288,10 +1307,10 @@ SCENARIOS = {
     "slowloris": slowloris, "slow-body": slow_body, "kill9": kill9, "sigterm": sigterm, "stalled-heads": stalled_heads,
     "json-flood": json_flood, "trickle": trickle, "part-flood": part_flood, "duplicates": duplicates, "fail-closed": fail_closed,
     "db-down": db_down, "overload": overload, "secrets": secrets_scenario, "challenge-flood": challenge_flood,
-    "db-vanish": db_vanish,
+    "db-vanish": db_vanish, "head-flood": head_flood, "slow-bodies": slow_bodies,
 }
 DEFAULT = ["slowloris", "slow-body", "kill9", "sigterm", "stalled-heads", "json-flood", "trickle", "part-flood", "duplicates",
-           "fail-closed", "db-down", "secrets", "challenge-flood", "db-vanish"]
+           "fail-closed", "db-down", "secrets", "challenge-flood", "db-vanish", "head-flood", "slow-bodies"]
 
 
 def main():

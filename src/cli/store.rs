@@ -87,7 +87,27 @@ pub struct CalibrateArgs {
     /// The recognizer, as `facegate serve --recognizer`: its model version is the one calibrated.
     #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = Recognizer::from(RecognizerKind::default()))]
     pub recognizer: Recognizer,
+    /// Largest rise of a threshold (site minus model, in score) stored without --accept-raise: a
+    /// calibration that would raise one further is printed with the ids carrying its tail, and not
+    /// stored (exit status 3). Lab photos of one camera raised 1e-3 by about 0.013; ids poisoned
+    /// with look-alikes by 0.03–0.04 (docs/recognition.md).
+    #[arg(long, default_value_t = DEFAULT_MAX_RAISE)]
+    pub max_raise: f32,
+    /// Store the calibration even when it raises a threshold by more than --max-raise (after
+    /// checking the ids its warning names).
+    #[arg(long, conflicts_with = "clear")]
+    pub accept_raise: bool,
+    /// Write every suspected duplicate pair of ids to this CSV file (`subject_a,subject_b,score`,
+    /// highest first; the JSON line lists the first 100).
+    #[arg(long, conflicts_with = "clear")]
+    pub duplicates_csv: Option<PathBuf>,
 }
+
+/// `calibrate --max-raise`'s default.
+pub const DEFAULT_MAX_RAISE: f32 = 0.02;
+
+/// The exit status of a calibration refused for its raise.
+const RAISE_REFUSED: u8 = 3;
 
 #[derive(clap::Args, Debug)]
 pub struct CalibrateLivenessArgs {
@@ -194,15 +214,68 @@ async fn calibrate(store: &Store, args: &CalibrateArgs) -> anyhow::Result<ExitCo
         let why = "no template of the current recognizer; its subjects must enrol again";
         super::print_json_line(&serde_json::json!({ "model_version": other, "stored": false, "skipped": why }));
     }
+    anyhow::ensure!(args.max_raise.is_finite() && args.max_raise >= 0.0, "--max-raise must be 0 or more");
     let site = site::measure(store, &pipeline).await?;
-    if !args.dry_run {
+    warn_of_duplicates(&site);
+    if let Some(path) = &args.duplicates_csv {
+        write_duplicates_csv(path, &site)?;
+    }
+    report_pull(&site);
+    let too_far = site.largest_raise().filter(|p| p.raise > args.max_raise && !args.accept_raise);
+    if let Some(p) = too_far {
+        eprintln!(
+            "{}: the calibration would raise the threshold at FMR {:e} by {:.4} ({:.4} → {:.4}), more than --max-raise {}: \
+             check the ids above (one person under several ids, or look-alikes enrolled on purpose); erase or merge them and \
+             calibrate again, or store it with --accept-raise",
+            if args.dry_run { "warning" } else { "error" },
+            p.fmr,
+            p.raise,
+            p.model_threshold,
+            p.site_threshold,
+            args.max_raise
+        );
+    }
+    let stored = !args.dry_run && too_far.is_none();
+    if stored {
         site::save(store, &site).await?;
     }
-    warn_of_duplicates(&site);
     let mut line = serde_json::to_value(&site)?;
-    line["stored"] = serde_json::Value::Bool(!args.dry_run);
+    line["stored"] = serde_json::Value::Bool(stored);
     super::print_json_line(&line);
-    Ok(ExitCode::SUCCESS)
+    // A dry run stores nothing either way: the warning says what a real run would refuse.
+    Ok(if too_far.is_some() && !args.dry_run { ExitCode::from(RAISE_REFUSED) } else { ExitCode::SUCCESS })
+}
+
+/// Each calibrated FMR's threshold against the model's on standard error, with the ids most in
+/// the impostor pairs above the model's threshold where the site raises it.
+fn report_pull(site: &SiteCalibration) {
+    for p in &site.pull {
+        eprintln!(
+            "FMR {:e}: model threshold {:.4}, site {:.4} ({:+.4}{}); {} impostor pair(s) at or above the model's threshold, {:.1} expected",
+            p.fmr,
+            p.model_threshold,
+            p.site_threshold,
+            p.raise,
+            if p.raise > 0.0 { ", raised" } else { ", the model's kept" },
+            p.tail_pairs,
+            p.expected_tail_pairs
+        );
+        if p.raise > 0.0 && !p.tail_ids.is_empty() {
+            let ids: Vec<String> = p.tail_ids.iter().map(|t| format!("{} ({})", t.subject, t.pairs)).collect();
+            eprintln!("  ids in most of those pairs: {}", ids.join(", "));
+        }
+    }
+}
+
+/// Every suspected duplicate pair as CSV (subject ids are CSV-safe: `A-Z a-z 0-9 . _ -`).
+fn write_duplicates_csv(path: &std::path::Path, site: &SiteCalibration) -> anyhow::Result<()> {
+    let mut text = String::from("subject_a,subject_b,score\n");
+    for d in &site.every_suspected_duplicate {
+        text.push_str(&format!("{},{},{:.6}\n", d.subjects[0], d.subjects[1], d.score));
+    }
+    std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?;
+    eprintln!("{} suspected pair(s) of ids written to {}", site.every_suspected_duplicate.len(), path.display());
+    Ok(())
 }
 
 /// The liveness threshold of the deployment's camera (`facegate_service::liveness_site`): the
@@ -317,7 +390,7 @@ fn warn_of_duplicates(site: &SiteCalibration) {
         site.duplicate_threshold.unwrap_or(f32::INFINITY),
         site.duplicate_pairs_left_out,
         if pairs > SHOWN {
-            format!("the {SHOWN} highest (the JSON line lists up to {})", site.suspected_duplicates.len())
+            format!("the {SHOWN} highest (the JSON line lists up to {}, --duplicates-csv all)", site.suspected_duplicates.len())
         } else {
             "they are".into()
         }

@@ -94,7 +94,27 @@ async fn a_site_calibration_raises_the_served_threshold_and_clear_takes_it_back(
 
     let (_, lines) = facegate(&["calibrate", "--database", &database, "--dry-run"]);
     assert_eq!((lines.len(), lines[0]["stored"].as_bool()), (1, Some(false)));
-    let (_, lines) = facegate(&["calibrate", "--database", &database]);
+    // The look-alikes raise 1e-3 past --max-raise: printed with the ids carrying the tail, and
+    // not stored without --accept-raise (exit status 3).
+    let csv = dir.0.join("duplicates.csv");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_facegate"))
+        .args(["calibrate", "--database", &database, "--max-raise", "0.005", "--duplicates-csv", csv.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{stderr}");
+    assert!(stderr.contains("more than --max-raise 0.005") && stderr.contains("--accept-raise"), "{stderr}");
+    assert!(stderr.contains("ids in most of those pairs: lookalike-"), "{stderr}");
+    let refused: Value = serde_json::from_str(String::from_utf8_lossy(&out.stdout).lines().next().unwrap()).unwrap();
+    assert_eq!(refused["stored"].as_bool(), Some(false));
+    let pull = &refused["pull"][1];
+    assert_eq!(pull["fmr"].as_f64(), Some(1e-3), "{refused}");
+    assert!((pull["model_threshold"].as_f64().unwrap() - model_threshold).abs() < 1e-5, "{pull}");
+    assert!(pull["raise"].as_f64().unwrap() > 0.005 && pull["tail_pairs"].as_u64().unwrap() > 100, "{pull}");
+    assert!(pull["tail_ids"].as_array().unwrap().iter().all(|t| t["subject"].as_str().unwrap().starts_with("lookalike-")), "{pull}");
+    assert_eq!(std::fs::read_to_string(&csv).unwrap().lines().collect::<Vec<_>>()[..2][0], "subject_a,subject_b,score");
+    assert!(std::fs::read_to_string(&csv).unwrap().lines().nth(1).unwrap().starts_with("alice,alice-again,"));
+    let (_, lines) = facegate(&["calibrate", "--database", &database, "--max-raise", "0.005", "--accept-raise"]);
     let site = &lines[0];
     assert_eq!(
         (site["model_version"].as_str(), site["subjects"].as_u64(), site["stored"].as_bool()),

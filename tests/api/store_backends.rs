@@ -161,8 +161,10 @@ async fn the_site_calibration_is_measured_on_sealed_templates_and_stored_per_ver
     let mut raised = site.clone();
     raised.points[0].threshold += 0.1;
     site::save(&store, &raised).await.unwrap();
-    // Stored without the suspected ids: a calibration names no subject.
-    let stored = SiteCalibration { suspected_duplicates: Vec::new(), ..raised };
+    // Stored without the suspected ids and the tails' ids: a calibration names no subject.
+    let stored = raised.as_stored();
+    assert!(stored.suspected_duplicates.is_empty() && stored.pull.iter().all(|p| p.tail_ids.is_empty()));
+    assert!(raised.pull.iter().any(|p| !p.tail_ids.is_empty()), "the measured one names them");
     assert_eq!(site::load(&store, &Table).await.unwrap(), SiteStatus::InUse(std::sync::Arc::new(stored)));
     assert_eq!(store.site_calibration("v2").await.unwrap(), None);
     assert_eq!(store.calibrated_versions().await.unwrap(), ["v1"]);

@@ -42,9 +42,38 @@ pub const MIN_FALSE_MATCHES: f64 = 10.0;
 /// gallery is sampled evenly ([`score_pairs`]).
 pub const MAX_TEMPLATES: usize = 6_000;
 
-/// Suspected duplicates listed in a calibration at most (the highest scores; the count of pairs
-/// left out is always complete).
+/// Suspected duplicates listed in a calibration's JSON at most (the highest scores; the count of
+/// pairs left out is always complete, and so is [`SiteCalibration::every_suspected_duplicate`]).
 pub const MAX_LISTED_DUPLICATES: usize = 100;
+
+/// Ids named per calibrated FMR as carrying its tail ([`Pull::tail_ids`]).
+pub const MAX_TAIL_IDS: usize = 10;
+
+/// How far a site threshold lies from the model's at one FMR, and which ids carry the impostor
+/// pairs that put it there: the pull an operator checks before the service decides with it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Pull {
+    pub fmr: f64,
+    /// The model's one-template threshold at `fmr`.
+    pub model_threshold: f32,
+    pub site_threshold: f32,
+    /// `site_threshold − model_threshold`: what every decision's threshold at `fmr` rises by (none
+    /// when it is not positive).
+    pub raise: f32,
+    /// Impostor pairs at or above the model's threshold; the model expects `fmr` × the pairs.
+    pub tail_pairs: usize,
+    pub expected_tail_pairs: f64,
+    /// The ids in most of those pairs, most first (at most [`MAX_TAIL_IDS`]); never stored.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub tail_ids: Vec<TailId>,
+}
+
+/// An enrolled id and the number of tail pairs it is in.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TailId {
+    pub subject: String,
+    pub pairs: usize,
+}
 
 /// One stated FMR's threshold on the site's impostor pairs.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -88,14 +117,29 @@ pub struct SiteCalibration {
     /// stored ([`save`]).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub suspected_duplicates: Vec<SuspectedDuplicate>,
+    /// Each calibrated FMR's pull against the model's threshold (empty when the model's thresholds
+    /// were not given); stored without the ids.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub pull: Vec<Pull>,
+    /// Every suspected pair of ids, highest score first: for the operator's complete list
+    /// (`facegate calibrate --duplicates-csv`); never serialised.
+    #[serde(skip)]
+    pub every_suspected_duplicate: Vec<SuspectedDuplicate>,
 }
 
 impl SiteCalibration {
-    /// The thresholds of `pairs`' impostor scores at the calibrated FMRs their count allows.
-    /// `names` gives each subject slot's id (for the suspected duplicates).
-    pub fn from_pairs(model_version: &str, names: &[String], templates: usize, pairs: &PairScores) -> SiteCalibration {
+    /// The thresholds of `pairs`' impostor scores at the calibrated FMRs their count allows, each
+    /// with its pull against `model_points` (the model's one-template thresholds; none given, no
+    /// pull). `names` gives each subject slot's id (for the suspected duplicates and the tails).
+    pub fn from_pairs(
+        model_version: &str,
+        names: &[String],
+        templates: usize,
+        pairs: &PairScores,
+        model_points: &[OperatingPoint],
+    ) -> SiteCalibration {
         let impostor = &pairs.impostor;
-        let points = CALIBRATED_FMRS
+        let points: Vec<SitePoint> = CALIBRATED_FMRS
             .iter()
             .filter(|&&fmr| impostor.len() as f64 * fmr >= MIN_FALSE_MATCHES)
             .map(|&fmr| SitePoint { fmr, threshold: threshold_at(impostor, fmr) })
@@ -105,7 +149,9 @@ impl SiteCalibration {
             pairs.duplicates.iter().map(|(&(a, b), &score)| SuspectedDuplicate { subjects: [name(a), name(b)], score }).collect();
         suspected.sort_by(|x, y| y.score.total_cmp(&x.score).then_with(|| x.subjects.cmp(&y.subjects)));
         let duplicate_id_pairs = suspected.len();
+        let every_suspected_duplicate = suspected.clone();
         suspected.truncate(MAX_LISTED_DUPLICATES);
+        let pull = points_pull(&points, model_points, impostor.len(), &pairs.tail, &name);
         SiteCalibration {
             model_version: model_version.to_string(),
             subjects: names.len(),
@@ -116,7 +162,20 @@ impl SiteCalibration {
             duplicate_pairs_left_out: pairs.duplicate_pairs,
             duplicate_id_pairs,
             suspected_duplicates: suspected,
+            pull,
+            every_suspected_duplicate,
         }
+    }
+
+    /// What [`save`] keeps of it: the numbers, without any subject's id.
+    pub fn as_stored(&self) -> SiteCalibration {
+        let pull = self.pull.iter().map(|p| Pull { tail_ids: Vec::new(), ..p.clone() }).collect();
+        SiteCalibration { suspected_duplicates: Vec::new(), every_suspected_duplicate: Vec::new(), pull, ..self.clone() }
+    }
+
+    /// The largest raise of a threshold, if any threshold rises.
+    pub fn largest_raise(&self) -> Option<&Pull> {
+        self.pull.iter().filter(|p| p.raise > 0.0).max_by(|a, b| a.raise.total_cmp(&b.raise))
     }
 
     /// `point` (the model's, for some enrolment size) raised by how far the site's threshold at
@@ -131,6 +190,42 @@ impl SiteCalibration {
             _ => point,
         }
     }
+}
+
+/// Each site point's [`Pull`] against the model's point at its FMR: the tail pairs (impostor
+/// pairs at or above the model's threshold, from `tail`) and the ids most often in them.
+fn points_pull(
+    points: &[SitePoint],
+    model_points: &[OperatingPoint],
+    impostor_pairs: usize,
+    tail: &[(u32, u32, f32)],
+    name: &dyn Fn(u32) -> String,
+) -> Vec<Pull> {
+    points
+        .iter()
+        .filter_map(|site| {
+            let model = model_points.iter().find(|m| m.fmr == site.fmr)?;
+            let mut per_id: HashMap<u32, usize> = HashMap::new();
+            let mut tail_pairs = 0;
+            for &(a, b, _) in tail.iter().filter(|t| t.2 >= model.threshold) {
+                tail_pairs += 1;
+                *per_id.entry(a).or_default() += 1;
+                *per_id.entry(b).or_default() += 1;
+            }
+            let mut ids: Vec<(u32, usize)> = per_id.into_iter().collect();
+            ids.sort_by(|x, y| y.1.cmp(&x.1).then_with(|| name(x.0).cmp(&name(y.0))));
+            let tail_ids = ids.into_iter().take(MAX_TAIL_IDS).map(|(slot, pairs)| TailId { subject: name(slot), pairs }).collect();
+            Some(Pull {
+                fmr: site.fmr,
+                model_threshold: model.threshold,
+                site_threshold: site.threshold,
+                raise: site.threshold - model.threshold,
+                tail_pairs,
+                expected_tail_pairs: site.fmr * impostor_pairs as f64,
+                tail_ids,
+            })
+        })
+        .collect()
 }
 
 /// The score at or above which two templates are taken for one person: the model's impostor tail
@@ -164,14 +259,17 @@ pub struct PairScores {
     /// Template pairs of the suspected subjects, left out of `impostor`.
     pub duplicate_pairs: usize,
     pub duplicate_threshold: f32,
+    /// The impostor pairs (suspected ones left out) at or above the `tail_from` asked for: their
+    /// subject slots (lower first) and score, what [`SiteCalibration::pull`] names.
+    pub tail: Vec<(u32, u32, f32)>,
 }
 
 /// Score every pair of rows of different subjects: `rows` are unit vectors (`dimension` each)
 /// with `owners` their subject slots. With more than [`MAX_TEMPLATES`] rows, every n-th row is
 /// taken (rows in subject order spread the sample over the subjects) and those are paired. The
 /// pairs of subjects with a template pair at or above `duplicate_threshold` are suspected, and
-/// every score of theirs left out.
-pub fn score_pairs(rows: &[f32], dimension: usize, owners: &[u32], duplicate_threshold: f32) -> PairScores {
+/// every score of theirs left out; the impostor pairs kept at or above `tail_from` are listed.
+pub fn score_pairs(rows: &[f32], dimension: usize, owners: &[u32], duplicate_threshold: f32, tail_from: f32) -> PairScores {
     let count = owners.len();
     let step = count.div_ceil(MAX_TEMPLATES).max(1);
     let taken: Vec<usize> = (0..count).step_by(step).collect();
@@ -195,13 +293,18 @@ pub fn score_pairs(rows: &[f32], dimension: usize, owners: &[u32], duplicate_thr
             *best = best.max(score);
         }
     }
+    let tail = pairs()
+        .zip(&impostor)
+        .filter(|&((_, _, slots), &score)| score >= tail_from && !duplicates.contains_key(&slots))
+        .map(|((_, _, (a, b)), &score)| (a, b, score))
+        .collect();
     let scored = impostor.len();
     if !duplicates.is_empty() {
         let mut walk = pairs();
         impostor.retain(|_| walk.next().is_some_and(|(_, _, slots)| !duplicates.contains_key(&slots)));
     }
     let duplicate_pairs = scored - impostor.len();
-    PairScores { impostor, duplicates, duplicate_pairs, duplicate_threshold }
+    PairScores { impostor, duplicates, duplicate_pairs, duplicate_threshold, tail }
 }
 
 /// Rows of unit vectors with their subject slots and the subjects' ids, as a calibration reads
@@ -230,10 +333,12 @@ impl SiteRows {
         self.names.push(name.to_string());
     }
 
-    /// The site calibration of these rows for `model_version` (module docs).
-    pub fn calibrate(&self, model_version: &str, duplicate_threshold: f32) -> SiteCalibration {
-        let pairs = score_pairs(&self.values, self.dimension, &self.owners, duplicate_threshold);
-        SiteCalibration::from_pairs(model_version, &self.names, self.owners.len(), &pairs)
+    /// The site calibration of these rows for `model_version` (module docs), with its pull
+    /// against `model_points` (the model's one-template thresholds at the calibrated FMRs).
+    pub fn calibrate(&self, model_version: &str, duplicate_threshold: f32, model_points: &[OperatingPoint]) -> SiteCalibration {
+        let tail_from = model_points.iter().map(|p| p.threshold).fold(f32::INFINITY, f32::min);
+        let pairs = score_pairs(&self.values, self.dimension, &self.owners, duplicate_threshold, tail_from);
+        SiteCalibration::from_pairs(model_version, &self.names, self.owners.len(), &pairs, model_points)
     }
 }
 
@@ -254,15 +359,20 @@ pub async fn measure(store: &Store, matcher: &dyn Matcher) -> Result<SiteCalibra
         .await?;
     match read {
         (_, Some(e)) => Err(e),
-        (rows, None) => Ok(rows.calibrate(&version, duplicate_threshold(matcher))),
+        (rows, None) => Ok(rows.calibrate(&version, duplicate_threshold(matcher), &model_points(matcher))),
     }
 }
 
+/// `matcher`'s one-template operating points at the calibrated FMRs it has.
+pub fn model_points(matcher: &dyn Matcher) -> Vec<OperatingPoint> {
+    CALIBRATED_FMRS.iter().map(|&fmr| matcher.operating_point(fmr, 1)).filter(|p| CALIBRATED_FMRS.contains(&p.fmr)).collect()
+}
+
 /// Store `calibration` for its model version, replacing the one before. The suspected duplicates'
-/// ids are the operator's to act on, not kept: a stored calibration names no subject, so erasing
-/// one leaves nothing of it here.
+/// and the tails' ids are the operator's to act on, not kept: a stored calibration names no
+/// subject, so erasing one leaves nothing of it here.
 pub async fn save(store: &Store, calibration: &SiteCalibration) -> Result<(), StoreError> {
-    let kept = SiteCalibration { suspected_duplicates: Vec::new(), ..calibration.clone() };
+    let kept = calibration.as_stored();
     let json = serde_json::to_string(&kept).map_err(|e| StoreError::Refused(e.to_string()))?;
     store.set_site_calibration(&calibration.model_version, &json).await
 }
@@ -347,6 +457,8 @@ mod tests {
             duplicate_pairs_left_out: 0,
             duplicate_id_pairs: 0,
             suspected_duplicates: Vec::new(),
+            pull: Vec::new(),
+            every_suspected_duplicate: Vec::new(),
         }
     }
 
@@ -368,7 +480,7 @@ mod tests {
         let scores: Vec<f32> = (0..2_000).map(|i| i as f32 / 2_000.0).collect();
         let pairs = PairScores { impostor: scores.clone(), duplicate_threshold: f32::INFINITY, ..PairScores::default() };
         let names: Vec<String> = (0..50).map(|i| i.to_string()).collect();
-        let s = SiteCalibration::from_pairs("m", &names, 100, &pairs);
+        let s = SiteCalibration::from_pairs("m", &names, 100, &pairs, &[]);
         // 2,000 pairs: 20 false matches at 1e-2, 2 at 1e-3.
         assert_eq!(s.points.len(), 1);
         assert_eq!(s.points[0].fmr, 1e-2);
@@ -381,7 +493,7 @@ mod tests {
     fn impostor_pairs_are_the_pairs_of_different_subjects() {
         // Three rows: two of subject 0 (identical), one of subject 1.
         let rows = [1.0, 0.0, 1.0, 0.0, 0.6, 0.8];
-        let mut pairs = score_pairs(&rows, 2, &[0, 0, 1], f32::INFINITY);
+        let mut pairs = score_pairs(&rows, 2, &[0, 0, 1], f32::INFINITY, f32::INFINITY);
         pairs.impostor.sort_by(f32::total_cmp);
         assert_eq!(pairs.impostor, [0.6, 0.6]);
         assert!(pairs.duplicates.is_empty());
@@ -394,13 +506,13 @@ mod tests {
         rows.push_subject("a", [&[1.0f32, 0.0][..]]);
         rows.push_subject("b", [&[0.6f32, 0.8][..]]);
         rows.push_subject("c", [&[1.0f32, 0.0][..], &[0.995f32, 0.0998][..]]);
-        let s = rows.calibrate("m", 0.9);
+        let s = rows.calibrate("m", 0.9, &[]);
         assert_eq!(s.duplicate_pairs_left_out, 2, "both of c's templates against a's");
         assert_eq!(s.impostor_pairs, 3, "a-b, b-c twice");
         assert_eq!(s.suspected_duplicates, [SuspectedDuplicate { subjects: ["a".into(), "c".into()], score: 1.0 }]);
         assert_eq!(s.duplicate_threshold, Some(0.9));
         // Without the threshold every pair counts.
-        assert_eq!(rows.calibrate("m", f32::INFINITY).impostor_pairs, 5);
+        assert_eq!(rows.calibrate("m", f32::INFINITY, &[]).impostor_pairs, 5);
     }
 
     #[test]
@@ -414,12 +526,40 @@ mod tests {
             let angle = 0.5 + i as f32 * 0.05;
             rows.push_subject(&format!("other{i}"), [&[0.0f32, angle.cos(), angle.sin()][..]]);
         }
-        let s = rows.calibrate("m", 0.999);
+        let s = rows.calibrate("m", 0.999, &[]);
         assert_eq!(s.duplicate_pairs_left_out, 114 * 113 / 2);
         assert!(s.points.iter().all(|p| p.threshold < 0.999), "{:?}", s.points);
         assert_eq!(s.suspected_duplicates.len(), MAX_LISTED_DUPLICATES);
-        // The count is of every pair, not of those listed.
+        // The count is of every pair, not of those listed; the complete list has them all.
         assert_eq!(s.duplicate_id_pairs, 114 * 113 / 2);
+        assert_eq!(s.every_suspected_duplicate.len(), 114 * 113 / 2);
+    }
+
+    #[test]
+    fn the_pull_names_the_ids_whose_pairs_carry_the_tail() {
+        // 42 subjects around a circle (no two closer than cosine 0.990) and 8 ids ("near0".."near7")
+        // of faces close to one another (cosine 0.9975-0.99995), below the duplicate threshold:
+        // their 28 pairs carry the tail above the model's 0.995 at 1e-2.
+        let mut rows = SiteRows::default();
+        for i in 0..42 {
+            let angle = i as f32 * 0.14;
+            rows.push_subject(&format!("s{i}"), [&[angle.cos(), angle.sin(), 0.0][..]]);
+        }
+        for i in 0..8 {
+            let angle = 0.01 * i as f32;
+            rows.push_subject(&format!("near{i}"), [&[0.0f32, angle.sin(), angle.cos()][..]]);
+        }
+        let model = [OperatingPoint { fmr: 1e-2, threshold: 0.995 }, OperatingPoint { fmr: 1e-3, threshold: 0.999 }];
+        let s = rows.calibrate("m", 0.99999, &model);
+        assert_eq!((s.duplicate_id_pairs, s.impostor_pairs), (0, 50 * 49 / 2));
+        assert_eq!(s.pull.len(), 1, "1,225 pairs calibrate 1e-2 only: {:?}", s.pull);
+        let pull = &s.pull[0];
+        assert_eq!((pull.fmr, pull.model_threshold, pull.tail_pairs), (1e-2, 0.995, 28), "{pull:?}");
+        assert!((pull.expected_tail_pairs - 12.25).abs() < 1e-9);
+        assert!(pull.raise > 0.0 && (pull.raise - (pull.site_threshold - 0.995)).abs() < 1e-6, "{pull:?}");
+        assert_eq!(pull.tail_ids.len(), 8, "{pull:?}");
+        assert!(pull.tail_ids.iter().all(|t| t.subject.starts_with("near") && t.pairs == 7), "{pull:?}");
+        assert_eq!(s.largest_raise().map(|p| p.fmr), Some(1e-2));
     }
 
     #[test]
@@ -428,7 +568,7 @@ mod tests {
         let rows: Vec<f32> = (0..count).flat_map(|i| [(i as f32).cos(), (i as f32).sin()]).collect();
         let owners: Vec<u32> = (0..count as u32).collect();
         let taken = count.div_ceil(3);
-        assert_eq!(score_pairs(&rows, 2, &owners, f32::INFINITY).impostor.len(), taken * (taken - 1) / 2);
+        assert_eq!(score_pairs(&rows, 2, &owners, f32::INFINITY, f32::INFINITY).impostor.len(), taken * (taken - 1) / 2);
     }
 
     #[test]

@@ -136,7 +136,7 @@ fn site_calibration(site: &[(usize, &str, &[f32])], duplicate_threshold: f32) ->
     for (label, templates) in persons {
         rows.push_subject(label, templates);
     }
-    rows.calibrate("research", duplicate_threshold)
+    rows.calibrate("research", duplicate_threshold, &[])
 }
 
 /// Genuine and impostor scores of every pair of the samples `keep` takes.
