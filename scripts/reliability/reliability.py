@@ -64,7 +64,7 @@ checks its target and prints one result line; the script exits non-zero if any f
   db-vanish   the SQLite file deleted under the server after an enrolment: /health 503
               `store-unavailable` within 2 s, none of 10 enrolments after it acknowledged, and the
               restart on that path logs that it created a new, empty database
-  head-flood  4,000 heads without a body from 127.0.0.2 and 8 bodies of 16 MiB - 1 byte sent at
+  head-flood  4,000 heads without a body from 127.0.0.2 (reopened <= 1,000/s) and 8 bodies of 16 MiB - 1 byte sent at
               once then stalled from 127.0.0.3, all reopened when answered, for 20 s: 4 clients of
               127.0.0.1 (a new connection per request) get >= 95 % of their verifications answered
               200 at >= 50 % of their unattacked throughput, and VmHWM grows <= 200 MB

@@ -22,10 +22,10 @@ use crate::intake::Progress;
 pub const RATE_WINDOW: Duration = Duration::from_secs(5);
 /// Holders younger than this are never cut.
 pub const MIN_AGE: Duration = Duration::from_secs(1);
-/// How often the pressure is looked at.
+/// How often the pressure is looked at; one holder is cut per look at most (100 a second): enough
+/// for the new clients of a busy server to be accepted, few enough that bodies reopened as soon as
+/// they are cut do not turn a slow flood into a flood of connections, each a head to parse.
 const CHECK_EVERY: Duration = Duration::from_millis(10);
-/// Most holders cut per look.
-const MOST_PER_CHECK: usize = 8;
 
 #[derive(Debug)]
 struct Holder {
@@ -101,7 +101,7 @@ pub fn reserve(max_connections: usize) -> usize {
 }
 
 /// Forever: while fewer than `reserve` of `connections`' permits are free, cut the slowest
-/// holders, a few per look.
+/// holder, one per look.
 pub async fn shed_under_pressure(connections: Arc<Semaphore>, holders: Holders, reserve: usize) {
     let mut tick = tokio::time::interval(CHECK_EVERY);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -111,12 +111,7 @@ pub async fn shed_under_pressure(connections: Arc<Semaphore>, holders: Holders, 
         if free >= reserve || holders.is_empty() {
             continue;
         }
-        let now = Instant::now();
-        for _ in 0..(reserve - free).min(MOST_PER_CHECK) {
-            if !holders.cut_slowest(now) {
-                break;
-            }
-        }
+        holders.cut_slowest(Instant::now());
     }
 }
 
