@@ -33,7 +33,8 @@ value_enum! {
     /// Which recognizer makes the templates.
     Recognizer => facegate_vision::recognize::RecognizerKind {
         /// dlib's face embedding alone (`deep.bin` over `embedding.bin`).
-        Deep,
+        #[value(name = "deep", alias = "dlib")]
+        Dlib,
         /// Pixels + LBP through Direct LDA (`dlda.bin`): no third-party weights, less CPU.
         Classical,
         /// OpenCV Zoo's SFace network alone (`sface.bin` over `sface.onnx`).

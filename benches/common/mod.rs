@@ -46,7 +46,7 @@ pub fn deep_pipeline(detector: facegate::detect::DetectorKind) -> facegate::pipe
     let config = facegate::pipeline::PipelineConfig {
         models_dir: facegate::config::models_dir(),
         sfm_dir: Some(facegate::config::shared_dir().join("models/sfm")),
-        recognizer: facegate::recognize::RecognizerKind::Deep,
+        recognizer: facegate::recognize::RecognizerKind::Dlib,
         detector,
     };
     facegate::pipeline::Pipeline::load(&config).expect("models and ../shared/models/sfm")

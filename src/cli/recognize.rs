@@ -432,7 +432,7 @@ pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
 const ENROLLED_PHOTOS: [usize; 4] = [1, 2, 3, 5];
 
 pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
-    if RecognizerKind::from(args.recognizer) == RecognizerKind::Deep {
+    if RecognizerKind::from(args.recognizer) == RecognizerKind::Dlib {
         let path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::dlib::FILE));
         return crate::cli::embed::run_eval_verify_deep(&path, &args.deep, args.json);
     }
@@ -532,7 +532,7 @@ fn print_enrollment_protocol(recognizer: &ClassicalRecognizer, sets: [(&str, &Ve
 }
 
 pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
-    if RecognizerKind::from(args.recognizer) == RecognizerKind::Deep {
+    if RecognizerKind::from(args.recognizer) == RecognizerKind::Dlib {
         return crate::cli::embed::run_eval_identify_deep(args.distractors);
     }
     let data = args.data.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/imm"));

@@ -54,7 +54,7 @@ async fn verifies_with(kind: RecognizerKind, members: usize) {
     assert_eq!(threshold, pipeline.recognizer.operating_point(1e-3, 1).threshold, "{same}");
 
     // The same database under dlib's network alone: nothing it can compare.
-    let dlib = app.restarted_with(loaded(RecognizerKind::Deep), facegate::config::Settings::default().api_config().unwrap()).await;
+    let dlib = app.restarted_with(loaded(RecognizerKind::Dlib), facegate::config::Settings::default().api_config().unwrap()).await;
     dlib.post_form("/verify", Some("imm-03"), &[imm("03-2m.jpg")]).await.assert_problem(409, "model-mismatch");
 }
 

@@ -5,7 +5,7 @@
 use std::time::Duration;
 
 use facegate::service::liveness_site::{self, LivenessCalibration};
-use facegate::service::site::{self, SiteCalibration, SiteStatus};
+use facegate::service::site::{self, SiteStatus};
 use facegate::service::{Matcher, SubjectId};
 use facegate::store::{Backend, CipherError, KeyRing, RekeyReport, Store, StoreChange, StoreError, VersionCount};
 use facegate_core::template::{OperatingPoint, Template};

@@ -94,7 +94,7 @@ pub fn frontal_template(pipeline: &Pipeline, photo: &Photo, analysis: &FaceAnaly
 /// detector's five points, for a network aligned by them); `None` for the classical recognizer.
 fn deep_template(pipeline: &Pipeline, rgb: &image::RgbImage, keypoints: &KeyPoints, points: Option<&[Point; 5]>) -> Option<Template> {
     match &pipeline.recognizer {
-        Recognizer::Deep(deep) => Some(deep.template_of_chip(&facegate_vision::embed::face_chip(rgb, keypoints))),
+        Recognizer::Dlib(deep) => Some(deep.template_of_chip(&facegate_vision::embed::face_chip(rgb, keypoints))),
         Recognizer::Embedding(recognizer, _) => Some(recognizer.embed(rgb, keypoints, points, None).template),
         Recognizer::Classical(_) => None,
     }

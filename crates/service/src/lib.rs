@@ -115,7 +115,7 @@ impl Matcher for Recognizer {
     fn max_cosine_scoring(&self) -> bool {
         // The deep recognizers' score is the best cosine (`DlibRecognizer::score`); the classical
         // one may S-normalise against a cohort and average, so it keeps its own `score`.
-        matches!(self, Recognizer::Deep(_) | Recognizer::Embedding(..))
+        matches!(self, Recognizer::Dlib(_) | Recognizer::Embedding(..))
     }
 }
 

@@ -121,7 +121,7 @@ impl Pipeline {
         // resident size (the start-up peak, docs/speed.md "Memory of one replica").
         let face_model = load_face_model(config.sfm_dir.as_deref());
         let recognizer = match config.recognizer {
-            RecognizerKind::Deep => Recognizer::Deep(Box::new(DlibRecognizer::load(&config.models_dir)?)),
+            RecognizerKind::Dlib => Recognizer::Dlib(Box::new(DlibRecognizer::load(&config.models_dir)?)),
             RecognizerKind::Classical => Recognizer::Classical(load_classical(config, face_model.is_some())?),
             kind @ (RecognizerKind::Sface | RecognizerKind::Fusion | RecognizerKind::Custom) => {
                 let file = kind.embedding_model_file().expect("an embedding recognizer");
@@ -195,7 +195,7 @@ impl Pipeline {
                 let embedded = recognizer.embed(&photo.rgb, &landmarks.keypoints, face.points.as_ref(), Some(&chip));
                 (embedded.template, embedded.dlib_pair)
             }
-            Recognizer::Deep(deep) => {
+            Recognizer::Dlib(deep) => {
                 let (template, mirror) = deep.template_and_mirror_pair(&chip);
                 (template, Some(mirror))
             }

@@ -93,7 +93,7 @@ fn full_pipeline_reports_every_stage() {
 
 #[test]
 fn deep_and_classical_templates_carry_their_own_versions() {
-    let deep = Pipeline::load(&PipelineConfig { recognizer: RecognizerKind::Deep, ..pipeline_config() }).unwrap();
+    let deep = Pipeline::load(&PipelineConfig { recognizer: RecognizerKind::Dlib, ..pipeline_config() }).unwrap();
     let classical = Pipeline::load(&PipelineConfig { recognizer: RecognizerKind::Classical, ..pipeline_config() }).unwrap();
     let p = photo("05-1m.jpg");
     let (a, b) = (deep.analyze(&p).unwrap(), classical.analyze(&p).unwrap());
@@ -108,7 +108,7 @@ fn deep_and_classical_templates_carry_their_own_versions() {
     assert_eq!((qa.sharpness, qa.fit_residual), (qb.sharpness, qb.fit_residual));
     // Without the 3DMM the deep recognizer is unchanged (it never needed the rendering); the
     // pose is then unknown.
-    let flat = Pipeline::load(&PipelineConfig { sfm_dir: None, recognizer: RecognizerKind::Deep, ..pipeline_config() }).unwrap();
+    let flat = Pipeline::load(&PipelineConfig { sfm_dir: None, recognizer: RecognizerKind::Dlib, ..pipeline_config() }).unwrap();
     let c = flat.analyze(&p).unwrap();
     assert_eq!((c.template.clone(), c.pose), (a.template, None));
 }

@@ -7,8 +7,8 @@ use super::{ClassicalRecognizer, DlibRecognizer, EmbeddingRecognizer, OperatingP
 /// Which recognizer makes the templates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub enum RecognizerKind {
-    /// dlib's face embedding alone (`deep.bin` over `embedding.bin`).
-    Deep,
+    /// dlib's face embedding alone (`deep.bin` over `embedding.bin`; `--recognizer deep`).
+    Dlib,
     /// Pixels + LBP through Direct LDA (`dlda.bin`): no third-party weights, less CPU.
     Classical,
     /// OpenCV Zoo's SFace network alone (`sface.bin` over `sface.onnx`).
@@ -29,7 +29,7 @@ impl RecognizerKind {
             RecognizerKind::Sface => Some("sface.bin"),
             RecognizerKind::Fusion => Some("fusion.bin"),
             RecognizerKind::Custom => Some("custom.bin"),
-            RecognizerKind::Deep | RecognizerKind::Classical => None,
+            RecognizerKind::Dlib | RecognizerKind::Classical => None,
         }
     }
 }
@@ -38,7 +38,7 @@ impl RecognizerKind {
 /// (the model version on templates, the score, the calibrated operating point).
 pub enum Recognizer {
     Classical(ClassicalRecognizer),
-    Deep(Box<DlibRecognizer>),
+    Dlib(Box<DlibRecognizer>),
     /// SFace, the fusion, or a user's networks; `kind` is the value it was loaded as.
     Embedding(Box<EmbeddingRecognizer>, RecognizerKind),
 }
@@ -47,7 +47,7 @@ impl Recognizer {
     pub fn kind(&self) -> RecognizerKind {
         match self {
             Recognizer::Classical(_) => RecognizerKind::Classical,
-            Recognizer::Deep(_) => RecognizerKind::Deep,
+            Recognizer::Dlib(_) => RecognizerKind::Dlib,
             Recognizer::Embedding(_, kind) => *kind,
         }
     }
@@ -55,7 +55,7 @@ impl Recognizer {
     pub fn model_version(&self) -> &str {
         match self {
             Recognizer::Classical(r) => r.model_version(),
-            Recognizer::Deep(d) => &d.model.version,
+            Recognizer::Dlib(d) => &d.model.version,
             Recognizer::Embedding(e, _) => &e.model.version,
         }
     }
@@ -63,7 +63,7 @@ impl Recognizer {
     pub fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
         match self {
             Recognizer::Classical(r) => r.score(probe, enrolled),
-            Recognizer::Deep(d) => d.score(probe, enrolled),
+            Recognizer::Dlib(d) => d.score(probe, enrolled),
             Recognizer::Embedding(e, _) => e.score(probe, enrolled),
         }
     }
@@ -71,7 +71,7 @@ impl Recognizer {
     pub fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
         match self {
             Recognizer::Classical(r) => r.operating_point(fmr, enrolled),
-            Recognizer::Deep(d) => d.model.operating_point(fmr, enrolled),
+            Recognizer::Dlib(d) => d.model.operating_point(fmr, enrolled),
             Recognizer::Embedding(e, _) => e.model.operating_point(fmr, enrolled),
         }
     }
@@ -80,7 +80,7 @@ impl Recognizer {
     pub fn classical(&self) -> Option<&ClassicalRecognizer> {
         match self {
             Recognizer::Classical(r) => Some(r),
-            Recognizer::Deep(_) | Recognizer::Embedding(..) => None,
+            Recognizer::Dlib(_) | Recognizer::Embedding(..) => None,
         }
     }
 }
