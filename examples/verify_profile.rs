@@ -89,7 +89,7 @@ fn profile(pipeline: &Pipeline, bytes: &[Vec<u8>], rounds: usize) -> Costs {
                         });
                     }
                 }
-                Recognizer::Deep(d) => {
+                Recognizer::Dlib(d) => {
                     let chip = facegate::embed::face_chip(&photo.rgb, &a.landmarks.keypoints);
                     c.networks[0] += cpu_ms(|| {
                         std::hint::black_box(d.template_and_mirror_pair(&chip));
@@ -114,7 +114,7 @@ fn main() {
         })
         .expect("models (scripts/fetch-models.sh) and ../shared/models/sfm")
     };
-    let pipelines = [("fusion (default)", load(RecognizerKind::Fusion)), ("deep (dlib alone)", load(RecognizerKind::Deep))];
+    let pipelines = [("fusion (default)", load(RecognizerKind::Fusion)), ("deep (dlib alone)", load(RecognizerKind::Dlib))];
     println!(
         "| photos | recognizer | faces | CPU per photo (ms) | decode | detect | landmarks | 3DMM fit | template (networks) | quality | liveness |"
     );

@@ -23,6 +23,7 @@ use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::quality::QualityPolicy;
 use crate::recognize::DEFAULT_FMR;
 use crate::recognize::RecognizerKind;
+use crate::service::protection::ProtectionKey;
 use crate::service::{ChallengeConfig, LivenessPolicy, ServiceConfig};
 use crate::store::KeyRing;
 use anyhow::Context;
@@ -252,6 +253,31 @@ pub struct Settings {
     pub require_challenge: bool,
     #[command(flatten)]
     pub template_key: TemplateKeyArgs,
+    #[command(flatten)]
+    pub template_protection: TemplateProtectionArgs,
+}
+
+/// Where the template protection secret comes from (shared by `serve` and `calibrate`).
+#[derive(clap::Args, Debug, Clone, Default, PartialEq)]
+pub struct TemplateProtectionArgs {
+    /// File of the template protection secret, 64 hex digits (`openssl rand -hex 32`): every
+    /// template is then a keyed rotation of the networks' embedding, unlinkable to the same
+    /// person's templates under another secret, and only that is stored and compared. Keep it
+    /// out of the database, as the template key. A database holds plain or protected templates,
+    /// of one secret: a mismatch stops the start-up.
+    #[arg(long, env = "FACEGATE_TEMPLATE_PROTECTION_KEY_FILE")]
+    pub template_protection_key_file: Option<PathBuf>,
+}
+
+impl TemplateProtectionArgs {
+    /// The secret of the key file, if one is given.
+    pub fn key(&self) -> anyhow::Result<Option<ProtectionKey>> {
+        let Some(path) = &self.template_protection_key_file else { return Ok(None) };
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("cannot read the template protection key file {}", path.display()))?;
+        let key = ProtectionKey::parse(&text).map_err(|e| anyhow::anyhow!("template protection key file {}: {e}", path.display()))?;
+        Ok(Some(key))
+    }
 }
 
 /// Where the template key comes from (shared by `serve`, `rekey`, `backup` and `restore`).
@@ -307,6 +333,7 @@ impl Default for Settings {
             log_format: LogFormat::default(),
             console: DEFAULT_CONSOLE,
             template_key: TemplateKeyArgs::default(),
+            template_protection: TemplateProtectionArgs::default(),
             min_quality: DEFAULT_MIN_QUALITY,
             min_inter_eye_px: DEFAULT_MIN_INTER_EYE_PX,
             min_sharpness: DEFAULT_MIN_SHARPNESS,

@@ -20,6 +20,7 @@ use crate::http::server::{self, ServerLimits, Stopped};
 use crate::http::{self, ApiConfig, AppState, FaceEngine};
 use crate::pipeline::Pipeline;
 use crate::service::liveness_site;
+use crate::service::protection::{ProtectedEngine, check_stored_versions};
 use crate::service::site::SiteStatus;
 use crate::service::{Facegate, LivenessPolicy, Matcher};
 use crate::store::{KeyCheck, KeyRing, Store};
@@ -167,6 +168,13 @@ impl ApplicationBuilder {
                 }
             },
         };
+        let engine = match protect(engine, &settings, &store).await {
+            Ok(engine) => engine,
+            Err(e) => {
+                store.close().await;
+                return Err(e);
+            }
+        };
         info!(workers = config.workers, queue = config.queue_depth, enroll_queue = config.enroll_queue_depth, "bounded work pool");
         let state = AppState::new(engine, store, config);
         load_site_calibration(state.facegate()).await?;
@@ -181,6 +189,21 @@ impl ApplicationBuilder {
         );
         Ok(Application { listener, address, state, limits })
     }
+}
+
+/// `engine` with its templates protected under the settings' protection secret, if any; refused
+/// when the database holds templates of the other kind, or of another secret.
+async fn protect(engine: Arc<dyn FaceEngine>, settings: &Settings, store: &Store) -> anyhow::Result<Arc<dyn FaceEngine>> {
+    let stored = store.model_versions().await.context("cannot read the stored model versions")?;
+    let plain = engine.model_version().to_string();
+    let Some(key) = settings.template_protection.key()? else {
+        check_stored_versions(&stored, &plain, None).map_err(anyhow::Error::msg)?;
+        return Ok(engine);
+    };
+    let protected = ProtectedEngine::new(engine, key)?;
+    check_stored_versions(&stored, &plain, Some(protected.model_version())).map_err(anyhow::Error::msg)?;
+    info!(key_id = protected.key_id(), model_version = protected.model_version(), "templates are protected (keyed rotation)");
+    Ok(Arc::new(protected))
 }
 
 /// The settings' database, its templates sealed under `template_keys` when given, else under the

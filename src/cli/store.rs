@@ -4,16 +4,18 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::Arc;
 
 use anyhow::Context;
 
-use crate::config::{DEFAULT_DATABASE, TemplateKeyArgs};
+use crate::config::{DEFAULT_DATABASE, TemplateKeyArgs, TemplateProtectionArgs};
 use crate::liveness::LivenessModel;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::RecognizerKind;
-use crate::service::Matcher;
 use crate::service::liveness_site::{self, DEFAULT_BPCER, LivenessCalibration};
+use crate::service::protection::ProtectedEngine;
 use crate::service::site::{self, SiteCalibration};
+use crate::service::{FaceEngine, Matcher};
 use crate::store::{self, Store};
 
 use crate::choices::{Detector, Recognizer};
@@ -101,6 +103,8 @@ pub struct CalibrateArgs {
     /// highest first; the JSON line lists the first 100).
     #[arg(long, conflicts_with = "clear")]
     pub duplicates_csv: Option<PathBuf>,
+    #[command(flatten)]
+    pub protection: TemplateProtectionArgs,
 }
 
 /// `calibrate --max-raise`'s default.
@@ -201,12 +205,17 @@ async fn calibrate(store: &Store, args: &CalibrateArgs) -> anyhow::Result<ExitCo
     let config = PipelineConfig { recognizer: args.recognizer.into(), ..crate::config::pipeline_config() };
     let config = PipelineConfig { models_dir: args.models.clone().unwrap_or(config.models_dir), ..config };
     let pipeline = tokio::task::spawn_blocking(move || Pipeline::load(&config)).await?.context("cannot load the recognizer")?;
-    let version = pipeline.recognizer.model_version().to_string();
     anyhow::ensure!(
         Matcher::max_cosine_scoring(&pipeline),
         "the site calibration is for cosine-scored recognizers; {} keeps its own thresholds",
-        version
+        pipeline.recognizer.model_version()
     );
+    // With the protection secret, the templates calibrated are the protected ones.
+    let matcher: Arc<dyn FaceEngine> = match args.protection.key()? {
+        Some(key) => Arc::new(ProtectedEngine::new(Arc::new(pipeline), key)?),
+        None => Arc::new(pipeline),
+    };
+    let version = matcher.model_version().to_string();
     if let Some(asked) = args.model_version.as_ref().filter(|asked| **asked != version) {
         anyhow::bail!("--model-version {asked} is not the recognizer's ({version}): pass the --recognizer (and --models) that make it");
     }
@@ -215,7 +224,7 @@ async fn calibrate(store: &Store, args: &CalibrateArgs) -> anyhow::Result<ExitCo
         super::print_json_line(&serde_json::json!({ "model_version": other, "stored": false, "skipped": why }));
     }
     anyhow::ensure!(args.max_raise.is_finite() && args.max_raise >= 0.0, "--max-raise must be 0 or more");
-    let site = site::measure(store, &pipeline).await?;
+    let site = site::measure(store, matcher.as_ref()).await?;
     warn_of_duplicates(&site);
     if let Some(path) = &args.duplicates_csv {
         write_duplicates_csv(path, &site)?;

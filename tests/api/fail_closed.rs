@@ -54,7 +54,7 @@ impl Scratch {
     }
 
     /// Write `text` to `name`; its path.
-    fn file(&self, name: &str, text: &str) -> String {
+    pub(crate) fn file(&self, name: &str, text: &str) -> String {
         std::fs::write(self.0.join(name), text).unwrap();
         self.path(name)
     }
@@ -103,7 +103,7 @@ fn free_port() -> u16 {
 
 /// `facegate serve` on `database` with `extra` arguments must refuse to start: a non-zero exit,
 /// an error containing each of `expected`, and no listening socket at any time. Returns the error.
-fn serve_is_refused(database: &str, extra: &[&str], expected: &[&str]) -> String {
+pub(crate) fn serve_is_refused(database: &str, extra: &[&str], expected: &[&str]) -> String {
     let port = free_port();
     let bind = format!("127.0.0.1:{port}");
     let mut args = vec!["serve", "--bind", &bind, "--database", database, "--workers", "1"];

@@ -49,6 +49,7 @@ mod liveness_calibration;
 mod openapi;
 mod pipeline;
 mod postgres;
+mod protection;
 mod recognizers;
 mod replicas;
 mod secrets;

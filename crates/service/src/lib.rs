@@ -18,6 +18,7 @@ pub mod inspect;
 pub mod liveness;
 pub mod liveness_site;
 pub mod pool;
+pub mod protection;
 pub mod site;
 
 use serde::Serialize;
