@@ -61,6 +61,13 @@ impl Progress {
         Progress { start, received: 0, marks: VecDeque::new(), window }
     }
 
+    /// The body's first byte is here at `at`: the pace counts from it (a request may have been a
+    /// holder for a while before, waiting for it), over windows up to `window` at least.
+    fn begin(&mut self, at: Instant, window: Duration) {
+        (self.start, self.received, self.window) = (at, 0, self.window.max(window));
+        self.marks.clear();
+    }
+
     /// `total` bytes received by `at`.
     pub fn arrived(&mut self, at: Instant, total: usize) {
         self.received = total;
@@ -136,7 +143,7 @@ pub struct BodyBudget {
     kib: Arc<Semaphore>,
     max_body_bytes: usize,
     per_address_kib: usize,
-    held: Arc<Mutex<HashMap<IpAddr, usize>>>,
+    held: AddressTally,
     arriving: Arc<Mutex<HashMap<IpAddr, Arc<Semaphore>>>>,
 }
 
@@ -145,7 +152,7 @@ impl BodyBudget {
     pub fn new(max_buffered_bytes: usize, per_address_bytes: usize, max_body_bytes: usize) -> BodyBudget {
         let per_address_kib = kib(per_address_bytes);
         let kib = Arc::new(Semaphore::new(kib(max_buffered_bytes).min(Semaphore::MAX_PERMITS)));
-        BodyBudget { kib, max_body_bytes, per_address_kib, held: Arc::default(), arriving: Arc::default() }
+        BodyBudget { kib, max_body_bytes, per_address_kib, held: AddressTally::default(), arriving: Arc::default() }
     }
 
     /// Grow `share` to cover `bytes`; the cut when the budget or the address's share cannot (the
@@ -157,19 +164,15 @@ impl BodyBudget {
             return Ok(());
         }
         let more = (wanted - held) as usize;
-        if let Some(address) = share.address {
-            let mut by_address = self.held.lock().unwrap_or_else(PoisonError::into_inner);
-            let of_address = by_address.entry(address).or_insert(0);
-            if *of_address + more > self.per_address_kib {
-                if *of_address == 0 {
-                    by_address.remove(&address);
-                }
-                return Err(Cut::AddressBudgetSpent);
-            }
-            *of_address += more;
+        if let Some(address) = share.address
+            && !self.held.try_add(address, more, self.per_address_kib)
+        {
+            return Err(Cut::AddressBudgetSpent);
         }
         let Ok(permit) = self.kib.clone().try_acquire_many_owned(more as u32) else {
-            share.give_back_address(more);
+            if let Some(address) = share.address {
+                self.held.sub(address, more);
+            }
             return Err(Cut::BudgetSpent);
         };
         share.of_address += more;
@@ -231,6 +234,47 @@ impl Drop for ArrivalSlot {
     }
 }
 
+/// A count per client address (connections, KiB of body budget), each held under a cap; an
+/// address counting nothing is forgotten.
+#[derive(Debug, Clone, Default)]
+pub struct AddressTally(Arc<Mutex<HashMap<IpAddr, usize>>>);
+
+impl AddressTally {
+    /// Add `n` to `key`'s count unless that would pass `cap`; whether it was added.
+    pub fn try_add(&self, key: IpAddr, n: usize, cap: usize) -> bool {
+        let mut counts = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+        let count = counts.get(&key).copied().unwrap_or(0);
+        if count + n > cap {
+            return false;
+        }
+        counts.insert(key, count + n);
+        true
+    }
+
+    /// Take `n` back from `key`'s count.
+    pub fn sub(&self, key: IpAddr, n: usize) {
+        let mut counts = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(count) = counts.get_mut(&key) {
+            *count = count.saturating_sub(n);
+            if *count == 0 {
+                counts.remove(&key);
+            }
+        }
+    }
+
+    /// `key`'s count.
+    #[cfg(test)]
+    fn count(&self, key: IpAddr) -> usize {
+        self.0.lock().unwrap_or_else(PoisonError::into_inner).get(&key).copied().unwrap_or(0)
+    }
+
+    /// Whether no address counts anything.
+    #[cfg(test)]
+    fn is_empty(&self) -> bool {
+        self.0.lock().unwrap_or_else(PoisonError::into_inner).is_empty()
+    }
+}
+
 /// The address a client is counted by: an IPv4 address (also when mapped into IPv6), or the /64
 /// of an IPv6 address (a host is usually given a whole /64).
 pub fn client_key(address: IpAddr) -> IpAddr {
@@ -251,27 +295,14 @@ pub struct Share {
     address: Option<IpAddr>,
     /// KiB charged to `address`.
     of_address: usize,
-    held: Arc<Mutex<HashMap<IpAddr, usize>>>,
-}
-
-impl Share {
-    /// Take `kib` back from the address's charge (forgetting an address that holds nothing).
-    fn give_back_address(&mut self, kib: usize) {
-        let Some(address) = self.address else { return };
-        let mut by_address = self.held.lock().unwrap_or_else(PoisonError::into_inner);
-        if let Some(of_address) = by_address.get_mut(&address) {
-            *of_address = of_address.saturating_sub(kib);
-            if *of_address == 0 {
-                by_address.remove(&address);
-            }
-        }
-    }
+    held: AddressTally,
 }
 
 impl Drop for Share {
     fn drop(&mut self) {
-        let charged = std::mem::take(&mut self.of_address);
-        self.give_back_address(charged);
+        if let Some(address) = self.address {
+            self.held.sub(address, self.of_address);
+        }
     }
 }
 
@@ -292,7 +323,8 @@ pub async fn receive(
     progress: &Mutex<Progress>,
     shed: &tokio::sync::Notify,
 ) -> Result<Received, Cut> {
-    let start = progress.lock().unwrap_or_else(PoisonError::into_inner).start;
+    let start = Instant::now();
+    progress.lock().unwrap_or_else(PoisonError::into_inner).begin(start, pace.grace);
     let end = start + pace.timeout;
     let bound = declared.map_or(limit, |n| usize::try_from(n).unwrap_or(usize::MAX)).min(limit).min(budget.max_body_bytes);
     let mut buffer: Vec<u8> = Vec::new();
@@ -399,7 +431,7 @@ mod tests {
         assert!(matches!(second, Err(Cut::AddressBudgetSpent)), "{second:?}");
         drop(received);
         assert_eq!(budget.kib.available_permits(), 64);
-        assert!(budget.held.lock().unwrap().is_empty(), "an address holding nothing is forgotten");
+        assert!(budget.held.is_empty(), "an address holding nothing is forgotten");
         // Without a declared length the buffer doubles, bounded by the limit.
         let over = receive_at(chunks(), None, 50_000, pace(), &budget).await;
         assert!(matches!(over, Err(Cut::TooLarge)), "{over:?}");
@@ -417,12 +449,12 @@ mod tests {
         assert!(matches!(budget.charge(&mut shares[1], 10_000), Err(Cut::AddressBudgetSpent)), "a's share is spent");
         assert!(budget.charge(&mut shares[2], 60_000).is_ok(), "b has its own");
         assert!(matches!(budget.charge(&mut shares[3], 60_000), Err(Cut::BudgetSpent)), "the whole budget is spent");
-        assert_eq!(budget.held.lock().unwrap().get(&c), None, "a refused charge leaves nothing behind");
+        assert_eq!(budget.held.count(c), 0, "a refused charge leaves nothing behind");
         shares.remove(0);
         assert!(budget.charge(&mut shares[0], 10_000).is_ok(), "a's share came back");
         drop(shares);
         assert_eq!(budget.kib.available_permits(), 160);
-        assert!(budget.held.lock().unwrap().is_empty());
+        assert!(budget.held.is_empty());
     }
 
     #[tokio::test]

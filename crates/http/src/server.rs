@@ -22,11 +22,10 @@
 //! - Graceful shutdown: on the signal, stop accepting, let in-flight requests finish, and give up
 //!   on connections still open after the grace period (idle keep-alives, stalled uploads).
 
-use std::collections::HashMap;
 use std::convert::Infallible;
 use std::future::Future;
 use std::net::{IpAddr, SocketAddr};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::Arc;
 use std::time::Duration;
 
 use axum::Router;
@@ -40,7 +39,8 @@ use tokio::sync::Semaphore;
 use tower_service::Service as _;
 
 use super::head_errors::ProblemHeads;
-use super::intake::client_key;
+use super::intake::{AddressTally, client_key};
+use super::problem::{Problem, ProblemKind};
 use super::shedding::{self, Holders};
 
 /// Connection-level limits (made from `config::Settings`, where the defaults are).
@@ -82,52 +82,34 @@ fn with_peer(
     })
 }
 
-/// Connections open per client address.
-#[derive(Debug, Clone, Default)]
-struct PerAddress(Arc<Mutex<HashMap<IpAddr, usize>>>);
-
 /// A connection counted against its address until dropped.
 struct Counted {
-    per_address: PerAddress,
+    per_address: AddressTally,
     key: IpAddr,
-}
-
-impl PerAddress {
-    /// A count for a new connection from `peer`, unless its address has `cap` open.
-    fn admit(&self, peer: IpAddr, cap: usize) -> Option<Counted> {
-        let key = client_key(peer);
-        let mut open = self.0.lock().unwrap_or_else(PoisonError::into_inner);
-        let count = open.entry(key).or_insert(0);
-        if *count >= cap {
-            return None;
-        }
-        *count += 1;
-        Some(Counted { per_address: self.clone(), key })
-    }
 }
 
 impl Drop for Counted {
     fn drop(&mut self) {
-        let mut open = self.per_address.0.lock().unwrap_or_else(PoisonError::into_inner);
-        if let Some(count) = open.get_mut(&self.key) {
-            *count -= 1;
-            if *count == 0 {
-                open.remove(&self.key);
-            }
-        }
+        self.per_address.sub(self.key, 1);
     }
+}
+
+/// A count for a new connection from `peer`, unless its address has `cap` open.
+fn admit_connection(per_address: &AddressTally, peer: IpAddr, cap: usize) -> Option<Counted> {
+    let key = client_key(peer);
+    per_address.try_add(key, 1, cap).then(|| Counted { per_address: per_address.clone(), key })
 }
 
 /// The answer to a connection beyond its address's share, written before any request is read.
 fn over_share(cap: usize) -> Vec<u8> {
-    let body = format!(
-        "{{\"type\":\"https://facegate.dev/problems/overloaded\",\"title\":\"Overloaded\",\"status\":503,\"detail\":\"this client address already has {cap} connections open, the most one address may have; reuse them or retry shortly\"}}"
-    );
-    format!(
-        "HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/problem+json\r\nretry-after: 1\r\nconnection: close\r\ncontent-length: {}\r\n\r\n{body}",
+    let detail =
+        format!("this client address already has {cap} connections open, the most one address may have; reuse them or retry shortly");
+    let body = Problem::new(ProblemKind::Overloaded, detail).json();
+    let head = format!(
+        "HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/problem+json\r\ncache-control: no-store\r\nretry-after: 1\r\nconnection: close\r\ncontent-length: {}\r\n\r\n",
         body.len()
-    )
-    .into_bytes()
+    );
+    [head.into_bytes(), body].concat()
 }
 
 /// Longest a refused connection is given to take its 503.
@@ -162,7 +144,7 @@ pub async fn serve(listener: TcpListener, router: Router, limits: ServerLimits, 
     let mut pressed = builder.clone();
     pressed.header_read_timeout(limits.header_timeout.min(PRESSED_HEADER_TIMEOUT));
     let pressure_below = limits.max_connections.max(1) / 2;
-    let (holders, per_address) = (Holders::default(), PerAddress::default());
+    let (holders, per_address) = (Holders::default(), AddressTally::default());
     let shedder =
         tokio::spawn(shedding::shed_under_pressure(connections.clone(), holders.clone(), shedding::reserve(limits.max_connections)));
     tokio::pin!(shutdown);
@@ -184,7 +166,7 @@ pub async fn serve(listener: TcpListener, router: Router, limits: ServerLimits, 
             _ = &mut shutdown => break,
         };
         let _ = stream.set_nodelay(true);
-        let Some(counted) = per_address.admit(peer.ip(), limits.max_connections_per_address.max(1)) else {
+        let Some(counted) = admit_connection(&per_address, peer.ip(), limits.max_connections_per_address.max(1)) else {
             refuse_connection(stream, over_share(limits.max_connections_per_address));
             drop(permit);
             continue;

@@ -184,8 +184,10 @@ impl Matcher for ProtectedEngine {
     fn model_version(&self) -> &str {
         &self.version
     }
+    /// The inner engine's best cosine ([`ProtectedEngine::new`] takes no other), of protected
+    /// templates.
     fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
-        enrolled.iter().map(|t| probe.cosine(t)).fold(f32::NEG_INFINITY, f32::max)
+        self.inner.score(probe, enrolled)
     }
     fn operating_point(&self, fmr: f64, enrolled: usize) -> OperatingPoint {
         self.inner.operating_point(fmr, enrolled)

@@ -287,17 +287,18 @@ pub fn score_pairs(rows: &[f32], dimension: usize, owners: &[u32], duplicate_thr
     // second walk of the same order, which computes nothing.
     let mut impostor: Vec<f32> = pairs().map(|(i, j, _)| facegate_core::vector::dot(row(i), row(j))).collect();
     let mut duplicates: HashMap<(u32, u32), f32> = HashMap::new();
+    let mut tail: Vec<(u32, u32, f32)> = Vec::new();
     for ((_, _, slots), &score) in pairs().zip(&impostor) {
         if score >= duplicate_threshold {
             let best = duplicates.entry(slots).or_insert(score);
             *best = best.max(score);
         }
+        if score >= tail_from {
+            tail.push((slots.0, slots.1, score));
+        }
     }
-    let tail = pairs()
-        .zip(&impostor)
-        .filter(|&((_, _, slots), &score)| score >= tail_from && !duplicates.contains_key(&slots))
-        .map(|((_, _, (a, b)), &score)| (a, b, score))
-        .collect();
+    // The tail is of the pairs kept: none of the suspected subjects'.
+    tail.retain(|&(a, b, _)| !duplicates.contains_key(&(a, b)));
     let scored = impostor.len();
     if !duplicates.is_empty() {
         let mut walk = pairs();
