@@ -402,6 +402,7 @@ impl Settings {
                 quality_policy: self.quality_policy(),
                 default_fmr: DEFAULT_FMR,
                 liveness: self.liveness.into(),
+                liveness_threshold: self.liveness_threshold,
                 challenge: ChallengeConfig { lifetime: Duration::from_secs(self.challenge_lifetime_secs) },
                 max_open_challenges: self.max_open_challenges,
                 require_challenge: self.require_challenge,
@@ -409,17 +410,17 @@ impl Settings {
         })
     }
 
-    /// The liveness model the service runs, made from the one the pipeline loaded (`None` when
-    /// `liveness.bin` is missing): none with `--liveness off` (so no time is spent on it), and with
-    /// `--liveness-threshold` the operator's threshold in place of the model's operating point.
-    /// `enforce` without a model, and a threshold with no model to apply it to, stop the start-up.
+    /// The liveness model the pipeline keeps of the one it loaded (`None` when `liveness.bin` is
+    /// missing): none with `--liveness off`, so no time is spent on it. `enforce` without a model,
+    /// and a `--liveness-threshold` with no model to apply it to, stop the start-up. The threshold
+    /// itself is the service's ([`crate::service::liveness::threshold_in_force`]), not the model's.
     pub fn liveness_model(&self, model: Option<LivenessModel>) -> anyhow::Result<Option<LivenessModel>> {
         let policy = LivenessPolicy::from(self.liveness);
         if policy == LivenessPolicy::Off {
             return Ok(None);
         }
         let file = crate::liveness::FILE;
-        let Some(mut model) = model else {
+        if model.is_none() {
             anyhow::ensure!(
                 policy != LivenessPolicy::Enforce,
                 "--liveness enforce (FACEGATE_LIVENESS) needs the liveness model {file} in the models folder (`facegate train \
@@ -429,18 +430,8 @@ impl Settings {
                 self.liveness_threshold.is_none(),
                 "--liveness-threshold (FACEGATE_LIVENESS_THRESHOLD) is set but there is no liveness model ({file}) to apply it to"
             );
-            return Ok(None);
-        };
-        if let Some(threshold) = self.liveness_threshold {
-            model.operating_point = format!(
-                "the operator's threshold (--liveness-threshold {}) in place of the model's {:.3}, the {}",
-                liveness_threshold(threshold)?,
-                model.threshold,
-                model.operating_point
-            );
-            model.threshold = threshold;
         }
-        Ok(Some(model))
+        Ok(model)
     }
 
     /// [`Settings::liveness_model`] applied to a loaded pipeline.
@@ -652,10 +643,10 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
-    /// `off` drops the model, `report` and `enforce` keep it, the operator's threshold replaces the
-    /// model's (and says so), and what cannot be honoured stops the start-up.
+    /// `off` drops the model, `report` and `enforce` keep it as it is (the operator's threshold is
+    /// the service's, not the model's), and what cannot be honoured stops the start-up.
     #[test]
-    fn the_liveness_settings_shape_the_model_the_service_runs() {
+    fn the_liveness_settings_shape_the_model_the_pipeline_keeps() {
         use crate::choices::Liveness;
         let model = || Some(LivenessModel::load(&models_dir().join(crate::liveness::FILE)).unwrap());
         let with = |liveness, liveness_threshold| Settings { liveness, liveness_threshold, ..Settings::default() };
@@ -663,16 +654,7 @@ mod tests {
         assert!(with(Liveness::Off, Some(0.3)).liveness_model(model()).unwrap().is_none(), "off wins over a threshold");
         for policy in [Liveness::Report, Liveness::Enforce] {
             assert_eq!(with(policy, None).liveness_model(model()).unwrap(), model());
-            let overridden = with(policy, Some(0.25)).liveness_model(model()).unwrap().unwrap();
-            let original = model().unwrap();
-            assert_eq!((overridden.threshold, overridden.name.as_str()), (0.25, original.name.as_str()));
-            assert!(overridden.threshold != original.threshold);
-            assert!(
-                overridden.operating_point.contains("--liveness-threshold 0.25")
-                    && overridden.operating_point.contains(&original.operating_point),
-                "{}",
-                overridden.operating_point
-            );
+            assert_eq!(with(policy, Some(0.25)).liveness_model(model()).unwrap(), model(), "the model keeps its own point");
         }
         // No model: reported as none, refused where it was needed.
         assert!(with(Liveness::Report, None).liveness_model(None).unwrap().is_none());

@@ -19,7 +19,7 @@ use crate::config::Settings;
 use crate::http::server::{self, ServerLimits, Stopped};
 use crate::http::{self, ApiConfig, AppState, FaceEngine};
 use crate::pipeline::Pipeline;
-use crate::service::liveness_site;
+use crate::service::liveness::ThresholdSource;
 use crate::service::protection::{ProtectedEngine, check_stored_versions};
 use crate::service::site::SiteStatus;
 use crate::service::{Facegate, LivenessPolicy, Matcher};
@@ -113,8 +113,9 @@ impl ApplicationBuilder {
     }
 
     /// This face engine instead of the pipeline the settings load (the tests' stand-in, or a
-    /// pipeline loaded once and shared): used as it is, so neither the liveness settings nor the
-    /// site calibration are applied to it.
+    /// pipeline loaded once and shared): used as it is (its liveness model is not dropped under
+    /// `--liveness off`); the service's liveness threshold and site calibration are made for it
+    /// as for a loaded one.
     pub fn engine(mut self, engine: Arc<dyn FaceEngine>) -> ApplicationBuilder {
         self.engine = Some(engine);
         self
@@ -160,7 +161,7 @@ impl ApplicationBuilder {
         log_api_keys(&config, &settings.bind);
         let engine: Arc<dyn FaceEngine> = match self.engine {
             Some(engine) => engine,
-            None => match load_pipeline(&settings, &config, &store).await {
+            None => match load_pipeline(&settings).await {
                 Ok(pipeline) => Arc::new(pipeline),
                 Err(e) => {
                     store.close().await;
@@ -178,6 +179,7 @@ impl ApplicationBuilder {
         info!(workers = config.workers, queue = config.queue_depth, enroll_queue = config.enroll_queue_depth, "bounded work pool");
         let state = AppState::new(engine, store, config);
         load_site_calibration(state.facegate()).await?;
+        load_liveness_calibration(state.facegate()).await?;
         load_gallery(&state).await?;
         let listener = TcpListener::bind(&settings.bind).await.with_context(|| format!("cannot listen on {}", settings.bind))?;
         let address = listener.local_addr()?;
@@ -229,53 +231,51 @@ fn log_api_keys(config: &ApiConfig, bind: &str) {
     }
 }
 
-/// The face pipeline the settings name, shaped by the liveness settings and the camera's liveness
-/// calibration in `store`.
-async fn load_pipeline(settings: &Settings, config: &ApiConfig, store: &Store) -> anyhow::Result<Pipeline> {
+/// The face pipeline the settings name, its liveness model dropped under `--liveness off`.
+async fn load_pipeline(settings: &Settings) -> anyhow::Result<Pipeline> {
     let pipeline_config = settings.pipeline_config();
     info!(models = %pipeline_config.models_dir.display(), "loading the face pipeline");
     let loaded = tokio::task::spawn_blocking(move || Pipeline::load(&pipeline_config)).await?;
-    // The liveness settings shape the loaded pipeline: off drops the model, a threshold replaces its own.
     let mut pipeline = loaded.context("cannot load the face pipeline models")?;
     settings.configure_liveness(&mut pipeline)?;
-    apply_liveness_calibration(settings, store, &mut pipeline).await?;
     info!(model_version = pipeline.recognizer.model_version(), with_3dmm = pipeline.face_model.is_some(), "pipeline loaded");
-    match &pipeline.liveness {
-        Some(model) => info!(
-            policy = ?config.service.liveness,
-            model = model.name,
-            threshold = model.threshold,
-            operating_point = model.operating_point,
-            "liveness (presentation-attack detection)"
-        ),
-        None if config.service.liveness == LivenessPolicy::Off => {
-            info!("liveness off: no face is checked for a presentation attack")
-        }
-        None => warn!("no liveness model ({}): faces report no liveness", crate::liveness::FILE),
-    }
     Ok(pipeline)
 }
 
-/// The camera's liveness threshold (`facegate calibrate-liveness`) in place of the liveness model's
-/// own, unless the operator named one (`--liveness-threshold`, which wins) or liveness is off.
-async fn apply_liveness_calibration(settings: &Settings, store: &Store, pipeline: &mut Pipeline) -> anyhow::Result<()> {
-    let Some(model) = pipeline.liveness.as_mut() else { return Ok(()) };
-    let stored = liveness_site::load(store, &model.name).await.context("cannot read the liveness calibration")?;
-    match stored {
-        Some(calibration) if settings.liveness_threshold.is_some() => warn!(
+/// Read the camera's liveness calibration (`facegate calibrate-liveness`) into the service and log
+/// the one liveness threshold it decides by: the operator's `--liveness-threshold`, else the
+/// camera's, else the liveness model's own operating point.
+async fn load_liveness_calibration(facegate: &Facegate) -> anyhow::Result<()> {
+    let (stored, point) = facegate.load_liveness_calibration().await.context("cannot read the liveness calibration")?;
+    let Some(point) = point else {
+        match facegate.config().liveness {
+            LivenessPolicy::Off => info!("liveness off: no face is checked for a presentation attack"),
+            _ => warn!("no liveness model ({}): faces report no liveness", crate::liveness::FILE),
+        }
+        return Ok(());
+    };
+    match (stored, point.source) {
+        (Some(calibration), ThresholdSource::Operator) => warn!(
             calibrated = calibration.threshold,
-            threshold = model.threshold,
             "--liveness-threshold (FACEGATE_LIVENESS_THRESHOLD) is set: the camera's stored liveness calibration is not used"
         ),
-        Some(calibration) if calibration.apply(model) => info!(
-            threshold = calibration.threshold,
+        (Some(calibration), ThresholdSource::Camera) => info!(
             model_threshold = calibration.model_threshold,
             live_faces = calibration.live_faces,
             refused = calibration.refused,
             "liveness threshold of this camera (facegate calibrate-liveness) in place of the model's"
         ),
-        _ => info!(threshold = model.threshold, "no liveness calibration (facegate calibrate-liveness): the model's threshold"),
+        (None, ThresholdSource::Model) => info!("no liveness calibration (facegate calibrate-liveness): the model's threshold"),
+        _ => {}
     }
+    info!(
+        policy = ?facegate.config().liveness,
+        model = point.model,
+        threshold = point.threshold,
+        source = point.source.name(),
+        operating_point = point.operating_point,
+        "liveness (presentation-attack detection)"
+    );
     Ok(())
 }
 

@@ -22,11 +22,12 @@ async fn post(served: &Served, path: &str, photo: &str) -> (u16, Value) {
     (r.status().as_u16(), r.json().await.unwrap())
 }
 
-/// `/health`'s `liveness`: the threshold in force and how it was set.
-async fn health_liveness(served: &Served) -> (f64, String) {
+/// `/health`'s `liveness`: the threshold in force and how it was set, in words and by whom.
+async fn health_liveness(served: &Served) -> (f64, String, String) {
     let health: Value = reqwest::get(format!("{}/health", served.base)).await.unwrap().json().await.unwrap();
     let liveness = &health["liveness"];
-    (liveness["threshold"].as_f64().unwrap(), liveness["operating_point"].as_str().unwrap().to_string())
+    let text = |field: &str| liveness[field].as_str().unwrap().to_string();
+    (liveness["threshold"].as_f64().unwrap(), text("operating_point"), text("source"))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -53,8 +54,8 @@ async fn a_cameras_live_captures_set_the_served_liveness_threshold() {
         scores.push((body["liveness"]["score"].as_f64().unwrap(), photo.clone()));
     }
     assert!(served.log().contains("no liveness calibration"), "{}", served.log());
-    let (model_threshold, how) = health_liveness(&served).await;
-    assert!(!how.contains("calibrate-liveness"), "{how}");
+    let (model_threshold, how, source) = health_liveness(&served).await;
+    assert!(!how.contains("calibrate-liveness") && source == "model", "{how} ({source})");
     drop(served);
     scores.sort_by(|a, b| a.0.total_cmp(&b.0));
     assert!(scores[0].0 < scores[1].0, "the lowest score is one photo's: {scores:?}");
@@ -87,8 +88,9 @@ async fn a_cameras_live_captures_set_the_served_liveness_threshold() {
     // Served: the lowest photo is now taken for an attack, saying by which threshold; the others pass.
     let served = Served::start(&database, &["--liveness", "enforce"], dir.0.join("serve-2.log")).await;
     assert!(served.log().contains("liveness threshold of this camera"), "{}", served.log());
-    let (served_threshold, how) = health_liveness(&served).await;
+    let (served_threshold, how, source) = health_liveness(&served).await;
     assert!((served_threshold - threshold).abs() < 1e-6 && how.contains("1 of 12 live faces refused"), "{served_threshold} {how}");
+    assert_eq!(source, "camera");
     let (status, problem) = post(&served, "/verify", &scores[0].1).await;
     assert_eq!((status, problem["type"].as_str().map(|t| t.ends_with("presentation-attack"))), (422, Some(true)), "{problem}");
     assert!(problem.to_string().contains("facegate calibrate-liveness"), "{problem}");
@@ -98,7 +100,9 @@ async fn a_cameras_live_captures_set_the_served_liveness_threshold() {
     // The operator's --liveness-threshold wins over the stored one.
     let served = Served::start(&database, &["--liveness", "enforce", "--liveness-threshold", "0.01"], dir.0.join("serve-3.log")).await;
     assert!(served.log().contains("stored liveness calibration is not used"), "{}", served.log());
-    assert_eq!(health_liveness(&served).await.0, 0.01);
+    let (served_threshold, how, source) = health_liveness(&served).await;
+    assert_eq!((served_threshold, source.as_str()), (0.01, "operator"), "{how}");
+    assert!(how.contains("in place of the camera's"), "the operator's threshold says what it replaced: {how}");
     assert_eq!(post(&served, "/verify", &scores[0].1).await.0, 200);
     drop(served);
 
@@ -108,7 +112,8 @@ async fn a_cameras_live_captures_set_the_served_liveness_threshold() {
     assert_eq!(lines[0]["removed"].as_bool(), Some(true));
     let served = Served::start(&database, &["--liveness", "enforce"], dir.0.join("serve-4.log")).await;
     assert!(served.log().contains("no liveness calibration"), "{}", served.log());
-    assert_eq!(health_liveness(&served).await.0, model_threshold);
+    let (served_threshold, _, source) = health_liveness(&served).await;
+    assert_eq!((served_threshold, source.as_str()), (model_threshold, "model"));
     assert_eq!(post(&served, "/verify", &scores[0].1).await.0, 200);
     drop(served);
     // Liveness off: no threshold in force.

@@ -338,7 +338,7 @@ impl FaceEngine for StandInEngine {
     }
 
     /// The stand-in has no liveness model: its faces carry no liveness.
-    fn liveness_point(&self) -> Option<LivenessPoint> {
+    fn liveness_model_point(&self) -> Option<LivenessPoint> {
         None
     }
 }

@@ -237,7 +237,7 @@ pub fn judge(
         .enumerate()
         .filter(|(_, r)| r.turn != Turn::Front)
         .find(|(_, r)| r.excess_turn().is_some_and(|e| e > MAX_EXCESS_TURN));
-    let render = rendered.and_then(|r| crate::fuse_liveness(r, RENDER_MIN));
+    let render = rendered.and_then(crate::fuse_liveness);
     let reason = if let Some((i, r)) = readings.iter().enumerate().find(|(_, r)| !r.ok) {
         let step = &steps[i];
         Some(match r.yaw {
@@ -268,7 +268,7 @@ pub fn judge(
         ))
     } else {
         match depth {
-            Some(_) if render.as_ref().is_some_and(|r| r.attack) => Some(format!(
+            Some(_) if render.as_ref().is_some_and(|r| r.score < RENDER_MIN) => Some(format!(
                 "the frames look like a head rendered from a photo, not a camera's view of one: {:.3} below {RENDER_MIN:.2} ({})",
                 render.as_ref().map_or(0.0, |r| r.score),
                 render.as_ref().map_or("", |r| r.model.as_str())

@@ -20,11 +20,14 @@ pub enum InspectError {
     Pipeline(#[from] PipelineError),
 }
 
-/// An analysis and the time spent decoding the photo.
+/// An analysis, the time spent decoding the photo, and the service's verdict on each face's
+/// liveness.
 #[derive(Debug, Clone)]
 pub struct Analysis {
     pub reading: PhotoReading,
     pub decode_ms: f64,
+    /// One per face of `reading`, in order: `None` with liveness off or no model.
+    pub liveness: Vec<Option<crate::LivenessVerdict>>,
 }
 
 /// The photo of `bytes` decoded within `limits`, and the milliseconds it took: the one decoding
@@ -38,7 +41,7 @@ pub fn decode_photo(bytes: &[u8], limits: &DecodeLimits) -> Result<(Photo, f64),
 /// Every face of the photo (or the largest), each with its 58 landmarks, pose and fit residual.
 pub fn analyze(engine: &dyn FaceEngine, bytes: &[u8], limits: &DecodeLimits, choice: FaceChoice) -> Result<Analysis, InspectError> {
     let (photo, decode_ms) = decode_photo(bytes, limits)?;
-    Ok(Analysis { reading: engine.read_faces(&photo, choice)?, decode_ms })
+    Ok(Analysis { reading: engine.read_faces(&photo, choice)?, decode_ms, liveness: Vec::new() })
 }
 
 /// The textured 3D head of the largest face as a glTF binary file, or the OBJ files zipped.

@@ -1,7 +1,7 @@
 //! What the service does, without HTTP: the use cases ([`Facegate`]: enroll, verify, identify,
 //! delete, analyze, avatar, frontalize), the face engine behind them ([`FaceEngine`]), which photos
 //! can be enrolled ([`check_enrollment_photo`], [`check_enrollment_quality`]), which faces are let
-//! through as live ([`liveness`]: the policy, [`check_liveness`]), what a decision is
+//! through as live ([`liveness`]: the policy, the threshold in force, [`check_liveness`]), what a decision is
 //! ([`comparable_templates`], [`decide`]: which templates count, the threshold for the subject's
 //! number of templates), the identification gallery ([`gallery`]) and the bounded work pool
 //! ([`WorkPool`]). The HTTP layer and the command line both go through here.
@@ -36,7 +36,7 @@ pub use facegate::{
     ServiceError, Verification, analyze_photo,
 };
 pub use facegate_core::{InvalidSubjectId, MAX_SUBJECT_LEN, SubjectId};
-pub use liveness::{LivenessPoint, LivenessPolicy, PresentationAttack, check_liveness, fuse_liveness};
+pub use liveness::{LivenessPoint, LivenessPolicy, LivenessVerdict, PresentationAttack, ThresholdSource, check_liveness, fuse_liveness};
 pub use pool::{Admission, PoolError, WorkClass, WorkPool};
 
 /// How templates are compared: what the verify and identify decisions need of a recognizer.
@@ -78,9 +78,10 @@ pub trait FaceEngine: Matcher + Send + Sync + 'static {
     fn avatar(&self, photo: &Photo, format: AvatarFormat) -> Result<Vec<u8>, PipelineError>;
     /// The frontal rendering of the largest face, PNG.
     fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError>;
-    /// The operating point of the liveness model behind the analyses' `liveness`; `None` when
-    /// no liveness model is loaded (then no analysis carries one).
-    fn liveness_point(&self) -> Option<LivenessPoint>;
+    /// The operating point the liveness model behind the analyses' `liveness` was trained at:
+    /// where the service's threshold starts (the composition root may replace it by a camera's
+    /// or the operator's). `None` when no liveness model is loaded (then no analysis carries one).
+    fn liveness_model_point(&self) -> Option<LivenessPoint>;
     /// A face seen by a camera or a head rendered from a photo: the probability of the former
     /// (`render.bin`); `None` without the model. Only a challenge's frames are checked.
     fn render_check(&self, _photo: &Photo, _analysis: &FaceAnalysis) -> Option<facegate_vision::liveness::Liveness> {
@@ -133,8 +134,8 @@ impl FaceEngine for Pipeline {
     fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
         Pipeline::frontal_png(self, photo)
     }
-    fn liveness_point(&self) -> Option<LivenessPoint> {
-        self.liveness.as_ref().map(|m| LivenessPoint { threshold: m.threshold, operating_point: m.operating_point.clone() })
+    fn liveness_model_point(&self) -> Option<LivenessPoint> {
+        self.liveness.as_ref().map(LivenessPoint::of_model)
     }
     fn render_check(&self, photo: &Photo, analysis: &FaceAnalysis) -> Option<facegate_vision::liveness::Liveness> {
         Pipeline::render_check(self, photo, analysis)

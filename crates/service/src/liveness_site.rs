@@ -7,7 +7,7 @@
 //! their own camera: staff, volunteers, consenting users. From those alone a
 //! [`LivenessCalibration`] sets the threshold that refuses at most a stated share of them
 //! ([`live_threshold`]), and the service applies it at start-up in place of the model's own
-//! ([`LivenessCalibration::apply`]). It says nothing of the prints that camera will see: the share
+//! ([`LivenessCalibration::point`]). It says nothing of the prints that camera will see: the share
 //! of prints it passes was measured on people and cameras apart from the ones calibrated
 //! (docs/liveness.md, "A threshold per camera").
 
@@ -15,6 +15,8 @@ use serde::{Deserialize, Serialize};
 
 use facegate_store::{Store, StoreError};
 use facegate_vision::liveness::LivenessModel;
+
+use crate::liveness::{LivenessPoint, ThresholdSource};
 
 /// The share of the camera's live captures a calibration refuses at most, unless told otherwise:
 /// the most a deployment can bear to turn away (the passive check's target).
@@ -91,13 +93,14 @@ impl LivenessCalibration {
         })
     }
 
-    /// `model` deciding at this camera's threshold, its operating point saying so (a refusal
-    /// quotes it). A calibration of another model leaves it as it is: `false`.
-    pub fn apply(&self, model: &mut LivenessModel) -> bool {
-        if model.name != self.model {
-            return false;
+    /// The threshold this camera's calibration sets in place of the liveness model's own point
+    /// `model`, its operating point saying so (a refusal quotes it). A calibration of another
+    /// model sets none.
+    pub fn point(&self, model: &LivenessPoint) -> Option<LivenessPoint> {
+        if model.model != self.model {
+            return None;
         }
-        model.operating_point = format!(
+        let operating_point = format!(
             "this camera's threshold (facegate calibrate-liveness: {} of {} live faces refused, at most {}%) in place of the \
              model's {:.3}, the {}",
             self.refused,
@@ -106,8 +109,7 @@ impl LivenessCalibration {
             model.threshold,
             model.operating_point
         );
-        model.threshold = self.threshold;
-        true
+        Some(LivenessPoint { threshold: self.threshold, source: ThresholdSource::Camera, model: self.model.clone(), operating_point })
     }
 }
 
@@ -183,13 +185,11 @@ mod tests {
         let calibration = LivenessCalibration::from_scores(&model(0.64), &scores, 0.1).unwrap();
         assert_eq!((calibration.threshold, calibration.refused, calibration.live_faces), (scores[5], 5, 50));
         assert_eq!((calibration.model_threshold, calibration.refused_at_model_threshold), (0.64, 18));
-        let mut served = model(0.64);
-        assert!(calibration.apply(&mut served));
-        assert_eq!(served.threshold, scores[5]);
+        let served = calibration.point(&LivenessPoint::of_model(&model(0.64))).unwrap();
+        assert_eq!((served.threshold, served.source, served.model.as_str()), (scores[5], ThresholdSource::Camera, "lbp-test"));
         assert!(served.operating_point.contains("5 of 50") && served.operating_point.contains("0.640"), "{}", served.operating_point);
-        let mut other = LivenessModel { name: "another".into(), ..model(0.64) };
-        assert!(!calibration.apply(&mut other));
-        assert_eq!(other.threshold, 0.64);
+        let other = LivenessModel { name: "another".into(), ..model(0.64) };
+        assert_eq!(calibration.point(&LivenessPoint::of_model(&other)), None);
         // Saturated probabilities keep the threshold inside (0, 1).
         assert!(LivenessCalibration::from_scores(&model(0.64), &[1.0; 60], 0.02).unwrap().threshold < 1.0);
         assert!(LivenessCalibration::from_scores(&model(0.64), &[0.0; 60], 0.02).unwrap().threshold > 0.0);

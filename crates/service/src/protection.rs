@@ -212,8 +212,8 @@ impl FaceEngine for ProtectedEngine {
     fn frontal_png(&self, photo: &Photo) -> Result<Vec<u8>, PipelineError> {
         self.inner.frontal_png(photo)
     }
-    fn liveness_point(&self) -> Option<LivenessPoint> {
-        self.inner.liveness_point()
+    fn liveness_model_point(&self) -> Option<LivenessPoint> {
+        self.inner.liveness_model_point()
     }
     fn render_check(&self, photo: &Photo, analysis: &FaceAnalysis) -> Option<Liveness> {
         self.inner.render_check(photo, analysis)

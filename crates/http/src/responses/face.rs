@@ -4,8 +4,8 @@
 
 use serde::Serialize;
 
-use facegate_service::{AnalyzedPhoto, ChallengeOutcome};
-use facegate_vision::{landmarks, liveness, pipeline, quality};
+use facegate_service::{AnalyzedPhoto, ChallengeOutcome, LivenessVerdict};
+use facegate_vision::{landmarks, pipeline, quality};
 
 /// A point in image pixels, `[x, y]`.
 type Point = [f32; 2];
@@ -188,9 +188,9 @@ impl From<&ChallengeOutcome> for Challenge {
     }
 }
 
-impl From<liveness::Liveness> for Liveness {
-    /// A single photo's liveness (no frames).
-    fn from(l: liveness::Liveness) -> Liveness {
+impl From<LivenessVerdict> for Liveness {
+    /// A single photo's liveness verdict (no frames).
+    fn from(l: LivenessVerdict) -> Liveness {
         Liveness { score: l.score, attack: l.attack, model: l.model, frames: None, frame_scores: None, challenge: None }
     }
 }
@@ -246,7 +246,7 @@ impl FaceReport {
             landmarks: a.landmarks.clone().into(),
             pose: a.pose.map(Pose::from),
             quality: a.quality.into(),
-            liveness: a.liveness.clone().map(Liveness::from),
+            liveness: photo.liveness.clone().map(Liveness::from),
         }
     }
 
@@ -299,8 +299,9 @@ pub(crate) struct AnalyzedFace {
     timings: FaceTimings,
 }
 
-impl From<pipeline::FaceReading> for AnalyzedFace {
-    fn from(f: pipeline::FaceReading) -> AnalyzedFace {
+impl AnalyzedFace {
+    /// The face `f` as read, with the service's verdict on its liveness.
+    pub(crate) fn of((f, liveness): (pipeline::FaceReading, Option<LivenessVerdict>)) -> AnalyzedFace {
         let landmarks = Landmarks::from(f.landmarks);
         AnalyzedFace {
             face: f.face.into(),
@@ -309,7 +310,7 @@ impl From<pipeline::FaceReading> for AnalyzedFace {
             key_point_pose: f.key_point_pose.map(Pose::from),
             fit_residual_px: f.fit_residual_px,
             quality: f.quality.into(),
-            liveness: f.liveness.map(Liveness::from),
+            liveness: liveness.map(Liveness::from),
             timings: FaceTimings { landmarks_ms: f.landmarks_ms, morph_ms: f.morph_ms },
         }
     }

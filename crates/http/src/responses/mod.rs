@@ -196,7 +196,12 @@ impl AnalyzeResponse {
         let reading = analysis.reading;
         AnalyzeResponse {
             faces_found: reading.faces_found,
-            faces: reading.faces.into_iter().map(AnalyzedFace::from).collect(),
+            faces: reading
+                .faces
+                .into_iter()
+                .zip(analysis.liveness.into_iter().chain(std::iter::repeat(None)))
+                .map(AnalyzedFace::of)
+                .collect(),
             timings: AnalyzeTimings { decode_ms: analysis.decode_ms, detect_ms: reading.detect_ms, total_ms },
         }
     }
@@ -360,6 +365,9 @@ pub(crate) struct Health {
 #[derive(Debug, Serialize)]
 pub(crate) struct HealthLiveness {
     threshold: f32,
+    /// Who set it: `model` (the liveness model's own operating point), `camera` (this camera's
+    /// calibration, `facegate calibrate-liveness`) or `operator` (`--liveness-threshold`).
+    source: &'static str,
     operating_point: String,
 }
 
@@ -387,7 +395,11 @@ impl Health {
             subjects_on_older_keys: sealing.map(|s| s.other_keys),
             site_calibration: health.site_calibration.as_deref().filter(|_| admitted).map(SiteCalibration::from),
             subjects_current_model: admitted.then_some(health.subjects_current_model),
-            liveness: health.liveness.map(|p| HealthLiveness { threshold: p.threshold, operating_point: p.operating_point }),
+            liveness: health.liveness.map(|p| HealthLiveness {
+                threshold: p.threshold,
+                source: p.source.name(),
+                operating_point: p.operating_point,
+            }),
         }
     }
 }

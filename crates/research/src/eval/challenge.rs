@@ -32,7 +32,7 @@ use facegate_core::imaging::{self, GrayF32, Photo};
 use facegate_core::template::Template;
 use facegate_morph::{FitOptions, Pose};
 use facegate_service::challenge::{self as rule, ChallengeOutcome};
-use facegate_service::{Matcher, decide};
+use facegate_service::{LivenessPoint, LivenessPolicy, Matcher, decide};
 use facegate_vision::liveness::Liveness;
 use facegate_vision::liveness::head_turn::{Step, Turn};
 use facegate_vision::pipeline::{FaceAnalysis, Pipeline};
@@ -560,10 +560,9 @@ pub fn judge_attempt(
     let judge_ms = start.elapsed().as_secs_f64() * 1e3;
     let matched = decide(matcher, &probe.template, std::slice::from_ref(&enrolled.template), fmr).is_match;
     let each: Option<Vec<_>> = std::iter::once(probe).chain(frames.iter().copied()).map(|a| a.liveness.clone()).collect();
-    let live = match (each, pipeline.liveness.as_ref()) {
-        (Some(each), Some(model)) => facegate_service::fuse_liveness(&each, model.threshold).is_some_and(|l| !l.attack),
-        _ => false,
-    };
+    // The service's own decision under enforce, at the model's operating point.
+    let point = pipeline.liveness.as_ref().map(LivenessPoint::of_model);
+    let live = facegate_service::liveness::check_capture_liveness(LivenessPolicy::Enforce, point.as_ref(), each).is_ok();
     let enforce = outcome.passed && matched && live;
     let refusal = match (outcome.passed, matched, live) {
         (false, ..) => None,

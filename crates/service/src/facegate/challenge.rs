@@ -83,12 +83,11 @@ impl Facegate {
         if policy == LivenessPolicy::Enforce && !outcome.passed {
             return Err(PhotoError::ChallengeFailed(outcome).into());
         }
-        let each = std::iter::once(&probe).chain(&analyzed).map(|p| p.analysis.liveness.clone()).collect();
-        let (mut fused, frame_scores) = crate::liveness::check_capture_liveness(policy, self.engine().liveness_point(), each)?;
+        let (mut fused, frame_scores) = self.check_capture_liveness(&probe, &analyzed)?;
         if let Some(live) = fused.as_mut() {
             live.attack |= !outcome.passed;
         }
-        probe.analysis.liveness = fused;
+        probe.liveness = fused;
         Ok(Verification {
             frames: analyzed,
             frame_scores,

@@ -20,9 +20,11 @@ use facegate_vision::quality::{Failure, QualityPolicy};
 use crate::challenge::{ChallengeConfig, ChallengeOutcome, InvalidChallenge};
 use crate::gallery::{LiveGallery, Precision, UnreadableTemplates};
 use crate::inspect::{self, Analysis, InspectError};
-use crate::liveness::{LivenessPoint, LivenessPolicy, PresentationAttack};
+use crate::liveness::{LivenessPoint, LivenessPolicy, LivenessVerdict, PresentationAttack};
+use crate::liveness_site::LivenessCalibration;
 use crate::site::{CalibratedMatcher, SiteCalibration, SiteStatus};
 use crate::{Candidate, Decision, FaceEngine, Matcher, PoolError, VerifyError, WorkPool};
+use facegate_vision::liveness::Liveness;
 
 /// The head-turn challenge's use cases (issue, verify), on the rules of [`crate::challenge`].
 mod challenge;
@@ -40,6 +42,9 @@ pub struct ServiceConfig {
     pub default_fmr: f64,
     /// What enrolment, verify and identify do with a face's liveness.
     pub liveness: LivenessPolicy,
+    /// The operator's liveness threshold (`--liveness-threshold`), in place of the camera's
+    /// calibration and the model's own operating point ([`crate::liveness::threshold_in_force`]).
+    pub liveness_threshold: Option<f32>,
     /// The head-turn challenges' settings.
     pub challenge: ChallengeConfig,
     /// Most challenges open (issued, not yet taken or expired) at once in the store; beyond, an
@@ -198,11 +203,15 @@ impl PhotoError {
     }
 }
 
-/// One photo decoded and analyzed: its face and template, and the time decoding took.
+/// One photo decoded and analyzed: its face and template, the time decoding took, and the
+/// service's verdict on its liveness.
 #[derive(Debug, Clone)]
 pub struct AnalyzedPhoto {
     pub analysis: FaceAnalysis,
     pub decode_ms: f64,
+    /// The verdict on `analysis.liveness` (for a verification's probe with frames or a challenge,
+    /// the capture's): `None` until the policy has judged it, and with liveness off or no model.
+    pub liveness: Option<LivenessVerdict>,
 }
 
 /// Decode `bytes` within `limits` and analyze the largest face: the one path from a photo's bytes
@@ -220,7 +229,7 @@ pub(crate) fn decode_and_analyze(
 ) -> Result<(Photo, AnalyzedPhoto), PhotoError> {
     let (photo, decode_ms) = inspect::decode_photo(bytes, limits)?;
     let analysis = engine.analyze(&photo).map_err(PhotoError::of_analysis)?;
-    Ok((photo, AnalyzedPhoto { analysis, decode_ms }))
+    Ok((photo, AnalyzedPhoto { analysis, decode_ms, liveness: None }))
 }
 
 /// A completed enrolment.
@@ -254,8 +263,8 @@ impl PreparedEnrollment {
 #[derive(Debug)]
 pub struct Verification {
     pub decision: Decision,
-    /// The probe, the photo the decision is about. With further frames its `liveness` is the
-    /// capture's, fused over the probe and the frames ([`crate::fuse_liveness`]).
+    /// The probe, the photo the decision is about. With further frames its `liveness` verdict is
+    /// the capture's, fused over the probe and the frames ([`crate::fuse_liveness`]).
     pub photo: AnalyzedPhoto,
     /// The further frames of the capture, in request order (none for a single photo).
     pub frames: Vec<AnalyzedPhoto>,
@@ -365,6 +374,11 @@ struct Inner {
     /// The site calibration raising the engine's thresholds (`facegate calibrate`), read from the
     /// store at start-up by [`Facegate::load_site_calibration`].
     site: RwLock<Option<Arc<SiteCalibration>>>,
+    /// The liveness threshold every verdict is made at: the model's own operating point or the
+    /// operator's, then the camera's calibration where one is stored and the operator set none
+    /// ([`Facegate::load_liveness_calibration`]). `None` with liveness off or no liveness model
+    /// (then `Enforce` refuses every face: it fails closed).
+    liveness_point: RwLock<Option<Arc<LivenessPoint>>>,
 }
 
 /// The service: the face engine, the store, the identification gallery and the work pool behind
@@ -379,7 +393,35 @@ impl Facegate {
         let precision = if engine.max_cosine_scoring() { Precision::Quantised } else { Precision::Exact };
         let gallery = LiveGallery::new(store.clone(), engine.model_version(), precision);
         let site = RwLock::new(None);
-        Facegate(Arc::new(Inner { engine, store, gallery, pool, config, circuit: StoreCircuit::default(), site }))
+        let liveness_point = RwLock::new(Self::liveness_point_of(engine.as_ref(), &config, None).map(Arc::new));
+        Facegate(Arc::new(Inner { engine, store, gallery, pool, config, circuit: StoreCircuit::default(), site, liveness_point }))
+    }
+
+    /// The liveness threshold in force for `engine`'s liveness model under `config`, with the
+    /// `camera`'s calibration, if any.
+    fn liveness_point_of(engine: &dyn FaceEngine, config: &ServiceConfig, camera: Option<&LivenessCalibration>) -> Option<LivenessPoint> {
+        let model = engine.liveness_model_point().filter(|_| config.liveness != LivenessPolicy::Off)?;
+        let camera = camera.and_then(|c| c.point(&model));
+        Some(crate::liveness::threshold_in_force(model, camera, config.liveness_threshold))
+    }
+
+    /// Read this camera's liveness calibration (`facegate calibrate-liveness`) for the engine's
+    /// liveness model from the store and decide by it from now on, unless the operator set a
+    /// threshold (it changes with `facegate calibrate-liveness` and takes effect at the next
+    /// start). Returns the stored calibration, if any, and the threshold now in force.
+    pub async fn load_liveness_calibration(&self) -> Result<(Option<LivenessCalibration>, Option<LivenessPoint>), ServiceError> {
+        let Some(model) = self.0.engine.liveness_model_point().filter(|_| self.0.config.liveness != LivenessPolicy::Off) else {
+            return Ok((None, None));
+        };
+        let stored = self.read_store(crate::liveness_site::load(&self.0.store, &model.model)).await?;
+        let point = Self::liveness_point_of(self.0.engine.as_ref(), &self.0.config, stored.as_ref());
+        *self.0.liveness_point.write().unwrap_or_else(|e| e.into_inner()) = point.clone().map(Arc::new);
+        Ok((stored, point))
+    }
+
+    /// The liveness threshold in force.
+    fn liveness_point(&self) -> Option<Arc<LivenessPoint>> {
+        self.0.liveness_point.read().unwrap_or_else(|e| e.into_inner()).clone()
     }
 
     /// The engine's scores held to its operating points raised by the site calibration in use:
@@ -400,10 +442,6 @@ impl Facegate {
     /// The version stamped on every template the current model makes.
     pub fn model_version(&self) -> &str {
         self.0.engine.model_version()
-    }
-
-    pub(crate) fn engine(&self) -> &Arc<dyn FaceEngine> {
-        &self.0.engine
     }
 
     pub fn pool(&self) -> &WorkPool {
@@ -458,7 +496,7 @@ impl Facegate {
             _ => {}
         }
         let (engine, limits) = (self.0.engine.clone(), self.0.config.decode_limits);
-        let policies = (self.0.config.quality_policy, self.0.config.liveness);
+        let policies = (self.0.config.quality_policy, self.0.config.liveness, self.liveness_point());
         let photos = self.0.pool.run(move || enrollment_photos(engine.as_ref(), &images, &limits, policies)).await??;
         Ok(PreparedEnrollment { facegate: self.clone(), subject: subject.clone(), photos })
     }
@@ -532,9 +570,9 @@ impl Facegate {
 
     /// The probe of a verify or identify, analyzed and held against the liveness policy.
     async fn analyze_probe(&self, image: Bytes) -> Result<AnalyzedPhoto, ServiceError> {
-        let (engine, limits, liveness) = (self.0.engine.clone(), self.0.config.decode_limits, self.0.config.liveness);
+        let (engine, limits) = (self.0.engine.clone(), self.0.config.decode_limits);
         let mut photo = self.0.pool.run(move || analyze_photo(engine.as_ref(), &image, &limits)).await??;
-        crate::check_liveness(liveness, self.0.engine.liveness_point(), &mut photo.analysis.liveness)?;
+        photo.liveness = self.check_liveness(photo.analysis.liveness.as_ref())?;
         Ok(photo)
     }
 
@@ -548,12 +586,27 @@ impl Facegate {
         frames: Vec<Bytes>,
         fmr: f64,
     ) -> Result<(AnalyzedPhoto, Vec<AnalyzedPhoto>, Vec<f32>), ServiceError> {
-        let (matcher, limits, policy) = (self.matcher(), self.0.config.decode_limits, self.0.config.liveness);
+        let (matcher, limits) = (self.matcher(), self.0.config.decode_limits);
         let (mut probe, frames) = self.0.pool.run(move || capture_photos(&matcher, &image, &frames, &limits, fmr)).await??;
-        let each = std::iter::once(&probe).chain(&frames).map(|p| p.analysis.liveness.clone()).collect();
-        let (fused, scores) = crate::liveness::check_capture_liveness(policy, self.0.engine.liveness_point(), each)?;
-        probe.analysis.liveness = fused;
+        let (fused, scores) = self.check_capture_liveness(&probe, &frames)?;
+        probe.liveness = fused;
         Ok((probe, frames, scores))
+    }
+
+    /// One face's measured liveness held against the policy at the threshold in force.
+    fn check_liveness(&self, measured: Option<&Liveness>) -> Result<Option<LivenessVerdict>, PhotoError> {
+        crate::check_liveness(self.0.config.liveness, self.liveness_point().as_deref(), measured)
+    }
+
+    /// A capture's liveness, fused over the `probe` and its `frames`, held against the policy at
+    /// the threshold in force; with each photo's own score.
+    pub(crate) fn check_capture_liveness(
+        &self,
+        probe: &AnalyzedPhoto,
+        frames: &[AnalyzedPhoto],
+    ) -> Result<(Option<LivenessVerdict>, Vec<f32>), PhotoError> {
+        let each = std::iter::once(probe).chain(frames).map(|p| p.analysis.liveness.clone()).collect();
+        crate::liveness::check_capture_liveness(self.0.config.liveness, self.liveness_point().as_deref(), each)
     }
 
     /// Erase `subject` and all its templates; `None` when it was not enrolled.
@@ -588,19 +641,26 @@ impl Facegate {
             store_backend: self.0.store.backend(),
             site_calibration: self.matcher().site,
             subjects_current_model,
-            liveness: self.0.engine.liveness_point().filter(|_| self.0.config.liveness != LivenessPolicy::Off),
+            liveness: self.liveness_point().map(|p| LivenessPoint::clone(&p)),
         })
     }
 
     /// Every face of `image` (or the largest) with landmarks, pose, 3D fit and (unless liveness
-    /// is off) liveness; nothing stored, nothing refused as an attack: an inspection.
+    /// is off) the verdict on its liveness; nothing stored, nothing refused as an attack: an
+    /// inspection.
     pub async fn analyze(&self, image: Bytes, choice: FaceChoice) -> Result<Analysis, ServiceError> {
         let (engine, limits) = (self.0.engine.clone(), self.0.config.decode_limits);
         let analysis = self.0.pool.run(move || inspect::analyze(engine.as_ref(), &image, &limits, choice)).await?;
         let mut analysis = analysis.map_err(PhotoError::of_inspection)?;
-        if self.0.config.liveness == LivenessPolicy::Off {
-            analysis.reading.faces.iter_mut().for_each(|face| face.liveness = None);
-        }
+        // Reported, never refused: each face's verdict as `report` makes it (none when off).
+        let report = match self.0.config.liveness {
+            LivenessPolicy::Off => LivenessPolicy::Off,
+            _ => LivenessPolicy::Report,
+        };
+        let point = self.liveness_point();
+        let verdict =
+            |face: &facegate_vision::pipeline::FaceReading| crate::check_liveness(report, point.as_deref(), face.liveness.as_ref());
+        analysis.liveness = analysis.reading.faces.iter().map(|face| verdict(face).ok().flatten()).collect();
         Ok(analysis)
     }
 
@@ -668,14 +728,14 @@ fn enrollment_photos(
     engine: &dyn FaceEngine,
     images: &[Bytes],
     limits: &DecodeLimits,
-    (quality, liveness): (QualityPolicy, LivenessPolicy),
+    (quality, liveness, point): (QualityPolicy, LivenessPolicy, Option<Arc<LivenessPoint>>),
 ) -> Result<Vec<AnalyzedPhoto>, ServiceError> {
     let mut photos = Vec::with_capacity(images.len());
     for (index, bytes) in images.iter().enumerate() {
         let mut photo = analyze_photo(engine, bytes, limits).map_err(|e| e.at(index))?;
         crate::check_enrollment_photo(photo.analysis.faces_found).map_err(|e| e.at(index))?;
         crate::check_enrollment_quality(&quality, &photo.analysis.quality).map_err(|f| PhotoError::LowQuality(f).at(index))?;
-        crate::check_liveness(liveness, engine.liveness_point(), &mut photo.analysis.liveness).map_err(|e| e.at(index))?;
+        photo.liveness = crate::check_liveness(liveness, point.as_deref(), photo.analysis.liveness.as_ref()).map_err(|e| e.at(index))?;
         photos.push(photo);
     }
     Ok(photos)

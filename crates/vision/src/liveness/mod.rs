@@ -3,7 +3,9 @@
 //! recognizer's eye and mouth centres), plain data out ([`Liveness`]): the calibrated probability
 //! of a live face from a logistic model ([`LivenessModel`], `models/liveness.bin`, trained by
 //! `facegate train liveness`) over texture, colour and frequency features of the face and its
-//! surround ([`features`]), and whether it falls below the model's operating point.
+//! surround ([`features`]). Vision measures and never decides: whether a score is an attack is
+//! the service's call, from the one threshold it holds (`facegate_service::liveness`); the
+//! model's own operating point ([`LivenessModel::threshold`]) is only where that threshold starts.
 
 pub mod features;
 pub mod head_turn;
@@ -27,14 +29,12 @@ pub const RENDER_FILE: &str = "render.bin";
 /// The layout of [`LivenessModel`].
 pub const FORMAT: u32 = 1;
 
-/// The liveness of one face.
+/// The liveness of one face as measured: a score, not a verdict.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Liveness {
     /// The calibrated probability that the face is live, 0–1.
     pub score: f32,
-    /// Below the model's operating point: taken for a presentation attack.
-    pub attack: bool,
-    /// The model that said so.
+    /// The model that measured it.
     pub model: String,
 }
 
@@ -54,7 +54,9 @@ pub struct LivenessModel {
     pub bias: f32,
     pub slope: f32,
     pub offset: f32,
-    /// The score below which a face is an attack (chosen by `facegate train liveness`).
+    /// The operating point chosen by `facegate train liveness`: the score below which a face is an
+    /// attack unless a camera's calibration or the operator sets another. The service decides
+    /// by it; vision never reads it.
     pub threshold: f32,
     /// What the operating point is, for the refusal's message ("APCER 1% on NUAA, …").
     pub operating_point: String,
@@ -94,8 +96,7 @@ impl LivenessModel {
     /// The liveness of the face at `keypoints` in `photo`.
     pub fn assess(&self, photo: &RgbImage, keypoints: &KeyPoints) -> Liveness {
         let x = features::features(&features::crops(photo, keypoints), &self.blocks);
-        let score = self.probability(self.logit(&x));
-        Liveness { score, attack: score < self.threshold, model: self.name.clone() }
+        Liveness { score: self.probability(self.logit(&x)), model: self.name.clone() }
     }
 }
 
