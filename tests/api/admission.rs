@@ -4,7 +4,7 @@
 //! period and are capped per client address, one address has its share of the connections, a
 //! body sent fast then stalled holds its share of the budget only a window long, under connection
 //! pressure the slowest bodies are cut for a new client, and the request deadline never answers
-//! 504 for an enrollment that is stored.
+//! 504 for an enrolment that is stored.
 
 use std::net::SocketAddr;
 use std::sync::Arc;

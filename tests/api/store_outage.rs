@@ -112,7 +112,7 @@ async fn a_lost_database_is_refused_fast_and_the_service_recovers() {
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
     assert_eq!(app.get("/health").await.status, 200);
-    // Refused enrollments stored nothing; the acknowledged one is there.
+    // Refused enrolments stored nothing; the acknowledged one is there.
     app.get("/subjects/ben").await.assert_problem(404, "unknown-subject");
     assert_eq!(app.get("/subjects/ana").await.status, 200);
 }

@@ -122,7 +122,7 @@ async fn a_verify_with_a_traceparent_sends_its_spans_under_that_trace() {
     assert_eq!(attribute(request, "http.response.status_code").as_deref(), Some("200"));
     assert!(ours.iter().all(|(service, _)| service == "facegate"), "service.name defaults to facegate");
     let stages: BTreeSet<&str> = ours.iter().map(|(_, s)| s.name.as_str()).collect();
-    for stage in ["decode", "detect", "landmarks", "3d_fit", "template", "quality", "liveness", "store"] {
+    for stage in ["decode", "detect", "landmarks", "morph", "template", "quality", "liveness", "store"] {
         assert!(stages.contains(stage), "no {stage} span in {stages:?}");
     }
     // Nothing of the photo, the template or the subject.

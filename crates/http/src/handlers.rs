@@ -44,7 +44,7 @@ pub(crate) struct IdentifyParams {
 
 /// `POST /enroll`: all photos must each show exactly one face, meet the quality policy and (liveness
 /// enforced) be taken for a live face; then all templates are stored in one transaction. Any bad
-/// photo refuses the whole enrollment and names the photo (`image`). There is no `?quality=off`:
+/// photo refuses the whole enrolment and names the photo (`image`). There is no `?quality=off`:
 /// the policy is the operator's (settings), and a photo it refuses can be retaken, while a poor
 /// template costs every later verification.
 pub async fn enroll(
@@ -61,7 +61,7 @@ pub async fn enroll(
     upload.refuse_frames()?;
     let prepared = facegate.prepare_enrollment(&subject, upload.images).await?;
     // From here the answer is the store's: the request deadline waits for it (never a 504 for an
-    // enrollment that is committed).
+    // enrolment that is committed).
     commit.pass();
     let enrollment = prepared.commit().await?;
     enrollment.photos.iter().for_each(|photo| observe(&state, photo));

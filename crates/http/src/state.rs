@@ -36,7 +36,7 @@ pub struct ApiConfig {
     pub workers: usize,
     /// Probe requests (verify, identify, inspection) that may wait for a worker; beyond → 503.
     pub queue_depth: usize,
-    /// Enrollments that may wait for a worker, a queue of their own; beyond → 503.
+    /// Enrolments that may wait for a worker, a queue of their own; beyond → 503.
     pub enroll_queue_depth: usize,
     /// How long a request waits, before the 503, for room when its queue is full (its body still
     /// unread), for a place among its client address's arriving bodies, and for its place in the

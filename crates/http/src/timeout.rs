@@ -1,4 +1,4 @@
-//! The whole-request deadline (504 `timeout`), which never tells a client that an enrollment
+//! The whole-request deadline (504 `timeout`), which never tells a client that an enrolment
 //! failed while its store commit goes on: a handler marks the point after which its request's
 //! outcome is the store's ([`CommitPoint::pass`]); past it, the deadline waits for the real
 //! answer instead of dropping the request. The layer sits inside the audit layer, so a request it

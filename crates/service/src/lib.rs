@@ -142,12 +142,12 @@ impl FaceEngine for Pipeline {
     }
 }
 
-/// An enrollment photo must show exactly one face (a probe may show several: the largest is used).
+/// An enrolment photo must show exactly one face (a probe may show several: the largest is used).
 pub fn check_enrollment_photo(faces_found: usize) -> Result<(), PhotoError> {
     if faces_found > 1 { Err(PhotoError::SeveralFaces(faces_found)) } else { Ok(()) }
 }
 
-/// An enrollment photo must meet the quality policy: the limits it breaks, none when it passes.
+/// An enrolment photo must meet the quality policy: the limits it breaks, none when it passes.
 pub fn check_enrollment_quality(policy: &QualityPolicy, quality: &Quality) -> Result<(), Vec<Failure>> {
     let failures = policy.failures(quality);
     if failures.is_empty() { Ok(()) } else { Err(failures) }

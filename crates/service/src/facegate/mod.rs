@@ -242,7 +242,7 @@ pub struct Enrollment {
     pub photos: Vec<AnalyzedPhoto>,
 }
 
-/// An enrollment whose photos all passed, not stored yet.
+/// An enrolment whose photos all passed, not stored yet.
 pub struct PreparedEnrollment {
     facegate: Facegate,
     subject: SubjectId,
@@ -481,13 +481,13 @@ impl Facegate {
 
     /// Enroll `subject` from `images`: every photo must show exactly one face and meet the quality
     /// policy; then all templates are stored in one transaction. One bad photo refuses the whole
-    /// enrollment (its index is named) and nothing is stored. [`Facegate::prepare_enrollment`]
+    /// enrolment (its index is named) and nothing is stored. [`Facegate::prepare_enrollment`]
     /// then [`PreparedEnrollment::commit`].
     pub async fn enroll(&self, subject: &SubjectId, images: Vec<Bytes>) -> Result<Enrollment, ServiceError> {
         self.prepare_enrollment(subject, images).await?.commit().await
     }
 
-    /// The photo work of an enrollment: every photo analyzed and checked, nothing stored yet.
+    /// The photo work of an enrolment: every photo analyzed and checked, nothing stored yet.
     pub async fn prepare_enrollment(&self, subject: &SubjectId, images: Vec<Bytes>) -> Result<PreparedEnrollment, ServiceError> {
         let max = self.0.config.max_images;
         match images.len() {

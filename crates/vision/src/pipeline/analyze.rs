@@ -138,7 +138,7 @@ impl Pipeline {
     }
 
     /// Detect, landmark, pose-correct and template the largest face of `photo`. Each stage runs
-    /// in a span of its own name (`detect`, `landmarks`, `3d_fit`, `template`, `quality`,
+    /// in a span of its own name (`detect`, `landmarks`, `morph` (the 3D fit), `template`, `quality`,
     /// `liveness`; the classical recognizer's quality runs inside its `template`), which the
     /// service's traces carry.
     pub fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
@@ -179,7 +179,7 @@ impl Pipeline {
         // The networks see the photo itself (the 3DMM frontal rendering measured worse as the
         // dlib network's input: docs/recognition.md); the fit still reports the head pose.
         let t = Instant::now();
-        let fitting = tracing::info_span!("3d_fit").entered();
+        let fitting = tracing::info_span!("morph").entered();
         let mut input = recognition_input(self.face_model.as_ref(), photo, landmarks, Normalization::TwoD)?;
         if let Some(fit) = self.profile_fit(face, key_point_fit) {
             (input.pose, input.fit_residual_px) = (Some(fit.pose), Some(fit.residual_px));
@@ -316,7 +316,7 @@ impl Pipeline {
         timings: &mut StageTimings,
     ) -> Result<(Template, Option<Pose>, Quality), PipelineError> {
         let t = Instant::now();
-        let fitting = tracing::info_span!("3d_fit").entered();
+        let fitting = tracing::info_span!("morph").entered();
         let input = recognition_input(self.face_model.as_ref(), photo, landmarks, recognizer.normalization())?;
         drop(fitting);
         timings.morph_ms = elapsed_ms(t);

@@ -1,6 +1,6 @@
 //! The classical recognizer (thesis 2.6): the model file `models/dlda.bin` ([`ClassicalModel`]:
 //! normalisation, features, Direct LDA per path and local part, cohort normalisation, calibration
-//! per enrollment size) and [`ClassicalRecognizer`], which makes and scores its templates.
+//! per enrolment size) and [`ClassicalRecognizer`], which makes and scores its templates.
 
 use std::path::Path;
 
