@@ -1,4 +1,4 @@
-//! `facegate eval protection`: the protected templates (issue #55) measured on held-out persons:
+//! `facegate eval protection`: the protected templates measured on held-out persons:
 //! accuracy plain against protected, unlinkability across secrets (D↔sys), and inversion attacks
 //! with and without the secret (`facegate_research::eval::protection`).
 

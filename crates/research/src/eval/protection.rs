@@ -1,4 +1,4 @@
-//! Protected templates (`facegate eval protection`, issue #55, ISO/IEC 24745): accuracy,
+//! Protected templates (`facegate eval protection`; ISO/IEC 24745): accuracy,
 //! unlinkability and irreversibility of the service's keyed rotation
 //! ([`facegate_service::protection`]) on held-out persons (LFW's test persons by default).
 //!
