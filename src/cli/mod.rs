@@ -14,6 +14,7 @@ pub mod minifasnet;
 pub mod morph;
 pub mod networks;
 pub mod pose;
+pub mod protection;
 pub mod quality;
 pub mod recognize;
 pub mod serve;
@@ -57,6 +58,9 @@ pub enum Command {
     Embed(embed::EmbedArgs),
     /// Bring every template under the current template key (re-wrap, or encrypt plain ones).
     Rekey(store::RekeyArgs),
+    /// Protect the stored templates under a new protection secret (or plain ones under a first
+    /// one) without the photos, in one transaction; the service stopped.
+    RenewProtection(store::RenewProtectionArgs),
     /// Copy the template database to a file while the service runs.
     Backup(store::BackupArgs),
     /// Replace the template database with a backup.
@@ -140,6 +144,9 @@ pub enum EvalCommand {
     LivenessCnn(liveness_cnn::EvalLivenessCnnArgs),
     /// Embedding networks alone, by alignment variant, and fused: EER and FNMR on held-out persons.
     Embedding(networks::EvalEmbeddingArgs),
+    /// Protected templates on held-out persons: EER and FNMR plain against protected, D↔sys
+    /// unlinkability across secrets, inversion with and without the secret.
+    Protection(protection::EvalProtectionArgs),
     /// Stated against observed FMR per photo domain: raw cosine and cohort normalisation, by calibration persons.
     Calibration(networks::EvalCalibrationArgs),
 }
@@ -170,8 +177,10 @@ pub fn main() -> ExitCode {
         Command::Train(TrainCommand::Embedding(args)) => networks::run_train_embedding(args),
         Command::Eval(EvalCommand::Embedding(args)) => networks::run_eval_embedding(args),
         Command::Eval(EvalCommand::Calibration(args)) => networks::run_eval_calibration(args),
+        Command::Eval(EvalCommand::Protection(args)) => protection::run_eval(args),
         Command::Embed(args) => embed::run_embed(args),
         Command::Rekey(args) => store::run_rekey(args),
+        Command::RenewProtection(args) => store::run_renew_protection(args),
         Command::Backup(args) => store::run_backup(args),
         Command::Calibrate(args) => store::run_calibrate(args),
         Command::CalibrateLiveness(args) => store::run_calibrate_liveness(args),

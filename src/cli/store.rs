@@ -1,6 +1,6 @@
-//! `facegate rekey`, `facegate backup`, `facegate restore`, `facegate calibrate` and `facegate
-//! calibrate-liveness`: the template database offline (or, for `rekey` and `backup`, beside the
-//! running service), and the deployment's calibrations kept in it.
+//! `facegate rekey`, `facegate renew-protection`, `facegate backup`, `facegate restore`, `facegate
+//! calibrate` and `facegate calibrate-liveness`: the template database offline (or, for `rekey` and
+//! `backup`, beside the running service), and the deployment's calibrations kept in it.
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -13,7 +13,7 @@ use crate::liveness::LivenessModel;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::RecognizerKind;
 use crate::service::liveness_site::{self, DEFAULT_BPCER, LivenessCalibration};
-use crate::service::protection::ProtectedEngine;
+use crate::service::protection::{ProtectedEngine, Renewal};
 use crate::service::site::{self, SiteCalibration};
 use crate::service::{FaceEngine, Matcher};
 use crate::store::{self, Store};
@@ -46,6 +46,35 @@ pub struct RekeyArgs {
     pub database: DatabaseArgs,
     #[command(flatten)]
     pub key: TemplateKeyArgs,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct RenewProtectionArgs {
+    #[command(flatten)]
+    pub database: DatabaseArgs,
+    /// The template key file, as `facegate serve`, when the database is sealed: renewed vectors are
+    /// sealed again under each subject's own data key.
+    #[command(flatten)]
+    pub key: TemplateKeyArgs,
+    /// The protection secret the stored templates are protected under now (the key file
+    /// `serve --template-protection-key-file` was given).
+    #[arg(long, required_unless_present = "from_plain")]
+    pub old_key_file: Option<PathBuf>,
+    /// The new protection secret (64 hex digits, `openssl rand -hex 32`): every template is
+    /// protected under it afterwards; start the service with it.
+    #[arg(long)]
+    pub new_key_file: PathBuf,
+    /// The stored templates are plain (enrolled without a protection secret): protect the
+    /// recognizer's templates under the new secret.
+    #[arg(long, conflicts_with = "old_key_file")]
+    pub from_plain: bool,
+    /// With --from-plain: the recognizer whose plain templates are protected, as `facegate serve
+    /// --recognizer`.
+    #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = Recognizer::from(RecognizerKind::default()))]
+    pub recognizer: Recognizer,
+    /// With --from-plain: the trained models, as `facegate serve --models`.
+    #[arg(long, env = "FACEGATE_MODELS")]
+    pub models: Option<PathBuf>,
 }
 
 #[derive(clap::Args, Debug)]
@@ -164,6 +193,58 @@ pub fn run_rekey(args: RekeyArgs) -> anyhow::Result<ExitCode> {
             "rewrapped": report.rewrapped,
             "sealed": report.sealed,
             "templates_sealed": report.templates_sealed,
+        }));
+        Ok(ExitCode::SUCCESS)
+    })
+}
+
+/// A protection key file's secret.
+fn protection_key(path: &Path) -> anyhow::Result<crate::service::protection::ProtectionKey> {
+    let args = TemplateProtectionArgs { template_protection_key_file: Some(path.to_path_buf()) };
+    Ok(args.key()?.expect("a key file is given"))
+}
+
+/// Every template protected under the old secret (or, `--from-plain`, every plain template of the
+/// recognizer) rewritten under the new one without the photos, and the site calibrations of those
+/// versions carried over: one transaction (`Store::renew_templates`), so a failure leaves the
+/// database as it was, and a second run after a finished one changes nothing. The service must be
+/// stopped (every replica): one still running under the old secret would enrol old templates,
+/// which the new key's start-up refuses until this is run again.
+pub fn run_renew_protection(args: RenewProtectionArgs) -> anyhow::Result<ExitCode> {
+    let new = protection_key(&args.new_key_file)?;
+    let mut renewal = match &args.old_key_file {
+        Some(old) => Renewal::between(protection_key(old)?, new).map_err(anyhow::Error::msg)?,
+        None => {
+            let config = PipelineConfig { recognizer: args.recognizer.into(), ..crate::config::pipeline_config() };
+            let config = PipelineConfig { models_dir: args.models.clone().unwrap_or(config.models_dir), ..config };
+            let pipeline = Pipeline::load(&config).context("cannot load the recognizer")?;
+            let engine = ProtectedEngine::new(Arc::new(pipeline), new.clone())?;
+            Renewal::from_plain(engine.plain_version(), new)
+        }
+    };
+    let keys = args.key.key_ring()?;
+    let (url, shown) = args.database.url()?;
+    runtime()?.block_on(async {
+        let store = Store::connect_existing(&url, keys).await.with_context(|| format!("cannot open {shown}"))?;
+        let report = store.renew_templates(&mut renewal).await;
+        let stored = store.model_versions().await;
+        store.close().await;
+        let report = report.with_context(|| format!("nothing was changed in {shown}"))?;
+        let stored = stored?;
+        let new_suffix = format!("+{}-{}", crate::service::protection::SCHEME, renewal.new_key_id());
+        if report.versions.is_empty() && !stored.iter().any(|v| v.ends_with(&new_suffix)) {
+            anyhow::bail!(
+                "{shown} holds no template {} (its model versions: {}): nothing renewed",
+                if args.from_plain { "of the recognizer, plain" } else { "protected under the old secret" },
+                if stored.is_empty() { "none".to_string() } else { stored.join(", ") }
+            );
+        }
+        super::print_json_line(&serde_json::json!({
+            "new_key_id": renewal.new_key_id(),
+            "subjects": report.subjects,
+            "templates": report.templates,
+            "versions": report.versions,
+            "already_renewed": report.versions.is_empty(),
         }));
         Ok(ExitCode::SUCCESS)
     })

@@ -134,6 +134,85 @@ impl Rotation {
     }
 }
 
+/// Renewal (`facegate renew-protection`): templates protected under one secret (or plain ones)
+/// turned into templates protected under another without the photos, since a rotation is undone by
+/// its transpose: `t_new = R_new · R_oldᵀ · t_old` (`t_new = R_new · t` from plain). The scores
+/// between renewed templates are the old ones (to float rounding), so the site calibration holds.
+pub struct Renewal {
+    old: Option<ProtectionKey>,
+    /// From plain templates: the recognizer's (plain) model version, the only one taken.
+    plain: Option<String>,
+    new: ProtectionKey,
+    rotations: HashMap<usize, (Option<Rotation>, Rotation)>,
+}
+
+impl Renewal {
+    /// From templates protected under `old` to `new`; refused when both are the same secret.
+    pub fn between(old: ProtectionKey, new: ProtectionKey) -> Result<Renewal, String> {
+        if old.secret == new.secret {
+            return Err(format!("the old and the new protection secret are the same ({}): nothing to renew", new.id()));
+        }
+        Ok(Renewal { old: Some(old), plain: None, new, rotations: HashMap::new() })
+    }
+
+    /// From the plain templates of the recognizer whose model version is `plain` to `new`.
+    pub fn from_plain(plain: &str, new: ProtectionKey) -> Renewal {
+        Renewal { old: None, plain: Some(plain.to_string()), new, rotations: HashMap::new() }
+    }
+
+    /// The new secret's id.
+    pub fn new_key_id(&self) -> String {
+        self.new.id()
+    }
+
+    /// The model version a stored template of `version` gets, or `None` when it is not one this
+    /// renewal takes: `<plain>+rot-<old id>` becomes `<plain>+rot-<new id>` (whatever the
+    /// recognizer: the rotation depends on the secret and the dimension only); from plain
+    /// templates, only the recognizer's own version becomes `<plain>+rot-<new id>`.
+    pub fn renewed_version(&self, version: &str) -> Option<String> {
+        match (&self.old, &self.plain) {
+            (Some(old), _) => {
+                let suffix = format!("+{SCHEME}-{}", old.id());
+                version.strip_suffix(&suffix).filter(|p| !p.is_empty()).map(|p| self.new.model_version(p))
+            }
+            (None, plain) => plain.as_deref().filter(|p| *p == version).map(|p| self.new.model_version(p)),
+        }
+    }
+
+    /// `vector` (protected under the old secret, or plain) protected under the new one.
+    pub fn vector(&mut self, vector: &[f32]) -> Vec<f32> {
+        let dimension = vector.len();
+        let (old, new) = (&self.old, &self.new);
+        let (from, to) =
+            self.rotations.entry(dimension).or_insert_with(|| (old.as_ref().map(|k| k.rotation(dimension)), new.rotation(dimension)));
+        renew(from.as_ref(), to, vector)
+    }
+}
+
+/// The store's side of a renewal: versions and vectors as above, and the site calibration of a
+/// renewed version kept for the new one (the scores, hence its thresholds, are the same).
+impl facegate_store::Renewing for Renewal {
+    fn version(&self, stored: &str) -> Option<String> {
+        self.renewed_version(stored)
+    }
+    fn vector(&mut self, stored: &[f32]) -> Vec<f32> {
+        Renewal::vector(self, stored)
+    }
+    fn calibration(&self, json: &str, to: &str) -> Result<String, String> {
+        let mut site: crate::site::SiteCalibration = serde_json::from_str(json).map_err(|e| format!("unreadable: {e}"))?;
+        site.model_version = to.to_string();
+        serde_json::to_string(&site.as_stored()).map_err(|e| e.to_string())
+    }
+}
+
+/// `t` protected by `from` (`None`: plain) protected by `to` instead: `to · fromᵀ · t`.
+pub fn renew(from: Option<&Rotation>, to: &Rotation, t: &[f32]) -> Vec<f32> {
+    match from {
+        Some(from) => to.apply(&from.invert(t)),
+        None => to.apply(t),
+    }
+}
+
 /// What protected templates are made and compared with: a recognizer scored by the best cosine.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("template protection needs a recognizer scored by cosine (dlib, SFace, the fusion or your own network); {0} is not")]
@@ -230,14 +309,16 @@ pub fn check_stored_versions(stored: &[String], plain: &str, protected: Option<&
             Some(ours) if version == plain => {
                 return Err(format!(
                     "the database holds plain templates of {plain}, and --template-protection-key-file asks for protected ones \
-                     ({ours}): a database holds one or the other. Start without the key file, or enrol the subjects again into a \
-                     new database with it (docs/service.md, \"Protected templates\")"
+                     ({ours}): a database holds one or the other. Start without the key file, protect the stored templates with \
+                     `facegate renew-protection --from-plain --new-key-file` (the service stopped), or enrol the subjects again into \
+                     a new database with it (docs/service.md, \"Protected templates\")"
                 ));
             }
             Some(ours) if version.starts_with(&prefix) && version != ours => {
                 return Err(format!(
                     "the database holds templates protected under another secret ({version}; this key makes {ours}): give the \
-                     key file they were made with, or enrol the subjects again under this one"
+                     key file they were made with, renew them to this one with `facegate renew-protection --old-key-file \
+                     --new-key-file` (the service stopped), or enrol the subjects again under this one"
                 ));
             }
             None if version.starts_with(&prefix) => {
@@ -309,6 +390,34 @@ mod tests {
         assert!(mean_abs(&same) < 0.1, "{}", mean_abs(&same));
         assert!(same.iter().all(|c| c.abs() < 0.3), "{same:?}");
         assert!(plain_same.iter().all(|c| (c - 1.0).abs() < 1e-5));
+    }
+
+    #[test]
+    fn renewal_makes_the_new_secrets_templates_from_the_old_ones_without_the_photos() {
+        let (ka, kb) = (ProtectionKey::parse(HEX_A).unwrap(), ProtectionKey::parse(HEX_B).unwrap());
+        let (ra, rb) = (ka.rotation(256), kb.rotation(256));
+        let face = unit(7, 256);
+        let other = unit(8, 256);
+        let mut renewal = Renewal::between(ka.clone(), kb.clone()).unwrap();
+        let renewed = renewal.vector(&ra.apply(&face));
+        // What protecting the photo's embedding under B makes, to float rounding.
+        assert!(renewed.iter().zip(rb.apply(&face)).all(|(x, y)| (x - y).abs() < 1e-5), "renewed ≠ R_B t");
+        // Scores between renewed templates are the old ones; nothing links to the old template.
+        let renewed_other = renewal.vector(&ra.apply(&other));
+        assert!((dot(&renewed, &renewed_other) - dot(&face, &other)).abs() < 1e-5);
+        assert!(dot(&renewed, &ra.apply(&face)).abs() < 0.3);
+        // From plain: R_B t.
+        let mut from_plain = Renewal::from_plain("emb-1", kb.clone());
+        assert!(from_plain.vector(&face).iter().zip(rb.apply(&face)).all(|(x, y)| (x - y).abs() < 1e-5));
+        // Versions: the old secret's become the new secret's; from plain only the recognizer's.
+        let (a, b) = (ka.model_version("emb-1"), kb.model_version("emb-1"));
+        assert_eq!(renewal.renewed_version(&a).as_deref(), Some(b.as_str()));
+        assert_eq!(renewal.renewed_version("emb-1"), None);
+        assert_eq!(renewal.renewed_version(&b), None);
+        assert_eq!(from_plain.renewed_version("emb-1").as_deref(), Some(b.as_str()));
+        assert_eq!(from_plain.renewed_version("deep-9"), None);
+        assert_eq!(from_plain.renewed_version(&a), None);
+        assert!(Renewal::between(kb.clone(), kb).is_err(), "the same secret renews nothing");
     }
 
     #[test]

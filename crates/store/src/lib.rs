@@ -33,13 +33,15 @@
 //! both backends share, and the migrators; `sqlite` holds what is only about SQLite's files
 //! (connection settings, checkpoint, backup, [`restore`]); `feed` the change counter and the
 //! change feed (PostgreSQL's `LISTEN`/`NOTIFY`); `codec` how a template's vector is stored, plain
-//! or sealed; [`cipher`] the sealing itself; `site` the site calibration per model version.
+//! or sealed; [`cipher`] the sealing itself; `site` the site calibration per model version;
+//! `renew` the rewrite of protected templates under a new secret (`facegate renew-protection`).
 
 mod challenge;
 pub mod cipher;
 mod codec;
 mod feed;
 mod redact;
+mod renew;
 mod site;
 mod sqlite;
 mod sqlite_scan;
@@ -72,6 +74,7 @@ pub use cipher::{CipherError, KeyRing};
 pub use codec::{KeyCheck, SealingCounts, blob_to_vector, vector_to_blob};
 pub use feed::{ChangeFeed, StoreChange};
 pub use redact::redact_url;
+pub use renew::{RenewReport, RenewedVersion, Renewing};
 pub use sqlite::restore;
 pub use vanish::CHECK_EVERY as VANISH_CHECK_EVERY;
 

@@ -15,6 +15,7 @@ pub mod pairs;
 pub mod plot;
 pub mod pose;
 pub mod profile;
+pub mod protection;
 pub mod protocol;
 pub mod quality;
 pub mod verification;
