@@ -1,5 +1,5 @@
 //! Protected templates through the real binary: with `--template-protection-key-file` the stored
-//! templates are keyed rotations (model version `…+rot-<key id>`), verification matches as before
+//! templates are keyed rotations (model version `…+rot-<key id>`), verification and identification match as before
 //! at the same threshold, the database file holds no 16-byte piece of the plain template, and a
 //! database of plain templates, of protected ones without the key, or of another secret's stops the
 //! start-up with a message saying what to do.
@@ -40,6 +40,19 @@ async fn protected_templates_verify_as_plain_ones_and_hold_nothing_of_them() {
         assert_eq!(served.post_alice("/enroll", "01-1m.jpg").await.status(), 201, "{}", served.log());
         let verified: Value = served.post_alice("/verify", "01-2m.jpg").await.json().await.unwrap();
         let stranger: Value = served.post_alice("/verify", "05-1m.jpg").await.json().await.unwrap();
+        // The identification gallery searches the same (protected) templates.
+        let identified: Value = reqwest::Client::new()
+            .post(format!("{}/identify", served.base))
+            .json(&serde_json::json!({"image": crate::support::base64(&crate::support::imm("01-2m.jpg"))}))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        let best = &identified["candidates"][0];
+        assert_eq!(best["subject"].as_str(), Some("alice"), "{identified}");
+        assert!((best["score"].as_f64().unwrap() - verified["score"].as_f64().unwrap()).abs() < 1e-4, "{identified} {verified}");
         answers.push((verified, stranger, served.log()));
     }
     let ((plain, plain_stranger, _), (protected, protected_stranger, log)) = (&answers[0], &answers[1]);
