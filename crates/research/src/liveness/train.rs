@@ -2,7 +2,7 @@
 //! the service's face finder for the eye and mouth centres, the runtime's own liveness
 //! [`features`](facegate_vision::liveness::features), and a ridge-penalised logistic regression,
 //! with Platt's calibration fitted on leave-one-subject-out logits (the same folds
-//! [`crate::eval::liveness`] reports). Live photos of the IMM, ORL and LFW *training* persons can
+//! [`crate::liveness::eval`] reports). Live photos of the IMM, ORL and LFW *training* persons can
 //! join the live class, so that another camera's live face is not taken for a print.
 
 use std::path::{Path, PathBuf};
@@ -15,8 +15,8 @@ use faer::{Mat, Side};
 use serde::{Deserialize, Serialize};
 
 use crate::Progress;
-use crate::attack_sim::{AttackKind, simulate};
 use crate::cache::{self, CacheKey, ModelFiles, map_samples};
+use crate::liveness::attacks::{AttackKind, simulate};
 
 /// One NUAA frame: `SSSS_GG_PP_EE_frame.jpg` under `real/SSSS` or `print/SSSS`.
 #[derive(Debug, Clone, PartialEq)]
@@ -415,7 +415,7 @@ pub struct Recipe {
     /// The ridge penalty per unit of total weight.
     pub ridge: f64,
     /// Whether the training persons' photos as simulated prints and screens
-    /// ([`crate::attack_sim`]) join the attack class (needs `other_cameras`'s photos).
+    /// ([`crate::liveness::attacks`]) join the attack class (needs `other_cameras`'s photos).
     pub simulated_attacks: bool,
 }
 
@@ -483,7 +483,7 @@ pub fn out_of_fold_logits(data: &LivenessData, recipe: &Recipe, progress: &dyn P
 }
 
 /// The service's 58 landmarks of the largest face of each photo (`None`: no face), through the
-/// research cache: the motion test of [`crate::eval::liveness`] reads them.
+/// research cache: the motion test of [`crate::liveness::eval`] reads them.
 pub fn landmarks(
     cache_dir: &Path,
     models_dir: &Path,
