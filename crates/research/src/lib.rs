@@ -10,6 +10,7 @@ pub mod dlda;
 pub mod eval;
 pub mod landmark_models;
 pub mod liveness;
+pub mod measures;
 pub mod synthetic;
 pub mod train_asm;
 pub mod train_asm3d;

@@ -20,13 +20,13 @@ use serde::Serialize;
 use crate::Progress;
 use crate::cache::map_samples;
 use crate::dataset::Split;
-use crate::eval::verification::{eer, fnmr_at_fmr};
 use crate::liveness::attacks::{AttackKind, simulate};
 use crate::liveness::cnn::{Group, Input, LivenessNet, TrainingConfig, input, train};
 use crate::liveness::eval::{CameraThreshold, camera_threshold};
 use crate::liveness::measures::Rates;
 use crate::liveness::subjects::SubjectRates;
 use crate::liveness::train::{LivenessData, LogisticFit, Recipe, columns, fit_recipe_without, keypoints};
+use crate::measures::{eer, fnmr_at_fmr};
 use crate::train_deep::Set;
 
 /// NUAA's subjects fall into this many folds.

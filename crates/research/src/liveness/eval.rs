@@ -12,12 +12,12 @@ use serde::Serialize;
 use crate::Progress;
 use crate::dataset::Split;
 use crate::eval::plot::{Chart, Scale, Series, line_chart};
-use crate::eval::verification::{eer, error_curve, fnmr_at_fmr};
 use crate::liveness::measures::{CAMERA_BPCER, OPERATING_POINTS, OperatingPoint, Rates, eer_threshold};
 use crate::liveness::train::{
     LivenessData, LogisticFit, Recipe, columns, fit_recipe, fit_recipe_without, homography_residual, out_of_fold_logits, platt,
     platt_probability,
 };
+use crate::measures::{eer, error_curve, fnmr_at_fmr};
 use crate::train_deep::Set;
 
 /// The rates with each score's own threshold, that of its subject fold.

@@ -11,8 +11,8 @@ use serde::Serialize;
 
 use crate::Progress;
 use crate::cache::map_samples;
-use crate::eval::verification::{eer, fnmr_at_fmr};
 use crate::liveness::train::{LivenessData, Recipe, columns, fit_recipe};
+use crate::measures::{eer, fnmr_at_fmr};
 use facegate_vision::recognize::calibration::threshold_at;
 
 /// How a threshold is chosen on development scores (never on the subject it is applied to).
