@@ -10,6 +10,7 @@ pub mod dlda;
 pub mod eval;
 pub mod landmark_models;
 pub mod liveness;
+pub mod logistic;
 pub mod measures;
 pub mod synthetic;
 pub mod train_asm;
@@ -18,6 +19,7 @@ pub mod train_deep;
 pub mod train_dlda;
 pub mod train_embedding;
 pub mod train_imm_sfm;
+pub mod train_quality;
 
 /// Progress of a long loop, handed down by the caller (the CLI draws a bar; tests stay quiet).
 pub trait Progress: Sync {

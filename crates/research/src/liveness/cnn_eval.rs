@@ -25,7 +25,8 @@ use crate::liveness::cnn::{Group, Input, LivenessNet, TrainingConfig, input, tra
 use crate::liveness::eval::{CameraThreshold, camera_threshold};
 use crate::liveness::measures::Rates;
 use crate::liveness::subjects::SubjectRates;
-use crate::liveness::train::{LivenessData, LogisticFit, Recipe, columns, fit_recipe_without, keypoints};
+use crate::liveness::train::{LivenessData, Recipe, columns, fit_recipe_without, keypoints};
+use crate::logistic::LogisticFit;
 use crate::measures::{eer, fnmr_at_fmr};
 use crate::train_deep::Set;
 

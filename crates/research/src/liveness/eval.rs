@@ -13,10 +13,8 @@ use crate::Progress;
 use crate::dataset::Split;
 use crate::eval::plot::{Chart, Scale, Series, line_chart};
 use crate::liveness::measures::{CAMERA_BPCER, OPERATING_POINTS, OperatingPoint, Rates, eer_threshold};
-use crate::liveness::train::{
-    LivenessData, LogisticFit, Recipe, columns, fit_recipe, fit_recipe_without, homography_residual, out_of_fold_logits, platt,
-    platt_probability,
-};
+use crate::liveness::train::{LivenessData, Recipe, columns, fit_recipe, fit_recipe_without, homography_residual, out_of_fold_logits};
+use crate::logistic::{LogisticFit, platt, platt_probability};
 use crate::measures::{eer, error_curve, fnmr_at_fmr};
 use crate::train_deep::Set;
 
