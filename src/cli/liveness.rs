@@ -5,11 +5,11 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use crate::liveness::Block;
-use crate::research::eval::liveness as research;
-use crate::research::eval::liveness_measures::OperatingPoint;
-use crate::research::eval::liveness_peer::{self as peer, Network, PeerScores};
-use crate::research::eval::liveness_subjects as subjects;
-use crate::research::train_liveness::{self, LivenessData, Recipe};
+use crate::research::liveness::eval as research;
+use crate::research::liveness::measures::OperatingPoint;
+use crate::research::liveness::peers::{self as peer, Network, PeerScores};
+use crate::research::liveness::subjects;
+use crate::research::liveness::train::{self, LivenessData, Recipe};
 
 /// Options both liveness commands share.
 #[derive(clap::Args, Debug, Clone)]
@@ -146,7 +146,7 @@ pub fn run_eval(args: EvalLivenessArgs) -> anyhow::Result<ExitCode> {
     let sets: Vec<(&str, &[Option<f32>])> = curves.iter().map(|(n, l)| (n.as_str(), l.as_slice())).collect();
     research::write_det(&args.plot, &data, &sets)?;
     let images: Vec<PathBuf> = data.nuaa.iter().map(|s| s.image.clone()).collect();
-    let landmarks = train_liveness::landmarks(&args.data.cache, &crate::config::models_dir(), &images, args.data.threads, &progress)?;
+    let landmarks = train::landmarks(&args.data.cache, &crate::config::models_dir(), &images, args.data.threads, &progress)?;
     let motion = research::motion_measures(&data, &landmarks);
     if args.json {
         super::print_json_line(&serde_json::json!({ "motion": motion }));
@@ -279,7 +279,7 @@ pub fn run_train(args: TrainLivenessArgs) -> anyhow::Result<ExitCode> {
     let (recipe, point) = shipped();
     let (report, _) = research::evaluate(&data, "shipped", &recipe, &progress);
     let all: Vec<usize> = (0..data.nuaa.len()).collect();
-    let fit = train_liveness::fit_recipe(&data, &recipe, &all);
+    let fit = train::fit_recipe(&data, &recipe, &all);
     let refusal =
         report.other_cameras_refused.iter().find(|r| r.operating_point == point.name()).expect("every operating point is reported");
     let subjects = {
@@ -288,7 +288,7 @@ pub fn run_train(args: TrainLivenessArgs) -> anyhow::Result<ExitCode> {
         s.dedup();
         s.join(", ")
     };
-    let model = train_liveness::model(
+    let model = train::model(
         "lbp-colour-context-1",
         &recipe.blocks,
         fit,
@@ -326,7 +326,7 @@ pub struct TrainRenderArgs {
 /// `facegate train render`: the rendered-head detector the head-turn challenge holds its frames
 /// against (docs/liveness-challenge.md, "Rendered heads").
 pub fn run_train_render(args: TrainRenderArgs) -> anyhow::Result<ExitCode> {
-    use crate::research::train_render::{RenderTrainConfig, train};
+    use crate::research::liveness::render::{RenderTrainConfig, train};
     let shared = crate::config::shared_dir();
     let config = RenderTrainConfig {
         imm: shared.join("data/imm"),
@@ -374,7 +374,7 @@ pub struct EvalChallengeArgs {
 
 /// `facegate eval challenge`: the head-turn challenge's BPCER and APCER per attack type.
 pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
-    use crate::research::eval::challenge::{ChallengeEvalConfig, evaluate};
+    use crate::research::liveness::challenge::{ChallengeEvalConfig, evaluate};
     let shared = crate::config::shared_dir();
     let config = ChallengeEvalConfig {
         imm: shared.join("data/imm"),

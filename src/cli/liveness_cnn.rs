@@ -4,10 +4,10 @@
 use std::process::ExitCode;
 
 use super::liveness::{LivenessDataArgs, shipped};
-use crate::research::eval::liveness::CameraThreshold;
-use crate::research::eval::liveness_cnn::{self as research, CnnInputs, CnnReport, Data, Learner};
-use crate::research::liveness_cnn::TrainingConfig;
-use crate::research::train_liveness::{LivenessData, Recipe};
+use crate::research::liveness::cnn::TrainingConfig;
+use crate::research::liveness::cnn_eval::{self as research, CnnInputs, CnnReport, Data, Learner};
+use crate::research::liveness::eval::CameraThreshold;
+use crate::research::liveness::train::{LivenessData, Recipe};
 
 #[derive(clap::Args, Debug)]
 pub struct EvalLivenessCnnArgs {

@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 
 use crate::research::convert::minifasnet::{self as convert, ORIGINALS};
-use crate::research::minifasnet::{self as research, Measures, Row};
+use crate::research::liveness::minifasnet::{self as research, Measures, Row};
 
 #[derive(clap::Args, Debug)]
 pub struct ConvertMinifasnetArgs {
@@ -70,7 +70,7 @@ fn cells(m: &Measures) -> String {
 /// Each network's and the fused score's APCER and BPCER at one half and EER, per NUAA subject.
 pub fn run_eval(args: EvalMinifasnetArgs) -> anyhow::Result<ExitCode> {
     let nuaa = args.nuaa.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/nuaa"));
-    let samples = crate::research::train_liveness::list_nuaa(&nuaa)?;
+    let samples = crate::research::liveness::train::list_nuaa(&nuaa)?;
     let images: Vec<PathBuf> = samples.iter().map(|s| s.image.clone()).collect();
     let progress = super::Bar::default();
     let scores = research::scores(&args.cache, &crate::config::models_dir(), &images, args.threads, &progress)?;

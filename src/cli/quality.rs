@@ -10,10 +10,12 @@ use crate::quality::{FEATURE_NAMES, QualityModel};
 use crate::recognize::dlib::DlibModel;
 use crate::research::eval::plot::{Chart, Scale, Series, line_chart};
 use crate::research::eval::quality::{
-    self as research, EdcPoint, Measured, UNIFIED, VARIANTS, edc, genuine_cosine_stats, genuine_match_rates, genuine_pairs, is_held_out,
-    is_training, lowest_first, measures, out_of_fold_logits, partial_area, person_folds, random_edc, scored,
+    self as research, EdcPoint, Measured, edc, genuine_pairs, is_held_out, lowest_first, measures, partial_area, random_edc, scored,
 };
 use crate::research::train_deep::{self, Sample, Set};
+use crate::research::train_quality::{
+    UNIFIED, VARIANTS, genuine_cosine_stats, genuine_match_rates, is_training, out_of_fold_logits, person_folds, train_model,
+};
 
 /// Options both quality commands share.
 #[derive(clap::Args, Debug)]
@@ -126,7 +128,7 @@ pub fn run_train(args: TrainQualityArgs) -> anyhow::Result<ExitCode> {
         t,
         deep.version
     );
-    let model = research::train_model(&photos, t, trained_on);
+    let model = train_model(&photos, t, trained_on);
     crate::core::model_file::write_model(&args.out, &model).map_err(anyhow::Error::msg)?;
     println!("{}: {}", args.out.display(), model.trained_on);
     println!("  bias {:+.3}", model.bias);

@@ -3,15 +3,15 @@
 //! (stages, pipeline, service, store, http) never imports it.
 
 pub mod asm3d_synth;
-pub mod attack_sim;
 pub mod cache;
 pub mod convert;
 pub mod dataset;
 pub mod dlda;
 pub mod eval;
 pub mod landmark_models;
-pub mod liveness_cnn;
-pub mod minifasnet;
+pub mod liveness;
+pub mod logistic;
+pub mod measures;
 pub mod synthetic;
 pub mod train_asm;
 pub mod train_asm3d;
@@ -19,8 +19,7 @@ pub mod train_deep;
 pub mod train_dlda;
 pub mod train_embedding;
 pub mod train_imm_sfm;
-pub mod train_liveness;
-pub mod train_render;
+pub mod train_quality;
 
 /// Progress of a long loop, handed down by the caller (the CLI draws a bar; tests stay quiet).
 pub trait Progress: Sync {

@@ -170,7 +170,7 @@ pub fn embeddings(
 /// best of a subject's templates.
 pub fn calibrate(calibration: &[(&str, Vec<f32>)], source: &str) -> (Calibration, Vec<EnrolledCalibration>) {
     let labels: Vec<&str> = calibration.iter().map(|(l, _)| *l).collect();
-    let score = |a: usize, b: usize| calibration[a].1.iter().zip(&calibration[b].1).map(|(x, y)| x * y).sum::<f32>();
+    let score = |a: usize, b: usize| crate::eval::protocol::unit_cosine(&calibration[a].1, &calibration[b].1);
     let table = |k: usize| {
         let (g, i) = if k == 1 { all_pairs_by(&labels, &score) } else { enrollment_scores_by(&labels, k, Combine::Max, &score) };
         Calibration::from_scores(&g, &i, &CALIBRATED_FMRS, &format!("{source}; {k} photo(s) enrolled"))

@@ -112,7 +112,7 @@ pub fn summary_of(
         .filter_map(|(s, e)| e.as_ref().map(|e| (s.label.as_str(), fuse(members, e))))
         .collect();
     let labels: Vec<&str> = items.iter().map(|(l, _)| *l).collect();
-    let (g, i) = all_pairs_by(&labels, &|a, b| items[a].1.iter().zip(&items[b].1).map(|(x, y)| x * y).sum::<f32>());
+    let (g, i) = all_pairs_by(&labels, &|a, b| crate::eval::protocol::unit_cosine(&items[a].1, &items[b].1));
     summarize(&g, &i)
 }
 

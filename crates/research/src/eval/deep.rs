@@ -49,7 +49,7 @@ impl Scoring {
     pub fn score(&self, a: &[f32], b: &[f32]) -> f32 {
         match self {
             Scoring::Euclidean => -Embedding(a.try_into().expect("128")).distance(&Embedding(b.try_into().expect("128"))),
-            _ => a.iter().zip(b).map(|(x, y)| x * y).sum(),
+            _ => super::protocol::unit_cosine(a, b),
         }
     }
 }

@@ -1,16 +1,10 @@
 //! Evaluation: accuracy measures of each stage on held-out people, and their plots.
 
 pub mod calibration;
-pub mod challenge;
 pub mod deep;
 pub mod detection;
 pub mod identification;
 pub mod landmarks;
-pub mod liveness;
-pub mod liveness_cnn;
-pub mod liveness_measures;
-pub mod liveness_peer;
-pub mod liveness_subjects;
 pub mod pairs;
 pub mod plot;
 pub mod pose;

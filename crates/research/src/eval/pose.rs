@@ -14,7 +14,7 @@ use facegate_core::template::Template;
 use facegate_vision::pipeline::Pipeline;
 
 use crate::Progress;
-use crate::eval::verification::{eer, fnmr_at_fmr};
+use crate::measures::{eer, fnmr_at_fmr};
 
 /// The score of a pair with a photo whose face was not found: below every real score.
 pub const MISSED_SCORE: f32 = -1.0e6;

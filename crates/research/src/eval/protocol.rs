@@ -5,6 +5,12 @@ use std::collections::BTreeMap;
 
 use facegate_vision::recognize::Combine;
 
+/// The cosine of two unit templates (their dot product, summed in order): the score every
+/// research protocol gives a pair of the deep models' templates.
+pub fn unit_cosine(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
 /// Genuine and impostor scores of all pairs (one template each).
 pub fn all_pairs_by(labels: &[&str], score: &(dyn Fn(usize, usize) -> f32 + Sync)) -> (Vec<f32>, Vec<f32>) {
     let (mut genuine, mut impostor) = (Vec::new(), Vec::new());

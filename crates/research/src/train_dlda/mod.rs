@@ -12,7 +12,8 @@ use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
 use crate::dlda::DldaParams;
-use crate::eval::verification::{VerificationSummary, eer, summarize};
+use crate::eval::verification::{VerificationSummary, summarize};
+use crate::measures::eer;
 use facegate_core::imaging::GrayF32;
 use facegate_core::template::Template;
 use facegate_vision::recognize::Combine;

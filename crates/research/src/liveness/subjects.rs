@@ -11,8 +11,8 @@ use serde::Serialize;
 
 use crate::Progress;
 use crate::cache::map_samples;
-use crate::eval::verification::{eer, fnmr_at_fmr};
-use crate::train_liveness::{LivenessData, Recipe, columns, fit_recipe};
+use crate::liveness::train::{LivenessData, Recipe, columns, fit_recipe};
+use crate::measures::{eer, fnmr_at_fmr};
 use facegate_vision::recognize::calibration::threshold_at;
 
 /// How a threshold is chosen on development scores (never on the subject it is applied to).
@@ -37,7 +37,7 @@ pub const RULES: [ThresholdRule; 5] = [
     ThresholdRule::PooledApcer(0.01),
     ThresholdRule::WorstSubjectApcer(0.05),
     ThresholdRule::WorstSubjectApcer(0.01),
-    ThresholdRule::LiveBpcer(crate::eval::liveness_measures::CAMERA_BPCER),
+    ThresholdRule::LiveBpcer(crate::liveness::measures::CAMERA_BPCER),
 ];
 
 /// One frame's score: its subject (an index into the fold's subject list), whether it is live.
@@ -54,7 +54,7 @@ impl ThresholdRule {
         let live: Vec<f32> = live.iter().map(|s| s.score).collect();
         let attacks_all: Vec<f32> = attacks.iter().map(|s| s.score).collect();
         match self {
-            ThresholdRule::PooledEer => crate::eval::liveness_measures::eer_threshold(&live, &attacks_all),
+            ThresholdRule::PooledEer => crate::liveness::measures::eer_threshold(&live, &attacks_all),
             ThresholdRule::PooledApcer(a) => threshold_at(&attacks_all, a),
             ThresholdRule::WorstSubjectApcer(a) => {
                 let mut subjects: Vec<usize> = attacks.iter().map(|s| s.subject).collect();

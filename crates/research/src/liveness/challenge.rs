@@ -467,7 +467,7 @@ fn nuaa_attempts(config: &ChallengeEvalConfig, rng: &mut rand_chacha::ChaCha8Rng
     if !config.test_persons || !config.nuaa.is_dir() {
         return Ok(Vec::new());
     }
-    let samples = crate::train_liveness::list_nuaa(&config.nuaa)?;
+    let samples = crate::liveness::train::list_nuaa(&config.nuaa)?;
     let mut live_first: BTreeMap<String, PathBuf> = BTreeMap::new();
     let mut captures: BTreeMap<(String, String, String, bool), Vec<PathBuf>> = BTreeMap::new();
     for s in &samples {

@@ -11,14 +11,12 @@ use serde::Serialize;
 
 use crate::Progress;
 use crate::dataset::Split;
-use crate::eval::liveness_measures::{CAMERA_BPCER, OPERATING_POINTS, OperatingPoint, Rates, eer_threshold};
 use crate::eval::plot::{Chart, Scale, Series, line_chart};
-use crate::eval::verification::{eer, error_curve, fnmr_at_fmr};
+use crate::liveness::measures::{CAMERA_BPCER, OPERATING_POINTS, OperatingPoint, Rates, eer_threshold};
+use crate::liveness::train::{LivenessData, Recipe, columns, fit_recipe, fit_recipe_without, homography_residual, out_of_fold_logits};
+use crate::logistic::{LogisticFit, platt, platt_probability};
+use crate::measures::{eer, error_curve, fnmr_at_fmr};
 use crate::train_deep::Set;
-use crate::train_liveness::{
-    LivenessData, LogisticFit, Recipe, columns, fit_recipe, fit_recipe_without, homography_residual, out_of_fold_logits, platt,
-    platt_probability,
-};
 
 /// The rates with each score's own threshold, that of its subject fold.
 fn rates(live: &[f32], attacks: &[f32], threshold: impl Fn(usize) -> f32, live_fold: &[usize], attack_fold: &[usize]) -> Rates {
@@ -358,7 +356,7 @@ struct FoldScores {
 }
 
 fn fold_scores(data: &LivenessData, logits: &[Option<f32>]) -> FoldScores {
-    let subjects = crate::eval::liveness_subjects::subjects(data);
+    let subjects = crate::liveness::subjects::subjects(data);
     let mut f = FoldScores { live: vec![], attacks: vec![], live_fold: vec![], attack_fold: vec![], subjects };
     for (s, l) in data.nuaa.iter().zip(logits) {
         let Some(l) = l else { continue };
@@ -541,7 +539,7 @@ mod tests {
 
     #[test]
     fn sequences_are_runs_of_one_capture_in_frame_order() {
-        use crate::train_liveness::NuaaSample;
+        use crate::liveness::train::NuaaSample;
         let frame = |live: bool, session: &str, n: u32| NuaaSample {
             subject: "0001".into(),
             live,

@@ -17,8 +17,8 @@ use serde::Serialize;
 
 use crate::Progress;
 use crate::cache::{self, CacheKey, ModelFiles, map_samples};
-use crate::eval::verification::eer;
-use crate::train_liveness::NuaaSample;
+use crate::liveness::train::NuaaSample;
+use crate::measures::eer;
 
 /// The box of the largest face the service's face finder finds in each photo (`None`: no face,
 /// or the photo does not open), computed by the finder of `models_dir` or read from the cache.

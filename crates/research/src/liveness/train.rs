@@ -2,7 +2,7 @@
 //! the service's face finder for the eye and mouth centres, the runtime's own liveness
 //! [`features`](facegate_vision::liveness::features), and a ridge-penalised logistic regression,
 //! with Platt's calibration fitted on leave-one-subject-out logits (the same folds
-//! [`crate::eval::liveness`] reports). Live photos of the IMM, ORL and LFW *training* persons can
+//! [`crate::liveness::eval`] reports). Live photos of the IMM, ORL and LFW *training* persons can
 //! join the live class, so that another camera's live face is not taken for a print.
 
 use std::path::{Path, PathBuf};
@@ -10,13 +10,12 @@ use std::path::{Path, PathBuf};
 use facegate_core::face::KeyPoints;
 use facegate_vision::liveness::{Block, LivenessModel};
 use facegate_vision::pipeline::FaceFinder;
-use faer::linalg::solvers::Solve;
-use faer::{Mat, Side};
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use crate::Progress;
-use crate::attack_sim::{AttackKind, simulate};
 use crate::cache::{self, CacheKey, ModelFiles, map_samples};
+use crate::liveness::attacks::{AttackKind, simulate};
+use crate::logistic::{LogisticFit, fit_binary};
 
 /// One NUAA frame: `SSSS_GG_PP_EE_frame.jpg` under `real/SSSS` or `print/SSSS`.
 #[derive(Debug, Clone, PartialEq)]
@@ -149,73 +148,6 @@ pub fn columns(blocks: &[Block]) -> Vec<usize> {
     blocks.iter().flat_map(|b| ranges.iter().find(|(r, _)| r == b).map(|(_, r)| r.clone()).unwrap_or(0..0)).collect()
 }
 
-/// A logistic regression on standardised features.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct LogisticFit {
-    pub mean: Vec<f32>,
-    pub scale: Vec<f32>,
-    pub weights: Vec<f32>,
-    pub bias: f32,
-}
-
-impl LogisticFit {
-    pub fn logit(&self, x: &[f32]) -> f32 {
-        self.logit_of(x.iter().copied())
-    }
-
-    /// The logit of the features `x` at `cols` ([`columns`]): a fit on some blocks scoring every
-    /// block's features.
-    pub fn logit_at(&self, cols: &[usize], x: &[f32]) -> f32 {
-        self.logit_of(cols.iter().map(|&c| x[c]))
-    }
-
-    fn logit_of(&self, x: impl Iterator<Item = f32>) -> f32 {
-        self.bias + x.zip(&self.mean).zip(&self.scale).zip(&self.weights).map(|(((x, m), s), w)| w * (x - m) / s).sum::<f32>()
-    }
-}
-
-/// Ridge-penalised logistic regression of `live` on `rows` by Newton's method (faer for the
-/// Hessian: 1,300 features), each row weighted by `weights`; `ridge` is the penalty per unit of
-/// total weight on the standardised features.
-pub fn fit_logistic(rows: &[&[f32]], live: &[bool], weights: &[f64], ridge: f64) -> LogisticFit {
-    let (n, d) = (rows.len(), rows.first().map_or(0, |r| r.len()));
-    let total: f64 = weights.iter().sum::<f64>().max(1e-12);
-    let mean: Vec<f64> = (0..d).map(|k| rows.iter().zip(weights).map(|(r, w)| w * r[k] as f64).sum::<f64>() / total).collect();
-    let scale: Vec<f64> = (0..d)
-        .map(|k| (rows.iter().zip(weights).map(|(r, w)| w * (r[k] as f64 - mean[k]).powi(2)).sum::<f64>() / total).sqrt())
-        .map(|s| if s > 1e-9 { s } else { 1.0 })
-        .collect();
-    let x = Mat::<f64>::from_fn(n, d + 1, |i, k| if k == 0 { 1.0 } else { (rows[i][k - 1] as f64 - mean[k - 1]) / scale[k - 1] });
-    let lambda = ridge * total;
-    let mut w = Mat::<f64>::zeros(d + 1, 1);
-    for _ in 0..30 {
-        let z = &x * &w;
-        let p: Vec<f64> = (0..n).map(|i| 1.0 / (1.0 + (-z[(i, 0)]).exp())).collect();
-        let residual = Mat::<f64>::from_fn(n, 1, |i, _| weights[i] * (if live[i] { 1.0 } else { 0.0 } - p[i]));
-        let mut gradient = x.transpose() * &residual;
-        let root = Mat::<f64>::from_fn(n, d + 1, |i, k| x[(i, k)] * (weights[i] * p[i] * (1.0 - p[i])).max(1e-12).sqrt());
-        let mut hessian = root.transpose() * &root;
-        for k in 1..=d {
-            gradient[(k, 0)] -= lambda * w[(k, 0)];
-            hessian[(k, k)] += lambda;
-        }
-        hessian[(0, 0)] += 1e-9 * total;
-        let Ok(llt) = hessian.llt(Side::Lower) else { break };
-        let step = llt.solve(&gradient);
-        w += &step;
-        let size = (0..=d).map(|k| step[(k, 0)].powi(2)).sum::<f64>().sqrt();
-        if size < 1e-6 {
-            break;
-        }
-    }
-    LogisticFit {
-        mean: mean.iter().map(|&v| v as f32).collect(),
-        scale: scale.iter().map(|&v| v as f32).collect(),
-        weights: (1..=d).map(|k| w[(k, 0)] as f32).collect(),
-        bias: w[(0, 0)] as f32,
-    }
-}
-
 /// Weights that give the live and the attack rows equal totals, and within each class the NUAA
 /// rows and the other rows (`other`: other cameras' live photos, simulated attacks) equal totals
 /// too, when the class has both.
@@ -234,24 +166,6 @@ pub fn balanced_weights(live: &[bool], other: &[bool]) -> Vec<f64> {
             share * n / counts[usize::from(l)][usize::from(o)] as f64
         })
         .collect()
-}
-
-/// Platt's calibration: the slope and offset of a one-feature logistic regression of `live` on
-/// `logits`, classes weighted to equal totals (a probability at even prior odds).
-pub fn platt(logits: &[f32], live: &[bool]) -> (f32, f32) {
-    let rows: Vec<[f32; 1]> = logits.iter().map(|&l| [l]).collect();
-    let refs: Vec<&[f32]> = rows.iter().map(|r| &r[..]).collect();
-    let weights = balanced_weights(live, &vec![false; live.len()]);
-    let fit = fit_logistic(&refs, live, &weights, 1e-6);
-    // logit' = bias + w·(l − m)/s = (w/s)·l + (bias − w·m/s).
-    let slope = fit.weights[0] / fit.scale[0];
-    (slope, fit.bias - slope * fit.mean[0])
-}
-
-/// The probability of a live face from a `logit` under [`platt`]'s `(slope, offset)`, as the
-/// runtime model's `probability` computes it.
-pub fn platt_probability((slope, offset): (f32, f32), logit: f32) -> f32 {
-    1.0 / (1.0 + (-(slope * logit + offset)).exp())
 }
 
 /// The runtime model from a fit on `blocks`, a calibration and an operating point.
@@ -285,13 +199,9 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_fit_scores_the_columns_it_was_fitted_on() {
-        let fit = LogisticFit { mean: vec![1.0, -2.0], scale: vec![2.0, 0.5], weights: vec![0.3, -1.5], bias: 0.25 };
-        let all = [9.0, 3.0, 7.0, -1.0];
-        // Columns 2 and 3: 0.25 + 0.3·(7 − 1)/2 − 1.5·(−1 + 2)/0.5 = 0.25 + 0.9 − 3.0.
-        assert_eq!(fit.logit_at(&[2, 3], &all), fit.logit(&[7.0, -1.0]));
-        assert!((fit.logit_at(&[2, 3], &all) - (-1.85)).abs() < 1e-6);
-        assert!((platt_probability((2.0, -1.0), 0.5) - 0.5).abs() < 1e-6, "a logit calibrated to 0 is even odds");
+    fn the_columns_of_a_block_are_its_place_in_every_blocks_features() {
+        assert_eq!(columns(&[Block::FaceFrequency]).len(), Block::FaceFrequency.len());
+        assert_eq!(columns(&[Block::FaceFrequency])[0], Block::FaceLbp.len() + Block::FaceColourLbp.len());
     }
 
     #[test]
@@ -333,22 +243,6 @@ mod tests {
         // A class without other rows keeps its whole half for NUAA's.
         let w = balanced_weights(&[true, false, false], &[false, false, false]);
         assert!((w[0] - 1.5).abs() < 1e-9 && (w[1] - 0.75).abs() < 1e-9);
-    }
-
-    #[test]
-    fn the_logistic_fit_separates_and_platt_keeps_the_order() {
-        // Two Gaussian-ish clouds on the first feature; the second is noise.
-        let rows: Vec<[f32; 2]> = (0..200).map(|i| [if i % 2 == 0 { 1.0 } else { -1.0 } + (i % 7) as f32 * 0.1, (i % 5) as f32]).collect();
-        let live: Vec<bool> = (0..200).map(|i| i % 2 == 0).collect();
-        let refs: Vec<&[f32]> = rows.iter().map(|r| &r[..]).collect();
-        let fit = fit_logistic(&refs, &live, &vec![1.0; 200], 1e-3);
-        assert!(fit.weights[0].abs() > 4.0 * fit.weights[1].abs(), "{fit:?}");
-        let logits: Vec<f32> = refs.iter().map(|r| fit.logit(r)).collect();
-        assert!(logits.iter().zip(&live).all(|(l, live)| (*l > 0.0) == *live));
-        let (slope, _) = platt(&logits, &live);
-        assert!(slope > 0.0);
-        assert_eq!(columns(&[Block::FaceFrequency]).len(), Block::FaceFrequency.len());
-        assert_eq!(columns(&[Block::FaceFrequency])[0], Block::FaceLbp.len() + Block::FaceColourLbp.len());
     }
 }
 
@@ -415,7 +309,7 @@ pub struct Recipe {
     /// The ridge penalty per unit of total weight.
     pub ridge: f64,
     /// Whether the training persons' photos as simulated prints and screens
-    /// ([`crate::attack_sim`]) join the attack class (needs `other_cameras`'s photos).
+    /// ([`crate::liveness::attacks`]) join the attack class (needs `other_cameras`'s photos).
     pub simulated_attacks: bool,
 }
 
@@ -458,7 +352,7 @@ pub fn fit_recipe_without(data: &LivenessData, recipe: &Recipe, nuaa: &[usize], 
         }
     }
     let refs: Vec<&[f32]> = rows.iter().map(Vec::as_slice).collect();
-    fit_logistic(&refs, &live, &balanced_weights(&live, &other), recipe.ridge)
+    fit_binary(&refs, &live, &balanced_weights(&live, &other), recipe.ridge)
 }
 
 /// Leave-one-subject-out logits of every NUAA frame with a face (`None` without one): each
@@ -483,7 +377,7 @@ pub fn out_of_fold_logits(data: &LivenessData, recipe: &Recipe, progress: &dyn P
 }
 
 /// The service's 58 landmarks of the largest face of each photo (`None`: no face), through the
-/// research cache: the motion test of [`crate::eval::liveness`] reads them.
+/// research cache: the motion test of [`crate::liveness::eval`] reads them.
 pub fn landmarks(
     cache_dir: &Path,
     models_dir: &Path,

@@ -1,4 +1,4 @@
-//! The liveness CNN trained in Rust ([`crate::liveness_cnn`]) against the LBP model, under one
+//! The liveness CNN trained in Rust ([`crate::liveness::cnn`]) against the LBP model, under one
 //! protocol both can afford (a CNN fit takes minutes, so not the 81 fits of the nested protocol):
 //!
 //! - **NUAA subjects never given:** three folds of three subjects (subject `k` in fold `k mod 3`);
@@ -18,16 +18,17 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::Progress;
-use crate::attack_sim::{AttackKind, simulate};
 use crate::cache::map_samples;
 use crate::dataset::Split;
-use crate::eval::liveness::{CameraThreshold, camera_threshold};
-use crate::eval::liveness_measures::Rates;
-use crate::eval::liveness_subjects::SubjectRates;
-use crate::eval::verification::{eer, fnmr_at_fmr};
-use crate::liveness_cnn::{Group, Input, LivenessNet, TrainingConfig, input, train};
+use crate::liveness::attacks::{AttackKind, simulate};
+use crate::liveness::cnn::{Group, Input, LivenessNet, TrainingConfig, input, train};
+use crate::liveness::eval::{CameraThreshold, camera_threshold};
+use crate::liveness::measures::Rates;
+use crate::liveness::subjects::SubjectRates;
+use crate::liveness::train::{LivenessData, Recipe, columns, fit_recipe_without, keypoints};
+use crate::logistic::LogisticFit;
+use crate::measures::{eer, fnmr_at_fmr};
 use crate::train_deep::Set;
-use crate::train_liveness::{LivenessData, LogisticFit, Recipe, columns, fit_recipe_without, keypoints};
 
 /// NUAA's subjects fall into this many folds.
 pub const FOLDS: usize = 3;
@@ -83,7 +84,7 @@ impl CnnInputs {
 /// A model compared.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub enum Learner {
-    /// The LBP features' logistic model ([`crate::train_liveness`]).
+    /// The LBP features' logistic model ([`crate::liveness::train`]).
     Lbp(Recipe),
     /// The CNN, trained on NUAA's frames, the other cameras' training persons' live photos and,
     /// when `simulated_attacks`, their simulated prints and screens.
@@ -216,7 +217,7 @@ fn split_by_class(d: &LivenessData, indices: &[usize], logits: &[Option<f32>]) -
 /// The measures of `learner` (see the module's note).
 pub fn evaluate(data: &Data, name: &str, learner: &Learner, progress: &dyn Progress) -> anyhow::Result<CnnReport> {
     let d = data.features;
-    let subjects = crate::eval::liveness_subjects::subjects(d);
+    let subjects = crate::liveness::subjects::subjects(d);
     let fold_of = |s: &str| subjects.iter().position(|x| x == s).unwrap_or(0) % FOLDS;
     let (mut per_subject, mut live_all, mut attacks_all) = (Vec::new(), Vec::new(), Vec::new());
     let started = Instant::now();

@@ -3,11 +3,11 @@
 //! ([`facegate_vision::liveness::features::crops`]: the face and a crop three times as wide, each
 //! 64×64 RGB, at the recognizer's eye and mouth centres). Research only: `facegate eval
 //! liveness-cnn` compares it with the LBP model under the same subject folds
-//! ([`crate::eval::liveness_cnn`]); nothing at run time reads it.
+//! ([`crate::liveness::cnn_eval`]); nothing at run time reads it.
 //!
 //! Why this shape: the LBP features see micro-texture and colour, learnt by a linear model from
 //! nine NUAA subjects; a network learns its own filters, and with the simulated prints and
-//! screens of many people ([`crate::attack_sim`]) in the attack class it has more than NUAA's
+//! screens of many people ([`crate::liveness::attacks`]) in the attack class it has more than NUAA's
 //! printer to learn "print" from. Four 3×3 convolutions (three of stride 2: 64 → 8 pixels), ReLU,
 //! the mean over the last map and one linear layer to two classes: about 66 thousand weights, a
 //! size nine subjects and a few thousand simulated attacks can train without a pretrained start.

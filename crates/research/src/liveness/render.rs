@@ -2,10 +2,10 @@
 //! seen by a camera against a 3D head rendered from one photo, the attack the head-turn
 //! challenge's depth test cannot tell from a head (a good render turns like one). Renders are
 //! made as an attacker with facegate would make them (`frontalize --yaw`: the photo's fitted,
-//! textured 3DMM head at a yaw, on a plain backdrop, [`crate::eval::challenge::render_source`]);
+//! textured 3DMM head at a yaw, on a plain backdrop, [`crate::liveness::challenge::render_source`]);
 //! the features are the passive liveness model's ([`facegate_vision::liveness::features`], the
 //! same blocks), the fit the same ridge-penalised logistic regression
-//! ([`crate::train_liveness::fit_logistic`]), calibrated by Platt on person-fold out-of-fold
+//! ([`crate::logistic::fit_binary`]), calibrated by Platt on person-fold out-of-fold
 //! logits.
 //!
 //! Data, training persons only: the IMM training persons' six views and their mirror images
@@ -24,8 +24,9 @@ use serde::Serialize;
 
 use crate::Progress;
 use crate::cache::map_samples;
-use crate::eval::challenge::{Source, render_source};
-use crate::train_liveness::{balanced_weights, fit_logistic, model, platt, platt_probability};
+use crate::liveness::challenge::{Source, render_source};
+use crate::liveness::train::{balanced_weights, model};
+use crate::logistic::{fit_binary, platt, platt_probability};
 
 /// The ridge penalty per unit of total weight (the passive model's).
 const RIDGE: f64 = 1e-2;
@@ -156,7 +157,7 @@ pub fn train(pipeline: &Pipeline, config: &RenderTrainConfig, progress: &dyn Pro
         let x: Vec<&[f32]> = rows.iter().map(|(_, f)| f.as_slice()).collect();
         let camera: Vec<bool> = rows.iter().map(|(s, _)| s.camera).collect();
         let lfw: Vec<bool> = rows.iter().map(|(s, _)| s.lfw).collect();
-        fit_logistic(&x, &camera, &balanced_weights(&camera, &lfw), RIDGE)
+        fit_binary(&x, &camera, &balanced_weights(&camera, &lfw), RIDGE)
     };
     let mut oof = vec![0.0f32; kept.len()];
     for fold in 0..FOLDS {

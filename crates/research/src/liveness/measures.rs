@@ -1,10 +1,11 @@
-//! The liveness measures (ISO/IEC 30107-3) every liveness evaluation reads: the error rates at a
-//! threshold, where thresholds are put (equal rates, an APCER), and the share of a camera's live
-//! photos its own calibration refuses.
+//! The liveness measures (ISO/IEC 30107-3) every liveness evaluation reads, over the score
+//! measures of [`crate::measures`] (live scores as the genuine ones, attacks as the impostors):
+//! the error rates at a threshold, where thresholds are put (equal rates, an APCER), and the share
+//! of a camera's live photos its own calibration refuses.
 
 use serde::Serialize;
 
-use crate::eval::verification::{error_curve, fnmr_at_fmr};
+use crate::measures::{error_curve, fnmr_at_fmr};
 
 /// The ISO/IEC 30107-3 error rates at one threshold.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]

@@ -2,7 +2,7 @@
 //! peer of the LBP model under the same measures: the nested subject-wise protocol on NUAA (the
 //! networks never trained on NUAA, so only the threshold is chosen without the held-out subject),
 //! and the IMM, ORL and LFW test persons' live photos and their simulated prints and screens
-//! ([`crate::attack_sim`], the same seeds as [`LivenessData`]'s).
+//! ([`crate::liveness::attacks`], the same seeds as [`LivenessData`]'s).
 
 use std::path::{Path, PathBuf};
 
@@ -10,14 +10,14 @@ use facegate_vision::liveness::minifasnet::{MiniFasNet, MiniFasScores};
 use serde::Serialize;
 
 use crate::Progress;
-use crate::attack_sim::{AttackKind, simulate};
 use crate::cache::map_samples;
 use crate::dataset::Split;
-use crate::eval::liveness::{CameraThreshold, camera_threshold, unseen_camera_fits};
-use crate::eval::liveness_measures::eer_threshold;
-use crate::eval::liveness_subjects::{FitAndScore, Fold, folds, recipe_scores};
+use crate::liveness::attacks::{AttackKind, simulate};
+use crate::liveness::eval::{CameraThreshold, camera_threshold, unseen_camera_fits};
+use crate::liveness::measures::eer_threshold;
+use crate::liveness::subjects::{FitAndScore, Fold, folds, recipe_scores};
+use crate::liveness::train::{LivenessData, Recipe, columns, out_of_fold_logits};
 use crate::train_deep::Set;
-use crate::train_liveness::{LivenessData, Recipe, columns, out_of_fold_logits};
 
 /// Which of MiniFASNet's scores.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -68,9 +68,9 @@ impl PeerScores {
         progress: &dyn Progress,
     ) -> anyhow::Result<PeerScores> {
         let nuaa_images: Vec<PathBuf> = data.nuaa.iter().map(|s| s.image.clone()).collect();
-        let nuaa = crate::minifasnet::scores(cache_dir, models_dir, &nuaa_images, threads, progress)?;
+        let nuaa = crate::liveness::minifasnet::scores(cache_dir, models_dir, &nuaa_images, threads, progress)?;
         let other_images: Vec<PathBuf> = data.others.iter().map(|s| s.image.clone()).collect();
-        let boxes = crate::minifasnet::face_boxes(cache_dir, models_dir, &other_images, threads, progress)?;
+        let boxes = crate::liveness::minifasnet::face_boxes(cache_dir, models_dir, &other_images, threads, progress)?;
         let networks = MiniFasNet::load(models_dir)?;
         let split =
             |test: bool| -> Vec<usize> { (0..data.others.len()).filter(|&i| (data.others[i].split == Split::Test) == test).collect() };
