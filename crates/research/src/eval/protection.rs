@@ -44,7 +44,7 @@ use facegate_vision::pipeline::{Pipeline, PipelineConfig};
 use crate::Progress;
 use crate::cache::{self, CacheKey, ModelFiles};
 use crate::eval::protocol::all_pairs_by;
-use crate::eval::verification::{eer, fnmr_at_fmr};
+use crate::measures::{eer, fnmr_at_fmr};
 use crate::train_deep::Sample;
 
 /// Histogram bins of [`dsys`] over the common range of the two score sets (as the reference
