@@ -12,7 +12,7 @@ use crate::config::{DEFAULT_DATABASE, TemplateKeyArgs, TemplateProtectionArgs};
 use crate::liveness::LivenessModel;
 use crate::pipeline::{Pipeline, PipelineConfig};
 use crate::recognize::RecognizerKind;
-use crate::service::liveness_site::{self, DEFAULT_BPCER, LivenessCalibration};
+use crate::service::liveness_camera::{self, DEFAULT_BPCER, LivenessCalibration};
 use crate::service::protection::{ProtectedEngine, Renewal};
 use crate::service::site::{self, SiteCalibration};
 use crate::service::{FaceEngine, Matcher};
@@ -368,7 +368,7 @@ fn write_duplicates_csv(path: &std::path::Path, site: &SiteCalibration) -> anyho
     Ok(())
 }
 
-/// The liveness threshold of the deployment's camera (`facegate_service::liveness_site`): the
+/// The liveness threshold of the deployment's camera (`facegate_service::liveness_camera`): the
 /// liveness model scores every live capture given, the threshold that refuses at most `--bpcer` of
 /// them is stored (or the stored one removed with `--clear`), and the service uses it from its next
 /// start. One JSON line. The database must exist, as for `facegate calibrate`; it is opened before
@@ -429,7 +429,7 @@ async fn calibrate_liveness(
     bar.finish_and_clear();
     let calibration = LivenessCalibration::from_scores(model, &scores, bpcer)?;
     if let Some(store) = store {
-        liveness_site::save(store, &calibration).await?;
+        liveness_camera::save(store, &calibration).await?;
     }
     let mut line = serde_json::to_value(&calibration)?;
     line["photos"] = photos.len().into();

@@ -4,7 +4,7 @@
 
 use std::time::Duration;
 
-use facegate::service::liveness_site::{self, LivenessCalibration};
+use facegate::service::liveness_camera::{self, LivenessCalibration};
 use facegate::service::site::{self, SiteStatus};
 use facegate::service::{Matcher, SubjectId};
 use facegate::store::{Backend, CipherError, KeyRing, RekeyReport, Store, StoreChange, StoreError, VersionCount};
@@ -54,15 +54,15 @@ async fn a_liveness_calibration_is_kept_per_model_and_replaced(url: String) {
         model_threshold: 0.64,
         refused_at_model_threshold: 9,
     };
-    assert_eq!(liveness_site::load(&store, "lbp-1").await.unwrap(), None);
-    liveness_site::save(&store, &calibration("lbp-1", 0.31)).await.unwrap();
-    liveness_site::save(&store, &calibration("other", 0.9)).await.unwrap();
-    liveness_site::save(&store, &calibration("lbp-1", 0.42)).await.unwrap();
-    assert_eq!(liveness_site::load(&store, "lbp-1").await.unwrap(), Some(calibration("lbp-1", 0.42)), "the later one replaces it");
+    assert_eq!(liveness_camera::load(&store, "lbp-1").await.unwrap(), None);
+    liveness_camera::save(&store, &calibration("lbp-1", 0.31)).await.unwrap();
+    liveness_camera::save(&store, &calibration("other", 0.9)).await.unwrap();
+    liveness_camera::save(&store, &calibration("lbp-1", 0.42)).await.unwrap();
+    assert_eq!(liveness_camera::load(&store, "lbp-1").await.unwrap(), Some(calibration("lbp-1", 0.42)), "the later one replaces it");
     assert!(store.clear_liveness_calibration("lbp-1").await.unwrap());
     assert!(!store.clear_liveness_calibration("lbp-1").await.unwrap());
-    assert_eq!(liveness_site::load(&store, "lbp-1").await.unwrap(), None);
-    assert_eq!(liveness_site::load(&store, "other").await.unwrap(), Some(calibration("other", 0.9)), "another model's is kept");
+    assert_eq!(liveness_camera::load(&store, "lbp-1").await.unwrap(), None);
+    assert_eq!(liveness_camera::load(&store, "other").await.unwrap(), Some(calibration("other", 0.9)), "another model's is kept");
     store.close().await;
 }
 

@@ -16,7 +16,7 @@ mod facegate;
 pub mod gallery;
 pub mod inspect;
 pub mod liveness;
-pub mod liveness_site;
+pub mod liveness_camera;
 pub mod pool;
 pub mod protection;
 pub mod site;

@@ -181,7 +181,7 @@ pub struct SimulatedAcceptance {
 }
 
 /// A camera's own threshold, as `facegate calibrate-liveness` sets it
-/// ([`facegate_service::liveness_site::live_threshold`]): from the live photos of one data set's
+/// ([`facegate_service::liveness_camera::live_threshold`]): from the live photos of one data set's
 /// persons outside its test split, by a model that never saw that data set, measured on its test
 /// persons (their live photos and their simulated prints and screens), beside NUAA's threshold
 /// on the same photos.
@@ -212,7 +212,7 @@ pub fn camera_threshold(
     test: [&[f32]; 3],
     nuaa_threshold: f32,
 ) -> Option<CameraThreshold> {
-    let threshold = facegate_service::liveness_site::live_threshold(calibration, CAMERA_BPCER).ok()?;
+    let threshold = facegate_service::liveness_camera::live_threshold(calibration, CAMERA_BPCER).ok()?;
     let [live, prints, screens] = test;
     let share = |v: &[f32], f: &dyn Fn(f32) -> bool| v.iter().filter(|&&s| f(s)).count() as f64 / v.len().max(1) as f64;
     Some(CameraThreshold {

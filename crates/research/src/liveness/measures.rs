@@ -58,4 +58,4 @@ impl OperatingPoint {
 pub const OPERATING_POINTS: [OperatingPoint; 3] = [OperatingPoint::Eer, OperatingPoint::Apcer(0.05), OperatingPoint::Apcer(0.01)];
 
 /// The share of the camera's live photos `facegate calibrate-liveness` refuses at most.
-pub const CAMERA_BPCER: f64 = facegate_service::liveness_site::DEFAULT_BPCER;
+pub const CAMERA_BPCER: f64 = facegate_service::liveness_camera::DEFAULT_BPCER;

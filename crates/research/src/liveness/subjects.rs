@@ -27,7 +27,7 @@ pub enum ThresholdRule {
     WorstSubjectApcer(f64),
     /// The highest threshold that refuses at most this share of the development subjects' live
     /// frames, their prints unused: what `facegate calibrate-liveness` does with a camera's live
-    /// captures ([`facegate_service::liveness_site::live_threshold`]).
+    /// captures ([`facegate_service::liveness_camera::live_threshold`]).
     LiveBpcer(f64),
 }
 
@@ -66,7 +66,7 @@ impl ThresholdRule {
                     .fold(f32::NEG_INFINITY, f32::max)
             }
             // Too few live frames to place the share: the lowest live score refuses none of them.
-            ThresholdRule::LiveBpcer(share) => facegate_service::liveness_site::live_threshold(&live, share)
+            ThresholdRule::LiveBpcer(share) => facegate_service::liveness_camera::live_threshold(&live, share)
                 .unwrap_or_else(|_| live.iter().copied().fold(f32::INFINITY, f32::min)),
         }
     }

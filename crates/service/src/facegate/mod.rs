@@ -21,7 +21,7 @@ use crate::challenge::{ChallengeConfig, ChallengeOutcome, InvalidChallenge};
 use crate::gallery::{LiveGallery, Precision, UnreadableTemplates};
 use crate::inspect::{self, Analysis, InspectError};
 use crate::liveness::{LivenessPoint, LivenessPolicy, LivenessVerdict, PresentationAttack};
-use crate::liveness_site::LivenessCalibration;
+use crate::liveness_camera::LivenessCalibration;
 use crate::site::{CalibratedMatcher, SiteCalibration, SiteStatus};
 use crate::{Candidate, Decision, FaceEngine, Matcher, PoolError, VerifyError, WorkPool};
 use facegate_vision::liveness::Liveness;
@@ -413,7 +413,7 @@ impl Facegate {
         let Some(model) = self.0.engine.liveness_model_point().filter(|_| self.0.config.liveness != LivenessPolicy::Off) else {
             return Ok((None, None));
         };
-        let stored = self.read_store(crate::liveness_site::load(&self.0.store, &model.model)).await?;
+        let stored = self.read_store(crate::liveness_camera::load(&self.0.store, &model.model)).await?;
         let point = Self::liveness_point_of(self.0.engine.as_ref(), &self.0.config, stored.as_ref());
         *self.0.liveness_point.write().unwrap_or_else(|e| e.into_inner()) = point.clone().map(Arc::new);
         Ok((stored, point))
