@@ -60,6 +60,7 @@ pub fn shipped() -> (Recipe, OperatingPoint) {
             other_cameras: true,
             ridge: 1e-2,
             simulated_attacks: false,
+            video_live: false,
         },
         OperatingPoint::Eer,
     )
@@ -72,6 +73,7 @@ pub fn candidates() -> Vec<(String, Recipe)> {
         other_cameras,
         ridge,
         simulated_attacks: false,
+        video_live: false,
     };
     vec![
         ("face LBP (Määttä)".into(), r(&[Block::FaceLbp], false, 1e-2)),
@@ -84,6 +86,7 @@ pub fn candidates() -> Vec<(String, Recipe)> {
         ("all blocks + other cameras' live, ridge 0.1".into(), r(&Block::ALL, true, 1e-1)),
         ("all blocks + other cameras' live, ridge 0.001".into(), r(&Block::ALL, true, 1e-3)),
         ("shipped: face LBP + colour + context + other cameras' live".into(), shipped().0),
+        ("face LBP + colour + context + other cameras' live + video live".into(), Recipe { video_live: true, ..shipped().0 }),
         (
             "face LBP + colour + context + other cameras' live + simulated prints and screens".into(),
             Recipe { simulated_attacks: true, ..shipped().0 },
@@ -125,6 +128,18 @@ pub fn run_eval(args: EvalLivenessArgs) -> anyhow::Result<ExitCode> {
                 );
             }
             print_camera_thresholds(&report.camera_thresholds);
+            for v in &report.video_refused {
+                eprintln!(
+                    "    video {} ({}): live frames refused at {:.3}: {:.1}% of {}; by the recipe without this person {:.1}% (median score {:.3})",
+                    v.clip,
+                    v.person,
+                    v.threshold,
+                    100.0 * v.refused,
+                    v.frames,
+                    100.0 * v.refused_person_unseen,
+                    v.median_person_unseen
+                );
+            }
             if let Some(r) = &report.reverse {
                 eprintln!(
                     "    without NUAA, on NUAA: EER {:.2}%  BPCER@APCER1% {:.2}%  at the test persons' threshold APCER {:.2}%, BPCER {:.2}%",

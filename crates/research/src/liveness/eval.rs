@@ -57,6 +57,8 @@ pub struct LivenessReport {
     /// The reverse, for recipes trained with simulated attacks: a model fitted without any NUAA
     /// frame, measured on NUAA's real prints and live frames.
     pub reverse: Option<ReverseCheck>,
+    /// Real video's live frames refused at the EER threshold, per clip.
+    pub video_refused: Vec<crate::liveness::video::VideoRefusal>,
     /// Platt's calibration of the out-of-fold logits.
     pub calibration: (f32, f32),
     /// The same frames fused [`SEQUENCE_FRAMES`] at a time: the mean logit of consecutive frames
@@ -429,6 +431,13 @@ pub fn evaluate(data: &LivenessData, name: &str, recipe: &Recipe, progress: &dyn
         simulated_accepted: simulated_acceptance(data, recipe, &full, &f, calibration),
         camera_thresholds: camera_thresholds(data, recipe, &unseen_fits, &f, calibration),
         reverse: reverse_check(data, recipe),
+        video_refused: crate::liveness::video::video_refusals(
+            data,
+            recipe,
+            &full,
+            calibration,
+            platt_probability(calibration, OperatingPoint::Eer.threshold(&f.live, &f.attacks)),
+        ),
         calibration,
         sequences: {
             let (live, attacks) = sequence_scores(data, &logits, SEQUENCE_FRAMES);
@@ -570,6 +579,8 @@ mod tests {
             unseen: vec![],
             unseen_features: vec![],
             simulated_features: vec![],
+            video: vec![],
+            video_features: vec![],
         };
         let (live, attacks) = sequence_scores(&data, &logits, 2);
         // Frames 0, 3 | 6, 9 of the first capture; 0, 3 of the second; the print's frame without a face is skipped.

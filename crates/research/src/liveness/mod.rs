@@ -16,3 +16,4 @@ pub mod peers;
 pub mod render;
 pub mod subjects;
 pub mod train;
+pub mod video;

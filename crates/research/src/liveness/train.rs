@@ -15,6 +15,7 @@ use serde::Serialize;
 use crate::Progress;
 use crate::cache::{self, CacheKey, ModelFiles, map_samples};
 use crate::liveness::attacks::{AttackKind, simulate};
+use crate::liveness::video::{VideoFrame, list_video};
 use crate::logistic::{LogisticFit, fit_binary};
 
 /// One NUAA frame: `SSSS_GG_PP_EE_frame.jpg` under `real/SSSS` or `print/SSSS`.
@@ -261,6 +262,9 @@ pub struct LivenessData {
     /// Per [`AttackKind::ALL`], the other cameras' photos as that simulated attack: features at
     /// the photo's own key points (the simulation keeps the geometry); `None`: no face.
     pub simulated_features: Vec<Vec<Option<Vec<f32>>>>,
+    /// Live frames of real video ([`crate::liveness::video`]), every person's.
+    pub video: Vec<VideoFrame>,
+    pub video_features: Vec<Option<Vec<f32>>>,
 }
 
 impl LivenessData {
@@ -283,7 +287,12 @@ impl LivenessData {
         let other_kp = keypoints(cache_dir, models_dir, &other_images, threads, progress)?;
         let simulated_features =
             AttackKind::ALL.iter().map(|&kind| simulated_features(&other_images, &other_kp, kind, threads, progress)).collect();
+        let video = list_video(&shared.join("data/video"))?;
+        let video_images: Vec<PathBuf> = video.iter().map(|f| f.image.clone()).collect();
+        let video_kp = keypoints(cache_dir, models_dir, &video_images, threads, progress)?;
         Ok(LivenessData {
+            video_features: all_features(&video_images, &video_kp, threads, progress),
+            video,
             simulated_features,
             nuaa_features: all_features(&nuaa_images, &nuaa_kp, threads, progress),
             other_features: all_features(&other_images, &other_kp, threads, progress),
@@ -311,6 +320,9 @@ pub struct Recipe {
     /// Whether the training persons' photos as simulated prints and screens
     /// ([`crate::liveness::attacks`]) join the attack class (needs `other_cameras`'s photos).
     pub simulated_attacks: bool,
+    /// Whether real video's live frames ([`crate::liveness::video`]) join the other cameras' in
+    /// the live class.
+    pub video_live: bool,
 }
 
 /// A fit of `recipe` on the NUAA frames `nuaa` (indices with features) and, when the recipe says
@@ -322,6 +334,18 @@ pub fn fit_recipe(data: &LivenessData, recipe: &Recipe, nuaa: &[usize]) -> Logis
 /// [`fit_recipe`] with one of the other cameras' sets left out of the live class (`without`), to
 /// measure how that camera's live faces fare with a model that never saw it.
 pub fn fit_recipe_without(data: &LivenessData, recipe: &Recipe, nuaa: &[usize], without: Option<crate::train_deep::Set>) -> LogisticFit {
+    fit_recipe_leaving_out(data, recipe, nuaa, without, None)
+}
+
+/// [`fit_recipe_without`], also leaving one video person's frames out of the live class
+/// (`without_person`), to measure that person's clips with a model that never saw them.
+pub fn fit_recipe_leaving_out(
+    data: &LivenessData,
+    recipe: &Recipe,
+    nuaa: &[usize],
+    without: Option<crate::train_deep::Set>,
+    without_person: Option<&str>,
+) -> LogisticFit {
     let cols = columns(&recipe.blocks);
     let pick = |f: &Vec<f32>| cols.iter().map(|&c| f[c]).collect::<Vec<f32>>();
     let mut rows: Vec<Vec<f32>> = Vec::new();
@@ -348,6 +372,15 @@ pub fn fit_recipe_without(data: &LivenessData, recipe: &Recipe, nuaa: &[usize], 
                     live.push(false);
                     other.push(true);
                 }
+            }
+        }
+    }
+    if recipe.video_live {
+        for (frame, features) in data.video.iter().zip(&data.video_features) {
+            if let Some(f) = features.as_ref().filter(|_| Some(frame.person.as_str()) != without_person) {
+                rows.push(pick(f));
+                live.push(true);
+                other.push(true);
             }
         }
     }
