@@ -197,6 +197,24 @@ async fn a_still_photo_and_the_wrong_order_fail_the_challenge() {
     assert!(problem["reason"].as_str().unwrap().contains("outside"), "{problem}");
 }
 
+/// A passed challenge is held to the passive score only at a threshold set for the deployment:
+/// at the model's own point the fused score is reported, at the operator's it decides.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_passed_challenge_is_held_to_the_operators_passive_threshold_not_the_models() {
+    for (threshold, attack) in [(None, false), (Some(0.999_999), true)] {
+        let settings = Settings { liveness: Choice::Report, liveness_threshold: threshold, ..Settings::default() };
+        let app = app_with(settings.api_config().unwrap()).await;
+        let c = challenge(&app).await;
+        let r = verify(&app, c["challenge"].as_str().unwrap(), &live_frames(&turns_of(&c))).await;
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+        let body = r.json();
+        assert_eq!(body["liveness"]["challenge"]["passed"], true, "{body}");
+        let score = body["liveness"]["score"].as_f64().unwrap();
+        assert!(score < 0.999_999, "{body}");
+        assert_eq!(body["liveness"]["attack"], attack, "threshold {threshold:?}: {body}");
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_wrong_frame_count_is_malformed_and_json_takes_the_same_fields() {
     let app = app(Choice::Report).await;

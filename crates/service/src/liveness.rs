@@ -205,6 +205,31 @@ pub fn check_capture_liveness(
     Ok((verdict, scores))
 }
 
+/// The liveness of a capture that answered a head-turn challenge (`passed`: the challenge's
+/// outcome): the frames' passive scores fused as for any capture ([`check_capture_liveness`]),
+/// an attack when the challenge failed. The challenge's geometry stops flat attacks by itself,
+/// so the passive score decides here only at a threshold set for this deployment (the camera's
+/// calibration or the operator's): the model's own point was set on NUAA's camera and refuses
+/// most live faces of a camera it never saw (a webcam's clips: 92 % of their frames,
+/// docs/liveness-challenge.md), while no attack that passes the challenge's other checks was
+/// stopped by it. At the model's point the fused score is reported, not held.
+pub fn check_challenged_liveness(
+    policy: LivenessPolicy,
+    point: Option<&LivenessPoint>,
+    each: Option<Vec<Liveness>>,
+    passed: bool,
+) -> Result<(Option<LivenessVerdict>, Vec<f32>), PhotoError> {
+    let deployment_point = point.is_some_and(|p| p.source != ThresholdSource::Model);
+    let held = if deployment_point || policy == LivenessPolicy::Off { policy } else { LivenessPolicy::Report };
+    let (verdict, scores) = check_capture_liveness(held, point, each)?;
+    if policy == LivenessPolicy::Enforce && verdict.is_none() {
+        // Enforcing without a measure or a threshold fails closed, as for any capture.
+        return Err(PhotoError::LivenessUnavailable);
+    }
+    let verdict = verdict.map(|v| LivenessVerdict { attack: (deployment_point && v.attack) || !passed, ..v });
+    Ok((verdict, scores))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -280,6 +305,33 @@ mod tests {
             };
             assert!(operator.operating_point.contains(replaced), "{}", operator.operating_point);
         }
+    }
+
+    #[test]
+    fn a_passed_challenge_holds_the_passive_score_only_at_a_deployments_threshold() {
+        let each = || Some(vec![liveness(0.3), liveness(0.3)]);
+        let model = point().unwrap();
+        let camera = LivenessPoint { source: ThresholdSource::Camera, ..model.clone() };
+        let operator = model.clone().operator(0.7);
+        // At the model's own point (0.7) a webcam's 0.3 is reported, not refused: the challenge decides.
+        let (verdict, scores) = check_challenged_liveness(LivenessPolicy::Enforce, Some(&model), each(), true).unwrap();
+        assert_eq!((verdict.as_ref().map(|v| (v.attack, v.score)), scores.len()), (Some((false, 0.3)), 2), "{verdict:?}");
+        // A failed challenge is an attack whatever the score (enforce refuses it before, with its reason).
+        let (verdict, _) = check_challenged_liveness(LivenessPolicy::Report, Some(&model), Some(vec![liveness(0.99)]), false).unwrap();
+        assert_eq!(verdict.map(|v| v.attack), Some(true));
+        // At the camera's or the operator's threshold the passive score decides as for any capture.
+        for point in [&camera, &operator] {
+            let refused = check_challenged_liveness(LivenessPolicy::Enforce, Some(point), each(), true).unwrap_err();
+            assert!(matches!(refused, PhotoError::PresentationAttack(_)), "{refused:?}");
+            let (verdict, _) = check_challenged_liveness(LivenessPolicy::Report, Some(point), each(), true).unwrap();
+            assert_eq!(verdict.map(|v| v.attack), Some(true), "{point:?}");
+            let (verdict, _) = check_challenged_liveness(LivenessPolicy::Enforce, Some(point), Some(vec![liveness(0.9)]), true).unwrap();
+            assert_eq!(verdict.map(|v| v.attack), Some(false), "{point:?}");
+        }
+        // Enforcing without a measure fails closed; off reports nothing.
+        let unavailable = check_challenged_liveness(LivenessPolicy::Enforce, Some(&model), None, true).unwrap_err();
+        assert!(matches!(unavailable, PhotoError::LivenessUnavailable), "{unavailable:?}");
+        assert_eq!(check_challenged_liveness(LivenessPolicy::Off, Some(&model), each(), true).unwrap(), (None, Vec::new()));
     }
 
     #[test]

@@ -562,7 +562,7 @@ pub fn judge_attempt(
     let each: Option<Vec<_>> = std::iter::once(probe).chain(frames.iter().copied()).map(|a| a.liveness.clone()).collect();
     // The service's own decision under enforce, at the model's operating point.
     let point = pipeline.liveness.as_ref().map(LivenessPoint::of_model);
-    let live = facegate_service::liveness::check_capture_liveness(LivenessPolicy::Enforce, point.as_ref(), each).is_ok();
+    let live = facegate_service::liveness::check_challenged_liveness(LivenessPolicy::Enforce, point.as_ref(), each, outcome.passed).is_ok();
     let enforce = outcome.passed && matched && live;
     let refusal = match (outcome.passed, matched, live) {
         (false, ..) => None,

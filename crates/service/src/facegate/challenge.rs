@@ -3,8 +3,9 @@
 //! [`ChallengeConfig::lifetime`](crate::challenge::ChallengeConfig::lifetime);
 //! [`Facegate::verify_challenge`] takes it out of the store (once, on any replica), analyzes the
 //! probe and each step's burst of frames, and [`judge`]s the capture. The passive score of every
-//! frame is fused as for any capture ([`crate::fuse_liveness`]); the capture is an attack when
-//! either check says so.
+//! frame is fused as for any capture ([`crate::fuse_liveness`]) and held as
+//! [`crate::liveness::check_challenged_liveness`] says: the capture is an attack when the
+//! challenge fails, or when the fused score falls below a threshold set for this deployment.
 
 use std::time::{SystemTime, UNIX_EPOCH};
 
@@ -57,8 +58,9 @@ impl Facegate {
     /// from the store first (used once, whatever the outcome), then the probe and each step's
     /// frames (`frame_steps`, or one frame per step) are analyzed, the probe matched against the
     /// subject and the capture [`judge`]d. The liveness of the verification is the capture's
-    /// fused passive score, an attack when it or the challenge says so; under `enforce` a failed
-    /// challenge is refused with its reason.
+    /// fused passive score, an attack when the challenge fails or the score is below a threshold
+    /// set for this deployment ([`crate::liveness::check_challenged_liveness`]); under `enforce`
+    /// a failed challenge is refused with its reason.
     pub async fn verify_challenge(
         &self,
         subject: &SubjectId,
@@ -83,10 +85,9 @@ impl Facegate {
         if policy == LivenessPolicy::Enforce && !outcome.passed {
             return Err(PhotoError::ChallengeFailed(outcome).into());
         }
-        let (mut fused, frame_scores) = self.check_capture_liveness(&probe, &analyzed)?;
-        if let Some(live) = fused.as_mut() {
-            live.attack |= !outcome.passed;
-        }
+        let each = std::iter::once(&probe).chain(&analyzed).map(|p| p.analysis.liveness.clone()).collect();
+        let point = self.liveness_point();
+        let (fused, frame_scores) = crate::liveness::check_challenged_liveness(policy, point.as_deref(), each, outcome.passed)?;
         probe.liveness = fused;
         Ok(Verification {
             frames: analyzed,
