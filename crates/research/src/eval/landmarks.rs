@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::dataset::{self, ImmSample, KeyPoints};
+use crate::dataset::{self, EyeMouthCentres, ImmSample};
 use crate::train_asm as train;
 use facegate_core::geometry::{Rect, distance};
 use facegate_core::imaging::GrayF32;
@@ -24,13 +24,13 @@ mod crossover;
 pub use crossover::{CROSSOVER_YAWS, CrossoverRow, crossover, crossover_yaw, print_crossover};
 
 /// d_eye = max(d_left, d_right) / ||C_l − C_r|| (Jesorsky et al.).
-pub fn d_eye(found: &KeyPoints, truth: &KeyPoints) -> f64 {
+pub fn d_eye(found: &EyeMouthCentres, truth: &EyeMouthCentres) -> f64 {
     let d = distance(found.left_eye, truth.left_eye).max(distance(found.right_eye, truth.right_eye));
     (d / distance(truth.left_eye, truth.right_eye).max(1e-6)) as f64
 }
 
 /// Mouth error normalised by the distance from the eyes' midpoint to the mouth (thesis eq. 2.5).
-pub fn d_mouth(found: &KeyPoints, truth: &KeyPoints) -> f64 {
+pub fn d_mouth(found: &EyeMouthCentres, truth: &EyeMouthCentres) -> f64 {
     let mid = [0.5 * (truth.left_eye[0] + truth.right_eye[0]), 0.5 * (truth.left_eye[1] + truth.right_eye[1])];
     (distance(found.mouth, truth.mouth) / distance(mid, truth.mouth).max(1e-6)) as f64
 }
@@ -76,7 +76,7 @@ pub fn measure(
     photos: &[(ImmSample, facegate_core::imaging::GrayF32, Vec<facegate_core::geometry::Point>, Option<Rect>)],
     variant: Variant,
 ) -> VariantSummary {
-    measure_fn(photos, variant.name(), &|gray, rect| landmarker.fit(gray, rect, variant).keypoints)
+    measure_fn(photos, variant.name(), &|gray, rect| landmarker.fit(gray, rect, variant).centres)
 }
 
 type TestPhoto = (ImmSample, facegate_core::imaging::GrayF32, Vec<facegate_core::geometry::Point>, Option<Rect>);
@@ -319,12 +319,12 @@ fn write_charts(summaries: &[VariantSummary], out: &Path) -> anyhow::Result<()> 
 pub fn measure_fn(
     photos: &[(ImmSample, facegate_core::imaging::GrayF32, Vec<facegate_core::geometry::Point>, Option<Rect>)],
     variant: &'static str,
-    fit: &dyn Fn(&facegate_core::imaging::GrayF32, &Rect) -> KeyPoints,
+    fit: &dyn Fn(&facegate_core::imaging::GrayF32, &Rect) -> EyeMouthCentres,
 ) -> VariantSummary {
     let mut errors = Vec::new();
     let (mut total_ms, mut fitted) = (0.0, 0usize);
     for (sample, gray, truth, rect) in photos {
-        let truth_k = KeyPoints::from_imm(truth);
+        let truth_k = EyeMouthCentres::from_imm(truth);
         let (de, dm) = match rect {
             Some(r) => {
                 let (t, c) = (Instant::now(), thread_cpu_ns());
@@ -359,7 +359,7 @@ fn summarise(variant: &'static str, errors: Vec<PhotoError>, ms_per_face: f64) -
 }
 
 /// A landmark search under measurement: photo and face box in, eye and mouth centres out.
-pub type KeypointSearch<'a> = &'a dyn Fn(&facegate_core::imaging::GrayF32, &Rect) -> KeyPoints;
+pub type CentreSearch<'a> = &'a dyn Fn(&facegate_core::imaging::GrayF32, &Rect) -> EyeMouthCentres;
 
 /// What [`measure_asm3d`] measured.
 struct Asm3dMeasurements {
@@ -410,12 +410,12 @@ fn measure_asm3d(
         };
     progress.end();
     let lm = asm3d::Asm3dLandmarker::new(model);
-    let fit = |g: &facegate_core::imaging::GrayF32, r: &Rect| lm.fit_with(g, r, asm3d::Refinement::Casm(&casm.model)).keypoints;
+    let fit = |g: &facegate_core::imaging::GrayF32, r: &Rect| lm.fit_with(g, r, asm3d::Refinement::Casm(&casm.model)).centres;
     let summary = measure_fn(photos, "asm3d", &fit);
     let switch_points = |g: &facegate_core::imaging::GrayF32, r: &Rect| {
         lm.switch(g, r, casm, casm.fit(g, r, Variant::Casm), asm3d::SERVICE_MIN_YAW).0.points
     };
-    let switch = |g: &facegate_core::imaging::GrayF32, r: &Rect| KeyPoints::from_imm(&switch_points(g, r));
+    let switch = |g: &facegate_core::imaging::GrayF32, r: &Rect| EyeMouthCentres::from_imm(&switch_points(g, r));
     let switch_summary = measure_fn(photos, "switch", &switch);
     // The head yaw of every test photo, from the 3DMM fitted to its manual landmarks.
     let yaws =
@@ -424,7 +424,7 @@ fn measure_asm3d(
     let mut profiles = Vec::new();
     let mut poses = Vec::new();
     if let Some(det) = detector.filter(|_| !test.is_empty()) {
-        let searches: [(&'static str, KeypointSearch); 2] = [("3D-ASM (refined by C-ASM)", &fit), ("service switch", &switch)];
+        let searches: [(&'static str, CentreSearch); 2] = [("3D-ASM (refined by C-ASM)", &fit), ("service switch", &switch)];
         for (name, search) in searches {
             match crossover(&fm, test, det, casm, search) {
                 Ok(r) => rows.push((name, r)),
@@ -516,8 +516,8 @@ mod tests {
 
     #[test]
     fn error_measures_follow_the_thesis_definitions() {
-        let truth = KeyPoints { left_eye: [0.0, 0.0], right_eye: [100.0, 0.0], mouth: [50.0, 80.0] };
-        let found = KeyPoints { left_eye: [3.0, 4.0], right_eye: [100.0, 2.0], mouth: [50.0, 88.0] };
+        let truth = EyeMouthCentres { left_eye: [0.0, 0.0], right_eye: [100.0, 0.0], mouth: [50.0, 80.0] };
+        let found = EyeMouthCentres { left_eye: [3.0, 4.0], right_eye: [100.0, 2.0], mouth: [50.0, 88.0] };
         assert!((d_eye(&found, &truth) - 0.05).abs() < 1e-6);
         assert!((d_mouth(&found, &truth) - 0.1).abs() < 1e-6);
     }

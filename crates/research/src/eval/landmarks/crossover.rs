@@ -5,11 +5,11 @@ use std::io::Write;
 
 use serde::Serialize;
 
-use crate::dataset::{ImmSample, KeyPoints};
+use crate::dataset::{EyeMouthCentres, ImmSample};
 use facegate_detect::Detector;
 use facegate_vision::landmarks::{Landmarker, Variant};
 
-use super::{KeypointSearch, d_eye};
+use super::{CentreSearch, d_eye};
 
 /// Yaws (degrees) of the crossover renders.
 pub const CROSSOVER_YAWS: [f32; 9] = [-60.0, -45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0, 60.0];
@@ -41,7 +41,7 @@ pub fn crossover(
     test: &[ImmSample],
     detector: &Detector,
     casm: &Landmarker,
-    asm3d: KeypointSearch,
+    asm3d: CentreSearch,
 ) -> anyhow::Result<Vec<CrossoverRow>> {
     let bands = super::super::profile::bands(&CROSSOVER_YAWS);
     // Per band: (C-ASM d_eye, 3D-ASM d_eye) per render, infinite for a detector miss.
@@ -49,13 +49,13 @@ pub fn crossover(
     let mut misses = vec![0usize; bands.len()];
     super::super::profile::for_each_render(fm, test, &CROSSOVER_YAWS, &mut |yaw, view| {
         let band = bands.iter().position(|&b| b == yaw.abs()).expect("a band per yaw");
-        let truth_k = KeyPoints::from_imm(&view.points);
+        let truth_k = EyeMouthCentres::from_imm(&view.points);
         let Some(rect) = detector.detect(&view.gray).first().map(facegate_vision::pipeline::seed_box) else {
             misses[band] += 1;
             errors[band].push((f64::INFINITY, f64::INFINITY));
             return;
         };
-        let c = casm.fit(&view.gray, &rect, Variant::Casm).keypoints;
+        let c = casm.fit(&view.gray, &rect, Variant::Casm).centres;
         let a = asm3d(&view.gray, &rect);
         errors[band].push((d_eye(&c, &truth_k), d_eye(&a, &truth_k)));
     })?;
