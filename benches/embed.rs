@@ -1,10 +1,10 @@
 //! Face-embedding speed: one forward pass of the ResNet on a 150×150 chip (target ≤ 12 ms on one
-//! core), and the mirror-averaged embedding the deep recognizer uses (two passes); thread CPU time. The chip is cut from an IMM photo with its annotated key points.
+//! core), and the mirror-averaged embedding the deep recognizer uses (two passes); thread CPU time. The chip is cut from an IMM photo with its annotated centres.
 
 mod common;
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
-use facegate::core::face::KeyPoints;
+use facegate::core::face::EyeMouthCentres;
 use facegate::embed::{self, Workspace};
 use facegate::research::dataset::list_imm;
 
@@ -12,7 +12,7 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
     let embedder = embed::load(&facegate::config::models_dir()).expect("models/embedding.bin (facegate convert embedding)");
     let sample = &list_imm(&facegate::config::shared_dir().join("data/imm")).expect("IMM data")[0];
     let photo = facegate::core::imaging::open(&sample.image).expect("IMM photo");
-    let k = KeyPoints::from_imm(&sample.landmarks().expect("IMM landmarks"));
+    let k = EyeMouthCentres::from_imm(&sample.landmarks().expect("IMM landmarks"));
     let chip = embed::face_chip(&photo.rgb, &k);
     let mut ws = Workspace::default();
 

@@ -25,9 +25,9 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
     for (name, path) in photos {
         let bytes = std::fs::read(shared_dir().join(path)).expect("photo");
         let photo = imaging::decode(&bytes, &DecodeLimits::default()).expect("decodes");
-        let keypoints = with.analyze(&photo).expect("a face").landmarks.keypoints;
+        let centres = with.analyze(&photo).expect("a face").landmarks.centres;
         let model = with.liveness.as_ref().expect("loaded");
-        group.bench_function(format!("assess/{name}"), |b| b.iter(|| black_box(model.assess(black_box(&photo.rgb), &keypoints))));
+        group.bench_function(format!("assess/{name}"), |b| b.iter(|| black_box(model.assess(black_box(&photo.rgb), &centres))));
         for (label, pipeline) in [("without_liveness", &without), ("with_liveness", &with)] {
             group.bench_function(format!("decode_analyze/{name}/{label}"), |b| common::decode_analyze(b, pipeline, &bytes));
         }

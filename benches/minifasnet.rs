@@ -32,8 +32,8 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
             let planes = network_input(&photo.rgb, crop, net.input_size());
             group.bench_function(format!("forward/{}/{name}", net.name()), |b| b.iter(|| black_box(net.forward(black_box(&planes)))));
         }
-        let keypoints = analysis.landmarks.keypoints;
-        group.bench_function(format!("lbp_assess/{name}"), |b| b.iter(|| black_box(lbp.assess(black_box(&photo.rgb), &keypoints))));
+        let centres = analysis.landmarks.centres;
+        group.bench_function(format!("lbp_assess/{name}"), |b| b.iter(|| black_box(lbp.assess(black_box(&photo.rgb), &centres))));
     }
     group.finish();
 }

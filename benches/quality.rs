@@ -26,9 +26,9 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
         let analysis = pipeline.analyze(&photo).expect("a face");
         let (landmarks, pose) = (&analysis.landmarks, analysis.pose);
         let residual = analysis.quality.components.fit_residual.map(|r| r * analysis.quality.components.inter_eye_px);
-        let chip = facegate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
+        let chip = facegate::embed::face_chip(&photo.rgb, &landmarks.centres);
         group.bench_function(format!("components_of_chip/{name}"), |b| {
-            b.iter(|| black_box(facegate::quality::components(black_box(&chip), &landmarks.keypoints, pose, residual)))
+            b.iter(|| black_box(facegate::quality::components(black_box(&chip), &landmarks.centres, pose, residual)))
         });
         // The deep path's whole quality stage: the components, the agreement of the two
         // embeddings the recognizer made anyway, the score.
@@ -36,7 +36,7 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
         let mirror = facegate::embed::chip_mirror_pair(&network, &chip);
         group.bench_function(format!("chip_components_mirror_score/{name}"), |b| {
             b.iter(|| {
-                let components = facegate::quality::components(black_box(&chip), &landmarks.keypoints, pose, residual);
+                let components = facegate::quality::components(black_box(&chip), &landmarks.centres, pose, residual);
                 black_box(pipeline.quality.assess(components.with_mirror(black_box(&mirror))))
             })
         });

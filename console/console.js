@@ -164,7 +164,7 @@ function photos(id) {
 
 // ---------------------------------------------------------------- what was found: box, landmarks, pose, timings
 
-/// The photo with the face box, the 58 landmarks and the key points drawn over it.
+/// The photo with the face box, the 58 landmarks and the eye and mouth centres drawn over it.
 async function overlay(file, report) {
     const bitmap = await createImageBitmap(file);
     const canvas = el('canvas', { class: 'overlay', role: 'img', 'aria-label': 'The photo with the face box and the 58 landmarks' });

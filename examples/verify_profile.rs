@@ -85,12 +85,12 @@ fn profile(pipeline: &Pipeline, bytes: &[Vec<u8>], rounds: usize) -> Costs {
                 Recognizer::Embedding(r, _) => {
                     for (i, net) in r.networks.iter().enumerate().take(3) {
                         c.networks[i] += cpu_ms(|| {
-                            std::hint::black_box(r.embed_with(net, &photo.rgb, &a.landmarks.keypoints, a.face.points.as_ref(), None));
+                            std::hint::black_box(r.embed_with(net, &photo.rgb, &a.landmarks.centres, a.face.points.as_ref(), None));
                         });
                     }
                 }
                 Recognizer::Dlib(d) => {
-                    let chip = facegate::embed::face_chip(&photo.rgb, &a.landmarks.keypoints);
+                    let chip = facegate::embed::face_chip(&photo.rgb, &a.landmarks.centres);
                     c.networks[0] += cpu_ms(|| {
                         std::hint::black_box(d.template_and_mirror_pair(&chip));
                     });

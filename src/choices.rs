@@ -83,10 +83,10 @@ value_enum! {
 }
 
 value_enum! {
-    /// Where the keypoints of a photo come from.
-    Keypoints => facegate_research::train_dlda::KeypointOrigin {
+    /// Where the centres of a photo come from.
+    CentreOrigin => facegate_research::train_dlda::CentreOrigin {
         /// IMM `.asf` annotations where present, else the automatic front end (detector + ASM, or
-        /// detector-box keypoints while the ASM is not available).
+        /// detector-box centres while the ASM is not available).
         Annotated,
         /// The automatic front end for every photo.
         Pipeline,

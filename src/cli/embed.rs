@@ -98,7 +98,7 @@ pub fn run_embed(args: EmbedArgs) -> anyhow::Result<ExitCode> {
                     crate::cli::print_json_line(&serde_json::json!({"image": path.display().to_string(), "embedding": null}));
                     continue;
                 };
-                embed::face_chip(&photo.rgb, &located.landmarks.keypoints)
+                embed::face_chip(&photo.rgb, &located.landmarks.centres)
             }
         };
         let e = if args.single { network.forward(&chip, &mut ws) } else { network.embed_mirrored(&chip, &mut ws) };
@@ -191,9 +191,9 @@ pub fn run_eval_deep(args: EvalDeepArgs) -> anyhow::Result<ExitCode> {
         println!("{set:?}: {n} photos, face found in {found}, frontal rendering for {frontal}");
     }
     if args.renders {
-        use crate::research::train_dlda::{FrontEnd, KeypointOrigin, list_faces};
+        use crate::research::train_dlda::{CentreOrigin, FrontEnd, list_faces};
         let models = crate::config::models_dir();
-        let front = FrontEnd::load(KeypointOrigin::Pipeline, &models, Some(&crate::config::sfm_dir()));
+        let front = FrontEnd::load(CentreOrigin::Pipeline, &models, Some(&crate::config::sfm_dir()));
         let imm = list_faces(&[crate::config::shared_dir().join("data/imm")])?;
         let table = deep_eval::turned_render_rank1(&front, &embed::load(&models)?, &imm, &[-45.0, -30.0, 30.0, 45.0])?;
         println!("rank-1 of 3DMM renders of the IMM held-out view 1 (gallery: view 2 of {} persons):", table.gallery);
@@ -311,7 +311,7 @@ fn fusion_report(samples: &[Sample], embeddings: &[PhotoEmbeddings], threads: us
 
 #[derive(clap::Args, Debug)]
 pub struct EvalDeepAlignArgs {
-    /// The research cache folder, where the key points are kept.
+    /// The research cache folder, where the centres are kept.
     #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
     pub cache: PathBuf,
     #[arg(long, default_value_t = 5)]
@@ -325,7 +325,7 @@ pub struct EvalDeepAlignArgs {
 pub fn run_eval_deep_align(args: EvalDeepAlignArgs) -> anyhow::Result<ExitCode> {
     let samples = train_deep::list_samples(&crate::config::shared_dir())?;
     let models = crate::config::models_dir();
-    let points = deep_eval::cached_key_points(&args.cache, &models, &samples, args.threads, &crate::cli::Bar::default())?;
+    let points = deep_eval::cached_centres(&args.cache, &models, &samples, args.threads, &crate::cli::Bar::default())?;
     let network = embed::load(&models)?;
     type Loaded = Vec<(usize, image::RgbImage, [[f32; 2]; 3])>;
     let load = |f: &dyn Fn(&Sample) -> bool| -> anyhow::Result<Loaded> {

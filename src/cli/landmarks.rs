@@ -10,7 +10,7 @@ use crate::detect::Detector;
 use crate::landmarks::asm3d::{Asm3dLandmarker, Refinement};
 use crate::landmarks::{Landmarker, Variant};
 use crate::research::dataset;
-use crate::research::dataset::KeyPoints;
+use crate::research::dataset::EyeMouthCentres;
 use crate::research::train_asm as train;
 
 #[derive(clap::Args, Debug)]
@@ -84,7 +84,7 @@ pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
         let casm = Landmarker::load(&models.join("asm.bin"))?;
         Box::new(move |gray, rect| {
             let lm = landmarker.fit_with(gray, rect, Refinement::Casm(&casm.model));
-            let mut face = face_json(rect, &lm.points, &lm.keypoints);
+            let mut face = face_json(rect, &lm.points, &lm.centres);
             face["pose"] = json!(lm.pose);
             face["view_yaw"] = json!(lm.view_yaw);
             face
@@ -93,7 +93,7 @@ pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
         let landmarker = Landmarker::load(&models.join("asm.bin"))?;
         Box::new(move |gray, rect| {
             let lm = landmarker.fit(gray, rect, variant);
-            face_json(rect, &lm.points, &lm.keypoints)
+            face_json(rect, &lm.points, &lm.centres)
         })
     };
     let mut failed = false;
@@ -123,13 +123,13 @@ pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
 }
 
 /// The landmarks JSON contract of one face: box, 58 points in IMM order, eye and mouth centres.
-fn face_json(rect: &Rect, points: &[Point], keypoints: &KeyPoints) -> serde_json::Value {
+fn face_json(rect: &Rect, points: &[Point], centres: &EyeMouthCentres) -> serde_json::Value {
     json!({
         "box": rect,
         "points": points,
-        "left_eye": keypoints.left_eye,
-        "right_eye": keypoints.right_eye,
-        "mouth": keypoints.mouth,
+        "left_eye": centres.left_eye,
+        "right_eye": centres.right_eye,
+        "mouth": centres.mouth,
     })
 }
 

@@ -14,7 +14,7 @@ use crate::research::liveness::train::{self, LivenessData, Recipe};
 /// Options both liveness commands share.
 #[derive(clap::Args, Debug, Clone)]
 pub struct LivenessDataArgs {
-    /// The research cache folder, where every photo's face key points are kept.
+    /// The research cache folder, where every photo's eye and mouth centres are kept.
     #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
     pub cache: PathBuf,
     /// Threads measuring photos.

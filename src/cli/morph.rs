@@ -139,7 +139,7 @@ pub fn run_frontalize(args: FrontalizeArgs) -> anyhow::Result<ExitCode> {
     let pose = crate::morph::Pose { yaw: args.yaw, ..Default::default() };
     let (frontal, png) = model.posed_png(&photo, &fitted, pose, args.size)?;
     std::fs::write(&args.out, png).with_context(|| format!("cannot write {}", args.out.display()))?;
-    let k = frontal.keypoints;
+    let k = frontal.centres;
     super::print_json_line(&serde_json::json!({
         "image": args.image.display().to_string(),
         "pose": {"yaw": fitted.pose.yaw, "pitch": fitted.pose.pitch, "roll": fitted.pose.roll},

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Args;
 
 use crate::choices;
-use crate::pipeline::{ChipCentres, Pipeline, PipelineConfig};
+use crate::pipeline::{CentreSource, Pipeline, PipelineConfig};
 use crate::research::eval::plot::{Chart, Scale, Series, line_chart};
 use crate::research::eval::pose::{self, Strategy};
 
@@ -44,8 +44,8 @@ pub struct EvalPoseArgs {
     pub json: bool,
     /// Where the chip's eye and mouth centres come from on faces the detector gives points for:
     /// `landmarks`, `detector`, or `turned:T` (the detector's when its points show a turn ≥ T).
-    #[arg(long)]
-    pub keypoints: Option<String>,
+    #[arg(long = "keypoints")]
+    pub centre_source: Option<String>,
     /// The |yaw| of the detector's five points from which the 3D-ASM is seeded by them (degrees;
     /// `off`: always the C-ASM, switched to the 3D-ASM by its own points).
     #[arg(long)]
@@ -62,12 +62,12 @@ pub struct EvalPoseArgs {
     pub threads: usize,
 }
 
-fn keypoint_source(text: &str) -> anyhow::Result<ChipCentres> {
+fn parse_centre_source(text: &str) -> anyhow::Result<CentreSource> {
     Ok(match text {
-        "landmarks" => ChipCentres::Landmarks,
-        "detector" => ChipCentres::Detector,
+        "landmarks" => CentreSource::Landmarks,
+        "detector" => CentreSource::Detector,
         _ => match text.strip_prefix("turned:") {
-            Some(t) => ChipCentres::DetectorWhenTurned(t.parse()?),
+            Some(t) => CentreSource::DetectorWhenTurned(t.parse()?),
             None => anyhow::bail!("--keypoints: landmarks, detector or turned:T, not {text}"),
         },
     })
@@ -84,8 +84,8 @@ pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
         config = PipelineConfig { detector: d.into(), ..config };
     }
     let mut pipeline = Pipeline::load(&config)?;
-    if let Some(k) = &args.keypoints {
-        pipeline.finder.keypoints = keypoint_source(k)?;
+    if let Some(k) = &args.centre_source {
+        pipeline.finder.centre_source = parse_centre_source(k)?;
     }
     match args.detector_seed.as_deref() {
         None => {}

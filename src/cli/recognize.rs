@@ -105,13 +105,13 @@ pub struct ModelOptions {
     /// Disable the elliptical mask.
     #[arg(long)]
     pub no_mask: bool,
-    /// Randomly perturbed copies of each training photo (keypoint noise).
+    /// Randomly perturbed copies of each training photo (centre noise).
     #[arg(long, default_value_t = 0)]
     pub jitter: usize,
     /// Side of the square normalised crop in pixels (the canonical positions scale with it).
     #[arg(long, default_value_t = 48)]
     pub crop: usize,
-    /// Scale of the keypoint layout about the crop centre (below 1 shows more of the head).
+    /// Scale of the centre layout about the crop centre (below 1 shows more of the head).
     #[arg(long, default_value_t = 1.0)]
     pub zoom: f32,
     /// Weight of the mouth centre in the alignment (the eyes weigh 1; 0 aligns the eyes only).
@@ -200,8 +200,8 @@ pub struct TrainDldaArgs {
     #[arg(long, default_value = "models/dlda.bin")]
     pub out: PathBuf,
     /// Where the eye and mouth centres come from.
-    #[arg(long, value_enum, default_value = "annotated")]
-    pub keypoints: choices::Keypoints,
+    #[arg(long = "keypoints", value_enum, default_value = "annotated")]
+    pub centre_origin: choices::CentreOrigin,
     /// Before training, report the EER of K-fold cross-validation over the training persons only
     /// (how parameters are chosen without looking at the held-out persons).
     #[arg(long)]
@@ -263,8 +263,8 @@ pub struct EvalVerifyArgs {
     /// With `--recognizer deep`: one JSON object per line.
     #[arg(long)]
     pub json: bool,
-    #[arg(long, value_enum, default_value = "annotated")]
-    pub keypoints: choices::Keypoints,
+    #[arg(long = "keypoints", value_enum, default_value = "annotated")]
+    pub centre_origin: choices::CentreOrigin,
     /// Measure on every person, including those the projection was trained on (optimistic).
     #[arg(long)]
     pub all_persons: bool,
@@ -278,8 +278,8 @@ pub struct EvalIdentifyArgs {
     /// IMM folder (its rotated views 3 and 4 are the posed probes).
     #[arg(long)]
     pub data: Option<PathBuf>,
-    #[arg(long, value_enum, default_value = "annotated")]
-    pub keypoints: choices::Keypoints,
+    #[arg(long = "keypoints", value_enum, default_value = "annotated")]
+    pub centre_origin: choices::CentreOrigin,
     /// Add the view-1 photos of the training persons to the gallery as distractors (the probes
     /// stay held-out persons only).
     #[arg(long)]
@@ -328,7 +328,7 @@ pub fn run_train(args: TrainDldaArgs) -> anyhow::Result<ExitCode> {
 fn training_crops(args: &TrainDldaArgs, config: &TrainConfig) -> anyhow::Result<Vec<AlignedFace>> {
     let photos = train::TrainingPhotos {
         data: args.data.clone(),
-        keypoints: args.keypoints.into(),
+        centre_origin: args.centre_origin.into(),
         frontal_only: args.model.train_frontal_only,
         repose: if args.no_repose { Vec::new() } else { train::repose_offsets(&args.repose_yaw, &args.repose_pitch) },
         cache: args.crop_cache.clone(),
@@ -366,7 +366,7 @@ fn report_model(out: &Path, model: &ClassicalModel, report: &HeldOutReport) {
         model.provenance.train_images,
         model.provenance.train_persons.len(),
         model.provenance.mirrored,
-        model.provenance.keypoint_source
+        model.provenance.centre_source
     );
     eprintln!(
         "held-out ({} photos of {} persons): EER {:.2}%, FNMR@FMR1e-2 {:.2}%, FNMR@FMR1e-3 {:.2}%; combine max EER {:.2}%, mean EER {:.2}% → {:?}",
@@ -398,7 +398,7 @@ fn report_model(out: &Path, model: &ClassicalModel, report: &HeldOutReport) {
     }
     crate::cli::print_json_line(&serde_json::json!({
         "model": out, "version": version, "normalization": model.normalization, "features": model.features,
-        "photometric": model.normalize.photometric, "dims": model.template_dims(), "paths": model.paths(), "keypoints": model.provenance.keypoint_source,
+        "photometric": model.normalize.photometric, "dims": model.template_dims(), "paths": model.paths(), "keypoints": model.provenance.centre_source,
         "held_out": report, "calibration": model.calibration.points, "enrolled_calibration": model.enrolled_calibration,
     }));
 }
@@ -450,20 +450,20 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
     anyhow::ensure!(!faces.is_empty(), "no photos of held-out persons under {:?}", args.dirs);
     let paths = model.paths();
     let sfm = paths.contains(&Normalization::Morph).then(crate::config::sfm_dir);
-    let front = FrontEnd::load(args.keypoints.into(), &crate::config::models_dir(), sfm.as_deref()).with_threads(args.deep.threads);
+    let front = FrontEnd::load(args.centre_origin.into(), &crate::config::models_dir(), sfm.as_deref()).with_threads(args.deep.threads);
     let aligned = train::align_paths(None, &front, &faces, &paths, &model.normalize, &crate::cli::Bar::default())?;
     let templates: Vec<(String, Template, bool)> = aligned
         .iter()
         .map(|a| Ok((a.face.label.clone(), train::template_of(&recognizer, a)?, a.face.is_rotated_view())))
         .collect::<anyhow::Result<_>>()?;
-    let sources = identification::keypoint_sources(&aligned);
+    let sources = identification::centre_sources(&aligned);
     println!(
         "model {} ({}, {:?}, {} dims, keypoints of the model: {}); measured on {} photos of {} persons, keypoints: {sources}",
         recognizer.model_version(),
         model.normalization,
         model.features,
         model.template_dims(),
-        model.provenance.keypoint_source,
+        model.provenance.centre_source,
         aligned.len(),
         {
             let mut l: Vec<&str> = aligned.iter().map(|a| a.face.label.as_str()).collect();
@@ -537,7 +537,7 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
     }
     let data = args.data.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/imm"));
     let faces = train::list_faces(std::slice::from_ref(&data))?;
-    let front = FrontEnd::load(args.keypoints.into(), &crate::config::models_dir(), Some(&crate::config::sfm_dir()));
+    let front = FrontEnd::load(args.centre_origin.into(), &crate::config::models_dir(), Some(&crate::config::sfm_dir()));
     let mut normalizations = vec![Normalization::TwoD];
     if front.face_model.is_some() {
         normalizations.push(Normalization::Morph);
@@ -553,7 +553,7 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
         args.distractors,
         &crate::cli::Bar::default(),
     )?;
-    let sources = &table.keypoint_sources;
+    let sources = &table.centre_sources;
     let gallery =
         if args.distractors { "view 1 of all persons (training persons as distractors)" } else { "view 1 of the held-out persons" };
     println!("rank-1 identification of held-out IMM persons (gallery: {gallery}; keypoints: {sources})");

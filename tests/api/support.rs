@@ -9,7 +9,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
 use facegate::config::Settings;
-use facegate::core::face::KeyPoints;
+use facegate::core::face::EyeMouthCentres;
 use facegate::core::geometry::Rect;
 use facegate::core::imaging::Photo;
 use facegate::detect::Face;
@@ -256,7 +256,7 @@ pub fn imm(name: &str) -> Vec<u8> {
 /// A stand-in for the face pipeline, so the HTTP layer can be tested on its own: a uniform photo
 /// has no face, a photo at least twice as wide as high has two, any other one face. Its template
 /// is the photo's 8×8 thumbnail, centred and normalised; the score is the best cosine. Its quality
-/// components are the real ones of a chip cut at fixed key points (no pose); its unified score is
+/// components are the real ones of a chip cut at fixed centres (no pose); its unified score is
 /// `min(100, 10 · sharpness)`, so a dark or flat photo is refused as the real one would be.
 pub struct StandInEngine {
     pub version: String,
@@ -291,8 +291,8 @@ impl FaceEngine for StandInEngine {
         vector.iter_mut().for_each(|v| *v /= norm);
         let (w, h) = (g.width as f32, g.height as f32);
         let faces_found = if w >= 2.0 * h { 2 } else { 1 };
-        let keypoints = KeyPoints { left_eye: [0.35 * w, 0.4 * h], right_eye: [0.65 * w, 0.4 * h], mouth: [0.5 * w, 0.75 * h] };
-        let landmarks = Landmarks { points: vec![[0.5 * w, 0.5 * h]; 58], keypoints };
+        let centres = EyeMouthCentres { left_eye: [0.35 * w, 0.4 * h], right_eye: [0.65 * w, 0.4 * h], mouth: [0.5 * w, 0.75 * h] };
+        let landmarks = Landmarks { points: vec![[0.5 * w, 0.5 * h]; 58], centres };
         let components = facegate::pipeline::quality_components(photo, &landmarks, None, None).1;
         let quality = Quality { score: (10.0 * components.sharpness).min(100.0), components };
         Ok(FaceAnalysis {

@@ -2,7 +2,7 @@
 //! in image terms for a frontal photo: path 0 = jaw (13 points, the open *contour* group), 1 = eye
 //! on the image right, 2 = eye on the image left, 3 = eyebrow on the image right, 4 = eyebrow on
 //! the image left, 5 = mouth, 6 = nose; points 13..58 form the *internal* group) and the eye and
-//! mouth centres ([`KeyPoints`]) the recognizer aligns on.
+//! mouth centres ([`EyeMouthCentres`]) the recognizer aligns on.
 
 use std::ops::Range;
 
@@ -25,16 +25,16 @@ pub const INTERNAL: Range<usize> = 13..58;
 /// Eye and mouth centres as the means of their outline points (thesis 2.5.1).
 /// `left_eye` is the eye on the image left.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct KeyPoints {
+pub struct EyeMouthCentres {
     pub left_eye: Point,
     pub right_eye: Point,
     pub mouth: Point,
 }
 
-impl KeyPoints {
-    pub fn from_imm(points: &[Point]) -> KeyPoints {
+impl EyeMouthCentres {
+    pub fn from_imm(points: &[Point]) -> EyeMouthCentres {
         assert_eq!(points.len(), IMM_POINTS, "an IMM shape has 58 points");
-        KeyPoints {
+        EyeMouthCentres {
             left_eye: centroid(&points[EYE_IMAGE_LEFT]),
             right_eye: centroid(&points[EYE_IMAGE_RIGHT]),
             mouth: centroid(&points[MOUTH]),

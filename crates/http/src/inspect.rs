@@ -42,7 +42,7 @@ fn single_photo(upload: Upload) -> Result<Bytes, Problem> {
 }
 
 /// `POST /analyze?faces=largest|all`: every face found (or the largest), with box, detector score,
-/// 58 landmarks and key points, pose, 3DMM fit residual, quality, liveness (reported unless off,
+/// 58 landmarks and eye and mouth centres, pose, 3DMM fit residual, quality, liveness (reported unless off,
 /// never refused: an inspection) and stage timings.
 pub async fn analyze(State(state): State<AppState>, Params(params): Params<AnalyzeParams>, upload: Upload) -> Result<Response, Problem> {
     let start = Instant::now();

@@ -22,7 +22,7 @@ use std::path::Path;
 use image::{RgbImage, RgbaImage};
 use serde::{Deserialize, Serialize};
 
-use facegate_core::face::{EYE_IMAGE_LEFT, EYE_IMAGE_RIGHT, IMM_POINTS, KeyPoints, MOUTH};
+use facegate_core::face::{EYE_IMAGE_LEFT, EYE_IMAGE_RIGHT, EyeMouthCentres, IMM_POINTS, MOUTH};
 use facegate_core::geometry::{Point, centroid};
 use facegate_core::imaging::Photo;
 
@@ -147,7 +147,7 @@ pub struct FittedFace {
 #[derive(Debug, Clone)]
 pub struct Frontal {
     pub image: RgbImage,
-    pub keypoints: KeyPoints,
+    pub centres: EyeMouthCentres,
 }
 
 impl FaceModel {
@@ -400,8 +400,8 @@ impl FaceModel {
         let camera = self.centred_camera(&fit.vertices, pose, size, size);
         let projected = self.project(&fit.vertices, &camera);
         let image = render::render_textured(&projected, &self.shape.triangles, &self.shape.texcoords, &texture, size, size, [0, 0, 0]);
-        let keypoints = self.keypoints(&projected, &fit.correspondence);
-        Ok(Frontal { image, keypoints })
+        let centres = self.centres(&projected, &fit.correspondence);
+        Ok(Frontal { image, centres })
     }
 
     /// Fit the model to the 58 landmarks of a face and extract its texture (`texture_size` square,
@@ -454,9 +454,13 @@ impl FaceModel {
     }
 
     /// Eye and mouth centres of projected vertices (`left_eye` = the eye on the image left).
-    pub fn keypoints(&self, projected: &[[f32; 3]], correspondence: &[u32; IMM_POINTS]) -> KeyPoints {
+    pub fn centres(&self, projected: &[[f32; 3]], correspondence: &[u32; IMM_POINTS]) -> EyeMouthCentres {
         let pts: Vec<Point> = correspondence.iter().map(|&v| [projected[v as usize][0], projected[v as usize][1]]).collect();
-        KeyPoints { left_eye: centroid(&pts[EYE_IMAGE_LEFT]), right_eye: centroid(&pts[EYE_IMAGE_RIGHT]), mouth: centroid(&pts[MOUTH]) }
+        EyeMouthCentres {
+            left_eye: centroid(&pts[EYE_IMAGE_LEFT]),
+            right_eye: centroid(&pts[EYE_IMAGE_RIGHT]),
+            mouth: centroid(&pts[MOUTH]),
+        }
     }
 
     /// Which of the 58 landmarks the camera sees on a fit: a point is visible when its vertex is

@@ -1,7 +1,7 @@
 //! The research front ends' one cache, and their one per-sample loop ([`map_samples`]).
 //!
 //! A research front end (the deep embeddings of [`crate::train_deep`], the quality measurements of
-//! [`crate::eval::quality`], the crops and re-posed crops of [`crate::train_dlda`], the key points of
+//! [`crate::eval::quality`], the crops and re-posed crops of [`crate::train_dlda`], the centres of
 //! `eval deep-align`) computes one result per sample, which takes minutes; the cache keeps those
 //! results between runs. A cache file holds the results of one computation, in sample order,
 //! under its [`CacheKey`]: the SHA-256 of

@@ -242,7 +242,7 @@ mod tests {
         assert_eq!((s.person, s.view), (1, 1));
         let pts = s.landmarks().unwrap();
         assert_eq!(pts.len(), IMM_POINTS);
-        let k = KeyPoints::from_imm(&pts);
+        let k = EyeMouthCentres::from_imm(&pts);
         // Eyes above the mouth, the image-left eye left of the image-right one, jaw below the eyes.
         assert!(k.left_eye[0] < k.right_eye[0]);
         assert!(k.mouth[1] > k.left_eye[1] + 40.0);

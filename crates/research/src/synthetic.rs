@@ -4,7 +4,7 @@
 //! as a probe photo (detector, landmarks, chip, network), so that a turned probe meets a template
 //! made at its own pose and aligned the way its own chip is.
 
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::imaging::{GrayF32, Photo};
 
 use facegate_core::geometry::Point;
@@ -38,8 +38,8 @@ pub fn render_at(model: &FaceModel, photo: &Photo, fit: &FittedFace, points: &[P
         .iter()
         .map(|&pose| {
             let view = asm3d::synthesise_view(model, fit, &texture, pose, [grey; 3], 0.0, &jaw, &offsets);
-            let keypoints = KeyPoints::from_imm(&view.points);
-            (photo_of(view.gray), Landmarks { points: view.points, keypoints })
+            let centres = EyeMouthCentres::from_imm(&view.points);
+            (photo_of(view.gray), Landmarks { points: view.points, centres })
         })
         .collect()
 }
@@ -68,12 +68,12 @@ pub fn synthetic_templates(pipeline: &Pipeline, photo: &Photo, analysis: &FaceAn
         .zip(yaws)
         .filter_map(|((view, exact), &yaw)| {
             let found = pipeline.finder.detect(&view.gray).first().copied();
-            let keypoints = match &found {
-                Some(face) => pipeline.finder.landmarks_of(&view.gray, face).keypoints,
-                None => exact.keypoints,
+            let centres = match &found {
+                Some(face) => pipeline.finder.landmarks_of(&view.gray, face).centres,
+                None => exact.centres,
             };
             let points = found.and_then(|f| f.points);
-            let template = deep_template(pipeline, &view.rgb, &keypoints, points.as_ref())?;
+            let template = deep_template(pipeline, &view.rgb, &centres, points.as_ref())?;
             Some(SyntheticTemplate { yaw, template })
         })
         .collect()
@@ -87,15 +87,15 @@ pub fn frontal_template(pipeline: &Pipeline, photo: &Photo, analysis: &FaceAnaly
     let model = pipeline.face_model.as_ref()?;
     let fit = model.fit(&analysis.landmarks.points, photo.width(), photo.height()).ok()?;
     let frontal = model.frontalize(photo, &fit).ok()?;
-    deep_template(pipeline, &frontal.image, &frontal.keypoints, None)
+    deep_template(pipeline, &frontal.image, &frontal.centres, None)
 }
 
-/// The deep recognizer's template of `rgb` with its eye and mouth centres at `keypoints` (and the
+/// The deep recognizer's template of `rgb` with its eye and mouth centres at `centres` (and the
 /// detector's five points, for a network aligned by them); `None` for the classical recognizer.
-fn deep_template(pipeline: &Pipeline, rgb: &image::RgbImage, keypoints: &KeyPoints, points: Option<&[Point; 5]>) -> Option<Template> {
+fn deep_template(pipeline: &Pipeline, rgb: &image::RgbImage, centres: &EyeMouthCentres, points: Option<&[Point; 5]>) -> Option<Template> {
     match &pipeline.recognizer {
-        Recognizer::Dlib(deep) => Some(deep.template_of_chip(&facegate_vision::embed::face_chip(rgb, keypoints))),
-        Recognizer::Embedding(recognizer, _) => Some(recognizer.embed(rgb, keypoints, points, None).template),
+        Recognizer::Dlib(deep) => Some(deep.template_of_chip(&facegate_vision::embed::face_chip(rgb, centres))),
+        Recognizer::Embedding(recognizer, _) => Some(recognizer.embed(rgb, centres, points, None).template),
         Recognizer::Classical(_) => None,
     }
 }

@@ -38,7 +38,7 @@ impl Default for TrainOptions {
 /// A box for a training photo from the detector: the detection holding both annotated eye
 /// centres and the mouth centre (`None` when the detector missed the face).
 pub fn detector_box(detector: &Detector, gray: &GrayF32, shape: &[Point]) -> Option<Rect> {
-    let k = dataset::KeyPoints::from_imm(shape);
+    let k = dataset::EyeMouthCentres::from_imm(shape);
     detector
         .detect(gray)
         .iter()

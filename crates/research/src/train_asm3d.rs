@@ -253,62 +253,14 @@ fn train_with_jaw(
     let neighbours = neighbours(&samples[0])?;
     let mut views: Vec<ViewSamples> = options.yaws.iter().map(|_| ViewSamples::new(p.levels)).collect();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(options.seed ^ 0x5eed);
-    let (mut misses, mut detected, mut failures) = (0usize, 0usize, 0usize);
-    let mut annotation_boxes: Vec<(usize, f32, Rect, Point)> = Vec::new();
-    // (view, fitted camera, annotation) of every real photo, for the start scale.
-    let mut real_fits: Vec<(usize, Camera, Vec<Point>)> = Vec::new();
-    let mut mean_offset = vec![[0.0f64; 3]; IMM_POINTS];
-    let mut fitted_photos = 0usize;
+    let photos = RealPhotos { fm, detector, jaw: &jaw, options, real_per_view: &real_per_view, crop_px_per_mm, neighbours: &neighbours };
+    let mut learnt = Learnt::new();
     for (sample, fit) in samples.iter().zip(fits) {
-        let photo = imaging::open(&sample.image).map_err(|e| LandmarkError::Training(e.to_string()))?;
-        let shape = sample.landmarks().map_err(|e| LandmarkError::Training(e.to_string()))?;
-        let Some(fit) = fit else {
-            failures += 1;
-            tick();
-            continue;
-        };
-        // The photo itself trains the view of its fitted yaw, and places that view's start.
-        let real_view = nearest_view(&options.yaws, fit.pose.yaw);
-        views[real_view].add(&photo.gray, &shape, fit.camera.scale, crop_px_per_mm, p, &neighbours);
-        views[real_view].real += 1;
-        let c = centroid(&shape);
-        annotation_boxes.push((real_view, fit.camera.scale as f32, crate::train_asm::annotation_box(&shape), c));
-        real_fits.push((real_view, fit.camera, shape.clone()));
-        if let Some(det) = detector {
-            match crate::train_asm::detector_box(det, &photo.gray, &shape) {
-                Some(b) => {
-                    detected += 1;
-                    let v = &mut views[real_view];
-                    v.scale_per_width.push(fit.camera.scale as f32 / b.width);
-                    v.dx.push((c[0] - b.center()[0]) / b.width);
-                    v.dy.push((c[1] - b.center()[1]) / b.width);
-                }
-                None => misses += 1,
-            }
-        }
-        let mut offsets = annotation_offsets(fm, &fit, &shape);
-        let photo_jaw = photo_jaw_vertices(fm, &fit, &jaw);
-        // A jaw point moved to the learnt vertex has no offset from it.
-        for j in JAW.filter(|&j| photo_jaw[j] != fit.correspondence[j]) {
-            offsets[j] = [0.0; 3];
-        }
-        for (acc, d) in mean_offset.iter_mut().zip(&offsets) {
-            (0..3).for_each(|k| acc[k] += d[k]);
-        }
-        fitted_photos += 1;
-        let renders = Renders { fm, fit: &fit, jaw: &photo_jaw, offsets: &offsets, crop_px_per_mm, neighbours: &neighbours };
-        renders.add_to(&mut views, &photo, &real_per_view, options, &mut rng);
+        photos.add(&mut learnt, &mut views, sample, fit, &mut rng)?;
         tick();
     }
-    // The 3D PDMs' means follow the annotation convention too: the mean offset of the internal
-    // points and the chin over the training photos.
-    for pdm in pdms.iter_mut() {
-        for (i, (m, d)) in pdm.mean.iter_mut().zip(&mean_offset).enumerate() {
-            if fitted_photos > 0 && (!JAW.contains(&i) || i == 6) {
-                (0..3).for_each(|k| m[k] += (d[k] / fitted_photos as f64) as f32);
-            }
-        }
-    }
+    follow_annotation_convention(&mut pdms, &learnt.mean_offset, learnt.fitted_photos);
+    let Learnt { misses, detected, failures, annotation_boxes, real_fits, .. } = learnt;
     let start_scales = start_scales(&pdms, &real_fits);
     let box_source = if detected >= 3 { BoxSource::Detector } else { BoxSource::Annotation };
     let own = view_placements(&mut views, box_source, &annotation_boxes)?;
@@ -333,6 +285,112 @@ fn train_with_jaw(
         },
     };
     Ok((model, jaw))
+}
+
+/// What the real training photos gave besides their texture samples: the detector's misses and
+/// hits, the photos the 3DMM could not fit, each photo's annotation box and fit (for the views'
+/// placements and start scales), and the summed annotation offsets of the fitted ones.
+struct Learnt {
+    misses: usize,
+    detected: usize,
+    failures: usize,
+    annotation_boxes: Vec<(usize, f32, Rect, Point)>,
+    /// (view, fitted camera, annotation) of every real photo, for the start scale.
+    real_fits: Vec<(usize, Camera, Vec<Point>)>,
+    mean_offset: Vec<[f64; 3]>,
+    fitted_photos: usize,
+}
+
+impl Learnt {
+    fn new() -> Learnt {
+        Learnt {
+            misses: 0,
+            detected: 0,
+            failures: 0,
+            annotation_boxes: Vec::new(),
+            real_fits: Vec::new(),
+            mean_offset: vec![[0.0f64; 3]; IMM_POINTS],
+            fitted_photos: 0,
+        }
+    }
+}
+
+/// How the real training photos are learnt from: the 3DMM, the detector, the learnt jaw
+/// vertices, the settings, the real photos per view, the crop scale and contour neighbours.
+struct RealPhotos<'a> {
+    fm: &'a FaceModel,
+    detector: Option<&'a Detector>,
+    jaw: &'a JawVertices,
+    options: &'a Asm3dTrainOptions,
+    real_per_view: &'a [usize],
+    crop_px_per_mm: f32,
+    neighbours: &'a [[u16; 2]],
+}
+
+impl RealPhotos<'_> {
+    /// One photo with its 3DMM `fit` (`None`: a fit failure) added to the `views`' texture
+    /// samples, as itself at its fitted yaw and rendered at the others, and to `learnt`.
+    fn add(
+        &self,
+        learnt: &mut Learnt,
+        views: &mut [ViewSamples],
+        sample: &ImmSample,
+        fit: Option<facegate_morph::FittedFace>,
+        rng: &mut impl Rng,
+    ) -> Result<(), LandmarkError> {
+        let (fm, options, p) = (self.fm, self.options, &self.options.params);
+        let photo = imaging::open(&sample.image).map_err(|e| LandmarkError::Training(e.to_string()))?;
+        let shape = sample.landmarks().map_err(|e| LandmarkError::Training(e.to_string()))?;
+        let Some(fit) = fit else {
+            learnt.failures += 1;
+            return Ok(());
+        };
+        // The photo itself trains the view of its fitted yaw, and places that view's start.
+        let real_view = nearest_view(&options.yaws, fit.pose.yaw);
+        views[real_view].add(&photo.gray, &shape, fit.camera.scale, self.crop_px_per_mm, p, self.neighbours);
+        views[real_view].real += 1;
+        let c = centroid(&shape);
+        learnt.annotation_boxes.push((real_view, fit.camera.scale as f32, crate::train_asm::annotation_box(&shape), c));
+        learnt.real_fits.push((real_view, fit.camera, shape.clone()));
+        if let Some(det) = self.detector {
+            match crate::train_asm::detector_box(det, &photo.gray, &shape) {
+                Some(b) => {
+                    learnt.detected += 1;
+                    let v = &mut views[real_view];
+                    v.scale_per_width.push(fit.camera.scale as f32 / b.width);
+                    v.dx.push((c[0] - b.center()[0]) / b.width);
+                    v.dy.push((c[1] - b.center()[1]) / b.width);
+                }
+                None => learnt.misses += 1,
+            }
+        }
+        let mut offsets = annotation_offsets(fm, &fit, &shape);
+        let photo_jaw = photo_jaw_vertices(fm, &fit, self.jaw);
+        // A jaw point moved to the learnt vertex has no offset from it.
+        for j in JAW.filter(|&j| photo_jaw[j] != fit.correspondence[j]) {
+            offsets[j] = [0.0; 3];
+        }
+        for (acc, d) in learnt.mean_offset.iter_mut().zip(&offsets) {
+            (0..3).for_each(|k| acc[k] += d[k]);
+        }
+        learnt.fitted_photos += 1;
+        let renders =
+            Renders { fm, fit: &fit, jaw: &photo_jaw, offsets: &offsets, crop_px_per_mm: self.crop_px_per_mm, neighbours: self.neighbours };
+        renders.add_to(views, &photo, self.real_per_view, options, rng);
+        Ok(())
+    }
+}
+
+/// The 3D PDMs' means follow the annotation convention too: the mean offset (`offset_sum` over
+/// `fitted_photos`) of the internal points and the chin over the training photos.
+fn follow_annotation_convention(pdms: &mut [Pdm3d], offset_sum: &[[f64; 3]], fitted_photos: usize) {
+    for pdm in pdms.iter_mut() {
+        for (i, (m, d)) in pdm.mean.iter_mut().zip(offset_sum).enumerate() {
+            if fitted_photos > 0 && (!JAW.contains(&i) || i == 6) {
+                (0..3).for_each(|k| m[k] += (d[k] / fitted_photos as f64) as f32);
+            }
+        }
+    }
 }
 
 /// The 3DMM fitted to every photo's annotated landmarks (`None` where the fit fails).

@@ -126,9 +126,9 @@ impl DeepFrontEnd<'_> {
         let frontal = self.face_model.and_then(|model| {
             let fit = model.fit(&lm.points, photo.width(), photo.height()).ok()?;
             let f = model.frontalize(photo, &fit).ok()?;
-            Some(face_embedding(self.network, &f.image, &f.keypoints).0.to_vec())
+            Some(face_embedding(self.network, &f.image, &f.centres).0.to_vec())
         });
-        PhotoEmbeddings { photo: Some(face_embedding(self.network, &photo.rgb, &lm.keypoints).0.to_vec()), frontal }
+        PhotoEmbeddings { photo: Some(face_embedding(self.network, &photo.rgb, &lm.centres).0.to_vec()), frontal }
     }
 }
 

@@ -76,7 +76,7 @@ pub fn onnx_embeddings(
         Ok(map_samples(samples, threads, name, progress, |s| {
             let Ok(photo) = facegate_core::imaging::open(&s.image) else { return OnnxPhotoEmbeddings::default() };
             let Ok(located) = finder.locate(&photo.gray) else { return OnnxPhotoEmbeddings::default() };
-            let k = &located.landmarks.keypoints;
+            let k = &located.landmarks.centres;
             let chip = network.chip(&photo.rgb, k, located.face.points.as_ref());
             let plain = |chip: &facegate_vision::embed::FaceChip| network.embed_once(chip);
             OnnxPhotoEmbeddings {

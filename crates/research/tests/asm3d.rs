@@ -1,4 +1,4 @@
-use facegate_core::face::{IMM_POINTS, JAW, KeyPoints};
+use facegate_core::face::{EyeMouthCentres, IMM_POINTS, JAW};
 use facegate_core::geometry::{Point, Rect, centroid};
 use facegate_core::imaging::{self, GrayF32};
 use facegate_morph::{Camera, FaceModel, Pose};
@@ -78,7 +78,7 @@ fn learnt_jaw_vertices_follow_the_annotation() {
     let error = |jaw: &JawVertices| {
         let mut total = 0.0;
         for (fit, truth) in fits.iter().zip(&shapes) {
-            let k = KeyPoints::from_imm(truth);
+            let k = EyeMouthCentres::from_imm(truth);
             let eyes = facegate_core::geometry::distance(k.left_eye, k.right_eye);
             for j in JAW {
                 let p = fit.vertices[jaw[j] as usize];
@@ -154,7 +154,7 @@ fn small_model_round_trips_and_survives_degenerate_input() {
     let photo = imaging::open(&s.image).unwrap();
     let truth = s.landmarks().unwrap();
     let found = lm.fit(&photo.gray, &facegate_research::train_asm::annotation_box(&truth));
-    let de = facegate_research::eval::landmarks::d_eye(&found.keypoints, &KeyPoints::from_imm(&truth));
+    let de = facegate_research::eval::landmarks::d_eye(&found.centres, &EyeMouthCentres::from_imm(&truth));
     assert!(de < 0.1, "d_eye {de}");
     // The yaw of a projected model shape comes back, at any image scale.
     let view = &lm.model.views[3];
@@ -176,7 +176,7 @@ fn small_model_round_trips_and_survives_degenerate_input() {
     assert!(!used && kept == c);
     let (replaced, used) = lm.switch(&photo.gray, &face, &casm, c.clone(), 0.0);
     assert!(used && replaced.points != c.points);
-    let de = facegate_research::eval::landmarks::d_eye(&replaced.keypoints, &KeyPoints::from_imm(&truth));
+    let de = facegate_research::eval::landmarks::d_eye(&replaced.centres, &EyeMouthCentres::from_imm(&truth));
     assert!(de < 0.1, "switched d_eye {de}");
     let img = GrayF32::from_fn(92, 112, |x, y| ((x * 3 + y * 5) % 17) as f32 * 10.0);
     for b in [
@@ -275,7 +275,7 @@ fn the_profile_model_finds_a_turned_render_from_the_detectors_points() {
         let points = face.points.expect("YuNet's five points");
         assert!(profile.detector_yaw(&points).unwrap().abs() >= DETECTOR_SEED_MIN_YAW, "{yaw}°");
         let shown = &profile.visible[profile.model.views.iter().position(|v| v.yaw == yaw).unwrap()];
-        let k = KeyPoints::from_imm(&view.points);
+        let k = EyeMouthCentres::from_imm(&view.points);
         let size =
             facegate_core::geometry::distance([0.5 * (k.left_eye[0] + k.right_eye[0]), 0.5 * (k.left_eye[1] + k.right_eye[1])], k.mouth);
         let error = |found: &[Point]| {

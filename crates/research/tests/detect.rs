@@ -4,13 +4,13 @@ use std::path::PathBuf;
 
 use facegate_core::geometry::Rect;
 use facegate_core::imaging::{GrayF32, open};
-use facegate_research::dataset::{KeyPoints, list_imm};
+use facegate_research::dataset::{EyeMouthCentres, list_imm};
 
 fn imm_dir() -> PathBuf {
     shared_dir().join("data/imm")
 }
 
-fn holds_key_points(rect: &Rect, k: &KeyPoints) -> bool {
+fn holds_centres(rect: &Rect, k: &EyeMouthCentres) -> bool {
     rect.contains(k.left_eye) && rect.contains(k.right_eye) && rect.contains(k.mouth)
 }
 
@@ -28,9 +28,9 @@ fn finds_one_face_holding_eyes_and_mouth_on_imm() {
     for s in samples.iter().filter(|s| [1, 2, 3, 5, 10].contains(&s.person) && [1, 3, 5].contains(&s.view)) {
         let photo = open(&s.image).unwrap();
         let faces = detector.detect(&photo.gray);
-        let keys = KeyPoints::from_imm(&s.landmarks().unwrap());
+        let keys = EyeMouthCentres::from_imm(&s.landmarks().unwrap());
         assert_eq!(faces.len(), 1, "{}: {faces:?}", s.image.display());
-        assert!(holds_key_points(&faces[0].rect, &keys), "{}: {:?} vs {keys:?}", s.image.display(), faces[0]);
+        assert!(holds_centres(&faces[0].rect, &keys), "{}: {:?} vs {keys:?}", s.image.display(), faces[0]);
         assert!(faces[0].score > 0.0);
     }
 }
@@ -137,7 +137,7 @@ fn seeta_alternative_finds_a_frontal_face() {
     let s = &list_imm(&imm_dir()).unwrap()[0];
     let faces = detector.detect(&open(&s.image).unwrap().gray);
     assert_eq!(faces.len(), 1, "{faces:?}");
-    assert!(holds_key_points(&faces[0].rect, &KeyPoints::from_imm(&s.landmarks().unwrap())));
+    assert!(holds_centres(&faces[0].rect, &EyeMouthCentres::from_imm(&s.landmarks().unwrap())));
 }
 
 #[test]

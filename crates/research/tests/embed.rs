@@ -3,14 +3,14 @@
 // the chips these tests cut; `scripts/embedding-reference.sh` rebuilds it.
 use std::path::PathBuf;
 
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::Similarity;
 use facegate_nn::weights;
 use facegate_research::convert::convert_dlib;
 use facegate_research::dataset::list_imm;
 use facegate_vision::embed::*;
 
-/// The reference chips: IMM photos cut with their annotated key points (frontal, turned, spot
+/// The reference chips: IMM photos cut with their annotated centres (frontal, turned, spot
 /// light) and LFW photos' central 150×150 pixels (no resampling).
 fn reference_chips() -> Vec<(String, FaceChip)> {
     let shared = facegate_paths::shared_dir();
@@ -19,7 +19,7 @@ fn reference_chips() -> Vec<(String, FaceChip)> {
     for name in ["01-1m", "05-3m", "10-5m"] {
         let s = imm.iter().find(|s| s.image.file_stem().unwrap().to_string_lossy() == name).unwrap();
         let photo = facegate_core::imaging::open(&s.image).unwrap();
-        let k = KeyPoints::from_imm(&s.landmarks().unwrap());
+        let k = EyeMouthCentres::from_imm(&s.landmarks().unwrap());
         out.push((format!("imm/{name}"), face_chip(&photo.rgb, &k)));
     }
     for name in ["Hal_Sutton/Hal_Sutton_0001", "Judy_Genshaft/Judy_Genshaft_0002"] {

@@ -66,7 +66,7 @@ fn search_returns_to_the_annotation_from_a_perturbed_start() {
     let s = samples().into_iter().find(|s| s.person == 7 && s.view == 1).unwrap();
     let truth = s.landmarks().unwrap();
     let photo = facegate_core::imaging::open(&s.image).unwrap();
-    let truth_k = facegate_core::face::KeyPoints::from_imm(&truth);
+    let truth_k = facegate_core::face::EyeMouthCentres::from_imm(&truth);
     let eyes = distance(truth_k.left_eye, truth_k.right_eye);
     // The box the model expects, shifted by 10% of its width and scaled by 8%.
     let b = facegate_research::train_asm::annotation_box(&truth);
@@ -75,7 +75,7 @@ fn search_returns_to_the_annotation_from_a_perturbed_start() {
         let start = lm.initial_shape(&moved);
         let found = lm.fit(&photo.gray, &moved, variant);
         let (before, after) = (rms(&start, &truth), rms(&found.points, &truth));
-        let d_eye = facegate_research::eval::landmarks::d_eye(&found.keypoints, &truth_k);
+        let d_eye = facegate_research::eval::landmarks::d_eye(&found.centres, &truth_k);
         // Plain ASM is the weakest; SIFT-ASM and C-ASM should get much closer.
         let gain = if variant == Variant::Asm { 0.7 } else { 0.4 };
         assert!(after < gain * before, "{variant:?}: rms {before:.1} -> {after:.1} px");

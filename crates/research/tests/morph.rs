@@ -174,7 +174,7 @@ fn frontal_rendering_puts_the_eyes_level_and_in_order() {
     let photo = facegate_core::imaging::open(&sample.image).unwrap();
     let fit = m.fit(&sample.landmarks().unwrap(), photo.width(), photo.height()).unwrap();
     let frontal = m.frontalize(&photo, &fit).unwrap();
-    let k = frontal.keypoints;
+    let k = frontal.centres;
     assert_eq!(frontal.image.width() as usize, FRONTAL_SIZE);
     assert!(k.left_eye[0] < k.right_eye[0] && (k.left_eye[1] - k.right_eye[1]).abs() < 2.0, "{k:?}");
     assert!(k.mouth[1] > k.left_eye[1] + 10.0, "{k:?}");

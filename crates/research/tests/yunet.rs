@@ -6,7 +6,7 @@ use facegate_paths::{models_dir, shared_dir};
 
 use facegate_core::geometry::{Rect, distance};
 use facegate_core::imaging::{GrayF32, open};
-use facegate_research::dataset::{KeyPoints, list_imm};
+use facegate_research::dataset::{EyeMouthCentres, list_imm};
 
 fn yunet() -> Detector {
     Detector::load_kind(&models_dir(), DetectorKind::Yunet).unwrap()
@@ -38,7 +38,7 @@ fn imm_frontal_photos_give_one_face_with_eyes_nose_and_mouth_in_image_order() {
         let faces = detector.detect(&open(&s.image).unwrap().gray);
         assert_eq!(faces.len(), 1, "{name}: {faces:?}");
         let face = &faces[0];
-        let keys = KeyPoints::from_imm(&s.landmarks().unwrap());
+        let keys = EyeMouthCentres::from_imm(&s.landmarks().unwrap());
         assert!(face.rect.contains(keys.left_eye) && face.rect.contains(keys.right_eye) && face.rect.contains(keys.mouth), "{name}");
         assert!(holds_points(face), "{name}: {face:?}");
         let [left_eye, right_eye, nose, mouth_left, mouth_right] = points(face);
@@ -108,7 +108,7 @@ fn face_free_images_give_no_face() {
         vec![GrayF32::from_fn(640, 480, |_, _| 128.0), noise.gaussian_blur(3.0), noise, GrayF32::new(5, 3), GrayF32::new(0, 0)];
     // The background left of an IMM sitter (as eval detect's face-free strips).
     let photo = open(&shared_dir().join("data/imm/01-1m.jpg")).unwrap().gray;
-    let keys = KeyPoints::from_imm(&list_imm(&shared_dir().join("data/imm")).unwrap()[0].landmarks().unwrap());
+    let keys = EyeMouthCentres::from_imm(&list_imm(&shared_dir().join("data/imm")).unwrap()[0].landmarks().unwrap());
     let strip = (keys.left_eye[0] - 1.5 * distance(keys.left_eye, keys.right_eye)).max(0.0) as usize;
     assert!(strip >= 100, "strip of {strip} pixels");
     images.push(GrayF32::from_fn(strip, photo.height, |x, y| photo.get(x, y)));

@@ -146,24 +146,23 @@ pub fn check_liveness(
     point: Option<&LivenessPoint>,
     measured: Option<&Liveness>,
 ) -> Result<Option<LivenessVerdict>, PhotoError> {
-    let verdict = match (point, measured) {
-        (Some(point), Some(measured)) => Some(point.judge(measured)),
-        _ => None,
-    };
-    match (policy, verdict) {
-        (LivenessPolicy::Off, _) => Ok(None),
-        (LivenessPolicy::Report, verdict) => Ok(verdict),
-        (LivenessPolicy::Enforce, Some(live)) if !live.attack => Ok(Some(live)),
-        (LivenessPolicy::Enforce, Some(attack)) => {
-            let point = point.expect("a verdict has a point");
+    match (policy, point, measured) {
+        (LivenessPolicy::Off, _, _) => Ok(None),
+        (LivenessPolicy::Report, Some(point), Some(measured)) => Ok(Some(point.judge(measured))),
+        (LivenessPolicy::Report, _, _) => Ok(None),
+        (LivenessPolicy::Enforce, Some(point), Some(measured)) => {
+            let verdict = point.judge(measured);
+            if !verdict.attack {
+                return Ok(Some(verdict));
+            }
             Err(PhotoError::PresentationAttack(PresentationAttack {
-                score: attack.score,
+                score: verdict.score,
                 threshold: point.threshold,
                 operating_point: point.operating_point.clone(),
-                model: attack.model,
+                model: verdict.model,
             }))
         }
-        (LivenessPolicy::Enforce, None) => Err(PhotoError::LivenessUnavailable),
+        (LivenessPolicy::Enforce, _, _) => Err(PhotoError::LivenessUnavailable),
     }
 }
 

@@ -30,17 +30,22 @@
 //! builds without a database.
 //!
 //! The crate by concern: this file holds the errors, the row types, [`Store`] and the queries
-//! both backends share, and the migrators; `sqlite` holds what is only about SQLite's files
-//! (connection settings, checkpoint, backup, [`restore`]); `feed` the change counter and the
-//! change feed (PostgreSQL's `LISTEN`/`NOTIFY`); `codec` how a template's vector is stored, plain
-//! or sealed; [`cipher`] the sealing itself; `site` the site calibration per model version;
-//! `renew` the rewrite of protected templates under a new secret (`facegate renew-protection`).
+//! both backends share for a subject (enrol, read, list, delete, count), and the migrators;
+//! `gallery` the gallery's reads (whole, in parts, or a few subjects'); `sqlite` what is only
+//! about SQLite's files (connection settings, checkpoint, backup, [`restore`]); `sqlite_scan`
+//! the gallery read through SQLite's C API; `feed` the change counter and the change feed
+//! (PostgreSQL's `LISTEN`/`NOTIFY`); `codec` how a template's vector is stored, plain or sealed;
+//! [`cipher`] the sealing itself; `rekey` every subject brought under the current key
+//! (`facegate rekey`); `site` the site calibration per model version; `renew` the rewrite of
+//! protected templates under a new secret (`facegate renew-protection`).
 
 mod challenge;
 pub mod cipher;
 mod codec;
 mod feed;
+mod gallery;
 mod redact;
+mod rekey;
 mod renew;
 mod site;
 mod sqlite;
@@ -57,7 +62,6 @@ use std::str::FromStr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use futures_util::TryStreamExt;
 use serde::Serialize;
 use sqlx::any::AnyPoolOptions;
 use sqlx::migrate::Migrator;
@@ -67,13 +71,15 @@ use sqlx::{AnyPool, Row};
 use facegate_core::SubjectId;
 use facegate_core::template::Template;
 
-use codec::{Sealing, StoredRow, encode_vector, open_vector, seal_subject, template_from_row};
+use codec::{Sealing, encode_vector, seal_subject, template_from_row};
 
 pub use challenge::{SWEEP_BATCH, TakenChallenge};
 pub use cipher::{CipherError, KeyRing};
 pub use codec::{KeyCheck, SealingCounts, blob_to_vector, vector_to_blob};
 pub use feed::{ChangeFeed, StoreChange};
+pub use gallery::GalleryPart;
 pub use redact::redact_url;
+pub use rekey::RekeyReport;
 pub use renew::{RenewReport, RenewedVersion, Renewing};
 pub use sqlite::restore;
 pub use vanish::CHECK_EVERY as VANISH_CHECK_EVERY;
@@ -222,69 +228,6 @@ pub struct SubjectDetail {
     pub model_versions: Vec<VersionCount>,
     pub created_at: String,
     pub updated_at: String,
-}
-
-/// What [`Store::rekey`] did.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
-pub struct RekeyReport {
-    /// Subjects whose data key was re-wrapped by the current key.
-    pub rewrapped: u64,
-    /// Subjects whose plain templates were sealed (with a new data key).
-    pub sealed: u64,
-    /// Templates sealed along with them.
-    pub templates_sealed: u64,
-}
-
-/// A subject being read by [`Store::gallery`]: its id, how its vectors are stored (none when its
-/// data key cannot be opened), and its templates so far or why they cannot be read.
-type SubjectReading = (String, Option<Sealing>, Result<Vec<Template>, StoreError>);
-
-/// Sets its flag when dropped: tells a blocking reader that its caller is gone.
-struct AbandonOnDrop(Arc<std::sync::atomic::AtomicBool>);
-
-impl Drop for AbandonOnDrop {
-    fn drop(&mut self) {
-        self.0.store(true, std::sync::atomic::Ordering::Relaxed);
-    }
-}
-
-/// The gallery read of `part` (the columns [`StoredRow::of`] takes), its parameters named by
-/// `placeholder` (`$n` for sqlx, `?n` for SQLite's C API): 1 the model version, 2 the lower bound
-/// ('' sorts before every id, and ids are never empty), 3 the upper bound, left out of the
-/// statement when there is none so that the index range ends where the part does.
-fn gallery_statement(part: &GalleryPart, placeholder: impl Fn(usize) -> String) -> String {
-    let through = match part.through {
-        Some(_) => format!("AND t.subject_id <= {}", placeholder(3)),
-        None => String::new(),
-    };
-    format!(
-        "SELECT t.id, t.subject_id, t.model_version, t.dimension, t.vector, s.key_id, s.data_key
-         FROM templates t JOIN subjects s ON s.id = t.subject_id
-         WHERE t.model_version = {} AND t.subject_id > {} {through}
-         ORDER BY t.subject_id, t.id",
-        placeholder(1),
-        placeholder(2)
-    )
-}
-
-/// The subjects with ids after `after` and up to `through` (inclusive); `None` is unbounded.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct GalleryPart {
-    pub after: Option<String>,
-    pub through: Option<String>,
-    /// About how many templates the part holds (0: not known), so that its reader can reserve
-    /// its memory once rather than grow it by doubling.
-    pub expected_templates: usize,
-}
-
-impl GalleryPart {
-    /// The parts that `cuts` (increasing subject ids) make: up to the first, between each two,
-    /// after the last.
-    pub fn between(cuts: &[String]) -> Vec<GalleryPart> {
-        let bounds: Vec<Option<String>> =
-            std::iter::once(None).chain(cuts.iter().cloned().map(Some)).chain(std::iter::once(None)).collect();
-        bounds.windows(2).map(|w| GalleryPart { after: w[0].clone(), through: w[1].clone(), expected_templates: 0 }).collect()
-    }
 }
 
 /// The template database. Cheap to clone (a connection pool).
@@ -443,156 +386,6 @@ impl Store {
         Ok(Some(templates))
     }
 
-    /// Every subject's templates made by `model_version`, handed to `each` with `state` one
-    /// subject at a time in subject id order (rows are streamed, so the whole gallery is never
-    /// held twice); returns `state`. A subject whose templates cannot be read is handed its error;
-    /// the scan goes on.
-    pub async fn gallery<S, F>(&self, model_version: &str, state: S, each: F) -> Result<S, StoreError>
-    where
-        S: Send + 'static,
-        F: FnMut(&mut S, &str, Result<Vec<Template>, StoreError>) + Send + 'static,
-    {
-        self.gallery_part(model_version, &GalleryPart::default(), state, each).await
-    }
-
-    /// Subject ids that cut `model_version`'s templates into up to `parts` parts of about equal
-    /// size ([`GalleryPart::between`]), so that the gallery can be read by several connections at
-    /// once ([`Store::gallery_part`]). One count and `parts − 1` index lookups.
-    pub async fn gallery_parts(&self, model_version: &str, parts: usize) -> Result<Vec<GalleryPart>, StoreError> {
-        let count: i64 =
-            sqlx::query_scalar("SELECT count(*) FROM templates WHERE model_version = $1").bind(model_version).fetch_one(&self.pool).await?;
-        let mut cuts: Vec<String> = Vec::new();
-        for i in 1..parts.max(1) as i64 {
-            let cut: Option<String> =
-                sqlx::query_scalar("SELECT subject_id FROM templates WHERE model_version = $1 ORDER BY subject_id LIMIT 1 OFFSET $2")
-                    .bind(model_version)
-                    .bind(count * i / parts as i64)
-                    .fetch_optional(&self.pool)
-                    .await?;
-            // A subject's rows stay in one part: parts end at a subject, inclusive.
-            if let Some(cut) = cut.filter(|c| cuts.last().is_none_or(|last| last < c)) {
-                cuts.push(cut);
-            }
-        }
-        let mut parts = GalleryPart::between(&cuts);
-        let share = count.max(0) as usize / parts.len();
-        parts.iter_mut().for_each(|p| p.expected_templates = share);
-        Ok(parts)
-    }
-
-    /// [`Store::gallery`] for the subjects of one part only. On a SQLite file the rows are read
-    /// through SQLite's C API on a blocking thread, which also runs `each` (so `state` moves there
-    /// and back: no row crosses threads); else through the pool.
-    pub async fn gallery_part<S, F>(&self, model_version: &str, part: &GalleryPart, mut state: S, mut each: F) -> Result<S, StoreError>
-    where
-        S: Send + 'static,
-        F: FnMut(&mut S, &str, Result<Vec<Template>, StoreError>) + Send + 'static,
-    {
-        if let Some(path) = &self.sqlite_file {
-            // Set when this future is dropped, so that an abandoned load stops reading.
-            let abandoned = Arc::new(std::sync::atomic::AtomicBool::new(false));
-            let _abandon_on_drop = AbandonOnDrop(abandoned.clone());
-            let (store, file, version, part) = (self.clone(), path.clone(), model_version.to_string(), part.clone());
-            let read = tokio::task::spawn_blocking(move || {
-                let mut current = None;
-                let mut hand = |subject: &str, templates| each(&mut state, subject, templates);
-                sqlite_scan::read_gallery_part(&file, &version, &part, |row| {
-                    store.group_by_subject(&mut current, row, &mut hand);
-                    !abandoned.load(std::sync::atomic::Ordering::Relaxed)
-                })?;
-                if let Some((done, _, templates)) = current.take() {
-                    hand(&done, templates);
-                }
-                Ok(state)
-            })
-            .await
-            .expect("the SQLite gallery reader does not panic");
-            return read.map_err(|e: String| StoreError::Refused(format!("reading the gallery from {}: {e}", path.display())));
-        }
-        let statement = gallery_statement(part, |n| format!("${n}"));
-        let mut query = sqlx::query(&statement).bind(model_version).bind(part.after.as_deref().unwrap_or(""));
-        if let Some(through) = &part.through {
-            query = query.bind(through.as_str());
-        }
-        let mut tx = self.pool.begin().await?;
-        if self.backend == Backend::Postgres {
-            // Read in the index's order (model version, subject, id): PostgreSQL's planner
-            // otherwise scans the whole table and sorts the part's rows, per part (docs/service.md,
-            // start-up: 64 s against 30 s at ten million).
-            sqlx::query("SET LOCAL enable_sort = off").execute(&mut *tx).await?;
-        }
-        self.each_subject(query.fetch(&mut *tx), |subject, templates| each(&mut state, subject, templates)).await?;
-        tx.commit().await.map_err(StoreError::of_commit)?;
-        Ok(state)
-    }
-
-    /// The templates of `model_version` of each of `subjects` that holds any, in subject id
-    /// order (bytewise on both backends), in one statement: the identification's exact re-scoring of its shortlist. A
-    /// subject whose templates cannot be read fails the read, as in [`Store::templates`].
-    pub async fn templates_of(&self, subjects: &[SubjectId], model_version: &str) -> Result<Vec<(String, Vec<Template>)>, StoreError> {
-        if subjects.is_empty() {
-            return Ok(Vec::new());
-        }
-        let placeholders: Vec<String> = (2..subjects.len() + 2).map(|i| format!("${i}")).collect();
-        let statement = format!(
-            "SELECT t.id, t.subject_id, t.model_version, t.dimension, t.vector, s.key_id, s.data_key
-             FROM templates t JOIN subjects s ON s.id = t.subject_id
-             WHERE t.model_version = $1 AND t.subject_id IN ({})
-             ORDER BY t.subject_id, t.id",
-            placeholders.join(", ")
-        );
-        let query = subjects.iter().fold(sqlx::query(&statement).bind(model_version), |q, s| q.bind(s.as_str()));
-        let mut found = Vec::with_capacity(subjects.len());
-        let mut failed = None;
-        self.each_subject(query.fetch(&self.pool), |subject, templates| match templates {
-            Ok(templates) => found.push((subject.to_string(), templates)),
-            Err(e) => failed = failed.take().or(Some(e)),
-        })
-        .await?;
-        failed.map_or(Ok(found), Err)
-    }
-
-    /// Template rows (ordered by subject) handed to `each` one subject at a time, opened with the
-    /// subject's sealing; a subject whose key or a template cannot be opened is handed its error.
-    async fn each_subject(
-        &self,
-        mut rows: impl futures_util::Stream<Item = Result<sqlx::any::AnyRow, sqlx::Error>> + Unpin,
-        mut each: impl FnMut(&str, Result<Vec<Template>, StoreError>),
-    ) -> Result<(), StoreError> {
-        let mut current: Option<SubjectReading> = None;
-        while let Some(row) = rows.try_next().await? {
-            self.group_by_subject(&mut current, StoredRow::of(&row)?, &mut each);
-        }
-        if let Some((done, _, templates)) = current.take() {
-            each(&done, templates);
-        }
-        Ok(())
-    }
-
-    /// One row of a read ordered by subject: a new subject hands the one before to `each`.
-    fn group_by_subject(
-        &self,
-        current: &mut Option<SubjectReading>,
-        row: StoredRow<'_>,
-        each: &mut impl FnMut(&str, Result<Vec<Template>, StoreError>),
-    ) {
-        if current.as_ref().is_none_or(|(s, _, _)| s != row.subject) {
-            if let Some((done, _, templates)) = current.take() {
-                each(&done, templates);
-            }
-            *current = Some(match self.sealing(row.subject, row.key_id, row.data_key) {
-                Ok(sealing) => (row.subject.to_string(), Some(sealing), Ok(Vec::new())),
-                Err(e) => (row.subject.to_string(), None, Err(e)),
-            });
-        }
-        if let Some((subject, Some(sealing), templates @ Ok(_))) = current.as_mut() {
-            match open_vector(sealing, subject, row.id, row.dimension, row.model_version.to_string(), row.vector) {
-                Ok(template) => templates.as_mut().expect("matched Ok").push(template),
-                Err(e) => *templates = Err(e),
-            }
-        }
-    }
-
     /// Subjects ordered by id, at most `limit` of them, starting after the id `after`.
     pub async fn list_subjects(&self, after: Option<&SubjectId>, limit: u32) -> Result<Vec<SubjectSummary>, StoreError> {
         let rows = sqlx::query(
@@ -689,58 +482,6 @@ impl Store {
         let row =
             sqlx::query("SELECT (SELECT count(*) FROM subjects) AS s, (SELECT count(*) FROM templates) AS t").fetch_one(&self.pool).await?;
         Ok((row.try_get::<i64, _>("s")? as u64, row.try_get::<i64, _>("t")? as u64))
-    }
-
-    /// Bring every subject under the current key: data keys wrapped by an older key of the ring
-    /// are re-wrapped (the sealed templates stay as they are), and plain subjects are sealed with
-    /// a new data key. One transaction per subject, so the service may keep running and an
-    /// interrupted run resumes where it stopped (subjects already under the current key are
-    /// skipped). `progress` is called after each subject. The templates read back the same, so
-    /// no change is recorded.
-    pub async fn rekey(&self, mut progress: impl FnMut(&RekeyReport)) -> Result<RekeyReport, StoreError> {
-        let keys = self.keys.clone().ok_or_else(|| StoreError::Refused("rekey needs a template key".into()))?;
-        let current = keys.current_id().to_string();
-        let mut report = RekeyReport::default();
-        let mut after = String::new();
-        loop {
-            let batch: Vec<String> =
-                sqlx::query_scalar("SELECT id FROM subjects WHERE id > $1 AND (key_id IS NULL OR key_id <> $2) ORDER BY id LIMIT 256")
-                    .bind(&after)
-                    .bind(&current)
-                    .fetch_all(&self.pool)
-                    .await?;
-            let Some(last) = batch.last() else { break };
-            after = last.clone();
-            for subject in &batch {
-                let mut tx = self.pool.begin().await?;
-                // A write first, so the transaction holds the write lock from its start.
-                sqlx::query("UPDATE subjects SET key_id = key_id WHERE id = $1").bind(subject).execute(&mut *tx).await?;
-                let Some(row) =
-                    sqlx::query("SELECT key_id, data_key FROM subjects WHERE id = $1").bind(subject).fetch_optional(&mut *tx).await?
-                else {
-                    continue; // deleted meanwhile
-                };
-                match self.sealing(subject, row.try_get("key_id")?, row.try_get("data_key")?)? {
-                    Sealing::Plain => {
-                        let (_, sealed) = seal_subject(&mut tx, &keys, subject).await?;
-                        report.sealed += 1;
-                        report.templates_sealed += sealed;
-                    }
-                    Sealing::Sealed(data_key) => {
-                        sqlx::query("UPDATE subjects SET key_id = $2, data_key = $3 WHERE id = $1")
-                            .bind(subject)
-                            .bind(&current)
-                            .bind(keys.wrap(&data_key, subject))
-                            .execute(&mut *tx)
-                            .await?;
-                        report.rewrapped += 1;
-                    }
-                }
-                tx.commit().await?;
-                progress(&report);
-            }
-        }
-        Ok(report)
     }
 
     /// Close the pool. On SQLite the WAL is checkpointed and truncated first, so the database

@@ -54,11 +54,10 @@ impl Store {
         let mut tx = self.begin_write(tokio::time::Instant::now() + ACQUIRE_TIMEOUT).await?;
         // A write first, so the transaction holds SQLite's write lock from its start.
         sqlx::query("UPDATE templates SET model_version = model_version WHERE id < 0").execute(&mut *tx).await?;
-        let mut stored: Vec<String> =
+        let stored: Vec<String> =
             sqlx::query_scalar("SELECT DISTINCT model_version FROM templates UNION SELECT model_version FROM site_calibrations ORDER BY 1")
                 .fetch_all(&mut *tx)
                 .await?;
-        stored.dedup();
         let mut report = RenewReport::default();
         let mut subjects: Vec<String> = Vec::new();
         for from in stored {

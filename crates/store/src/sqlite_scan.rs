@@ -128,7 +128,7 @@ pub(crate) fn read_gallery_part(
     mut each: impl FnMut(StoredRow<'_>) -> bool,
 ) -> Result<(), String> {
     let connection = Connection::open(path)?;
-    let mut statement = connection.prepare(&crate::gallery_statement(part, |n| format!("?{n}")))?;
+    let mut statement = connection.prepare(&crate::gallery::gallery_statement(part, |n| format!("?{n}")))?;
     statement.bind_text(1, model_version)?;
     statement.bind_text(2, part.after.as_deref().unwrap_or(""))?;
     if let Some(through) = &part.through {

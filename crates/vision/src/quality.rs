@@ -15,7 +15,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::embed::{FaceChip, MirrorPair};
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_morph::Pose;
 
 /// The inner face of the 150-pixel chip (eyebrows to chin, cheek to cheek), where the image
@@ -76,11 +76,11 @@ pub struct Quality {
     pub components: Components,
 }
 
-/// The components of the face whose chip is `chip`, eye centres `keypoints` (photo pixels), 3DMM
+/// The components of the face whose chip is `chip`, eye centres `centres` (photo pixels), 3DMM
 /// pose and fit residual (pixels) as given.
-pub fn components(chip: &FaceChip, keypoints: &KeyPoints, pose: Option<Pose>, fit_residual_px: Option<f32>) -> Components {
-    let [lx, ly] = keypoints.left_eye;
-    let [rx, ry] = keypoints.right_eye;
+pub fn components(chip: &FaceChip, centres: &EyeMouthCentres, pose: Option<Pose>, fit_residual_px: Option<f32>) -> Components {
+    let [lx, ly] = centres.left_eye;
+    let [rx, ry] = centres.right_eye;
     let inter_eye_px = ((lx - rx).powi(2) + (ly - ry).powi(2)).sqrt();
     let size = chip.size;
     // Grey as ITU-R BT.601 luma; chips smaller than the layout's 150 scale the inner face box.
@@ -316,13 +316,13 @@ mod tests {
         FaceChip { size, rgb }
     }
 
-    fn keypoints(inter_eye: f32) -> KeyPoints {
-        KeyPoints { left_eye: [100.0, 100.0], right_eye: [100.0 + inter_eye, 100.0], mouth: [100.0 + inter_eye / 2.0, 160.0] }
+    fn centres(inter_eye: f32) -> EyeMouthCentres {
+        EyeMouthCentres { left_eye: [100.0, 100.0], right_eye: [100.0 + inter_eye, 100.0], mouth: [100.0 + inter_eye / 2.0, 160.0] }
     }
 
     #[test]
     fn flat_grey_is_unsharp_uniform_and_without_contrast() {
-        let c = components(&chip_of(|_, _| 100), &keypoints(60.0), None, None);
+        let c = components(&chip_of(|_, _| 100), &centres(60.0), None, None);
         assert_eq!(c.inter_eye_px, 60.0);
         assert!(c.sharpness < 1e-3 && c.contrast < 1e-3);
         assert!((c.brightness - 100.0).abs() < 0.5);
@@ -332,12 +332,12 @@ mod tests {
 
     #[test]
     fn texture_is_sharp_and_one_sided_light_is_not_uniform() {
-        let checker = components(&chip_of(|x, y| if (x + y) % 2 == 0 { 60 } else { 180 }), &keypoints(60.0), None, None);
+        let checker = components(&chip_of(|x, y| if (x + y) % 2 == 0 { 60 } else { 180 }), &centres(60.0), None, None);
         assert!(checker.sharpness > 100.0 && checker.contrast > 50.0, "{checker:?}");
-        let lit_left = components(&chip_of(|x, _| if x < 75 { 200 } else { 50 }), &keypoints(60.0), None, None);
+        let lit_left = components(&chip_of(|x, _| if x < 75 { 200 } else { 50 }), &centres(60.0), None, None);
         assert!((lit_left.illumination_uniformity - 0.25).abs() < 0.01, "{lit_left:?}");
         let pose = Pose { yaw: -20.0, pitch: 5.0, roll: 1.0 };
-        let posed = components(&chip_of(|_, _| 90), &keypoints(50.0), Some(pose), Some(2.5));
+        let posed = components(&chip_of(|_, _| 90), &centres(50.0), Some(pose), Some(2.5));
         assert_eq!((posed.yaw_abs_deg, posed.pitch_abs_deg, posed.fit_residual), (Some(20.0), Some(5.0), Some(0.05)));
     }
 
@@ -351,7 +351,7 @@ mod tests {
             bias: 0.0,
             trained_on: String::new(),
         };
-        let dark = model.assess(components(&chip_of(|_, _| 20), &keypoints(30.0), Some(Pose { yaw: 50.0, pitch: 0.0, roll: 0.0 }), None));
+        let dark = model.assess(components(&chip_of(|_, _| 20), &centres(30.0), Some(Pose { yaw: 50.0, pitch: 0.0, roll: 0.0 }), None));
         assert_eq!(dark.score, 50.0);
         let policy = QualityPolicy {
             min_score: Some(40.0),
@@ -378,7 +378,7 @@ mod tests {
 
     #[test]
     fn the_mirror_components_are_the_agreement_and_the_mean_norm_and_null_without_an_embedding() {
-        let plain = components(&chip_of(|_, _| 100), &keypoints(60.0), None, None);
+        let plain = components(&chip_of(|_, _| 100), &centres(60.0), None, None);
         assert_eq!((plain.mirror_agreement, plain.embedding_norm), (None, None), "the classical path embeds nothing");
         let same = plain.with_mirror(&mirror_pair([0.6, 0.8], [0.6, 0.8]));
         assert_eq!(same.mirror_agreement, Some(1.0));
@@ -402,7 +402,7 @@ mod tests {
         mean[10] = 0.9;
         mean[11] = 0.5f64.ln();
         let model = QualityModel { format: FORMAT, mean, scale: vec![1.0; FEATURES], weights, bias: 0.0, trained_on: String::new() };
-        let plain = components(&chip_of(|_, _| 100), &keypoints(60.0), None, None);
+        let plain = components(&chip_of(|_, _| 100), &centres(60.0), None, None);
         assert_eq!(model.score(&plain), 50.0, "unknown: the mean's score");
         let typical = plain.with_mirror(&mirror_pair([1.0, 0.0], [0.9, 0.19f32.sqrt()]));
         assert!((typical.mirror_agreement.unwrap() - 0.9).abs() < 1e-5);
@@ -446,8 +446,8 @@ mod tests {
             bias: 0.0,
             trained_on: String::new(),
         };
-        let blurred = components(&chip_of(|_, _| 100), &keypoints(60.0), None, None);
-        let sharp = components(&chip_of(|x, y| if (x + y) % 2 == 0 { 60 } else { 180 }), &keypoints(60.0), None, None);
+        let blurred = components(&chip_of(|_, _| 100), &centres(60.0), None, None);
+        let sharp = components(&chip_of(|x, y| if (x + y) % 2 == 0 { 60 } else { 180 }), &centres(60.0), None, None);
         assert!(model.score(&sharp) > 99.0 && model.score(&blurred) < 1.0);
     }
 }

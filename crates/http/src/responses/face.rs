@@ -44,15 +44,15 @@ impl From<facegate_detect::Face> for Face {
 
 /// The eye and mouth centres.
 #[derive(Debug, Clone, Copy, Serialize)]
-pub(crate) struct KeyPoints {
+pub(crate) struct EyeMouthCentres {
     left_eye: Point,
     right_eye: Point,
     mouth: Point,
 }
 
-impl From<facegate_core::face::KeyPoints> for KeyPoints {
-    fn from(k: facegate_core::face::KeyPoints) -> KeyPoints {
-        KeyPoints { left_eye: k.left_eye, right_eye: k.right_eye, mouth: k.mouth }
+impl From<facegate_core::face::EyeMouthCentres> for EyeMouthCentres {
+    fn from(k: facegate_core::face::EyeMouthCentres) -> EyeMouthCentres {
+        EyeMouthCentres { left_eye: k.left_eye, right_eye: k.right_eye, mouth: k.mouth }
     }
 }
 
@@ -60,12 +60,13 @@ impl From<facegate_core::face::KeyPoints> for KeyPoints {
 #[derive(Debug, Clone, Serialize)]
 pub(crate) struct Landmarks {
     points: Vec<Point>,
-    keypoints: KeyPoints,
+    #[serde(rename = "keypoints")]
+    centres: EyeMouthCentres,
 }
 
 impl From<landmarks::Landmarks> for Landmarks {
     fn from(l: landmarks::Landmarks) -> Landmarks {
-        Landmarks { points: l.points, keypoints: l.keypoints.into() }
+        Landmarks { points: l.points, centres: l.centres.into() }
     }
 }
 
@@ -270,7 +271,8 @@ impl FaceReport {
 #[derive(Debug, Serialize)]
 pub(crate) struct SeenLandmarks {
     points: Vec<Point>,
-    keypoints: KeyPoints,
+    #[serde(rename = "keypoints")]
+    centres: EyeMouthCentres,
     /// Null when the 3DMM is not loaded or could not be fitted.
     visible: Option<Vec<bool>>,
 }
@@ -305,7 +307,7 @@ impl AnalyzedFace {
         let landmarks = Landmarks::from(f.landmarks);
         AnalyzedFace {
             face: f.face.into(),
-            landmarks: SeenLandmarks { points: landmarks.points, keypoints: landmarks.keypoints, visible: f.visible },
+            landmarks: SeenLandmarks { points: landmarks.points, centres: landmarks.centres, visible: f.visible },
             pose: f.pose.map(Pose::from),
             key_point_pose: f.key_point_pose.map(Pose::from),
             fit_residual_px: f.fit_residual_px,

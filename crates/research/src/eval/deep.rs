@@ -108,21 +108,21 @@ pub fn cross_validate(items: &[(&str, &[f32])], k: usize, params: Option<&DldaPa
     summarize(&genuine, &impostor)
 }
 
-/// The key points (image-left eye, image-right eye, mouth centre) the service's front end finds
+/// The eye and mouth centres (image-left eye, image-right eye, mouth centre) the service's front end finds
 /// in each sample, `None` where no face was found; on `threads` threads.
-pub fn key_points(finder: &FaceFinder, samples: &[Sample], threads: usize, progress: &dyn crate::Progress) -> Vec<Option<[[f32; 2]; 3]>> {
+pub fn centres(finder: &FaceFinder, samples: &[Sample], threads: usize, progress: &dyn crate::Progress) -> Vec<Option<[[f32; 2]; 3]>> {
     crate::cache::map_samples(samples, threads, "key points", progress, |s| {
         facegate_core::imaging::open(&s.image)
             .ok()
             .and_then(|photo| finder.locate(&photo.gray).ok())
-            .map(|located| located.landmarks.keypoints)
+            .map(|located| located.landmarks.centres)
             .map(|k| [k.left_eye, k.right_eye, k.mouth])
     })
 }
 
-/// [`key_points`] through the research cache in `cache_dir` ([`crate::cache`]): the finder is
+/// [`centres`] through the research cache in `cache_dir` ([`crate::cache`]): the finder is
 /// loaded from `models_dir` and run only when the cache does not hold them.
-pub fn cached_key_points(
+pub fn cached_centres(
     cache_dir: &std::path::Path,
     models_dir: &std::path::Path,
     samples: &[Sample],
@@ -132,7 +132,7 @@ pub fn cached_key_points(
     let files = crate::cache::ModelFiles::new().finder(models_dir);
     let key = crate::cache::CacheKey::new("deep-key-points", &files, &[], samples.iter().map(crate::train_deep::cache_id));
     crate::cache::get_or_compute(cache_dir, &key, samples.len(), progress, || {
-        Ok(key_points(&FaceFinder::load(models_dir)?, samples, threads, progress))
+        Ok(centres(&FaceFinder::load(models_dir)?, samples, threads, progress))
     })
 }
 
@@ -145,7 +145,7 @@ pub struct ChipVariant {
     pub flip: bool,
 }
 
-/// Embeddings of photos (with their key points) under a chip variant, on `threads` threads.
+/// Embeddings of photos (with their centres) under a chip variant, on `threads` threads.
 pub fn embed_variant(
     embedder: &Embedder,
     photos: &[(&image::RgbImage, [[f32; 2]; 3])],
@@ -426,7 +426,7 @@ pub fn turned_render_rank1(
     for f in imm.iter().filter(|f| f.view == Some(2)) {
         let photo = facegate_core::imaging::open(&f.image)?;
         if let Ok(located) = finder.locate(&photo.gray) {
-            gallery.push((f.label.as_str(), face_embedding(network, &photo.rgb, &located.landmarks.keypoints)));
+            gallery.push((f.label.as_str(), face_embedding(network, &photo.rgb, &located.landmarks.centres)));
         }
     }
     let offsets: Vec<(f32, f32)> = yaws.iter().map(|&y| (y, 0.0)).collect();
@@ -436,12 +436,12 @@ pub fn turned_render_rank1(
         let views = front.reposed_views(f, &offsets)?;
         for ((photo, _), row) in views.iter().zip(rows.iter_mut()) {
             let located = finder.locate(&photo.gray).ok();
-            let direct = located.as_ref().map(|l| face_embedding(network, &photo.rgb, &l.landmarks.keypoints));
+            let direct = located.as_ref().map(|l| face_embedding(network, &photo.rgb, &l.landmarks.centres));
             row.1.add(direct.as_ref(), &f.label, &gallery);
             let frontal = located.as_ref().and_then(|l| {
                 let fit = model.fit(&l.landmarks.points, photo.width(), photo.height()).ok()?;
                 let fr = model.frontalize(photo, &fit).ok()?;
-                Some(face_embedding(network, &fr.image, &fr.keypoints))
+                Some(face_embedding(network, &fr.image, &fr.centres))
             });
             row.2.add(frontal.as_ref(), &f.label, &gallery);
         }

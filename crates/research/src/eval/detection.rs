@@ -9,7 +9,7 @@ use std::time::Instant;
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
-use crate::dataset::{KeyPoints, imm_is_test_person, list_imm};
+use crate::dataset::{EyeMouthCentres, imm_is_test_person, list_imm};
 use facegate_core::geometry::Rect;
 use facegate_core::imaging::{GrayF32, open};
 use facegate_detect::{Detector, Face};
@@ -108,7 +108,7 @@ pub struct DetectionReport {
     pub orl_cpu_timing: Timing,
 }
 
-fn holds(rect: &Rect, k: &KeyPoints) -> bool {
+fn holds(rect: &Rect, k: &EyeMouthCentres) -> bool {
     rect.contains(k.left_eye) && rect.contains(k.right_eye) && rect.contains(k.mouth)
 }
 
@@ -192,7 +192,7 @@ pub fn evaluate(detector: &Detector, imm_dir: &Path, orl_dir: &Path, test_only: 
     for s in samples.iter().filter(|s| !test_only || imm_is_test_person(s.person)) {
         let photo = open(&s.image)?;
         let points = s.landmarks()?;
-        let keys = KeyPoints::from_imm(&points);
+        let keys = EyeMouthCentres::from_imm(&points);
         let faces = timed(detector, &photo.gray, &mut imm_ms, &mut imm_cpu);
         let ok = faces.first().is_some_and(|f| holds(&f.rect, &keys));
         let true_box = faces.iter().find(|f| holds(&f.rect, &keys)).map(|f| f.rect);

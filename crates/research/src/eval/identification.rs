@@ -14,8 +14,8 @@ use facegate_vision::recognize::{ClassicalRecognizer, Normalization};
 /// Rank-1 hits per bin: bin → (probes, hits per normalisation path, in the order measured).
 pub struct IdentificationTable {
     pub bins: BTreeMap<String, (usize, Vec<usize>)>,
-    /// Where the keypoints came from ([`keypoint_sources`]).
-    pub keypoint_sources: String,
+    /// Where the centres came from ([`centre_sources`]).
+    pub centre_sources: String,
 }
 
 /// Trains a model per normalisation in `normalizations` (`config_for` gives its settings) and
@@ -34,7 +34,7 @@ pub fn rank1_by_pose(
     for (k, &normalization) in normalizations.iter().enumerate() {
         let config = config_for(normalization);
         let aligned = train::align_all(front, faces, normalization, &config.normalize, progress);
-        sources = keypoint_sources(&aligned);
+        sources = centre_sources(&aligned);
         let (model, _) = train::train_model(&aligned, &config, data)?;
         let recognizer = ClassicalRecognizer::from_model(model);
         let held: Vec<&AlignedFace> = aligned.iter().filter(|a| a.face.held_out).collect();
@@ -65,14 +65,14 @@ pub fn rank1_by_pose(
             }
         }
     }
-    Ok(IdentificationTable { bins: table, keypoint_sources: sources })
+    Ok(IdentificationTable { bins: table, centre_sources: sources })
 }
 
-/// The keypoint sources of `aligned` with their counts (`imm-annotations (54), pipeline (3)`).
-pub fn keypoint_sources(aligned: &[AlignedFace]) -> String {
+/// The centre sources of `aligned` with their counts (`imm-annotations (54), pipeline (3)`).
+pub fn centre_sources(aligned: &[AlignedFace]) -> String {
     let mut counts: std::collections::BTreeMap<&str, usize> = Default::default();
     for a in aligned {
-        *counts.entry(a.keypoint_source).or_default() += 1;
+        *counts.entry(a.centre_source).or_default() += 1;
     }
     counts.iter().map(|(s, n)| format!("{s} ({n})")).collect::<Vec<_>>().join(", ")
 }

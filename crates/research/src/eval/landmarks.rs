@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::dataset::{self, ImmSample, KeyPoints};
+use crate::dataset::{self, EyeMouthCentres, ImmSample};
 use crate::train_asm as train;
 use facegate_core::geometry::{Rect, distance};
 use facegate_core::imaging::GrayF32;
@@ -20,14 +20,17 @@ use super::plot::{Chart, Scale, Series, cumulative, line_chart};
 use super::thread_cpu_ns;
 use crate::Progress;
 
+mod crossover;
+pub use crossover::{CROSSOVER_YAWS, CrossoverRow, crossover, crossover_yaw, print_crossover};
+
 /// d_eye = max(d_left, d_right) / ||C_l − C_r|| (Jesorsky et al.).
-pub fn d_eye(found: &KeyPoints, truth: &KeyPoints) -> f64 {
+pub fn d_eye(found: &EyeMouthCentres, truth: &EyeMouthCentres) -> f64 {
     let d = distance(found.left_eye, truth.left_eye).max(distance(found.right_eye, truth.right_eye));
     (d / distance(truth.left_eye, truth.right_eye).max(1e-6)) as f64
 }
 
 /// Mouth error normalised by the distance from the eyes' midpoint to the mouth (thesis eq. 2.5).
-pub fn d_mouth(found: &KeyPoints, truth: &KeyPoints) -> f64 {
+pub fn d_mouth(found: &EyeMouthCentres, truth: &EyeMouthCentres) -> f64 {
     let mid = [0.5 * (truth.left_eye[0] + truth.right_eye[0]), 0.5 * (truth.left_eye[1] + truth.right_eye[1])];
     (distance(found.mouth, truth.mouth) / distance(mid, truth.mouth).max(1e-6)) as f64
 }
@@ -73,7 +76,7 @@ pub fn measure(
     photos: &[(ImmSample, facegate_core::imaging::GrayF32, Vec<facegate_core::geometry::Point>, Option<Rect>)],
     variant: Variant,
 ) -> VariantSummary {
-    measure_fn(photos, variant.name(), &|gray, rect| landmarker.fit(gray, rect, variant).keypoints)
+    measure_fn(photos, variant.name(), &|gray, rect| landmarker.fit(gray, rect, variant).centres)
 }
 
 type TestPhoto = (ImmSample, facegate_core::imaging::GrayF32, Vec<facegate_core::geometry::Point>, Option<Rect>);
@@ -231,24 +234,46 @@ pub fn run_scaled(
     print_table(&summaries, report)?;
 
     let per_view = per_view_tables(&summaries, &yaws, report)?;
-    for (name, rows) in &crossover_rows {
+    print_render_tables(&crossover_rows, &profile_rows, &pose_rows, report)?;
+
+    std::fs::create_dir_all(out)?;
+    write_charts(&summaries, out)?;
+    let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries, "per_view": per_view, "yaw_of_annotation": yaws, "crossover": crossover_rows.iter().map(|(name, rows)| serde_json::json!({ "search": name, "rows": rows, "crossover_yaw": crossover_yaw(rows) })).collect::<Vec<_>>(), "profile_renders": profile_rows.iter().map(|(name, rows)| serde_json::json!({ "search": name, "rows": rows })).collect::<Vec<_>>(), "profile_poses": pose_rows });
+    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
+    writeln!(report, "wrote {}", out.display())?;
+    Ok(summaries)
+}
+
+/// The tables of the renders of held-out faces: the crossover per search, the searches to full
+/// profile and the pose on the same renders.
+fn print_render_tables(
+    crossover_rows: &[(&'static str, Vec<CrossoverRow>)],
+    profile_rows: &[(&'static str, Vec<super::profile::ProfileRow>)],
+    pose_rows: &[super::profile::ProfilePoseRow],
+    report: &mut dyn Write,
+) -> std::io::Result<()> {
+    for (name, rows) in crossover_rows {
         writeln!(report, "{name}:")?;
         print_crossover(rows, report)?;
     }
     writeln!(report, "renders of held-out faces to full profile, error of the shown points / eyes-to-mouth distance:")?;
-    for (name, rows) in &profile_rows {
+    for (name, rows) in profile_rows {
         writeln!(report, "{name}:")?;
         super::profile::print_profiles(rows, report)?;
     }
     if !pose_rows.is_empty() {
         writeln!(report, "pose on the same renders, mean |yaw error| (degrees):")?;
         writeln!(report, "{:>6} {:>6} {:>12} {:>14} {:>22}", "|yaw|", "found", "five points", "3DMM to all 58", "3DMM, hidden weighted")?;
-        for r in &pose_rows {
+        for r in pose_rows {
             writeln!(report, "{:>6.0} {:>6} {:>12.1} {:>14.1} {:>22.1}", r.yaw, r.found, r.five_points, r.landmarks, r.visible_landmarks)?;
         }
     }
+    Ok(())
+}
 
-    std::fs::create_dir_all(out)?;
+/// The cumulative curves of every variant's eye and mouth errors: `landmarks-d_eye.svg` and
+/// `landmarks-mouth.svg` in `out`.
+fn write_charts(summaries: &[VariantSummary], out: &Path) -> anyhow::Result<()> {
     let curves = |f: &dyn Fn(&PhotoError) -> Option<f64>| -> Vec<Series> {
         summaries
             .iter()
@@ -287,22 +312,19 @@ pub fn run_scaled(
         &chart("IMM held-out persons: mouth error", "mouth error / eyes-to-mouth distance"),
         &curves(&|e| e.d_mouth),
     )?;
-    let summary = serde_json::json!({ "boxes": boxes, "test_photos": test.len(), "training_photos": training.len(), "variants": summaries, "per_view": per_view, "yaw_of_annotation": yaws, "crossover": crossover_rows.iter().map(|(name, rows)| serde_json::json!({ "search": name, "rows": rows, "crossover_yaw": crossover_yaw(rows) })).collect::<Vec<_>>(), "profile_renders": profile_rows.iter().map(|(name, rows)| serde_json::json!({ "search": name, "rows": rows })).collect::<Vec<_>>(), "profile_poses": pose_rows });
-    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
-    writeln!(report, "wrote {}", out.display())?;
-    Ok(summaries)
+    Ok(())
 }
 
 /// Measure any landmark search (as [`measure`]) under the name `variant`.
 pub fn measure_fn(
     photos: &[(ImmSample, facegate_core::imaging::GrayF32, Vec<facegate_core::geometry::Point>, Option<Rect>)],
     variant: &'static str,
-    fit: &dyn Fn(&facegate_core::imaging::GrayF32, &Rect) -> KeyPoints,
+    fit: &dyn Fn(&facegate_core::imaging::GrayF32, &Rect) -> EyeMouthCentres,
 ) -> VariantSummary {
     let mut errors = Vec::new();
     let (mut total_ms, mut fitted) = (0.0, 0usize);
     for (sample, gray, truth, rect) in photos {
-        let truth_k = KeyPoints::from_imm(truth);
+        let truth_k = EyeMouthCentres::from_imm(truth);
         let (de, dm) = match rect {
             Some(r) => {
                 let (t, c) = (Instant::now(), thread_cpu_ns());
@@ -337,7 +359,7 @@ fn summarise(variant: &'static str, errors: Vec<PhotoError>, ms_per_face: f64) -
 }
 
 /// A landmark search under measurement: photo and face box in, eye and mouth centres out.
-pub type KeypointSearch<'a> = &'a dyn Fn(&facegate_core::imaging::GrayF32, &Rect) -> KeyPoints;
+pub type CentreSearch<'a> = &'a dyn Fn(&facegate_core::imaging::GrayF32, &Rect) -> EyeMouthCentres;
 
 /// What [`measure_asm3d`] measured.
 struct Asm3dMeasurements {
@@ -388,12 +410,12 @@ fn measure_asm3d(
         };
     progress.end();
     let lm = asm3d::Asm3dLandmarker::new(model);
-    let fit = |g: &facegate_core::imaging::GrayF32, r: &Rect| lm.fit_with(g, r, asm3d::Refinement::Casm(&casm.model)).keypoints;
+    let fit = |g: &facegate_core::imaging::GrayF32, r: &Rect| lm.fit_with(g, r, asm3d::Refinement::Casm(&casm.model)).centres;
     let summary = measure_fn(photos, "asm3d", &fit);
     let switch_points = |g: &facegate_core::imaging::GrayF32, r: &Rect| {
         lm.switch(g, r, casm, casm.fit(g, r, Variant::Casm), asm3d::SERVICE_MIN_YAW).0.points
     };
-    let switch = |g: &facegate_core::imaging::GrayF32, r: &Rect| KeyPoints::from_imm(&switch_points(g, r));
+    let switch = |g: &facegate_core::imaging::GrayF32, r: &Rect| EyeMouthCentres::from_imm(&switch_points(g, r));
     let switch_summary = measure_fn(photos, "switch", &switch);
     // The head yaw of every test photo, from the 3DMM fitted to its manual landmarks.
     let yaws =
@@ -402,7 +424,7 @@ fn measure_asm3d(
     let mut profiles = Vec::new();
     let mut poses = Vec::new();
     if let Some(det) = detector.filter(|_| !test.is_empty()) {
-        let searches: [(&'static str, KeypointSearch); 2] = [("3D-ASM (refined by C-ASM)", &fit), ("service switch", &switch)];
+        let searches: [(&'static str, CentreSearch); 2] = [("3D-ASM (refined by C-ASM)", &fit), ("service switch", &switch)];
         for (name, search) in searches {
             match crossover(&fm, test, det, casm, search) {
                 Ok(r) => rows.push((name, r)),
@@ -488,155 +510,15 @@ fn per_view_tables(summaries: &[VariantSummary], yaws: &[f32], report: &mut dyn 
     Ok(serde_json::Value::Array(rows))
 }
 
-/// Yaws (degrees) of the crossover renders.
-pub const CROSSOVER_YAWS: [f32; 9] = [-60.0, -45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0, 60.0];
-
-/// One |yaw| of the crossover measurement: C-ASM and the 3D-ASM on the same renders and boxes.
-#[derive(Debug, Clone, Serialize)]
-pub struct CrossoverRow {
-    pub yaw: f32,
-    pub renders: usize,
-    /// Renders where the detector found no face (failures for both searches).
-    pub detector_misses: usize,
-    pub casm_d_eye_005: f64,
-    pub casm_d_eye_01: f64,
-    pub casm_mean_d_eye: f64,
-    pub asm3d_d_eye_005: f64,
-    pub asm3d_d_eye_01: f64,
-    pub asm3d_mean_d_eye: f64,
-}
-
-/// C-ASM against the 3D-ASM on turned renders of held-out faces: every near-frontal photo
-/// (|yaw| < 10° by the 3DMM fitted to its manual landmarks) of `test` is fitted by the 3DMM,
-/// textured and rendered at each of [`CROSSOVER_YAWS`] (its pitch, no roll, no lighting change) by
-/// the 3D-ASM training's renderer (`asm3d_synth::synthesise_view`, landmarks = projected model points
-/// moved by the photo's annotation residual); both searches start from the detector's box on the
-/// render. Rows by |yaw|. (The renders favour the 3D-ASM, whose view models were trained on
-/// renders of other persons.)
-pub fn crossover(
-    fm: &facegate_morph::FaceModel,
-    test: &[ImmSample],
-    detector: &Detector,
-    casm: &Landmarker,
-    asm3d: KeypointSearch,
-) -> anyhow::Result<Vec<CrossoverRow>> {
-    let bands = super::profile::bands(&CROSSOVER_YAWS);
-    // Per band: (C-ASM d_eye, 3D-ASM d_eye) per render, infinite for a detector miss.
-    let mut errors: Vec<Vec<(f64, f64)>> = vec![Vec::new(); bands.len()];
-    let mut misses = vec![0usize; bands.len()];
-    super::profile::for_each_render(fm, test, &CROSSOVER_YAWS, &mut |yaw, view| {
-        let band = bands.iter().position(|&b| b == yaw.abs()).expect("a band per yaw");
-        let truth_k = KeyPoints::from_imm(&view.points);
-        let Some(rect) = detector.detect(&view.gray).first().map(facegate_vision::pipeline::seed_box) else {
-            misses[band] += 1;
-            errors[band].push((f64::INFINITY, f64::INFINITY));
-            return;
-        };
-        let c = casm.fit(&view.gray, &rect, Variant::Casm).keypoints;
-        let a = asm3d(&view.gray, &rect);
-        errors[band].push((d_eye(&c, &truth_k), d_eye(&a, &truth_k)));
-    })?;
-    let rows = bands
-        .iter()
-        .zip(errors)
-        .zip(misses)
-        .map(|((&yaw, e), detector_misses)| {
-            let pct = |f: &dyn Fn(&(f64, f64)) -> f64, t: f64| e.iter().filter(|x| f(x) < t).count() as f64 / e.len().max(1) as f64;
-            let mean = |f: &dyn Fn(&(f64, f64)) -> f64| {
-                let v: Vec<f64> = e.iter().map(f).filter(|x| x.is_finite()).collect();
-                v.iter().sum::<f64>() / v.len().max(1) as f64
-            };
-            CrossoverRow {
-                yaw,
-                renders: e.len(),
-                detector_misses,
-                casm_d_eye_005: pct(&|x| x.0, 0.05),
-                casm_d_eye_01: pct(&|x| x.0, 0.1),
-                casm_mean_d_eye: mean(&|x| x.0),
-                asm3d_d_eye_005: pct(&|x| x.1, 0.05),
-                asm3d_d_eye_01: pct(&|x| x.1, 0.1),
-                asm3d_mean_d_eye: mean(&|x| x.1),
-            }
-        })
-        .collect();
-    Ok(rows)
-}
-
-/// The smallest |yaw| of `rows` from which on the 3D-ASM is better than C-ASM at every larger
-/// |yaw| too (share with d_eye < 0.1 not lower, mean d_eye lower by at least 5%: a smaller
-/// difference is within the photo-to-photo noise); `None` when it is not better at the largest.
-pub fn crossover_yaw(rows: &[CrossoverRow]) -> Option<f32> {
-    let wins = |r: &CrossoverRow| r.asm3d_d_eye_01 >= r.casm_d_eye_01 && r.asm3d_mean_d_eye < 0.95 * r.casm_mean_d_eye;
-    let mut sorted: Vec<&CrossoverRow> = rows.iter().collect();
-    sorted.sort_by(|a, b| a.yaw.total_cmp(&b.yaw));
-    let mut from = None;
-    for r in sorted.iter().rev() {
-        if !wins(r) {
-            break;
-        }
-        from = Some(r.yaw);
-    }
-    from
-}
-
-/// Print the crossover table.
-pub fn print_crossover(rows: &[CrossoverRow], report: &mut dyn Write) -> std::io::Result<()> {
-    writeln!(report, "crossover on renders of held-out faces (d_eye < 0.05 / < 0.1 / mean; detector misses count as failures)")?;
-    writeln!(report, "{:>6} {:>8} {:>7} {:>26} {:>26}", "|yaw|", "renders", "misses", "C-ASM", "3D-ASM")?;
-    for r in rows {
-        let cell = |a: f64, b: f64, m: f64| format!("{:.1}% / {:.1}% / {:.4}", 100.0 * a, 100.0 * b, m);
-        writeln!(
-            report,
-            "{:>6.0} {:>8} {:>7} {:>26} {:>26}",
-            r.yaw,
-            r.renders,
-            r.detector_misses,
-            cell(r.casm_d_eye_005, r.casm_d_eye_01, r.casm_mean_d_eye),
-            cell(r.asm3d_d_eye_005, r.asm3d_d_eye_01, r.asm3d_mean_d_eye)
-        )?;
-    }
-    match crossover_yaw(rows) {
-        Some(y) => writeln!(report, "3D-ASM better than C-ASM from |yaw| {y:.0}° on")?,
-        None => writeln!(report, "no crossover: C-ASM as good or better at the largest |yaw|")?,
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
     fn error_measures_follow_the_thesis_definitions() {
-        let truth = KeyPoints { left_eye: [0.0, 0.0], right_eye: [100.0, 0.0], mouth: [50.0, 80.0] };
-        let found = KeyPoints { left_eye: [3.0, 4.0], right_eye: [100.0, 2.0], mouth: [50.0, 88.0] };
+        let truth = EyeMouthCentres { left_eye: [0.0, 0.0], right_eye: [100.0, 0.0], mouth: [50.0, 80.0] };
+        let found = EyeMouthCentres { left_eye: [3.0, 4.0], right_eye: [100.0, 2.0], mouth: [50.0, 88.0] };
         assert!((d_eye(&found, &truth) - 0.05).abs() < 1e-6);
         assert!((d_mouth(&found, &truth) - 0.1).abs() < 1e-6);
-    }
-
-    #[test]
-    fn crossover_is_where_the_3d_asm_wins_from_on() {
-        let row = |yaw: f32, c: f64, a: f64| CrossoverRow {
-            yaw,
-            renders: 10,
-            detector_misses: 0,
-            casm_d_eye_005: 1.0,
-            casm_d_eye_01: 1.0,
-            casm_mean_d_eye: c,
-            asm3d_d_eye_005: 1.0,
-            asm3d_d_eye_01: 1.0,
-            asm3d_mean_d_eye: a,
-        };
-        // A 1% lower mean at 0° is no win.
-        let rows = [row(0.0, 0.0202, 0.0200), row(30.0, 0.03, 0.02), row(15.0, 0.02, 0.03), row(45.0, 0.05, 0.03), row(60.0, 0.08, 0.04)];
-        assert_eq!(crossover_yaw(&rows[..2]), Some(30.0));
-        assert_eq!(crossover_yaw(&[rows[0].clone(), rows[2].clone(), rows[1].clone(), rows[3].clone(), rows[4].clone()]), Some(30.0));
-        let mut lose = rows.clone();
-        lose[1].asm3d_mean_d_eye = 0.04;
-        // Wins at 45 and 60 but not at 30: the crossover is 45.
-        assert_eq!(crossover_yaw(&lose), Some(45.0));
-        // Losing at the largest |yaw|: none.
-        lose[4].asm3d_d_eye_01 = 0.9;
-        assert_eq!(crossover_yaw(&lose), None);
     }
 }

@@ -7,7 +7,7 @@ use std::io::Write;
 
 use serde::Serialize;
 
-use crate::dataset::{ImmSample, KeyPoints};
+use crate::dataset::{EyeMouthCentres, ImmSample};
 use facegate_core::geometry::{Point, distance};
 use facegate_core::imaging::GrayF32;
 use facegate_detect::{Detector, Face};
@@ -61,7 +61,7 @@ pub fn profile_renders(
             return;
         };
         let visible = &asm3d.visible[nearest_view(&view_yaws, yaw)];
-        let k = KeyPoints::from_imm(&view.points);
+        let k = EyeMouthCentres::from_imm(&view.points);
         let mid = [0.5 * (k.left_eye[0] + k.right_eye[0]), 0.5 * (k.left_eye[1] + k.right_eye[1])];
         let size = distance(mid, k.mouth).max(1e-6) as f64;
         for ((_, search), e) in searches.iter().zip(errors.iter_mut()) {

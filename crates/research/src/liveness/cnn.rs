@@ -14,7 +14,7 @@
 
 use candle_core::{DType, Device, Module, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, Linear, Optimizer, ParamsAdamW, VarBuilder, VarMap};
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_vision::liveness::features::{CONTEXT_SIZE, FACE_SIZE, crops};
 use image::RgbImage;
 use rand::seq::SliceRandom;
@@ -40,9 +40,9 @@ const CONVOLUTIONS: [(usize, usize, usize); 4] = [(CHANNELS, 16, 2), (16, 32, 2)
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Input(pub Vec<u8>);
 
-/// The network's input for the face at `keypoints` in `photo`.
-pub fn input(photo: &RgbImage, keypoints: &KeyPoints) -> Input {
-    let c = crops(photo, keypoints);
+/// The network's input for the face at `centres` in `photo`.
+pub fn input(photo: &RgbImage, centres: &EyeMouthCentres) -> Input {
+    let c = crops(photo, centres);
     let mut out = vec![0u8; CHANNELS * PLANE];
     for (k, crop) in [&c.face, &c.context].into_iter().enumerate() {
         for (i, px) in crop.pixels().enumerate() {
@@ -156,7 +156,7 @@ struct Variation {
     /// colour relations a print shifts are kept).
     gain: f32,
     offset: f32,
-    /// Shift in pixels (the edge pixels repeated): the key points' jitter.
+    /// Shift in pixels (the edge pixels repeated): the centres' jitter.
     dx: i32,
     dy: i32,
 }

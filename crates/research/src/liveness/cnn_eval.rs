@@ -25,7 +25,7 @@ use crate::liveness::cnn::{Group, Input, LivenessNet, TrainingConfig, input, tra
 use crate::liveness::eval::{CameraThreshold, camera_threshold};
 use crate::liveness::measures::Rates;
 use crate::liveness::subjects::SubjectRates;
-use crate::liveness::train::{LivenessData, Recipe, columns, fit_recipe_without, keypoints};
+use crate::liveness::train::{LivenessData, Recipe, centres, columns, fit_recipe_without};
 use crate::logistic::LogisticFit;
 use crate::measures::{eer, fnmr_at_fmr};
 use crate::train_deep::Set;
@@ -52,16 +52,16 @@ impl CnnInputs {
         threads: usize,
         progress: &dyn Progress,
     ) -> anyhow::Result<CnnInputs> {
-        // Each photo is opened once, its key points read once: as it is, and (the other cameras')
+        // Each photo is opened once, its centres read once: as it is, and (the other cameras')
         // as each simulated attack.
         let of = |images: &[PathBuf], attacks: &[AttackKind]| -> anyhow::Result<Vec<Vec<Option<Input>>>> {
-            let kp = keypoints(cache_dir, models_dir, images, threads, progress)?;
-            let items: Vec<(usize, &PathBuf, &Option<_>)> = images.iter().zip(&kp).enumerate().map(|(i, (p, k))| (i, p, k)).collect();
-            let per_photo = map_samples(&items, threads, "liveness CNN inputs", progress, |(i, path, kp)| {
-                let (Some(kp), Ok(photo)) = (kp, image::open(path)) else { return vec![None; 1 + attacks.len()] };
+            let centres = centres(cache_dir, models_dir, images, threads, progress)?;
+            let items: Vec<(usize, &PathBuf, &Option<_>)> = images.iter().zip(&centres).enumerate().map(|(i, (p, k))| (i, p, k)).collect();
+            let per_photo = map_samples(&items, threads, "liveness CNN inputs", progress, |(i, path, centres)| {
+                let (Some(centres), Ok(photo)) = (centres, image::open(path)) else { return vec![None; 1 + attacks.len()] };
                 let photo = photo.to_rgb8();
-                let attacked = attacks.iter().map(|&kind| Some(input(&simulate(&photo, kind, *i as u64), kp)));
-                std::iter::once(Some(input(&photo, kp))).chain(attacked).collect()
+                let attacked = attacks.iter().map(|&kind| Some(input(&simulate(&photo, kind, *i as u64), centres)));
+                std::iter::once(Some(input(&photo, centres))).chain(attacked).collect()
             });
             let mut variants: Vec<Vec<Option<Input>>> = vec![Vec::with_capacity(images.len()); 1 + attacks.len()];
             for photo in per_photo {

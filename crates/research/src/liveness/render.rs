@@ -135,8 +135,8 @@ pub fn sample_features(
 ) -> Vec<Option<Vec<f32>>> {
     map_samples(samples, threads, "render features", progress, |s| {
         let photo = render_source(pipeline, &s.source)?;
-        let keypoints = pipeline.finder.locate(&photo.gray).ok()?.landmarks.keypoints;
-        Some(features(&crops(&photo.rgb, &keypoints), blocks))
+        let centres = pipeline.finder.locate(&photo.gray).ok()?.landmarks.centres;
+        Some(features(&crops(&photo.rgb, &centres), blocks))
     })
 }
 

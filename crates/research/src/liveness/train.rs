@@ -7,7 +7,7 @@
 
 use std::path::{Path, PathBuf};
 
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_vision::liveness::{Block, LivenessModel};
 use facegate_vision::pipeline::FaceFinder;
 use serde::Serialize;
@@ -76,14 +76,14 @@ pub fn list_umist(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
 
 /// The eye and mouth centres the service would use for the largest face of each photo (`None`:
 /// no face, or the photo does not open), through the research cache.
-pub fn keypoints(
+pub fn centres(
     cache_dir: &Path,
     models_dir: &Path,
     images: &[PathBuf],
     threads: usize,
     progress: &dyn Progress,
-) -> anyhow::Result<Vec<Option<KeyPoints>>> {
-    located(("liveness-keypoints", "find faces"), cache_dir, models_dir, images, threads, progress, |l| l.keypoints)
+) -> anyhow::Result<Vec<Option<EyeMouthCentres>>> {
+    located(("liveness-keypoints", "find faces"), cache_dir, models_dir, images, threads, progress, |l| l.centres)
 }
 
 /// What `pick` takes of the service's landmarks of the largest face of each photo, computed by
@@ -107,34 +107,40 @@ fn located<R: Serialize + serde::de::DeserializeOwned + Send + Clone>(
     })
 }
 
-/// Every block's features ([`Block::ALL`], in order) of each photo with key points.
-pub fn all_features(images: &[PathBuf], keypoints: &[Option<KeyPoints>], threads: usize, progress: &dyn Progress) -> Vec<Option<Vec<f32>>> {
-    let items: Vec<(&PathBuf, &Option<KeyPoints>)> = images.iter().zip(keypoints).collect();
-    map_samples(&items, threads, "liveness features", progress, |(path, kp)| {
-        let kp = (*kp).as_ref()?;
-        Some(block_features(&image::open(path).ok()?.to_rgb8(), kp))
+/// Every block's features ([`Block::ALL`], in order) of each photo with centres.
+pub fn all_features(
+    images: &[PathBuf],
+    centres: &[Option<EyeMouthCentres>],
+    threads: usize,
+    progress: &dyn Progress,
+) -> Vec<Option<Vec<f32>>> {
+    let items: Vec<(&PathBuf, &Option<EyeMouthCentres>)> = images.iter().zip(centres).collect();
+    map_samples(&items, threads, "liveness features", progress, |(path, centres)| {
+        let centres = (*centres).as_ref()?;
+        Some(block_features(&image::open(path).ok()?.to_rgb8(), centres))
     })
 }
 
-/// Every block's features of `photo` around its key points `kp`.
-fn block_features(photo: &image::RgbImage, kp: &KeyPoints) -> Vec<f32> {
+/// Every block's features of `photo` around its eye and mouth `centres`.
+fn block_features(photo: &image::RgbImage, centres: &EyeMouthCentres) -> Vec<f32> {
     use facegate_vision::liveness::features::{crops, features};
-    features(&crops(photo, kp), &Block::ALL)
+    features(&crops(photo, centres), &Block::ALL)
 }
 
-/// Every block's features of each photo with key points, the photo turned into the simulated
+/// Every block's features of each photo with centres, the photo turned into the simulated
 /// attack `kind` first (seeded by its index: the same attacks on every run).
 pub fn simulated_features(
     images: &[PathBuf],
-    keypoints: &[Option<KeyPoints>],
+    centres: &[Option<EyeMouthCentres>],
     kind: AttackKind,
     threads: usize,
     progress: &dyn Progress,
 ) -> Vec<Option<Vec<f32>>> {
-    let items: Vec<(usize, &PathBuf, &Option<KeyPoints>)> = images.iter().zip(keypoints).enumerate().map(|(i, (p, k))| (i, p, k)).collect();
-    map_samples(&items, threads, kind.name(), progress, |(i, path, kp)| {
-        let kp = (*kp).as_ref()?;
-        Some(block_features(&simulate(&image::open(path).ok()?.to_rgb8(), kind, *i as u64), kp))
+    let items: Vec<(usize, &PathBuf, &Option<EyeMouthCentres>)> =
+        images.iter().zip(centres).enumerate().map(|(i, (p, k))| (i, p, k)).collect();
+    map_samples(&items, threads, kind.name(), progress, |(i, path, centres)| {
+        let centres = (*centres).as_ref()?;
+        Some(block_features(&simulate(&image::open(path).ok()?.to_rgb8(), kind, *i as u64), centres))
     })
 }
 
@@ -260,7 +266,7 @@ pub struct LivenessData {
     pub unseen: Vec<PathBuf>,
     pub unseen_features: Vec<Option<Vec<f32>>>,
     /// Per [`AttackKind::ALL`], the other cameras' photos as that simulated attack: features at
-    /// the photo's own key points (the simulation keeps the geometry); `None`: no face.
+    /// the photo's own centres (the simulation keeps the geometry); `None`: no face.
     pub simulated_features: Vec<Vec<Option<Vec<f32>>>>,
     /// Live frames of real video ([`crate::liveness::video`]), every person's.
     pub video: Vec<VideoFrame>,
@@ -282,21 +288,21 @@ impl LivenessData {
         let nuaa_images: Vec<PathBuf> = nuaa.iter().map(|s| s.image.clone()).collect();
         let other_images: Vec<PathBuf> = others.iter().map(|s| s.image.clone()).collect();
         let unseen = list_umist(&shared.join("data/umist"))?;
-        let unseen_kp = keypoints(cache_dir, models_dir, &unseen, threads, progress)?;
-        let nuaa_kp = keypoints(cache_dir, models_dir, &nuaa_images, threads, progress)?;
-        let other_kp = keypoints(cache_dir, models_dir, &other_images, threads, progress)?;
+        let unseen_centres = centres(cache_dir, models_dir, &unseen, threads, progress)?;
+        let nuaa_centres = centres(cache_dir, models_dir, &nuaa_images, threads, progress)?;
+        let other_centres = centres(cache_dir, models_dir, &other_images, threads, progress)?;
         let simulated_features =
-            AttackKind::ALL.iter().map(|&kind| simulated_features(&other_images, &other_kp, kind, threads, progress)).collect();
+            AttackKind::ALL.iter().map(|&kind| simulated_features(&other_images, &other_centres, kind, threads, progress)).collect();
         let video = list_video(&shared.join("data/video"))?;
         let video_images: Vec<PathBuf> = video.iter().map(|f| f.image.clone()).collect();
-        let video_kp = keypoints(cache_dir, models_dir, &video_images, threads, progress)?;
+        let video_centres = centres(cache_dir, models_dir, &video_images, threads, progress)?;
         Ok(LivenessData {
-            video_features: all_features(&video_images, &video_kp, threads, progress),
+            video_features: all_features(&video_images, &video_centres, threads, progress),
             video,
             simulated_features,
-            nuaa_features: all_features(&nuaa_images, &nuaa_kp, threads, progress),
-            other_features: all_features(&other_images, &other_kp, threads, progress),
-            unseen_features: all_features(&unseen, &unseen_kp, threads, progress),
+            nuaa_features: all_features(&nuaa_images, &nuaa_centres, threads, progress),
+            other_features: all_features(&other_images, &other_centres, threads, progress),
+            unseen_features: all_features(&unseen, &unseen_centres, threads, progress),
             unseen,
             nuaa,
             others,
@@ -458,7 +464,7 @@ pub fn homography_residual(from: &[facegate_core::geometry::Point], to: &[facega
     let hn = Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]);
     let hm = tb.try_inverse()? * hn * ta;
     let eyes = |p: &[facegate_core::geometry::Point]| {
-        let k = KeyPoints::from_imm(p);
+        let k = EyeMouthCentres::from_imm(p);
         (((k.left_eye[0] - k.right_eye[0]).powi(2) + (k.left_eye[1] - k.right_eye[1]).powi(2)) as f64).sqrt()
     };
     let scale = eyes(to).max(1.0);

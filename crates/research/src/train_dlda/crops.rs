@@ -24,7 +24,7 @@ pub struct AlignedFace {
     /// The crop on the second path of a fused model (see [`align_paths`]).
     pub secondary_crop: Option<GrayF32>,
     pub pose: Option<Pose>,
-    pub keypoint_source: &'static str,
+    pub centre_source: &'static str,
     /// 3DMM re-posed copies of the face ([`attach_reposed_crops`]), used as extra training samples of
     /// its person: per copy, the crop on the primary path and on the second path.
     pub reposed: Vec<(GrayF32, Option<GrayF32>)>,
@@ -37,10 +37,11 @@ struct FaceCrop {
     height: usize,
     data: Vec<f32>,
     pose: Option<Pose>,
-    keypoint_source: String,
+    #[serde(rename = "keypoint_source")]
+    centre_source: String,
 }
 
-/// The keypoint source's name as [`Prepared::keypoint_source`] gives it.
+/// The centre source's name as [`Prepared::centre_source`] gives it.
 fn source_name(s: &str) -> &'static str {
     match s {
         "imm-annotations" => "imm-annotations",
@@ -60,9 +61,9 @@ fn crop_faces(
 ) -> Vec<Option<FaceCrop>> {
     map_samples(faces, front_end.threads, "aligning", progress, |face| match front_end.prepare(face, normalization) {
         Ok(p) => {
-            let crop = normalize::geometric(&p.gray, &p.keypoints, params);
-            let keypoint_source = p.keypoint_source.to_string();
-            Some(FaceCrop { width: crop.width, height: crop.height, data: crop.data, pose: p.pose, keypoint_source })
+            let crop = normalize::geometric(&p.gray, &p.centres, params);
+            let centre_source = p.centre_source.to_string();
+            Some(FaceCrop { width: crop.width, height: crop.height, data: crop.data, pose: p.pose, centre_source })
         }
         Err(e) => {
             progress.note(&format!("warning: {}: skipped ({e})", face.image.display()));
@@ -83,7 +84,7 @@ fn assemble(faces: &[FaceImage], crops: Vec<Option<FaceCrop>>) -> Vec<AlignedFac
                 crop: GrayF32 { width: c.width, height: c.height, data: c.data },
                 secondary_crop: None,
                 pose: c.pose,
-                keypoint_source: source_name(&c.keypoint_source),
+                centre_source: source_name(&c.centre_source),
                 reposed: Vec::new(),
             })
         })
@@ -108,14 +109,14 @@ fn cache_id(face: &FaceImage) -> String {
 }
 
 /// The key of `kind` crops of `faces` by `front_end` under `settings`: the front end's model files
-/// and keypoint source, the settings, the faces (see [`crate::cache`]).
+/// and centre source, the settings, the faces (see [`crate::cache`]).
 fn crops_key(kind: &str, front_end: &FrontEnd, settings: &impl Serialize, faces: &[FaceImage]) -> anyhow::Result<CacheKey> {
     let settings = postcard::to_stdvec(&(front_end.source, settings))?;
     Ok(CacheKey::new(kind, &front_end.model_files(), &settings, faces.iter().map(cache_id)))
 }
 
 /// [`align_all`] through the research cache in `dir` ([`crate::cache`], kind `crops`), keyed by
-/// everything that shapes the crops: the photos, the keypoint source, the normalisation path and
+/// everything that shapes the crops: the photos, the centre source, the normalisation path and
 /// parameters, and the model files the front end loaded. Photos the front end skipped stay skipped.
 pub fn align_all_cached(
     dir: &Path,
@@ -186,7 +187,7 @@ fn reposed_crops(
         let crop = |normalization| {
             recognition_input(front_end.face_model.as_ref(), &photo, &landmarks, normalization)
                 .ok()
-                .map(|input| normalize::geometric(&input.gray, &input.keypoints, params))
+                .map(|input| normalize::geometric(&input.gray, &input.centres, params))
         };
         let (Some(first), second) = (crop(paths[0]), paths.get(1).map(|&p| crop(p))) else { continue };
         if second.as_ref().is_some_and(|c| c.is_none()) {
@@ -244,7 +245,7 @@ pub fn attach_reposed_crops(
 pub struct TrainingPhotos {
     /// Labelled folders ([`list_faces`]).
     pub data: Vec<PathBuf>,
-    pub keypoints: KeypointOrigin,
+    pub centre_origin: CentreOrigin,
     /// Leave the training persons' IMM rotated views (3, 4) out.
     pub frontal_only: bool,
     /// (yaw, pitch) offsets in degrees of the 3DMM re-posed copies of the training photos
@@ -280,7 +281,7 @@ pub fn training_crops(
     // The 3DMM is needed by its path and by the re-posed copies (on the 2D path it only reports
     // the pose: the crops are the same with or without it).
     let needs_sfm = paths.contains(&Normalization::Morph) || !photos.repose.is_empty();
-    let front = FrontEnd::load(photos.keypoints, models_dir, needs_sfm.then_some(sfm_dir)).with_threads(photos.threads);
+    let front = FrontEnd::load(photos.centre_origin, models_dir, needs_sfm.then_some(sfm_dir)).with_threads(photos.threads);
     anyhow::ensure!(
         photos.repose.is_empty() || front.face_model.is_some(),
         "the re-posed training copies (--repose-yaw, default ±20°) need the Surrey Face Model (FACEGATE_SFM); or pass --no-repose"

@@ -6,19 +6,19 @@ use serde::Serialize;
 
 use super::*;
 use crate::cache::ModelFiles;
-use crate::dataset::{self, IMM_POINTS, KeyPoints};
+use crate::dataset::{self, EyeMouthCentres, IMM_POINTS};
 use facegate_core::imaging::{self, GrayF32};
 use facegate_morph::{FaceModel, Pose};
 use facegate_vision::landmarks::Landmarks;
 use facegate_vision::pipeline::{FaceFinder, PipelineError, load_face_model, recognition_input};
 use facegate_vision::recognize::Normalization;
 
-/// Where the keypoints of a photo come from.
+/// Where the centres of a photo come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
-pub enum KeypointOrigin {
+pub enum CentreOrigin {
     /// IMM `.asf` annotations where present, else the automatic front end (detector + ASM, or
-    /// detector-box keypoints while the ASM is not available).
+    /// detector-box centres while the ASM is not available).
     Annotated,
     /// The automatic front end for every photo.
     Pipeline,
@@ -33,7 +33,7 @@ pub enum FrontEndError {
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
     #[error("no annotation and no automatic front end loaded")]
-    NoKeypoints,
+    NoCentres,
     #[error("the re-posed copies need the Surrey Face Model, which is not loaded")]
     NoFaceModel,
     #[error("the 3DMM cannot be fitted to the landmarks: {0}")]
@@ -44,10 +44,10 @@ pub enum FrontEndError {
 /// eye and mouth centres in it, and the head pose when the 3DMM was fitted.
 pub struct Prepared {
     pub gray: GrayF32,
-    pub keypoints: KeyPoints,
+    pub centres: EyeMouthCentres,
     pub pose: Option<Pose>,
     /// `imm-annotations` or `pipeline`.
-    pub keypoint_source: &'static str,
+    pub centre_source: &'static str,
 }
 
 /// As many threads as the machine runs at once.
@@ -60,7 +60,7 @@ fn default_threads() -> usize {
 /// service's [`recognition_input`] (3DMM fit and frontal rendering). Crops are thereby made as the
 /// service makes them.
 pub struct FrontEnd {
-    pub source: KeypointOrigin,
+    pub source: CentreOrigin,
     /// The service's face finder; `None` when its models cannot be loaded (annotations only).
     pub finder: Option<FaceFinder>,
     pub face_model: Option<FaceModel>,
@@ -76,13 +76,13 @@ impl FrontEnd {
     /// Annotations only (no automatic front end, no 3DMM).
     pub fn annotations_only() -> FrontEnd {
         let threads = default_threads();
-        FrontEnd { source: KeypointOrigin::Annotated, finder: None, face_model: None, models_dir: None, sfm_dir: None, threads }
+        FrontEnd { source: CentreOrigin::Annotated, finder: None, face_model: None, models_dir: None, sfm_dir: None, threads }
     }
 
     /// The service's face finder from `models_dir` and the 3DMM from `sfm_dir`, each when it loads;
     /// a missing part only matters for the photos that need it. Photos are prepared on as many
     /// threads as the machine runs at once ([`FrontEnd::with_threads`] to choose).
-    pub fn load(source: KeypointOrigin, models_dir: &Path, sfm_dir: Option<&Path>) -> FrontEnd {
+    pub fn load(source: CentreOrigin, models_dir: &Path, sfm_dir: Option<&Path>) -> FrontEnd {
         let finder = FaceFinder::load(models_dir).map_err(|e| tracing::info!("automatic front end unavailable: {e}")).ok();
         let models_dir = finder.as_ref().map(|_| models_dir.to_path_buf());
         let face_model = load_face_model(sfm_dir);
@@ -110,15 +110,15 @@ impl FrontEnd {
 
     /// The 58 landmarks of a photo from the configured source, and which source gave them.
     pub(crate) fn landmarks(&self, face: &FaceImage, photo: &imaging::Photo) -> Result<(Landmarks, &'static str), FrontEndError> {
-        if let (KeypointOrigin::Annotated, Some(asf)) = (self.source, &face.asf) {
+        if let (CentreOrigin::Annotated, Some(asf)) = (self.source, &face.asf) {
             let shape = dataset::read_asf(asf, photo.width() as f32, photo.height() as f32)?;
             if shape.points.len() == IMM_POINTS {
                 let points = shape.xy();
-                let keypoints = KeyPoints::from_imm(&points);
-                return Ok((Landmarks { points, keypoints }, "imm-annotations"));
+                let centres = EyeMouthCentres::from_imm(&points);
+                return Ok((Landmarks { points, centres }, "imm-annotations"));
             }
         }
-        let finder = self.finder.as_ref().ok_or(FrontEndError::NoKeypoints)?;
+        let finder = self.finder.as_ref().ok_or(FrontEndError::NoCentres)?;
         Ok((finder.locate(&photo.gray)?.landmarks, "pipeline"))
     }
 
@@ -139,11 +139,11 @@ impl FrontEnd {
         Ok(crate::synthetic::render_at(model, &photo, &fit, &landmarks.points, &poses))
     }
 
-    /// The image and keypoints the recognizer normalises, as the service's pipeline makes them.
+    /// The image and centres the recognizer normalises, as the service's pipeline makes them.
     pub fn prepare(&self, face: &FaceImage, normalization: Normalization) -> Result<Prepared, FrontEndError> {
         let photo = imaging::open(&face.image)?;
-        let (landmarks, keypoint_source) = self.landmarks(face, &photo)?;
+        let (landmarks, centre_source) = self.landmarks(face, &photo)?;
         let input = recognition_input(self.face_model.as_ref(), &photo, &landmarks, normalization)?;
-        Ok(Prepared { gray: input.gray.into_owned(), keypoints: input.keypoints, pose: input.pose, keypoint_source })
+        Ok(Prepared { gray: input.gray.into_owned(), centres: input.centres, pose: input.pose, centre_source })
     }
 }

@@ -43,7 +43,7 @@ pub struct TrainConfig {
     /// Add mirrored copies of the training crops.
     pub mirror: bool,
     /// Randomly perturbed copies of each training crop (shift ±1 px, scale ±4 %, rotation ±3°),
-    /// standing in for keypoint noise.
+    /// standing in for centre noise.
     pub jitter: usize,
     /// Cohort score normalisation with the training photos' templates as the cohort: `Some(0)`
     /// S-norm over the whole cohort, `Some(k)` AS-norm over each face's k closest; `None`: raw cosines.
@@ -221,11 +221,11 @@ fn provenance(
     held_persons.dedup();
     let mut sources: BTreeMap<&str, usize> = BTreeMap::new();
     for a in aligned {
-        *sources.entry(a.keypoint_source).or_default() += 1;
+        *sources.entry(a.centre_source).or_default() += 1;
     }
-    let keypoint_source = sources.iter().map(|(s, n)| format!("{s} ({n} photos)")).collect::<Vec<_>>().join(", ");
+    let centre_source = sources.iter().map(|(s, n)| format!("{s} ({n} photos)")).collect::<Vec<_>>().join(", ");
     Provenance {
-        keypoint_source,
+        centre_source,
         data: data.to_vec(),
         train_persons: labels,
         train_images: train.len(),
@@ -249,13 +249,13 @@ fn calibrate(model: &mut ClassicalModel, held: &[&AlignedFace]) -> anyhow::Resul
         !genuine.is_empty() && !impostor.is_empty(),
         "the held-out persons give no genuine or no impostor pairs to calibrate on"
     );
-    let keypoint_source = model.provenance.keypoint_source.clone();
+    let centre_source = model.provenance.centre_source.clone();
     let held_persons = model.provenance.calibration_persons.len();
     model.calibration = Calibration::from_scores(
         &genuine,
         &impostor,
         &CALIBRATED_FMRS,
-        &format!("all pairs of {} photos of {held_persons} held-out persons; keypoints: {keypoint_source}", held.len()),
+        &format!("all pairs of {} photos of {held_persons} held-out persons; keypoints: {centre_source}", held.len()),
     );
     let (gm, im) = combined_scores(&recognizer, &templates, Combine::Max);
     let (ga, ia) = combined_scores(&recognizer, &templates, Combine::Mean);
@@ -272,7 +272,7 @@ fn calibrate(model: &mut ClassicalModel, held: &[&AlignedFace]) -> anyhow::Resul
                     &impostor,
                     &CALIBRATED_FMRS,
                     &format!(
-                        "probes against {k} enrolled photos ({combine:?}), every rotation of each held-out person's photos; keypoints: {keypoint_source}"
+                        "probes against {k} enrolled photos ({combine:?}), every rotation of each held-out person's photos; keypoints: {centre_source}"
                     ),
                 ),
             })
@@ -311,7 +311,7 @@ pub fn cross_validate(aligned: &[AlignedFace], config: &TrainConfig, folds: usiz
 mod tests {
     use super::*;
     use crate::Quiet;
-    use facegate_core::face::KeyPoints;
+    use facegate_core::face::EyeMouthCentres;
     use facegate_core::imaging;
     use facegate_morph::FaceModel;
     use facegate_vision::recognize::Views;
@@ -405,7 +405,7 @@ mod tests {
         }
     }
 
-    /// Train on IMM frontal views of the training persons with annotated keypoints: the projection
+    /// Train on IMM frontal views of the training persons with annotated centres: the projection
     /// of a training photo must be stable (same template twice, and close to its mirrored copy's
     /// class), and held-out genuine pairs must score above impostor pairs on average.
     #[test]
@@ -421,12 +421,12 @@ mod tests {
         let a = aligned.iter().find(|a| !a.face.held_out).unwrap();
         let t1 = template_of(&recognizer, a).unwrap();
         let prepared = front.prepare(&a.face, Normalization::TwoD).unwrap();
-        let t2 = recognizer.template(Views::Single(&recognizer.normalized_crop(&prepared.gray, &prepared.keypoints))).unwrap();
+        let t2 = recognizer.template(Views::Single(&recognizer.normalized_crop(&prepared.gray, &prepared.centres))).unwrap();
         assert!(t1.cosine(&t2) > 0.9999, "same photo, same template");
-        // A small shift of the keypoints (half a crop pixel) barely moves the template.
-        let k = prepared.keypoints;
+        // A small shift of the centres (half a crop pixel) barely moves the template.
+        let k = prepared.centres;
         let shift = |p: facegate_core::geometry::Point| [p[0] + 1.5, p[1] + 1.0];
-        let shifted = KeyPoints { left_eye: shift(k.left_eye), right_eye: shift(k.right_eye), mouth: shift(k.mouth) };
+        let shifted = EyeMouthCentres { left_eye: shift(k.left_eye), right_eye: shift(k.right_eye), mouth: shift(k.mouth) };
         let t3 = recognizer.template(Views::Single(&recognizer.normalized_crop(&prepared.gray, &shifted))).unwrap();
         assert!(t1.cosine(&t3) > 0.8, "shifted keypoints: cosine {}", t1.cosine(&t3));
         // Round trip through the model file keeps the version and the templates.

@@ -393,16 +393,22 @@ impl Facegate {
         let precision = if engine.max_cosine_scoring() { Precision::Quantised } else { Precision::Exact };
         let gallery = LiveGallery::new(store.clone(), engine.model_version(), precision);
         let site = RwLock::new(None);
-        let liveness_point = RwLock::new(Self::liveness_point_of(engine.as_ref(), &config, None).map(Arc::new));
+        let point = Self::liveness_model_point(engine.as_ref(), &config).map(|model| Self::liveness_point_of(model, &config, None));
+        let liveness_point = RwLock::new(point.map(Arc::new));
         Facegate(Arc::new(Inner { engine, store, gallery, pool, config, circuit: StoreCircuit::default(), site, liveness_point }))
     }
 
-    /// The liveness threshold in force for `engine`'s liveness model under `config`, with the
+    /// The operating point of `engine`'s liveness model; `None` with liveness off under `config`
+    /// or no liveness model.
+    fn liveness_model_point(engine: &dyn FaceEngine, config: &ServiceConfig) -> Option<LivenessPoint> {
+        engine.liveness_model_point().filter(|_| config.liveness != LivenessPolicy::Off)
+    }
+
+    /// The liveness threshold in force for the liveness `model`'s point under `config`, with the
     /// `camera`'s calibration, if any.
-    fn liveness_point_of(engine: &dyn FaceEngine, config: &ServiceConfig, camera: Option<&LivenessCalibration>) -> Option<LivenessPoint> {
-        let model = engine.liveness_model_point().filter(|_| config.liveness != LivenessPolicy::Off)?;
+    fn liveness_point_of(model: LivenessPoint, config: &ServiceConfig, camera: Option<&LivenessCalibration>) -> LivenessPoint {
         let camera = camera.and_then(|c| c.point(&model));
-        Some(crate::liveness::threshold_in_force(model, camera, config.liveness_threshold))
+        crate::liveness::threshold_in_force(model, camera, config.liveness_threshold)
     }
 
     /// Read this camera's liveness calibration (`facegate calibrate-liveness`) for the engine's
@@ -410,11 +416,11 @@ impl Facegate {
     /// threshold (it changes with `facegate calibrate-liveness` and takes effect at the next
     /// start). Returns the stored calibration, if any, and the threshold now in force.
     pub async fn load_liveness_calibration(&self) -> Result<(Option<LivenessCalibration>, Option<LivenessPoint>), ServiceError> {
-        let Some(model) = self.0.engine.liveness_model_point().filter(|_| self.0.config.liveness != LivenessPolicy::Off) else {
+        let Some(model) = Self::liveness_model_point(self.0.engine.as_ref(), &self.0.config) else {
             return Ok((None, None));
         };
         let stored = self.read_store(crate::liveness_camera::load(&self.0.store, &model.model)).await?;
-        let point = Self::liveness_point_of(self.0.engine.as_ref(), &self.0.config, stored.as_ref());
+        let point = Some(Self::liveness_point_of(model, &self.0.config, stored.as_ref()));
         *self.0.liveness_point.write().unwrap_or_else(|e| e.into_inner()) = point.clone().map(Arc::new);
         Ok((stored, point))
     }
@@ -652,15 +658,11 @@ impl Facegate {
         let (engine, limits) = (self.0.engine.clone(), self.0.config.decode_limits);
         let analysis = self.0.pool.run(move || inspect::analyze(engine.as_ref(), &image, &limits, choice)).await?;
         let mut analysis = analysis.map_err(PhotoError::of_inspection)?;
-        // Reported, never refused: each face's verdict as `report` makes it (none when off).
-        let report = match self.0.config.liveness {
-            LivenessPolicy::Off => LivenessPolicy::Off,
-            _ => LivenessPolicy::Report,
-        };
+        // Reported, never refused: each measured face's verdict at the threshold in force. With
+        // liveness off there is no threshold in force, so no verdict.
         let point = self.liveness_point();
-        let verdict =
-            |face: &facegate_vision::pipeline::FaceReading| crate::check_liveness(report, point.as_deref(), face.liveness.as_ref());
-        analysis.liveness = analysis.reading.faces.iter().map(|face| verdict(face).ok().flatten()).collect();
+        let verdict = |face: &facegate_vision::pipeline::FaceReading| Some(point.as_deref()?.judge(face.liveness.as_ref()?));
+        analysis.liveness = analysis.reading.faces.iter().map(verdict).collect();
         Ok(analysis)
     }
 

@@ -45,7 +45,7 @@ fn mean(points: &[[f32; 2]]) -> Point {
 
 /// Where the image-left eye centre, the image-right eye centre and the mouth centre go in a chip
 /// of side `size`.
-pub fn chip_key_points(size: usize) -> [Point; 3] {
+pub fn chip_centres(size: usize) -> [Point; 3] {
     let place = |p: Point| {
         let s = size as f32 / (2.0 * PADDING + 1.0);
         [(PADDING + p[0]) * s, (PADDING + p[1]) * s]
@@ -56,7 +56,7 @@ pub fn chip_key_points(size: usize) -> [Point; 3] {
 /// The similarity taking chip pixels to photo pixels, from the photo's image-left eye centre,
 /// image-right eye centre and mouth centre.
 pub fn chip_to_photo(size: usize, left_eye: Point, right_eye: Point, mouth: Point) -> Similarity {
-    Similarity::fit(&chip_key_points(size), &[left_eye, right_eye, mouth], None)
+    Similarity::fit(&chip_centres(size), &[left_eye, right_eye, mouth], None)
 }
 
 /// Cuts the chip: each chip pixel samples the photo through `to_photo`, bilinearly, averaging
@@ -139,8 +139,8 @@ mod tests {
     use super::*;
 
     #[test]
-    fn key_points_sit_where_dlib_puts_them() {
-        let [l, r, m] = chip_key_points(150);
+    fn centres_sit_where_dlib_puts_them() {
+        let [l, r, m] = chip_centres(150);
         // Eyes level and symmetric about the chip's centre line, mouth below on that line.
         assert!((l[1] - r[1]).abs() < 1e-3);
         assert!(((l[0] + r[0]) / 2.0 - m[0]).abs() < 0.5);

@@ -11,7 +11,7 @@ pub mod onnx;
 
 use std::path::Path;
 
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 
 pub use chip::FaceChip;
 use facegate_nn::weights;
@@ -50,17 +50,17 @@ pub fn load(models_dir: &Path) -> Result<Embedder, EmbedError> {
     Ok(Embedder::new(&file)?)
 }
 
-/// The network's chip of the face whose eye and mouth centres `keypoints` gives in `photo`.
-pub fn face_chip(photo: &image::RgbImage, keypoints: &KeyPoints) -> FaceChip {
-    let to_photo = chip::chip_to_photo(CHIP_SIZE, keypoints.left_eye, keypoints.right_eye, keypoints.mouth);
+/// The network's chip of the face whose eye and mouth centres `centres` gives in `photo`.
+pub fn face_chip(photo: &image::RgbImage, centres: &EyeMouthCentres) -> FaceChip {
+    let to_photo = chip::chip_to_photo(CHIP_SIZE, centres.left_eye, centres.right_eye, centres.mouth);
     chip::extract(photo, &to_photo, CHIP_SIZE)
 }
 
-/// The embedding of the face whose eye and mouth centres `keypoints` gives in `photo`: the chip
+/// The embedding of the face whose eye and mouth centres `centres` gives in `photo`: the chip
 /// cut there, the mean of its and its mirror image's embeddings ([`Embedder::embed_mirrored`]).
 /// The deep recognizer's one way from a photo to an embedding (the service and training alike).
-pub fn face_embedding(network: &Embedder, photo: &image::RgbImage, keypoints: &KeyPoints) -> Embedding {
-    chip_embedding(network, &face_chip(photo, keypoints))
+pub fn face_embedding(network: &Embedder, photo: &image::RgbImage, centres: &EyeMouthCentres) -> Embedding {
+    chip_embedding(network, &face_chip(photo, centres))
 }
 
 /// The mirror-averaged embedding of a chip cut by [`face_chip`].

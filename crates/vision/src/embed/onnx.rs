@@ -10,7 +10,7 @@ use facegate_nn::onnx::OnnxNet;
 use serde::{Deserialize, Serialize};
 
 use super::chip::{self, FaceChip};
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::{Point, Similarity};
 
 /// The ArcFace 112×112 template of the five points (image-left eye, image-right eye, nose tip,
@@ -121,11 +121,11 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
 }
 
 /// The similarity taking the network's input pixels to photo pixels for the face with eye and
-/// mouth centres `keypoints` and, when the detector gave them, five `points`.
-pub fn input_to_photo(manifest: &Manifest, keypoints: &KeyPoints, points: Option<&[Point; 5]>) -> Similarity {
+/// mouth centres `centres` and, when the detector gave them, five `points`.
+pub fn input_to_photo(manifest: &Manifest, centres: &EyeMouthCentres, points: Option<&[Point; 5]>) -> Similarity {
     let side = manifest.input_size;
     match manifest.alignment {
-        Alignment::DlibChip => chip::chip_to_photo(side, keypoints.left_eye, keypoints.right_eye, keypoints.mouth),
+        Alignment::DlibChip => chip::chip_to_photo(side, centres.left_eye, centres.right_eye, centres.mouth),
         Alignment::Arcface5 | Alignment::ArcfaceCentres => {
             let s = side as f32 / ARCFACE_SIDE as f32;
             let template = ARCFACE_TEMPLATE.map(|[x, y]| [x * s, y * s]);
@@ -134,7 +134,7 @@ pub fn input_to_photo(manifest: &Manifest, keypoints: &KeyPoints, points: Option
                 None => {
                     let [l, r, _, ml, mr] = template;
                     let mouth = [(ml[0] + mr[0]) / 2.0, (ml[1] + mr[1]) / 2.0];
-                    Similarity::fit(&[l, r, mouth], &[keypoints.left_eye, keypoints.right_eye, keypoints.mouth], None)
+                    Similarity::fit(&[l, r, mouth], &[centres.left_eye, centres.right_eye, centres.mouth], None)
                 }
             }
         }
@@ -228,8 +228,8 @@ impl OnnxEmbedder {
     }
 
     /// The network's input image of the face.
-    pub fn chip(&self, photo: &image::RgbImage, keypoints: &KeyPoints, points: Option<&[Point; 5]>) -> FaceChip {
-        chip::extract(photo, &input_to_photo(&self.manifest, keypoints, points), self.manifest.input_size)
+    pub fn chip(&self, photo: &image::RgbImage, centres: &EyeMouthCentres, points: Option<&[Point; 5]>) -> FaceChip {
+        chip::extract(photo, &input_to_photo(&self.manifest, centres, points), self.manifest.input_size)
     }
 
     /// The unit embedding of a chip cut by [`Self::chip`] (mirror-averaged when the manifest says so).
@@ -304,15 +304,15 @@ mod tests {
         // A face whose points sit on the template scaled by 2 and shifted: the fit is that map.
         let points = ARCFACE_TEMPLATE.map(|[x, y]| [2.0 * x + 10.0, 2.0 * y + 5.0]);
         let mid = |a: Point, b: Point| [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0];
-        let keypoints = KeyPoints { left_eye: points[0], right_eye: points[1], mouth: mid(points[3], points[4]) };
+        let centres = EyeMouthCentres { left_eye: points[0], right_eye: points[1], mouth: mid(points[3], points[4]) };
         for given in [Some(&points), None] {
-            let t = input_to_photo(&manifest(), &keypoints, given);
+            let t = input_to_photo(&manifest(), &centres, given);
             assert!((t.scale() - 2.0).abs() < 1e-3 && t.rotation().abs() < 1e-3, "{t:?}");
             let [x, y] = t.apply(ARCFACE_TEMPLATE[0]);
             assert!((x - points[0][0]).abs() < 0.05 && (y - points[0][1]).abs() < 0.05, "{x} {y}");
         }
         // A 224-pixel input scales the template: the same face maps at half the scale.
-        let t = input_to_photo(&Manifest { input_size: 224, ..manifest() }, &keypoints, Some(&points));
+        let t = input_to_photo(&Manifest { input_size: 224, ..manifest() }, &centres, Some(&points));
         assert!((t.scale() - 1.0).abs() < 1e-3);
     }
 

@@ -24,7 +24,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::{Point, Rect};
 use facegate_core::imaging::GrayF32;
 
@@ -63,7 +63,8 @@ impl Variant {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Landmarks {
     pub points: Vec<Point>,
-    pub keypoints: KeyPoints,
+    #[serde(rename = "keypoints")]
+    pub centres: EyeMouthCentres,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -205,8 +206,8 @@ impl Landmarker {
     /// normally the detector's). Never panics: a degenerate box or image gives the placed mean shape.
     pub fn fit(&self, gray: &GrayF32, face: &Rect, variant: Variant) -> Landmarks {
         let points = search::fit(&self.model, gray, face, variant);
-        let keypoints = KeyPoints::from_imm(&points);
-        Landmarks { points, keypoints }
+        let centres = EyeMouthCentres::from_imm(&points);
+        Landmarks { points, centres }
     }
 
     /// The initial shape (mean shape placed from the box), in image pixels.

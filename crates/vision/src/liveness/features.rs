@@ -5,7 +5,7 @@
 //! holding it). Every block is cut from the photo at the recognizer's eye and mouth centres, so it
 //! covers the same part of every face whatever the photo's size.
 
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::Similarity;
 use facegate_core::imaging::GrayF32;
 use image::RgbImage;
@@ -65,9 +65,9 @@ pub struct Crops {
     pub context: RgbImage,
 }
 
-/// The face crop and the [`CONTEXT_SPAN`]-times wider crop about the same centre, at `keypoints`.
-pub fn crops(photo: &RgbImage, keypoints: &KeyPoints) -> Crops {
-    let to_photo = chip_to_photo(FACE_SIZE, keypoints.left_eye, keypoints.right_eye, keypoints.mouth);
+/// The face crop and the [`CONTEXT_SPAN`]-times wider crop about the same centre, at `centres`.
+pub fn crops(photo: &RgbImage, centres: &EyeMouthCentres) -> Crops {
+    let to_photo = chip_to_photo(FACE_SIZE, centres.left_eye, centres.right_eye, centres.mouth);
     let face = sample_crop(photo, &to_photo, FACE_SIZE);
     // Context pixel c ↦ face-crop pixel SPAN·c − (SPAN − 1)·centre: the same centre, SPAN times wider.
     let centre = 0.5 * FACE_SIZE as f32 * (CONTEXT_SPAN - 1.0);
@@ -242,14 +242,14 @@ fn frequency_energy(y: &Plane) -> [f32; 5] {
 mod tests {
     use super::*;
 
-    fn keypoints() -> KeyPoints {
-        KeyPoints { left_eye: [80.0, 90.0], right_eye: [140.0, 90.0], mouth: [110.0, 160.0] }
+    fn centres() -> EyeMouthCentres {
+        EyeMouthCentres { left_eye: [80.0, 90.0], right_eye: [140.0, 90.0], mouth: [110.0, 160.0] }
     }
 
     #[test]
     fn every_block_makes_as_many_features_as_it_says() {
         let photo = RgbImage::from_fn(240, 240, |x, y| image::Rgb([(x * 7 % 256) as u8, (y * 3 % 256) as u8, ((x + y) % 256) as u8]));
-        let c = crops(&photo, &keypoints());
+        let c = crops(&photo, &centres());
         assert_eq!((c.face.width(), c.context.width()), (FACE_SIZE as u32, CONTEXT_SIZE as u32));
         for block in Block::ALL {
             let f = features(&c, &[block]);
@@ -266,7 +266,7 @@ mod tests {
             image::Rgb([v, v, v])
         });
         let blurred = image::imageops::blur(&sharp, 2.0);
-        let fine = |img: &RgbImage| features(&crops(img, &keypoints()), &[Block::FaceFrequency])[0];
+        let fine = |img: &RgbImage| features(&crops(img, &centres()), &[Block::FaceFrequency])[0];
         assert!(fine(&sharp) > fine(&blurred) + 1.0, "{} vs {}", fine(&sharp), fine(&blurred));
     }
 
@@ -278,7 +278,7 @@ mod tests {
             let inside = (40..180).contains(&x) && (40..220).contains(&y);
             image::Rgb(if inside { [250; 3] } else { [10; 3] })
         });
-        let c = crops(&photo, &keypoints());
+        let c = crops(&photo, &centres());
         let at = |img: &RgbImage, x: u32, y: u32| img.get_pixel(x, y).0[0];
         assert!(at(&c.face, 32, 32) > 200 && at(&c.context, 32, 32) > 200);
         assert!(at(&c.context, 2, 2) < 50 && at(&c.context, 61, 61) < 50);

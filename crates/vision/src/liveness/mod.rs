@@ -14,7 +14,7 @@ pub mod minifasnet;
 
 use std::path::Path;
 
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 
@@ -93,9 +93,9 @@ impl LivenessModel {
         1.0 / (1.0 + (-(self.slope * logit + self.offset)).exp())
     }
 
-    /// The liveness of the face at `keypoints` in `photo`.
-    pub fn assess(&self, photo: &RgbImage, keypoints: &KeyPoints) -> Liveness {
-        let x = features::features(&features::crops(photo, keypoints), &self.blocks);
+    /// The liveness of the face at `centres` in `photo`.
+    pub fn assess(&self, photo: &RgbImage, centres: &EyeMouthCentres) -> Liveness {
+        let x = features::features(&features::crops(photo, centres), &self.blocks);
         Liveness { score: self.probability(self.logit(&x)), model: self.name.clone() }
     }
 }

@@ -189,10 +189,10 @@ impl Pipeline {
         let t = Instant::now();
         let templating = tracing::info_span!("template").entered();
         // The quality components are measured on dlib's chip whichever network embeds.
-        let chip = crate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
+        let chip = crate::embed::face_chip(&photo.rgb, &landmarks.centres);
         let (template, mirror) = match &self.recognizer {
             Recognizer::Embedding(recognizer, _) => {
-                let embedded = recognizer.embed(&photo.rgb, &landmarks.keypoints, face.points.as_ref(), Some(&chip));
+                let embedded = recognizer.embed(&photo.rgb, &landmarks.centres, face.points.as_ref(), Some(&chip));
                 (embedded.template, embedded.dlib_pair)
             }
             Recognizer::Dlib(deep) => {
@@ -205,7 +205,7 @@ impl Pipeline {
         timings.template_ms = elapsed_ms(t);
         let t = Instant::now();
         let _assessing = tracing::info_span!("quality").entered();
-        let components = crate::quality::components(&chip, &landmarks.keypoints, input.pose, input.fit_residual_px);
+        let components = crate::quality::components(&chip, &landmarks.centres, input.pose, input.fit_residual_px);
         let components = match &mirror {
             Some(mirror) => components.with_mirror(mirror),
             None => components,
@@ -276,12 +276,12 @@ impl Pipeline {
     /// measured where the liveness is (the eye and mouth centres of `analysis`); `None` without
     /// the model. Not part of [`Pipeline::analyze`]: only a challenge's frames need it.
     pub fn render_check(&self, photo: &Photo, analysis: &FaceAnalysis) -> Option<Liveness> {
-        self.render.as_ref().map(|model| model.assess(&photo.rgb, &analysis.landmarks.keypoints))
+        self.render.as_ref().map(|model| model.assess(&photo.rgb, &analysis.landmarks.centres))
     }
 
     /// The liveness of the face with `landmarks`, measured where the recognizer cuts its chip.
     fn liveness_of(&self, photo: &Photo, landmarks: &Landmarks) -> Option<Liveness> {
-        self.liveness.as_ref().map(|model| model.assess(&photo.rgb, &landmarks.keypoints))
+        self.liveness.as_ref().map(|model| model.assess(&photo.rgb, &landmarks.centres))
     }
 
     fn face_model(&self) -> Result<&FaceModel, PipelineError> {
@@ -323,7 +323,7 @@ impl Pipeline {
 
         let t = Instant::now();
         let _templating = tracing::info_span!("template").entered();
-        let crop = |input: &RecognitionInput| recognizer.normalized_crop(&input.gray, &input.keypoints);
+        let crop = |input: &RecognitionInput| recognizer.normalized_crop(&input.gray, &input.centres);
         let template = match recognizer.paths().get(1) {
             // A fused model also sees the face on its second path (2D: the photo itself, no fit).
             Some(&second) => {

@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::{Point, Rect};
 use facegate_core::imaging::GrayF32;
 
@@ -26,7 +26,7 @@ pub struct FaceFinder {
     /// missing.
     pub profile: Option<Asm3dLandmarker>,
     /// Where the eye and mouth centres the chip is cut at come from.
-    pub keypoints: ChipCentres,
+    pub centre_source: CentreSource,
     /// |yaw| (degrees) of the detector's five points from which the 3D-ASM is seeded by them
     /// ([`Asm3dLandmarker::fit_from_detector`]) instead of by the C-ASM; `None`: never.
     pub detector_seed_min_yaw: Option<f32>,
@@ -35,7 +35,7 @@ pub struct FaceFinder {
 /// Where the recognizer's eye and mouth centres come from, for a face whose detector gave its own
 /// five points (YuNet); faces without them always take the landmarks'.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub enum ChipCentres {
+pub enum CentreSource {
     /// The 58 landmarks' eye and mouth centres.
     Landmarks,
     /// The detector's eyes and the middle of its mouth corners.
@@ -45,9 +45,9 @@ pub enum ChipCentres {
     DetectorWhenTurned(f32),
 }
 
-impl Default for ChipCentres {
+impl Default for CentreSource {
     fn default() -> Self {
-        ChipCentres::Landmarks
+        CentreSource::Landmarks
     }
 }
 
@@ -67,7 +67,7 @@ pub fn detector_turn(points: &[Point; 5]) -> f32 {
 /// mouth's (IMM; 2.55 on LFW, 2.40 on ORL) and its centre lies 0.27 of that distance from the
 /// eyes towards the mouth, with no sideways offset.
 pub fn cascade_like_box(points: &[Point; 5]) -> Rect {
-    let k = detector_keypoints(points);
+    let k = centres_from_detector(points);
     let eyes = [0.5 * (k.left_eye[0] + k.right_eye[0]), 0.5 * (k.left_eye[1] + k.right_eye[1])];
     let (dx, dy) = (k.mouth[0] - eyes[0], k.mouth[1] - eyes[1]);
     let d = (dx * dx + dy * dy).sqrt();
@@ -83,9 +83,9 @@ pub fn seed_box(face: &Face) -> Rect {
 }
 
 /// The eye and mouth centres of a detector's five points.
-pub fn detector_keypoints(points: &[Point; 5]) -> KeyPoints {
+pub fn centres_from_detector(points: &[Point; 5]) -> EyeMouthCentres {
     let [left_eye, right_eye, _, mouth_left, mouth_right] = *points;
-    KeyPoints { left_eye, right_eye, mouth: [0.5 * (mouth_left[0] + mouth_right[0]), 0.5 * (mouth_left[1] + mouth_right[1])] }
+    EyeMouthCentres { left_eye, right_eye, mouth: [0.5 * (mouth_left[0] + mouth_right[0]), 0.5 * (mouth_left[1] + mouth_right[1])] }
 }
 
 impl FaceFinder {
@@ -108,7 +108,7 @@ impl FaceFinder {
             landmarker,
             asm3d,
             profile,
-            keypoints: ChipCentres::default(),
+            centre_source: CentreSource::default(),
             detector_seed_min_yaw: Some(DETECTOR_SEED_MIN_YAW),
         })
     }
@@ -132,8 +132,8 @@ impl FaceFinder {
     /// The landmarks of a detected face: [`FaceFinder::landmarks`] in its box; on a head whose
     /// five detector points show it turned by [`FaceFinder::detector_seed_min_yaw`] or more, the
     /// points are replaced by the 3D-ASM's seeded by those points (its views go to full profile),
-    /// the key points kept. The key points are taken from the detector's own points where
-    /// [`FaceFinder::keypoints`] says so.
+    /// the centres kept. The centres are taken from the detector's own points where
+    /// [`FaceFinder::centre_source`] says so.
     pub fn landmarks_of(&self, gray: &GrayF32, face: &Face) -> Landmarks {
         let mut landmarks = self.landmarks(gray, &seed_box(face));
         if let Some(profile) = self.profile_landmarks(gray, face) {
@@ -144,13 +144,13 @@ impl FaceFinder {
             landmarks.points = profile.points;
         }
         if let Some(points) = &face.points {
-            let use_detector = match self.keypoints {
-                ChipCentres::Landmarks => false,
-                ChipCentres::Detector => true,
-                ChipCentres::DetectorWhenTurned(turn) => detector_turn(points).abs() >= turn,
+            let use_detector = match self.centre_source {
+                CentreSource::Landmarks => false,
+                CentreSource::Detector => true,
+                CentreSource::DetectorWhenTurned(turn) => detector_turn(points).abs() >= turn,
             };
             if use_detector {
-                landmarks.keypoints = detector_keypoints(points);
+                landmarks.centres = centres_from_detector(points);
             }
         }
         landmarks
@@ -171,7 +171,7 @@ impl FaceFinder {
             return None;
         }
         let found = self.profile.as_ref()?.fit_from_detector(gray, face.points.as_ref()?, &self.landmarker.model)?;
-        Some(Landmarks { points: found.points, keypoints: found.keypoints })
+        Some(Landmarks { points: found.points, centres: found.centres })
     }
 
     /// The largest face of `gray` and its landmarks.

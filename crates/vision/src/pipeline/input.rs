@@ -4,7 +4,7 @@
 use std::borrow::Cow;
 use std::path::Path;
 
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::imaging::{GrayF32, Photo};
 
 use super::PipelineError;
@@ -49,8 +49,8 @@ pub fn quality_components(
     pose: Option<Pose>,
     fit_residual_px: Option<f32>,
 ) -> (FaceChip, Components) {
-    let chip = crate::embed::face_chip(&photo.rgb, &landmarks.keypoints);
-    let components = crate::quality::components(&chip, &landmarks.keypoints, pose, fit_residual_px);
+    let chip = crate::embed::face_chip(&photo.rgb, &landmarks.centres);
+    let components = crate::quality::components(&chip, &landmarks.centres, pose, fit_residual_px);
     (chip, components)
 }
 
@@ -58,7 +58,7 @@ pub fn quality_components(
 /// and fit residual when the 3DMM was fitted.
 pub struct RecognitionInput<'a> {
     pub gray: Cow<'a, GrayF32>,
-    pub keypoints: KeyPoints,
+    pub centres: EyeMouthCentres,
     pub pose: Option<Pose>,
     pub fit_residual_px: Option<f32>,
 }
@@ -87,13 +87,8 @@ pub fn recognition_input<'a>(
     match (normalization, face_model.zip(fitted)) {
         (Normalization::Morph, Some((model, fit))) => {
             let frontal = model.frontalize(photo, &fit).map_err(PipelineError::PoseCorrection)?;
-            Ok(RecognitionInput {
-                gray: Cow::Owned(GrayF32::from_rgb(&frontal.image)),
-                keypoints: frontal.keypoints,
-                pose,
-                fit_residual_px,
-            })
+            Ok(RecognitionInput { gray: Cow::Owned(GrayF32::from_rgb(&frontal.image)), centres: frontal.centres, pose, fit_residual_px })
         }
-        _ => Ok(RecognitionInput { gray: Cow::Borrowed(&photo.gray), keypoints: landmarks.keypoints, pose, fit_residual_px }),
+        _ => Ok(RecognitionInput { gray: Cow::Borrowed(&photo.gray), centres: landmarks.centres, pose, fit_residual_px }),
     }
 }

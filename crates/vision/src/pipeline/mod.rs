@@ -19,7 +19,7 @@ mod input;
 mod tests;
 
 pub use analyze::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, Pipeline, StageTimings};
-pub use finder::{ChipCentres, FaceFinder, Located, cascade_like_box, detector_keypoints, detector_turn, seed_box};
+pub use finder::{CentreSource, FaceFinder, Located, cascade_like_box, centres_from_detector, detector_turn, seed_box};
 pub use input::{RecognitionInput, load_face_model, quality_components, recognition_input, reconstruct};
 
 /// Where the pipeline's models are.

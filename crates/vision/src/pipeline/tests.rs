@@ -36,7 +36,7 @@ fn a_full_profile_is_found_posed_and_its_far_side_hidden() {
         assert!(pipeline.finder.profile_seeded(&face.face), "{person}");
         let casm = pipeline.finder.landmarks(&profile.gray, &seed_box(&face.face));
         assert_ne!(face.landmarks.points, casm.points, "{person}: the profile model's points");
-        assert_eq!(face.landmarks.keypoints, casm.keypoints, "{person}: the chip's centres stay the C-ASM path's");
+        assert_eq!(face.landmarks.centres, casm.centres, "{person}: the chip's centres stay the C-ASM path's");
         let yaw = face.pose.expect("posed").yaw;
         assert!(yaw.abs() > 50.0, "{person}: a full profile posed at {yaw}°");
         let visible = face.visible.as_ref().expect("visibility");
@@ -84,7 +84,7 @@ fn full_pipeline_reports_every_stage() {
     let a = pipeline.analyze(&photo("05-1m.jpg")).unwrap();
     assert_eq!(a.faces_found, 1);
     assert_eq!(a.landmarks.points.len(), 58);
-    assert!(a.face.rect.contains(a.landmarks.keypoints.left_eye) && a.face.rect.contains(a.landmarks.keypoints.mouth));
+    assert!(a.face.rect.contains(a.landmarks.centres.left_eye) && a.face.rect.contains(a.landmarks.centres.mouth));
     assert!(a.pose.is_some());
     assert_eq!(a.template.model_version, pipeline.recognizer.model_version());
     let norm: f32 = a.template.vector.iter().map(|v| v * v).sum::<f32>().sqrt();

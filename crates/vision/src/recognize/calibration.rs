@@ -32,7 +32,7 @@ pub struct Calibration {
     pub points: Vec<CalibratedPoint>,
     pub genuine_count: usize,
     pub impostor_count: usize,
-    /// Where the scores came from (persons, images, keypoint source).
+    /// Where the scores came from (persons, images, centre source).
     pub source: String,
 }
 

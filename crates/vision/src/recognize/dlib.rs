@@ -13,7 +13,7 @@ use super::calibration::{Calibration, EnrolledCalibration};
 use super::template::Combine;
 use super::{Dlda, OperatingPoint, RecognizeError, Template};
 use crate::embed::{Embedder, Embedding};
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::model_file::read_model;
 
 pub const FILE: &str = "deep.bin";
@@ -24,7 +24,7 @@ pub const FORMAT: u32 = 1;
 pub enum ChipSource {
     /// The photo itself, aligned by the landmarks.
     Photo,
-    /// The 3DMM frontal rendering, aligned by its key points.
+    /// The 3DMM frontal rendering, aligned by its centres.
     Frontal,
 }
 
@@ -116,8 +116,8 @@ impl DlibRecognizer {
         Ok(DlibRecognizer { model, network })
     }
 
-    pub fn template(&self, photo: &RgbImage, keypoints: &KeyPoints) -> Template {
-        self.model.template(&crate::embed::face_embedding(&self.network, photo, keypoints))
+    pub fn template(&self, photo: &RgbImage, centres: &EyeMouthCentres) -> Template {
+        self.model.template(&crate::embed::face_embedding(&self.network, photo, centres))
     }
 
     /// The template of a chip already cut ([`crate::embed::face_chip`]): what [`Self::template`]

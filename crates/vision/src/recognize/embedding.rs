@@ -17,7 +17,7 @@ use super::template::Combine;
 use super::{OperatingPoint, RecognizeError, Template};
 use crate::embed::onnx::OnnxEmbedder;
 use crate::embed::{Embedder, FaceChip, MirrorPair};
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::Point;
 use facegate_core::model_file::read_model;
 
@@ -141,12 +141,12 @@ impl EmbeddingRecognizer {
         Ok(EmbeddingRecognizer { model, networks })
     }
 
-    /// The template of the face with eye and mouth centres `keypoints` (and the detector's five
+    /// The template of the face with eye and mouth centres `centres` (and the detector's five
     /// points, when it gave them) in `photo`. `dlib_chip`: dlib's chip when the caller cut it.
     pub fn embed(
         &self,
         photo: &RgbImage,
-        keypoints: &KeyPoints,
+        centres: &EyeMouthCentres,
         points: Option<&[Point; 5]>,
         dlib_chip: Option<&FaceChip>,
     ) -> EmbeddedFace {
@@ -155,7 +155,7 @@ impl EmbeddingRecognizer {
             .networks
             .iter()
             .map(|network| {
-                let (embedding, pair) = self.embed_with(network, photo, keypoints, points, dlib_chip);
+                let (embedding, pair) = self.embed_with(network, photo, centres, points, dlib_chip);
                 dlib_pair = dlib_pair.or(pair);
                 embedding
             })
@@ -169,7 +169,7 @@ impl EmbeddingRecognizer {
         &self,
         network: &MemberNetwork,
         photo: &RgbImage,
-        keypoints: &KeyPoints,
+        centres: &EyeMouthCentres,
         points: Option<&[Point; 5]>,
         dlib_chip: Option<&FaceChip>,
     ) -> (Vec<f32>, Option<MirrorPair>) {
@@ -179,14 +179,14 @@ impl EmbeddingRecognizer {
                 let chip = match dlib_chip {
                     Some(chip) => chip,
                     None => {
-                        owned = crate::embed::face_chip(photo, keypoints);
+                        owned = crate::embed::face_chip(photo, centres);
                         &owned
                     }
                 };
                 let pair = crate::embed::chip_mirror_pair(net, chip);
                 (pair.mean().0.to_vec(), Some(pair))
             }
-            MemberNetwork::Onnx(net) => (net.embed(&net.chip(photo, keypoints, points)), None),
+            MemberNetwork::Onnx(net) => (net.embed(&net.chip(photo, centres, points)), None),
         }
     }
 

@@ -1,7 +1,7 @@
 //! Normalisation, Direct LDA templates, scores and calibrated thresholds (thesis 2.6).
 //!
 //! A face comes in as a grey image and its eye and mouth centres
-//! ([`KeyPoints`](facegate_core::face::KeyPoints)); [`normalize`] aligns and relights it into a
+//! ([`EyeMouthCentres`](facegate_core::face::EyeMouthCentres)); [`normalize`] aligns and relights it into a
 //! small crop, [`features`] turns the crop into a vector, [`dlda`] projects it, and the unit
 //! projection is the [`Template`]. Templates compare by cosine similarity; a decision uses a
 //! threshold calibrated at a false match rate ([`calibration`]). Everything a template depends on

@@ -7,7 +7,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::{Point, Similarity};
 use facegate_core::imaging::GrayF32;
 
@@ -22,7 +22,7 @@ pub enum Photometric {
     TanTriggs,
 }
 
-/// Where the keypoints go and how the crop is treated.
+/// Where the centres go and how the crop is treated.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct NormalizeParams {
     pub width: usize,
@@ -76,7 +76,7 @@ impl NormalizeParams {
         }
     }
 
-    /// The keypoint layout scaled by `factor` about the crop centre (below 1: more of the head in
+    /// The centre layout scaled by `factor` about the crop centre (below 1: more of the head in
     /// the crop, at a lower resolution).
     pub fn zoomed(&self, factor: f32) -> NormalizeParams {
         let c = [0.5 * (self.width as f32 - 1.0), 0.5 * (self.height as f32 - 1.0)];
@@ -99,19 +99,19 @@ impl NormalizeParams {
         out
     }
 
-    /// The similarity taking image coordinates to crop coordinates for these keypoints.
-    pub fn alignment(&self, keypoints: &KeyPoints) -> Similarity {
-        let from = [keypoints.left_eye, keypoints.right_eye, keypoints.mouth];
+    /// The similarity taking image coordinates to crop coordinates for these centres.
+    pub fn alignment(&self, centres: &EyeMouthCentres) -> Similarity {
+        let from = [centres.left_eye, centres.right_eye, centres.mouth];
         let to = [self.left_eye, self.right_eye, self.mouth];
         Similarity::fit(&from, &to, Some(&[1.0, 1.0, self.mouth_weight]))
     }
 }
 
-/// The geometric crop: `gray` resampled so that `keypoints` land on the canonical positions.
+/// The geometric crop: `gray` resampled so that `centres` land on the canonical positions.
 /// When the crop is much smaller than the face, the source is first halved (box filter) until the
 /// remaining factor is at most 2, so that bilinear sampling does not alias.
-pub fn geometric(gray: &GrayF32, keypoints: &KeyPoints, params: &NormalizeParams) -> GrayF32 {
-    let to_crop = params.alignment(keypoints);
+pub fn geometric(gray: &GrayF32, centres: &EyeMouthCentres, params: &NormalizeParams) -> GrayF32 {
+    let to_crop = params.alignment(centres);
     let mut to_image = to_crop.inverse();
     let mut level: Option<GrayF32> = None;
     // Image pixels per crop pixel.
@@ -238,8 +238,8 @@ fn tan_triggs(crop: &mut GrayF32, mask: &[bool]) {
 }
 
 /// Geometric then photometric normalisation.
-pub fn normalize(gray: &GrayF32, keypoints: &KeyPoints, params: &NormalizeParams) -> GrayF32 {
-    let mut crop = geometric(gray, keypoints, params);
+pub fn normalize(gray: &GrayF32, centres: &EyeMouthCentres, params: &NormalizeParams) -> GrayF32 {
+    let mut crop = geometric(gray, centres, params);
     photometric(&mut crop, params.photometric, &params.mask());
     crop
 }
@@ -255,12 +255,12 @@ mod tests {
     use super::*;
 
     /// A dark image with two bright eye blobs and a mouth blob at known places.
-    fn synthetic_face(kp: &KeyPoints, w: usize, h: usize) -> GrayF32 {
+    fn synthetic_face(centres: &EyeMouthCentres, w: usize, h: usize) -> GrayF32 {
         GrayF32::from_fn(w, h, |x, y| {
             let d = |p: Point| ((x as f32 - p[0]).powi(2) + (y as f32 - p[1]).powi(2)).sqrt();
-            if d(kp.left_eye) < 6.0 || d(kp.right_eye) < 6.0 {
+            if d(centres.left_eye) < 6.0 || d(centres.right_eye) < 6.0 {
                 250.0
-            } else if d(kp.mouth) < 6.0 {
+            } else if d(centres.mouth) < 6.0 {
                 120.0
             } else {
                 20.0
@@ -301,9 +301,10 @@ mod tests {
         let params = NormalizeParams { photometric: Photometric::None, elliptical_mask: false, ..NormalizeParams::layout64() };
         // A face 3.1 times the crop's size, rotated by 12°, somewhere in a 640×480 photo.
         let t = Similarity { a: 3.1 * 0.21f32.cos(), b: 3.1 * 0.21f32.sin(), tx: 250.0, ty: 90.0 };
-        let kp = KeyPoints { left_eye: t.apply(params.left_eye), right_eye: t.apply(params.right_eye), mouth: t.apply(params.mouth) };
-        let photo = synthetic_face(&kp, 640, 480);
-        let crop = geometric(&photo, &kp, &params);
+        let centres =
+            EyeMouthCentres { left_eye: t.apply(params.left_eye), right_eye: t.apply(params.right_eye), mouth: t.apply(params.mouth) };
+        let photo = synthetic_face(&centres, 640, 480);
+        let crop = geometric(&photo, &centres, &params);
         for (canonical, name) in [(params.left_eye, "left eye"), (params.right_eye, "right eye")] {
             let found = brightest_near(&crop, canonical, 4);
             let err = ((found[0] - canonical[0]).powi(2) + (found[1] - canonical[1]).powi(2)).sqrt();
@@ -312,8 +313,8 @@ mod tests {
         // The mouth blob (grey, not white) sits at its canonical position too.
         let m = crop.get(params.mouth[0] as usize, params.mouth[1] as usize);
         assert!((m - 120.0).abs() < 15.0, "mouth value {m}");
-        // And the alignment itself maps the keypoints exactly here (the face has canonical proportions).
-        let a = params.alignment(&kp).apply(kp.right_eye);
+        // And the alignment itself maps the centres exactly here (the face has canonical proportions).
+        let a = params.alignment(&centres).apply(centres.right_eye);
         assert!((a[0] - params.right_eye[0]).abs() < 1e-3 && (a[1] - params.right_eye[1]).abs() < 1e-3);
     }
 

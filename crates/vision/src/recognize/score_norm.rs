@@ -1,7 +1,7 @@
 //! Cohort score normalisation (symmetric S-norm, and its adaptive variant AS-norm).
 //!
 //! A raw cosine means different things for different faces: a probe whose photo conditions (data
-//! set, resolution, keypoint quality) resemble many faces scores high against everybody. S-norm
+//! set, resolution, centre quality) resemble many faces scores high against everybody. S-norm
 //! measures that per face against a fixed cohort of *other* people's templates (templates of the
 //! training persons, shipped in the model) and standardises the score from both sides:
 //!

@@ -5,7 +5,7 @@ use std::path::Path;
 use crate::landmarks::asm3d::*;
 use crate::landmarks::search::{self, Frame, Level, Workspace, from_level, pyramid, to_level};
 use crate::landmarks::{AsmModel, LandmarkError, Variant};
-use facegate_core::face::{IMM_POINTS, KeyPoints};
+use facegate_core::face::{EyeMouthCentres, IMM_POINTS};
 use facegate_core::geometry::{Point, Rect, centroid};
 use facegate_core::imaging::GrayF32;
 use facegate_morph::{Camera, Pose};
@@ -20,7 +20,7 @@ pub fn crop_frame(scale: f32, centre: Point, crop_size: usize) -> Frame {
 #[derive(Debug, Clone)]
 pub struct Asm3dLandmarks {
     pub points: Vec<Point>,
-    pub keypoints: KeyPoints,
+    pub centres: EyeMouthCentres,
     /// Pose of the fitted 3D shape (degrees, the morph module's convention).
     pub pose: Pose,
     /// Yaw of the view whose texture models were used last.
@@ -278,7 +278,7 @@ impl Asm3dLandmarker {
         match self.yaw_of(&casm.points) {
             Some(yaw) if yaw.abs() >= min_yaw => {
                 let r = self.fit_seeded(gray, face, &casm.points, &landmarker.model);
-                (crate::landmarks::Landmarks { points: r.points, keypoints: r.keypoints }, true)
+                (crate::landmarks::Landmarks { points: r.points, centres: r.centres }, true)
             }
             _ => (casm, false),
         }
@@ -408,8 +408,8 @@ impl Asm3dLandmarker {
             }
         }
         let points: Vec<Point> = st.points.iter().map(|&p| frame.to_image(p)).collect();
-        let keypoints = KeyPoints::from_imm(&points);
-        Asm3dLandmarks { points, keypoints, pose: st.camera.pose(), view_yaw: self.model.views[st.view].yaw }
+        let centres = EyeMouthCentres::from_imm(&points);
+        Asm3dLandmarks { points, centres, pose: st.camera.pose(), view_yaw: self.model.views[st.view].yaw }
     }
 
     /// [`fit`](Self::fit) with the 2D model of the refinement stage chosen by `refinement`.
@@ -420,8 +420,8 @@ impl Asm3dLandmarker {
         let mut states = self.starts(&face, &frame);
         let finish = |st: &State| {
             let points: Vec<Point> = st.points.iter().map(|&p| frame.to_image(p)).collect();
-            let keypoints = KeyPoints::from_imm(&points);
-            Asm3dLandmarks { points, keypoints, pose: st.camera.pose(), view_yaw: m.views[st.view].yaw }
+            let centres = EyeMouthCentres::from_imm(&points);
+            Asm3dLandmarks { points, centres, pose: st.camera.pose(), view_yaw: m.views[st.view].yaw }
         };
         if gray.width < 2 || gray.height < 2 || gray.data.len() != gray.width * gray.height {
             let k = states.iter().position(|st| st.view == front).unwrap_or(0);
@@ -516,7 +516,7 @@ impl Asm3dLandmarker {
             st.camera = fit.camera;
         }
         let points: Vec<Point> = st.points.iter().map(|&p| frame.to_image(p)).collect();
-        let keypoints = KeyPoints::from_imm(&points);
-        Asm3dLandmarks { points, keypoints, pose: st.camera.pose(), view_yaw: view.yaw }
+        let centres = EyeMouthCentres::from_imm(&points);
+        Asm3dLandmarks { points, centres, pose: st.camera.pose(), view_yaw: view.yaw }
     }
 }

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use facegate_core::face::KeyPoints;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::imaging::GrayF32;
 
 use super::{
@@ -18,7 +18,8 @@ use super::{
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Provenance {
     /// `imm-annotations` (eye/mouth centres from the `.asf` files) or `pipeline` (detector + ASM).
-    pub keypoint_source: String,
+    #[serde(rename = "keypoint_source")]
+    pub centre_source: String,
     pub data: Vec<String>,
     pub train_persons: Vec<String>,
     pub train_images: usize,
@@ -301,8 +302,8 @@ impl ClassicalRecognizer {
     }
 
     /// The normalised crop of a face (geometric and photometric), as the model sees it.
-    pub fn normalized_crop(&self, gray: &GrayF32, keypoints: &KeyPoints) -> GrayF32 {
-        normalize::normalize(gray, keypoints, &self.model.normalize)
+    pub fn normalized_crop(&self, gray: &GrayF32, centres: &EyeMouthCentres) -> GrayF32 {
+        normalize::normalize(gray, centres, &self.model.normalize)
     }
 
     /// The template of a face: its normalised crops (see [`ClassicalRecognizer::normalized_crop`]) as each

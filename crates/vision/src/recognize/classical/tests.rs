@@ -72,7 +72,7 @@ fn format_2_and_3_models_load_with_their_version() {
     let mask = params.mask();
     let dims = FeatureKind::Pixels.dims(params.width, params.height, &mask);
     let provenance = Provenance {
-        keypoint_source: "imm-annotations".into(),
+        centre_source: "imm-annotations".into(),
         train_persons: vec!["imm-04".into()],
         train_images: 1,
         mirrored: true,
