@@ -16,7 +16,7 @@
 
 use std::time::Instant;
 
-use facegate::service::SubjectId;
+use facegate::core::SubjectId;
 use facegate::store::Store;
 use facegate_core::template::Template;
 use rand::{Rng, SeedableRng};

@@ -17,12 +17,12 @@ use tokio::net::TcpListener;
 
 use crate::config::Settings;
 use crate::http::server::{self, ServerLimits, Stopped};
-use crate::http::{self, ApiConfig, AppState, FaceEngine};
+use crate::http::{self, ApiConfig, AppState};
 use crate::pipeline::Pipeline;
 use crate::service::liveness::ThresholdSource;
 use crate::service::protection::{ProtectedEngine, check_stored_versions};
 use crate::service::site::SiteStatus;
-use crate::service::{Facegate, LivenessPolicy, Matcher};
+use crate::service::{FaceEngine, Facegate, LivenessPolicy, Matcher};
 use crate::store::{KeyCheck, KeyRing, Store};
 
 /// The target of the start-up and shutdown log lines: `facegate serve`'s module, where they were

@@ -15,8 +15,8 @@ use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+use facegate::core::SubjectId;
 use facegate::http::ApiConfig;
-use facegate::service::SubjectId;
 use facegate::startup::Application;
 use facegate::store::{KeyCheck, KeyRing, Store};
 use facegate_core::template::Template;

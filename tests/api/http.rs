@@ -244,8 +244,8 @@ async fn templates_of_another_model_version_are_not_compared(db: Db) {
     assert_eq!(first.post_form("/enroll", Some("frank"), &[photo.clone()]).await.status, 201);
     // The same database served by a newer model.
     let app = TestApp::start_on(db, StandInEngine::new("v2"), config()).await;
-    let old = first.store.templates(&facegate::service::SubjectId::parse("frank").unwrap()).await.unwrap().unwrap();
-    app.store.enroll(&facegate::service::SubjectId::parse("frank").unwrap(), &old).await.unwrap();
+    let old = first.store.templates(&facegate::core::SubjectId::parse("frank").unwrap()).await.unwrap().unwrap();
+    app.store.enroll(&facegate::core::SubjectId::parse("frank").unwrap(), &old).await.unwrap();
     app.post_form("/verify", Some("frank"), &[photo.clone()]).await.assert_problem(409, "model-mismatch");
     let r = app.post_form("/identify", None, &[photo.clone()]).await;
     assert_eq!((r.status, r.json()["subjects_searched"].as_u64()), (200, Some(0)));

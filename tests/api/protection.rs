@@ -4,7 +4,7 @@
 //! database of plain templates, of protected ones without the key, or of another secret's stops the
 //! start-up with a message saying what to do.
 
-use facegate::service::SubjectId;
+use facegate::core::SubjectId;
 use facegate::store::Store;
 use serde_json::Value;
 

@@ -130,7 +130,7 @@ async fn two_replicas_on_one_database_agree_at_once() {
 /// still sees the enrolment.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_gallery_reloads_after_its_listening_connection_is_cut() {
-    use facegate::service::SubjectId;
+    use facegate::core::SubjectId;
     use facegate::service::gallery::LiveGallery;
     use facegate::store::Store;
     use facegate_core::template::Template;

@@ -1,7 +1,7 @@
 //! `facegate calibrate`: the real binary measures the enrolled subjects' impostor pairs and stores
 //! the site calibration; `facegate serve` raises its thresholds to it, and `--clear` takes it back.
 
-use facegate::service::SubjectId;
+use facegate::core::SubjectId;
 use facegate::store::Store;
 use facegate_core::template::Template;
 use serde_json::{Value, json};

@@ -4,9 +4,10 @@
 
 use std::time::Duration;
 
+use facegate::core::SubjectId;
+use facegate::service::Matcher;
 use facegate::service::liveness_camera::{self, LivenessCalibration};
 use facegate::service::site::{self, SiteStatus};
-use facegate::service::{Matcher, SubjectId};
 use facegate::store::{Backend, CipherError, KeyRing, RekeyReport, Store, StoreChange, StoreError, VersionCount};
 use facegate_core::template::{OperatingPoint, Template};
 use sqlx::AnyPool;

@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use facegate::service::SubjectId;
+use facegate::core::SubjectId;
 use facegate::store::{KeyRing, Store};
 use facegate_core::template::Template;
 use serde_json::Value;

@@ -19,7 +19,8 @@ use serde::de::DeserializeOwned;
 
 use super::AppState;
 use super::problem::{Problem, ProblemKind};
-use facegate_service::{MAX_CAPTURE_FRAMES, SubjectId};
+use facegate_core::SubjectId;
+use facegate_service::MAX_CAPTURE_FRAMES;
 
 mod json;
 

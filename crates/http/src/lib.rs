@@ -21,8 +21,6 @@ use self::audit::KeyId;
 
 use facegate_service::WorkClass;
 
-pub use facegate_service::FaceEngine;
-
 pub mod admission;
 pub mod audit;
 pub mod console;

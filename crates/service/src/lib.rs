@@ -35,7 +35,7 @@ pub use facegate::{
     AnalyzedPhoto, Enrollment, Facegate, FramesMismatch, Health, Identification, PhotoError, PreparedEnrollment, ServiceConfig,
     ServiceError, Verification, analyze_photo,
 };
-pub use facegate_core::{InvalidSubjectId, MAX_SUBJECT_LEN, SubjectId};
+use facegate_core::SubjectId;
 pub use liveness::{LivenessPoint, LivenessPolicy, LivenessVerdict, PresentationAttack, ThresholdSource, check_liveness, fuse_liveness};
 pub use pool::{Admission, PoolError, WorkClass, WorkPool};
 
