@@ -6,11 +6,11 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use facegate::config::{models_dir, shared_dir};
-use facegate::core::imaging::open;
-use facegate::detect::Detector;
-use facegate::landmarks::asm3d::{Asm3dLandmarker, Refinement, SERVICE_MIN_YAW};
-use facegate::landmarks::{Landmarker, Variant};
+use facegate_core::imaging::open;
+use facegate_detect::Detector;
+use facegate_paths::{models_dir, shared_dir};
+use facegate_vision::landmarks::asm3d::{Asm3dLandmarker, Refinement, SERVICE_MIN_YAW};
+use facegate_vision::landmarks::{Landmarker, Variant};
 
 mod common;
 use common::ThreadCpuTime;

@@ -5,9 +5,9 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use facegate::config::{models_dir, shared_dir};
-use facegate::core::imaging::{GrayF32, open};
-use facegate::detect::{Detector, DetectorKind};
+use facegate_core::imaging::{GrayF32, open};
+use facegate_detect::{Detector, DetectorKind};
+use facegate_paths::{models_dir, shared_dir};
 
 mod common;
 use common::ThreadCpuTime;
@@ -29,7 +29,7 @@ fn bench_detect(c: &mut Criterion<ThreadCpuTime>) {
     }
     // `rustface`'s detector is `&mut self` and not `Send`: `Detector` builds one per call from a
     // clone of the parsed model. This is that per-call overhead.
-    let bytes = std::fs::read(models_dir().join("cascades").join(facegate::detect::SEETA_MODEL)).expect("SeetaFace model");
+    let bytes = std::fs::read(models_dir().join("cascades").join(facegate_detect::SEETA_MODEL)).expect("SeetaFace model");
     let model = rustface::read_model(&bytes[..]).expect("model parses");
     group.bench_function("seeta/per_call_detector_from_model_clone", |b| {
         b.iter(|| black_box(rustface::create_detector_with_model(black_box(&model).clone())))

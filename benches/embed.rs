@@ -4,14 +4,15 @@
 mod common;
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
-use facegate::core::face::EyeMouthCentres;
-use facegate::embed::{self, Workspace};
-use facegate::research::dataset::list_imm;
+use facegate_core::face::EyeMouthCentres;
+use facegate_nn::Workspace;
+use facegate_research::dataset::list_imm;
+use facegate_vision::embed;
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
-    let embedder = embed::load(&facegate::config::models_dir()).expect("models/embedding.bin (facegate convert embedding)");
-    let sample = &list_imm(&facegate::config::shared_dir().join("data/imm")).expect("IMM data")[0];
-    let photo = facegate::core::imaging::open(&sample.image).expect("IMM photo");
+    let embedder = embed::load(&facegate_paths::models_dir()).expect("models/embedding.bin (facegate convert embedding)");
+    let sample = &list_imm(&facegate_paths::shared_dir().join("data/imm")).expect("IMM data")[0];
+    let photo = facegate_core::imaging::open(&sample.image).expect("IMM photo");
     let k = EyeMouthCentres::from_imm(&sample.landmarks().expect("IMM landmarks"));
     let chip = embed::face_chip(&photo.rgb, &k);
     let mut ws = Workspace::default();

@@ -12,9 +12,9 @@
 //! `cargo run --release --example gallery_scale`.
 
 use criterion::{BatchSize, BenchmarkId, Criterion, black_box};
-use facegate::service::Matcher;
-use facegate::service::gallery::{Found, Gallery, Precision};
 use facegate_core::template::{OperatingPoint, Template};
+use facegate_service::Matcher;
+use facegate_service::gallery::{Found, Gallery, Precision};
 use rand::{Rng, SeedableRng};
 
 mod common;
@@ -65,13 +65,13 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
             b.iter(|| black_box(exact.search(&MaxCosine, black_box(&probe), 1e-3, 5).unwrap()))
         });
         if n <= 100_000 {
-            let expected = facegate::service::gallery::score_each_subject(&MaxCosine, &probe, subjects.clone(), 1e-3, 5);
-            let names = |c: &[facegate::service::Candidate]| c.iter().map(|c| c.subject.clone()).collect::<Vec<_>>();
+            let expected = facegate_service::gallery::score_each_subject(&MaxCosine, &probe, subjects.clone(), 1e-3, 5);
+            let names = |c: &[facegate_service::Candidate]| c.iter().map(|c| c.subject.clone()).collect::<Vec<_>>();
             assert_eq!(names(&found), names(&expected), "the gallery finds what service::identify finds");
             group.bench_with_input(BenchmarkId::new("per_subject", n), &n, |b, _| {
                 b.iter_batched(
                     || subjects.clone(),
-                    |subjects| black_box(facegate::service::gallery::score_each_subject(&MaxCosine, &probe, subjects, 1e-3, 5)),
+                    |subjects| black_box(facegate_service::gallery::score_each_subject(&MaxCosine, &probe, subjects, 1e-3, 5)),
                     BatchSize::PerIteration,
                 )
             });

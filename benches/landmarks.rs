@@ -6,11 +6,11 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use facegate::config::{models_dir, shared_dir};
-use facegate::core::geometry::Rect;
-use facegate::core::imaging::open;
-use facegate::detect::Detector;
-use facegate::landmarks::{Landmarker, Variant};
+use facegate_core::geometry::Rect;
+use facegate_core::imaging::open;
+use facegate_detect::Detector;
+use facegate_paths::{models_dir, shared_dir};
+use facegate_vision::landmarks::{Landmarker, Variant};
 
 mod common;
 use common::ThreadCpuTime;

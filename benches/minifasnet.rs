@@ -6,15 +6,15 @@
 mod common;
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
-use facegate::config::shared_dir;
-use facegate::core::imaging::{self, DecodeLimits};
-use facegate::detect::DetectorKind;
-use facegate::liveness::minifasnet::{MiniFasNet, PixelBox, crop_box, network_input};
+use facegate_core::imaging::{self, DecodeLimits};
+use facegate_detect::DetectorKind;
+use facegate_paths::shared_dir;
+use facegate_vision::liveness::minifasnet::{MiniFasNet, PixelBox, crop_box, network_input};
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
     let pipeline = common::deep_pipeline(DetectorKind::default());
     let lbp = pipeline.liveness.as_ref().expect("models/liveness.bin");
-    let networks = MiniFasNet::load(&facegate::config::models_dir()).expect("models/minifasnet-v2.bin and minifasnet-v1se.bin");
+    let networks = MiniFasNet::load(&facegate_paths::models_dir()).expect("models/minifasnet-v2.bin and minifasnet-v1se.bin");
     let photos = [
         ("nuaa_640x480_live", "data/nuaa/real/0004/0004_01_00_01_109.jpg"),
         ("lfw_250x250", "data/lfw/Aaron_Peirsol/Aaron_Peirsol_0001.jpg"),

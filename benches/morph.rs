@@ -8,20 +8,20 @@
 //! shared, loaded machine wall time measures the neighbours too. The work is single-threaded.
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use facegate::morph::{FaceModel, TEXTURE_SIZE};
-use facegate::research::dataset::list_imm;
+use facegate_morph::{FaceModel, TEXTURE_SIZE};
+use facegate_research::dataset::list_imm;
 
 mod common;
 use common::ThreadCpuTime;
 
 fn bench(c: &mut Criterion<ThreadCpuTime>) {
-    let model = FaceModel::load(&facegate::config::sfm_dir()).expect("Surrey Face Model");
-    let sample = list_imm(&facegate::config::shared_dir().join("data/imm"))
+    let model = FaceModel::load(&facegate_paths::sfm_dir()).expect("Surrey Face Model");
+    let sample = list_imm(&facegate_paths::shared_dir().join("data/imm"))
         .expect("IMM data")
         .into_iter()
         .find(|s| s.person == 2 && s.view == 3)
         .expect("IMM 02-3");
-    let photo = facegate::core::imaging::open(&sample.image).expect("photo");
+    let photo = facegate_core::imaging::open(&sample.image).expect("photo");
     let points = sample.landmarks().expect("landmarks");
     let (w, h) = (photo.width(), photo.height());
     let fitted = model.fit(&points, w, h).expect("fit");

@@ -10,9 +10,9 @@ mod common;
 use std::path::PathBuf;
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
-use facegate::config::{models_dir, shared_dir};
-use facegate::core::imaging::{self, DecodeLimits};
-use facegate::landmarks::asm3d::SERVICE_MIN_YAW;
+use facegate_core::imaging::{self, DecodeLimits};
+use facegate_paths::{models_dir, shared_dir};
+use facegate_vision::landmarks::asm3d::SERVICE_MIN_YAW;
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
     let pipeline = common::deep_pipeline(Default::default());
@@ -23,8 +23,7 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
         ("orl_s1-2_92x112", shared_dir().join("data/orl/s1/2.pgm")),
     ];
     // The small-image scan before its coarse small-window levels: step 1 on every level.
-    let mut step1_everywhere =
-        facegate::detect::Detector::load_kind(&models_dir(), facegate::detect::DetectorKind::Haar).expect("cascades");
+    let mut step1_everywhere = facegate_detect::Detector::load_kind(&models_dir(), facegate_detect::DetectorKind::Haar).expect("cascades");
     step1_everywhere.options.small_image_fine_above_scale = 0.0;
     let asm3d = pipeline.finder.asm3d.as_ref().expect("models/asm3d.bin");
     let mut group = c.benchmark_group("pipeline");
@@ -33,7 +32,7 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
         let bytes = std::fs::read(&path).expect("photo");
         let photo = imaging::decode(&bytes, &DecodeLimits::default()).expect("decodes");
         let located = pipeline.finder.locate(&photo.gray).expect("a face");
-        let casm = pipeline.finder.landmarker.fit(&photo.gray, &located.face.rect, facegate::landmarks::Variant::Casm);
+        let casm = pipeline.finder.landmarker.fit(&photo.gray, &located.face.rect, facegate_vision::landmarks::Variant::Casm);
         let switched = asm3d.yaw_of(&casm.points).is_some_and(|yaw| yaw.abs() >= SERVICE_MIN_YAW);
         eprintln!("{name}: 3D-ASM switch {}", if switched { "on" } else { "off" });
         group.bench_function(format!("decode_analyze/{name}"), |b| common::decode_analyze(b, &pipeline, &bytes));

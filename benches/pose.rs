@@ -7,9 +7,9 @@
 mod common;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use facegate::config::shared_dir;
-use facegate::core::imaging::{self, DecodeLimits};
-use facegate::detect::DetectorKind;
+use facegate_core::imaging::{self, DecodeLimits};
+use facegate_detect::DetectorKind;
+use facegate_paths::shared_dir;
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
     let pipelines = [("yunet", common::deep_pipeline(DetectorKind::Yunet)), ("haar", common::deep_pipeline(DetectorKind::Haar))];

@@ -10,9 +10,9 @@ mod common;
 use std::path::PathBuf;
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
-use facegate::config::{models_dir, shared_dir};
-use facegate::core::imaging::{self, DecodeLimits};
-use facegate::pipeline::quality_components;
+use facegate_core::imaging::{self, DecodeLimits};
+use facegate_paths::{models_dir, shared_dir};
+use facegate_vision::pipeline::quality_components;
 
 fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
     let pipeline = common::deep_pipeline(Default::default());
@@ -26,17 +26,17 @@ fn bench(c: &mut Criterion<common::ThreadCpuTime>) {
         let analysis = pipeline.analyze(&photo).expect("a face");
         let (landmarks, pose) = (&analysis.landmarks, analysis.pose);
         let residual = analysis.quality.components.fit_residual.map(|r| r * analysis.quality.components.inter_eye_px);
-        let chip = facegate::embed::face_chip(&photo.rgb, &landmarks.centres);
+        let chip = facegate_vision::embed::face_chip(&photo.rgb, &landmarks.centres);
         group.bench_function(format!("components_of_chip/{name}"), |b| {
-            b.iter(|| black_box(facegate::quality::components(black_box(&chip), &landmarks.centres, pose, residual)))
+            b.iter(|| black_box(facegate_vision::quality::components(black_box(&chip), &landmarks.centres, pose, residual)))
         });
         // The deep path's whole quality stage: the components, the agreement of the two
         // embeddings the recognizer made anyway, the score.
-        let network = facegate::embed::load(&models_dir()).expect("models/embedding.bin");
-        let mirror = facegate::embed::chip_mirror_pair(&network, &chip);
+        let network = facegate_vision::embed::load(&models_dir()).expect("models/embedding.bin");
+        let mirror = facegate_vision::embed::chip_mirror_pair(&network, &chip);
         group.bench_function(format!("chip_components_mirror_score/{name}"), |b| {
             b.iter(|| {
-                let components = facegate::quality::components(black_box(&chip), &landmarks.centres, pose, residual);
+                let components = facegate_vision::quality::components(black_box(&chip), &landmarks.centres, pose, residual);
                 black_box(pipeline.quality.assess(components.with_mirror(black_box(&mirror))))
             })
         });

@@ -4,8 +4,9 @@
 //! same as two different ones).
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
-use facegate::recognize::{ClassicalRecognizer, Views};
-use facegate::research::dataset::{EyeMouthCentres, list_imm};
+use facegate_core::face::EyeMouthCentres;
+use facegate_research::dataset::list_imm;
+use facegate_vision::recognize::{ClassicalRecognizer, Views};
 
 /// The one crop on every path of the model (what is measured is the time, not the template).
 fn views<T: Copy>(fused: bool, crop: T) -> Views<T> {
@@ -13,9 +14,9 @@ fn views<T: Copy>(fused: bool, crop: T) -> Views<T> {
 }
 
 fn bench(c: &mut Criterion) {
-    let recognizer = ClassicalRecognizer::load(&facegate::config::models_dir()).expect("models/dlda.bin (facegate train dlda)");
-    let sample = &list_imm(&facegate::config::shared_dir().join("data/imm")).expect("IMM data")[0];
-    let photo = facegate::core::imaging::open(&sample.image).expect("IMM photo");
+    let recognizer = ClassicalRecognizer::load(&facegate_paths::models_dir()).expect("models/dlda.bin (facegate train dlda)");
+    let sample = &list_imm(&facegate_paths::shared_dir().join("data/imm")).expect("IMM data")[0];
+    let photo = facegate_core::imaging::open(&sample.image).expect("IMM photo");
     let centres = EyeMouthCentres::from_imm(&sample.landmarks().expect("IMM landmarks"));
     let crop = recognizer.normalized_crop(&photo.gray, &centres);
     let fused = recognizer.paths().len() == 2;

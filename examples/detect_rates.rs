@@ -8,11 +8,11 @@
 //!
 //!   cargo run --release --example detect_rates [-- MIN_FACE_PX...]
 
-use facegate::config::{models_dir, shared_dir};
-use facegate::core::geometry::Rect;
-use facegate::core::imaging::GrayF32;
-use facegate::detect::{DetectOptions, Detector, DetectorKind};
-use facegate::research::eval::thread_cpu_ns;
+use facegate_core::geometry::Rect;
+use facegate_core::imaging::GrayF32;
+use facegate_detect::{DetectOptions, Detector, DetectorKind};
+use facegate_paths::{models_dir, shared_dir};
+use facegate_research::eval::thread_cpu_ns;
 
 struct Tally {
     found: usize,
@@ -20,7 +20,7 @@ struct Tally {
     cpu_ms: f64,
 }
 
-fn run(detector: &Detector, photos: &[GrayF32], found: impl Fn(&GrayF32, &[facegate::detect::Face]) -> bool) -> Tally {
+fn run(detector: &Detector, photos: &[GrayF32], found: impl Fn(&GrayF32, &[facegate_detect::Face]) -> bool) -> Tally {
     let mut t = Tally { found: 0, photos: photos.len(), cpu_ms: 0.0 };
     for gray in photos {
         let start = thread_cpu_ns().expect("Linux thread CPU time");
@@ -37,10 +37,10 @@ fn main() {
         sizes = vec![0.0, DetectOptions::default().yunet_min_face_px];
     }
     let data = shared_dir().join("data");
-    let open = |p: &std::path::Path| facegate::core::imaging::open(p).unwrap_or_else(|e| panic!("{}: {e}", p.display())).gray;
+    let open = |p: &std::path::Path| facegate_core::imaging::open(p).unwrap_or_else(|e| panic!("{}: {e}", p.display())).gray;
     let umist: Vec<GrayF32> =
         (1..=10).flat_map(|s| (1..=19).map(move |k| (s, k))).map(|(s, k)| open(&data.join(format!("umist/s{s:02}/{k:02}.pgm")))).collect();
-    let lfw_photos = facegate::research::dataset::list_labelled(&data.join("lfw")).expect("../shared/data/lfw");
+    let lfw_photos = facegate_research::dataset::list_labelled(&data.join("lfw")).expect("../shared/data/lfw");
     let lfw: Vec<GrayF32> = lfw_photos.iter().map(|p| open(&p.image)).collect();
     println!("| min face in the input | UMIST found | UMIST CPU per photo | LFW found | LFW CPU per photo |");
     println!("| --- | --- | --- | --- | --- |");

@@ -16,9 +16,9 @@
 
 use std::time::Instant;
 
-use facegate::core::SubjectId;
-use facegate::store::Store;
+use facegate_core::SubjectId;
 use facegate_core::template::Template;
+use facegate_store::Store;
 use rand::{Rng, SeedableRng};
 
 #[tokio::main]
@@ -82,7 +82,7 @@ async fn bulk(args: &[String]) {
                 .bind(&subject)
                 .bind(version)
                 .bind(dimension as i64)
-                .bind(facegate::store::vector_to_blob(&vector))
+                .bind(facegate_store::vector_to_blob(&vector))
                 .execute(&mut *tx)
                 .await
                 .expect("inserts");

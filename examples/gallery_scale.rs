@@ -19,9 +19,9 @@
 //! store's gallery (`LiveGallery::load`, quantised) and its resident growth, then a search
 //! (filled by `examples/fill_gallery.rs --bulk`).
 
-use facegate::service::Matcher;
-use facegate::service::gallery::{Found, Gallery, Precision};
 use facegate_core::template::{OperatingPoint, Template};
+use facegate_service::Matcher;
+use facegate_service::gallery::{Found, Gallery, Precision};
 use rand::{Rng, SeedableRng};
 
 /// The deep recognizers' scoring (the best cosine) for templates of one model version.
@@ -88,7 +88,7 @@ fn one_size(n: usize, dims: usize, exact: bool, probe_count: usize) {
     // The exact best of each probe, streaming the same templates again: a chunk of unit templates
     // against every unit probe is one matrix product.
     let probes: Vec<Template> = probes.into_iter().map(|p| Template::new("bench", p)).collect();
-    let units: Vec<f32> = probes.iter().flat_map(|p| facegate::core::vector::unit(p.vector.clone())).collect();
+    let units: Vec<f32> = probes.iter().flat_map(|p| facegate_core::vector::unit(p.vector.clone())).collect();
     let units = faer::MatRef::from_row_major_slice(&units, probe_count, dims);
     let mut best: Vec<(f32, usize)> = vec![(f32::NEG_INFINITY, 0); probe_count];
     const CHUNK: usize = 4096;
@@ -119,7 +119,7 @@ fn one_size(n: usize, dims: usize, exact: bool, probe_count: usize) {
         if chunk.is_empty() {
             first = i;
         }
-        chunk.extend_from_slice(&facegate::core::vector::unit(v.to_vec()));
+        chunk.extend_from_slice(&facegate_core::vector::unit(v.to_vec()));
         if chunk.len() == CHUNK * dims {
             flush(&mut chunk, first, &mut best);
         }
@@ -197,10 +197,10 @@ fn main() {
 fn load_from(database: &str, version: &str) {
     let runtime = tokio::runtime::Runtime::new().expect("a runtime");
     runtime.block_on(async {
-        let store = facegate::store::Store::connect(database, None).await.expect("the database opens");
+        let store = facegate_store::Store::connect(database, None).await.expect("the database opens");
         let before = resident_bytes();
         let started = std::time::Instant::now();
-        let live = facegate::service::gallery::LiveGallery::new(store.clone(), version, Precision::Quantised);
+        let live = facegate_service::gallery::LiveGallery::new(store.clone(), version, Precision::Quantised);
         let unreadable = live.load().await.expect("loads");
         let load_s = started.elapsed().as_secs_f64();
         let growth = resident_bytes().saturating_sub(before);

@@ -9,11 +9,11 @@
 //!
 //!   cargo run --release --example verify_profile [-- ROUNDS]
 
-use facegate::config::{models_dir, shared_dir};
-use facegate::core::imaging::{self, DecodeLimits};
-use facegate::pipeline::{Pipeline, PipelineConfig};
-use facegate::recognize::{Recognizer, RecognizerKind};
-use facegate::research::eval::thread_cpu_ns;
+use facegate_core::imaging::{self, DecodeLimits};
+use facegate_paths::{models_dir, shared_dir};
+use facegate_research::eval::thread_cpu_ns;
+use facegate_vision::pipeline::{Pipeline, PipelineConfig};
+use facegate_vision::recognize::{Recognizer, RecognizerKind};
 
 /// Photo sets by kind: (label, paths).
 fn photo_sets() -> Vec<(&'static str, Vec<std::path::PathBuf>)> {
@@ -90,7 +90,7 @@ fn profile(pipeline: &Pipeline, bytes: &[Vec<u8>], rounds: usize) -> Costs {
                     }
                 }
                 Recognizer::Dlib(d) => {
-                    let chip = facegate::embed::face_chip(&photo.rgb, &a.landmarks.centres);
+                    let chip = facegate_vision::embed::face_chip(&photo.rgb, &a.landmarks.centres);
                     c.networks[0] += cpu_ms(|| {
                         std::hint::black_box(d.template_and_mirror_pair(&chip));
                     });

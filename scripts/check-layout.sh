@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The layout rules no compiler checks (docs/architecture.md): no Rust source file over 800 lines,
 # no module of the binary outside src/cli importing the command line, no crate re-exporting a
-# sibling crate (and no old path through such a re-export), and no runtime crate (core, detect, nn, morph, vision, store, service, http) depending on what the runtime must not
+# sibling crate or its items (and no old path through such a re-export), and no runtime crate (core, detect, nn, morph, vision, store, service, http) depending on what the runtime must not
 # reach — the research crate, the binary, the settings' paths, clap or indicatif. Function length,
 # printing and environment reads are clippy's (the workspace lints; CI runs clippy on the runtime).
 set -euo pipefail
@@ -25,10 +25,11 @@ for path in sorted(pathlib.Path("src").glob("**/*.rs")):
         if "crate::cli" in line and not line.lstrip().startswith("//"):
             failures.append(f"{path}:{number}: imports the command line (take plain values or a callback instead)")
 
-# Crates are called by their own names: no crate re-exports a sibling crate whole (as vision once
-# did with `detect` and `morph`), and core's template types are named from core alone.
+# Crates are called by their own names: no crate, and not the binary, re-exports a sibling crate or
+# any of its items (a dependent declares the crate and imports the item from its home), and core's
+# template types are named from core alone.
 import re
-whole_crate = re.compile(r"^\s*pub use facegate_\w+(\s+as\s+\w+)?\s*;")
+sibling_reexport = re.compile(r"^\s*pub use (::)?facegate_\w+")
 old_paths = re.compile(r"facegate_vision::(morph|detect)\b|\brecognize::(template::)?(Template|OperatingPoint)\b")
 for path in sorted(pathlib.Path(".").glob("**/*.rs")):
     if path.parts[0] in ("target",) or "node_modules" in path.parts:
@@ -36,8 +37,8 @@ for path in sorted(pathlib.Path(".").glob("**/*.rs")):
     for number, line in enumerate(path.open(encoding="utf-8"), 1):
         if line.lstrip().startswith("//"):
             continue
-        if path.parts[0] == "crates" and whole_crate.match(line):
-            failures.append(f"{path}:{number}: re-exports a sibling crate; its dependents declare and import it by name")
+        if path.parts[0] in ("crates", "src") and sibling_reexport.match(line):
+            failures.append(f"{path}:{number}: re-exports a sibling crate's item; its dependents declare the crate and import it from there")
         if old_paths.search(line):
             failures.append(f"{path}:{number}: an old path; name facegate_morph, facegate_detect or facegate_core::template")
 

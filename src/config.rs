@@ -14,25 +14,25 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use crate::choices;
-use crate::core::imaging::DecodeLimits;
-use crate::detect::DetectorKind;
-use crate::http::ApiConfig;
-use crate::http::server::ServerLimits;
-use crate::liveness::LivenessModel;
-use crate::pipeline::{Pipeline, PipelineConfig};
-use crate::quality::QualityPolicy;
-use crate::recognize::DEFAULT_FMR;
-use crate::recognize::RecognizerKind;
-use crate::service::protection::ProtectionKey;
-use crate::service::{ChallengeConfig, LivenessPolicy, ServiceConfig};
-use crate::store::KeyRing;
 use anyhow::Context;
+use facegate_core::imaging::DecodeLimits;
+use facegate_detect::DetectorKind;
+use facegate_http::ApiConfig;
+use facegate_http::server::ServerLimits;
+use facegate_service::protection::ProtectionKey;
+use facegate_service::{ChallengeConfig, LivenessPolicy, ServiceConfig};
+use facegate_store::KeyRing;
+use facegate_vision::liveness::LivenessModel;
+use facegate_vision::pipeline::{Pipeline, PipelineConfig};
+use facegate_vision::quality::QualityPolicy;
+use facegate_vision::recognize::DEFAULT_FMR;
+use facegate_vision::recognize::RecognizerKind;
 
-/// Where the files are (`FACEGATE_SHARED`, `FACEGATE_SFM`, `FACEGATE_MODELS` and their defaults):
-/// written once, in `facegate-paths`, which the research crate and the tests use too.
-pub use facegate_paths::{models_dir, sfm_dir, shared_dir};
+// Where the files are (`FACEGATE_SHARED`, `FACEGATE_SFM`, `FACEGATE_MODELS` and their defaults) is
+// written once, in `facegate-paths`, which the command line and the tests import too.
+use facegate_paths::{models_dir, sfm_dir};
 
-/// The pipeline's model folders: [`models_dir`] and [`sfm_dir`].
+/// The pipeline's model folders: `facegate_paths::models_dir` and `sfm_dir`.
 pub fn pipeline_config() -> PipelineConfig {
     PipelineConfig {
         models_dir: models_dir(),
@@ -413,13 +413,13 @@ impl Settings {
     /// The liveness model the pipeline keeps of the one it loaded (`None` when `liveness.bin` is
     /// missing): none with `--liveness off`, so no time is spent on it. `enforce` without a model,
     /// and a `--liveness-threshold` with no model to apply it to, stop the start-up. The threshold
-    /// itself is the service's ([`crate::service::liveness::threshold_in_force`]), not the model's.
+    /// itself is the service's ([`facegate_service::liveness::threshold_in_force`]), not the model's.
     pub fn liveness_model(&self, model: Option<LivenessModel>) -> anyhow::Result<Option<LivenessModel>> {
         let policy = LivenessPolicy::from(self.liveness);
         if policy == LivenessPolicy::Off {
             return Ok(None);
         }
-        let file = crate::liveness::FILE;
+        let file = facegate_vision::liveness::FILE;
         if model.is_none() {
             anyhow::ensure!(
                 policy != LivenessPolicy::Enforce,
@@ -648,7 +648,7 @@ mod tests {
     #[test]
     fn the_liveness_settings_shape_the_model_the_pipeline_keeps() {
         use crate::choices::Liveness;
-        let model = || Some(LivenessModel::load(&models_dir().join(crate::liveness::FILE)).unwrap());
+        let model = || Some(LivenessModel::load(&models_dir().join(facegate_vision::liveness::FILE)).unwrap());
         let with = |liveness, liveness_threshold| Settings { liveness, liveness_threshold, ..Settings::default() };
         assert!(with(Liveness::Off, None).liveness_model(model()).unwrap().is_none());
         assert!(with(Liveness::Off, Some(0.3)).liveness_model(model()).unwrap().is_none(), "off wins over a threshold");

@@ -7,7 +7,7 @@ use std::path::Path;
 
 use anyhow::Context;
 
-use crate::store::redact_url;
+use facegate_store::redact_url;
 
 /// [`database_url`] and the same URL as printed (its password redacted): what every command that
 /// opens the database connects to, and names in its messages.

@@ -16,14 +16,14 @@ use anyhow::Context;
 use tokio::net::TcpListener;
 
 use crate::config::Settings;
-use crate::http::server::{self, ServerLimits, Stopped};
-use crate::http::{self, ApiConfig, AppState};
-use crate::pipeline::Pipeline;
-use crate::service::liveness::ThresholdSource;
-use crate::service::protection::{ProtectedEngine, check_stored_versions};
-use crate::service::site::SiteStatus;
-use crate::service::{FaceEngine, Facegate, LivenessPolicy, Matcher};
-use crate::store::{KeyCheck, KeyRing, Store};
+use facegate_http::server::{self, ServerLimits, Stopped};
+use facegate_http::{ApiConfig, AppState};
+use facegate_service::liveness::ThresholdSource;
+use facegate_service::protection::{ProtectedEngine, check_stored_versions};
+use facegate_service::site::SiteStatus;
+use facegate_service::{FaceEngine, Facegate, LivenessPolicy, Matcher};
+use facegate_store::{KeyCheck, KeyRing, Store};
+use facegate_vision::pipeline::Pipeline;
 
 /// The target of the start-up and shutdown log lines: `facegate serve`'s module, where they were
 /// first written, which operators and the scripts filter on (`RUST_LOG=facegate::cli::serve=info`
@@ -87,7 +87,7 @@ impl Application {
     /// stop following the other replicas' changes and close the store.
     pub async fn run_until_stopped(self, shutdown: impl Future<Output = ()>) {
         let Application { listener, state, limits, .. } = self;
-        match server::serve(listener, http::router(state.clone()), limits, shutdown).await {
+        match server::serve(listener, facegate_http::router(state.clone()), limits, shutdown).await {
             Stopped::Drained => info!("every connection finished"),
             Stopped::GraceExpired => {
                 warn!(grace_s = limits.shutdown_grace.as_secs_f64(), "connections still open after the grace period were dropped")
@@ -250,7 +250,7 @@ async fn load_liveness_calibration(facegate: &Facegate) -> anyhow::Result<()> {
     let Some(point) = point else {
         match facegate.config().liveness {
             LivenessPolicy::Off => info!("liveness off: no face is checked for a presentation attack"),
-            _ => warn!("no liveness model ({}): faces report no liveness", crate::liveness::FILE),
+            _ => warn!("no liveness model ({}): faces report no liveness", facegate_vision::liveness::FILE),
         }
         return Ok(());
     };
@@ -283,7 +283,7 @@ async fn load_liveness_calibration(facegate: &Facegate) -> anyhow::Result<()> {
 /// and log the default operating point it gives against the model's.
 async fn load_site_calibration(facegate: &Facegate) -> anyhow::Result<()> {
     let status = facegate.load_site_calibration().await.context("cannot read the site calibration")?;
-    let fmr = crate::recognize::DEFAULT_FMR;
+    let fmr = facegate_vision::recognize::DEFAULT_FMR;
     let matcher = facegate.matcher();
     let model = matcher.inner.operating_point(fmr, 1).threshold;
     match status {

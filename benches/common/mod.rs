@@ -2,7 +2,7 @@
 //!
 //! On a machine shared with other work, wall time measures the neighbours too; the pipeline's work
 //! is single-threaded, so the thread's CPU time is what one free core takes. Linux only
-//! (`/proc/thread-self/schedstat`, through `facegate::research::eval::thread_cpu_ns`).
+//! (`/proc/thread-self/schedstat`, through `facegate_research::eval::thread_cpu_ns`).
 
 use std::time::Duration;
 
@@ -11,9 +11,7 @@ use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 pub struct ThreadCpuTime;
 
 fn now() -> Duration {
-    Duration::from_nanos(
-        facegate::research::eval::thread_cpu_ns().expect("/proc/thread-self/schedstat (Linux) gives the thread's CPU time"),
-    )
+    Duration::from_nanos(facegate_research::eval::thread_cpu_ns().expect("/proc/thread-self/schedstat (Linux) gives the thread's CPU time"))
 }
 
 impl Measurement for ThreadCpuTime {
@@ -42,20 +40,20 @@ impl Measurement for ThreadCpuTime {
 /// The service's pipeline as the benches measure it: deep recognizer, the Surrey Face Model of
 /// `../shared`, the detector `detector`. (Not every bench that shares this module loads one.)
 #[allow(dead_code)]
-pub fn deep_pipeline(detector: facegate::detect::DetectorKind) -> facegate::pipeline::Pipeline {
-    let config = facegate::pipeline::PipelineConfig {
-        models_dir: facegate::config::models_dir(),
-        sfm_dir: Some(facegate::config::shared_dir().join("models/sfm")),
-        recognizer: facegate::recognize::RecognizerKind::Dlib,
+pub fn deep_pipeline(detector: facegate_detect::DetectorKind) -> facegate_vision::pipeline::Pipeline {
+    let config = facegate_vision::pipeline::PipelineConfig {
+        models_dir: facegate_paths::models_dir(),
+        sfm_dir: Some(facegate_paths::shared_dir().join("models/sfm")),
+        recognizer: facegate_vision::recognize::RecognizerKind::Dlib,
         detector,
     };
-    facegate::pipeline::Pipeline::load(&config).expect("models and ../shared/models/sfm")
+    facegate_vision::pipeline::Pipeline::load(&config).expect("models and ../shared/models/sfm")
 }
 
 /// The service's cost of one photo: `bytes` decoded, then `Pipeline::analyze` (the face must be found).
 #[allow(dead_code)]
-pub fn decode_analyze(b: &mut criterion::Bencher<'_, ThreadCpuTime>, pipeline: &facegate::pipeline::Pipeline, bytes: &[u8]) {
-    use facegate::core::imaging::{self, DecodeLimits};
+pub fn decode_analyze(b: &mut criterion::Bencher<'_, ThreadCpuTime>, pipeline: &facegate_vision::pipeline::Pipeline, bytes: &[u8]) {
+    use facegate_core::imaging::{self, DecodeLimits};
     b.iter(|| {
         let photo = imaging::decode(criterion::black_box(bytes), &DecodeLimits::default()).unwrap();
         criterion::black_box(pipeline.analyze(&photo).unwrap())

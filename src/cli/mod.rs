@@ -227,14 +227,14 @@ pub fn progress(len: u64, what: &str) -> indicatif::ProgressBar {
     bar
 }
 
-/// [`research::Progress`](crate::research::Progress) drawn as a bar on stderr, one bar per loop;
+/// [`research::Progress`](facegate_research::Progress) drawn as a bar on stderr, one bar per loop;
 /// notes go above the bar (or straight to stderr when the bar is hidden).
 #[derive(Default)]
 pub struct Bar {
     bar: std::sync::Mutex<Option<indicatif::ProgressBar>>,
 }
 
-impl crate::research::Progress for Bar {
+impl facegate_research::Progress for Bar {
     fn begin(&self, len: u64, what: &str) {
         *self.bar.lock().expect("progress bar lock") = Some(progress(len, what));
     }

@@ -6,9 +6,9 @@ use std::process::ExitCode;
 
 use anyhow::{Context, bail};
 
-use crate::core::geometry::Point;
-use crate::core::imaging::Photo;
-use crate::morph::{AVATAR_TEXTURE_SIZE, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, FittedFace, export};
+use facegate_core::geometry::Point;
+use facegate_core::imaging::Photo;
+use facegate_morph::{AVATAR_TEXTURE_SIZE, FRONTAL_VIEW_SIZE, FaceModel, FitOptions, FittedFace, export};
 
 /// Where the model and the landmarks come from (shared by both commands).
 #[derive(clap::Args, Debug)]
@@ -59,24 +59,24 @@ pub struct FrontalizeArgs {
 }
 
 fn load_model(input: &MorphInput) -> anyhow::Result<FaceModel> {
-    let dir = input.sfm.clone().unwrap_or_else(crate::config::sfm_dir);
+    let dir = input.sfm.clone().unwrap_or_else(facegate_paths::sfm_dir);
     FaceModel::load(&dir)
         .context("the 3D morphable model is needed for this command (the Surrey Face Model is not redistributed with facegate)")
 }
 
 fn landmarks(input: &MorphInput, photo: &Photo) -> anyhow::Result<Vec<Point>> {
     if let Some(asf) = &input.landmarks {
-        let shape = crate::research::dataset::read_asf(asf, photo.width() as f32, photo.height() as f32)?;
-        if shape.points.len() != crate::research::dataset::IMM_POINTS {
+        let shape = facegate_research::dataset::read_asf(asf, photo.width() as f32, photo.height() as f32)?;
+        if shape.points.len() != facegate_core::face::IMM_POINTS {
             bail!("{}: {} points, expected 58 (IMM template)", asf.display(), shape.points.len());
         }
         return Ok(shape.xy());
     }
-    let models = input.models.clone().unwrap_or_else(crate::config::models_dir);
+    let models = input.models.clone().unwrap_or_else(facegate_paths::models_dir);
     // The service's landmarks (detector, C-ASM, 3D-ASM on turned faces): the same avatar as
     // `POST /avatar` for the same photo.
     let automatic = || -> anyhow::Result<Vec<Point>> {
-        let finder = crate::pipeline::FaceFinder::load(&models)?;
+        let finder = facegate_vision::pipeline::FaceFinder::load(&models)?;
         Ok(finder.locate(&photo.gray)?.landmarks.points)
     };
     automatic().context("automatic landmarks are unavailable; pass --landmarks FILE.asf (58-point IMM annotation)")
@@ -89,7 +89,7 @@ fn fit(input: &MorphInput, model: &FaceModel, photo: &Photo) -> anyhow::Result<F
 }
 
 fn open(path: &Path) -> anyhow::Result<Photo> {
-    crate::core::imaging::open(path).with_context(|| format!("cannot read {}", path.display()))
+    facegate_core::imaging::open(path).with_context(|| format!("cannot read {}", path.display()))
 }
 
 pub fn run_reconstruct(args: ReconstructArgs) -> anyhow::Result<ExitCode> {
@@ -136,7 +136,7 @@ pub fn run_frontalize(args: FrontalizeArgs) -> anyhow::Result<ExitCode> {
     let model = load_model(&args.input)?;
     let photo = open(&args.image)?;
     let fitted = fit(&args.input, &model, &photo)?;
-    let pose = crate::morph::Pose { yaw: args.yaw, ..Default::default() };
+    let pose = facegate_morph::Pose { yaw: args.yaw, ..Default::default() };
     let (frontal, png) = model.posed_png(&photo, &fitted, pose, args.size)?;
     std::fs::write(&args.out, png).with_context(|| format!("cannot write {}", args.out.display()))?;
     let k = frontal.centres;
@@ -172,15 +172,15 @@ pub struct TrainImmSfmArgs {
 /// `facegate train imm-sfm`: refine the fixed IMM correspondences on the frontal views (1, 2) of
 /// the IMM training persons (never the held-out ones) and write the table.
 pub fn run_train_imm_sfm(args: TrainImmSfmArgs) -> anyhow::Result<ExitCode> {
-    let dir = args.sfm.clone().unwrap_or_else(crate::config::sfm_dir);
+    let dir = args.sfm.clone().unwrap_or_else(facegate_paths::sfm_dir);
     let mut model = FaceModel::load(&dir).context("the 3D morphable model is needed for this command")?;
     // Start from the geometric anchors, not from a previously written table.
-    model.imm_vertices = crate::morph::correspondence::resolve(&crate::morph::correspondence::imm_anchors(), &model.shape.mean);
-    let imm = args.imm.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/imm"));
+    model.imm_vertices = facegate_morph::correspondence::resolve(&facegate_morph::correspondence::imm_anchors(), &model.shape.mean);
+    let imm = args.imm.clone().unwrap_or_else(|| facegate_paths::shared_dir().join("data/imm"));
     let mut shapes = Vec::new();
     let mut persons = std::collections::BTreeSet::new();
-    for s in crate::research::dataset::list_imm(&imm)? {
-        if crate::research::dataset::imm_is_test_person(s.person) || !(s.view == 1 || s.view == 2) {
+    for s in facegate_research::dataset::list_imm(&imm)? {
+        if facegate_research::dataset::imm_is_test_person(s.person) || !(s.view == 1 || s.view == 2) {
             continue;
         }
         let (w, h) = image::image_dimensions(&s.image)?;
@@ -190,8 +190,9 @@ pub fn run_train_imm_sfm(args: TrainImmSfmArgs) -> anyhow::Result<ExitCode> {
     if shapes.is_empty() {
         bail!("no IMM training annotations in {}", imm.display());
     }
-    let (table, before, after) = crate::research::train_imm_sfm::derive_from_annotations(&mut model, &shapes, args.rounds, args.radius_mm)?;
-    let anchors = crate::morph::correspondence::imm_anchors();
+    let (table, before, after) =
+        facegate_research::train_imm_sfm::derive_from_annotations(&mut model, &shapes, args.rounds, args.radius_mm)?;
+    let anchors = facegate_morph::correspondence::imm_anchors();
     let mut text = String::new();
     text.push_str("# IMM point -> Surrey Face Model (sfm_shape_3448) vertex id, for the fixed points (jaw 0-12 except\n");
     text.push_str("# the chin slide along the model contour at fit time). Written by `facegate train imm-sfm`:\n");
@@ -201,7 +202,7 @@ pub fn run_train_imm_sfm(args: TrainImmSfmArgs) -> anyhow::Result<ExitCode> {
     ));
     text.push_str(&format!("# (1, 2) of IMM training persons {:?}; RMS landmark residual {before:.2} px -> {after:.2} px.\n", persons));
     for (i, v) in table.iter().enumerate() {
-        if !matches!(anchors[i], crate::morph::correspondence::Anchor::Contour { .. }) {
+        if !matches!(anchors[i], facegate_morph::correspondence::Anchor::Contour { .. }) {
             text.push_str(&format!("{i} {v}\n"));
         }
     }

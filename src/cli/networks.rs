@@ -7,11 +7,11 @@ use std::process::ExitCode;
 use anyhow::Context;
 
 use super::embed::DeepDataArgs;
-use crate::research::convert::onnx_embedding;
-use crate::research::dataset::Split;
-use crate::research::eval::verification::VerificationSummary;
-use crate::research::train_deep::{self, Sample, Set};
-use crate::research::train_embedding::{self as train, OnnxVariant};
+use facegate_research::convert::onnx_embedding;
+use facegate_research::dataset::Split;
+use facegate_research::eval::verification::VerificationSummary;
+use facegate_research::train_deep::{self, Sample, Set};
+use facegate_research::train_embedding::{self as train, OnnxVariant};
 use facegate_vision::embed::onnx::{Alignment, Channels, Manifest, OnnxEmbedder, Source};
 use facegate_vision::recognize::dlib::DeepProvenance;
 use facegate_vision::recognize::embedding::{Member, Network};
@@ -144,13 +144,13 @@ fn columns(
     samples: &[Sample],
     variant: Option<OnnxVariant>,
 ) -> anyhow::Result<Vec<Vec<Option<Vec<f32>>>>> {
-    let models = crate::config::models_dir();
+    let models = facegate_paths::models_dir();
     let bar = crate::cli::Bar::default();
     networks
         .iter()
         .map(|n| match n {
             Network::Dlib => {
-                let sfm = crate::config::sfm_dir();
+                let sfm = facegate_paths::sfm_dir();
                 Ok(train::dlib_column(&train_deep::embeddings(&data.cache, &models, &sfm, samples, data.threads, &bar)?))
             }
             Network::Onnx(name) => {
@@ -165,7 +165,7 @@ fn columns(
 /// SHA-256 of each network's file, and how it prepares faces.
 fn identities(networks: &[Network]) -> anyhow::Result<Vec<(String, String)>> {
     use facegate_vision::recognize::embedding::DLIB_PREPROCESSING;
-    let models = crate::config::models_dir();
+    let models = facegate_paths::models_dir();
     networks
         .iter()
         .map(|n| match n {
@@ -204,7 +204,7 @@ pub struct TrainEmbeddingArgs {
 pub fn run_train_embedding(args: TrainEmbeddingArgs) -> anyhow::Result<ExitCode> {
     let networks = parse_networks(&args.networks);
     anyhow::ensure!((1..=2).contains(&networks.len()), "--networks takes one network or two");
-    let samples = train_deep::list_samples(&crate::config::shared_dir())?;
+    let samples = train_deep::list_samples(&facegate_paths::shared_dir())?;
     let embeddings = train::member_embeddings(&columns(&networks, &args.data, &samples, None)?, samples.len());
     let weights = match (networks.len(), args.weight) {
         (1, _) => vec![1.0],
@@ -241,7 +241,7 @@ pub fn run_train_embedding(args: TrainEmbeddingArgs) -> anyhow::Result<ExitCode>
         command: format!("facegate train embedding --networks {}{weight_flag} --out {}", args.networks, args.out.display()),
     };
     let model = train::train(&samples, &embeddings, members, provenance);
-    crate::core::model_file::write_model(&args.out, &model).map_err(anyhow::Error::msg)?;
+    facegate_core::model_file::write_model(&args.out, &model).map_err(anyhow::Error::msg)?;
     println!("{}: {} ({})", args.out.display(), model.version, model.provenance.trained_on);
     Ok(ExitCode::SUCCESS)
 }
@@ -266,7 +266,7 @@ pub struct EvalEmbeddingArgs {
 /// IMM and ORL held-out persons, every pair of one photo against one.
 pub fn run_eval_embedding(args: EvalEmbeddingArgs) -> anyhow::Result<ExitCode> {
     let networks = parse_networks(&args.networks);
-    let samples = train_deep::list_samples(&crate::config::shared_dir())?;
+    let samples = train_deep::list_samples(&facegate_paths::shared_dir())?;
     let mut candidates: Vec<(String, Vec<Network>, Vec<f32>, Vec<Vec<Option<Vec<f32>>>>)> = Vec::new();
     for n in &networks {
         let variants: Vec<(String, Option<OnnxVariant>)> = match n {
@@ -333,14 +333,14 @@ fn print_row(candidate: &str, set: &str, s: &VerificationSummary, json: bool) {
 /// FMR observed at each calibrated threshold beside the stated one.
 pub fn run_eval_verify_embedding(model_path: &std::path::Path, data: &DeepDataArgs, json: bool) -> anyhow::Result<ExitCode> {
     let model = facegate_vision::recognize::embedding::EmbeddingModel::load(model_path)?;
-    let samples = train_deep::list_samples(&crate::config::shared_dir())?;
+    let samples = train_deep::list_samples(&facegate_paths::shared_dir())?;
     let networks: Vec<Network> = model.members.iter().map(|m| m.network.clone()).collect();
     let embeddings = train::member_embeddings(&columns(&networks, data, &samples, None)?, samples.len());
     let templates: Vec<Option<Vec<f32>>> = embeddings.iter().map(|e| e.as_ref().map(|e| model.template(e).vector)).collect();
     if !json {
         println!("{} ({}; calibrated on {})", model.version, model.provenance.trained_on, model.calibration.source);
     }
-    let lines = crate::research::eval::deep::held_out_report_of(&samples, &templates, &|fmr, k| model.operating_point(fmr, k).threshold);
+    let lines = facegate_research::eval::deep::held_out_report_of(&samples, &templates, &|fmr, k| model.operating_point(fmr, k).threshold);
     super::embed::print_held_out(&lines, json)?;
     Ok(ExitCode::SUCCESS)
 }
@@ -366,9 +366,9 @@ pub struct EvalCalibrationArgs {
 /// both pooled, for the raw cosine and cohort normalisation, calibrated on the shipped persons or
 /// on persons disjoint from every checked set.
 pub fn run_eval_calibration(args: EvalCalibrationArgs) -> anyhow::Result<ExitCode> {
-    use crate::research::eval::calibration::{self as cal, CalibrationPersons, Scoring};
-    let model = facegate_vision::recognize::embedding::EmbeddingModel::load(&crate::config::models_dir().join(&args.model))?;
-    let samples = train_deep::list_samples(&crate::config::shared_dir())?;
+    use facegate_research::eval::calibration::{self as cal, CalibrationPersons, Scoring};
+    let model = facegate_vision::recognize::embedding::EmbeddingModel::load(&facegate_paths::models_dir().join(&args.model))?;
+    let samples = train_deep::list_samples(&facegate_paths::shared_dir())?;
     let networks: Vec<Network> = model.members.iter().map(|m| m.network.clone()).collect();
     let embeddings = train::member_embeddings(&columns(&networks, &args.data, &samples, None)?, samples.len());
     let templates: Vec<Option<Vec<f32>>> = embeddings.iter().map(|e| e.as_ref().map(|e| model.template(e).vector)).collect();
@@ -380,8 +380,8 @@ pub fn run_eval_calibration(args: EvalCalibrationArgs) -> anyhow::Result<ExitCod
         let stats = cal::cohort_stats(&samples, &templates, top_k, args.cohort_stride);
         reports.push(cal::report(&samples, &templates, Scoring::CohortNorm { top_k }, Some(&stats), CalibrationPersons::Disjoint));
     }
-    let grey: Vec<bool> = crate::research::par_map(&samples, args.data.threads, |s| {
-        crate::core::imaging::open(&s.image).map(|p| cal::is_grey(&p.rgb)).unwrap_or(false)
+    let grey: Vec<bool> = facegate_research::par_map(&samples, args.data.threads, |s| {
+        facegate_core::imaging::open(&s.image).map(|p| cal::is_grey(&p.rgb)).unwrap_or(false)
     });
     let by_domain = cal::report_by_probe_domain(&samples, &templates, &grey, CalibrationPersons::Disjoint);
     reports.push(cal::CandidateReport {

@@ -6,9 +6,9 @@ use std::process::ExitCode;
 use clap::Args;
 
 use crate::choices;
-use crate::pipeline::{CentreSource, Pipeline, PipelineConfig};
-use crate::research::eval::plot::{Chart, Scale, Series, line_chart};
-use crate::research::eval::pose::{self, Strategy};
+use facegate_research::eval::plot::{Chart, Scale, Series, line_chart};
+use facegate_research::eval::pose::{self, Strategy};
+use facegate_vision::pipeline::{CentreSource, Pipeline, PipelineConfig};
 
 #[derive(Args, Debug)]
 pub struct EvalPoseArgs {
@@ -74,7 +74,7 @@ fn parse_centre_source(text: &str) -> anyhow::Result<CentreSource> {
 }
 
 pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
-    let data = args.data.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/umist"));
+    let data = args.data.clone().unwrap_or_else(|| facegate_paths::shared_dir().join("data/umist"));
     let photos = pose::list_umist(&data)?;
     let mut config = crate::config::pipeline_config();
     if let Some(recognizer) = args.recognizer {
@@ -145,7 +145,7 @@ pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
         }
     }
     if args.held_out {
-        for (name, set) in pose::held_out_sets(&crate::config::shared_dir())? {
+        for (name, set) in pose::held_out_sets(&facegate_paths::shared_dir())? {
             let readings = pose::read_photos(&pipeline, &set, &[], false, args.threads, &crate::cli::Bar::default());
             let r = pose::held_out(name, &set, &readings, threshold, &score);
             if args.json {
@@ -195,7 +195,7 @@ pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
 
 /// Genuine scores against yaw on renderings of LFW's test persons: printed, and plotted to `path`.
 fn render_curve(pipeline: &Pipeline, threshold: f32, args: &EvalPoseArgs, path: &std::path::Path) -> anyhow::Result<()> {
-    let sets = pose::held_out_sets(&crate::config::shared_dir())?;
+    let sets = pose::held_out_sets(&facegate_paths::shared_dir())?;
     let lfw = &sets.iter().find(|(name, _)| name.starts_with("LFW")).expect("the LFW set").1;
     let yaws: Vec<f32> = (0..=6).map(|k| 15.0 * k as f32).collect();
     let curve = pose::render_curve(pipeline, lfw, &yaws, threshold, args.threads, &crate::cli::Bar::default());

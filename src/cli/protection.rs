@@ -6,11 +6,11 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
 
-use crate::pipeline::Pipeline;
-use crate::research::dataset::Split;
-use crate::research::eval::protection;
-use crate::research::train_deep::{self, Set};
-use crate::service::Matcher;
+use facegate_research::dataset::Split;
+use facegate_research::eval::protection;
+use facegate_research::train_deep::{self, Set};
+use facegate_service::Matcher;
+use facegate_vision::pipeline::Pipeline;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum ProtectionSet {
@@ -32,7 +32,7 @@ pub struct EvalProtectionArgs {
     pub seed: u64,
     /// The research cache folder: the photos' plain templates are kept there (made again when a
     /// model file, the pipeline's settings or the photos change).
-    #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
+    #[arg(long, default_value = facegate_research::cache::DEFAULT_DIR)]
     pub cache: PathBuf,
     /// Threads the pipeline runs on.
     #[arg(long, default_value_t = 2)]
@@ -52,12 +52,12 @@ pub fn run_eval(args: EvalProtectionArgs) -> anyhow::Result<ExitCode> {
         ProtectionSet::Orl => Set::Orl,
     };
     let samples: Vec<_> =
-        train_deep::list_samples(&crate::config::shared_dir())?.into_iter().filter(|s| s.set == set && s.split == Split::Test).collect();
+        train_deep::list_samples(&facegate_paths::shared_dir())?.into_iter().filter(|s| s.set == set && s.split == Split::Test).collect();
     anyhow::ensure!(
         !samples.is_empty(),
         "no photos of {:?}'s held-out persons under {}",
         args.dataset,
-        crate::config::shared_dir().display()
+        facegate_paths::shared_dir().display()
     );
     let config = crate::config::pipeline_config();
     let pipeline = Pipeline::load(&config)?;

@@ -6,16 +6,16 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use crate::config::Settings;
-use crate::quality::{FEATURE_NAMES, QualityModel};
-use crate::recognize::dlib::DlibModel;
-use crate::research::eval::plot::{Chart, Scale, Series, line_chart};
-use crate::research::eval::quality::{
+use facegate_research::eval::plot::{Chart, Scale, Series, line_chart};
+use facegate_research::eval::quality::{
     self as research, EdcPoint, Measured, edc, genuine_pairs, is_held_out, lowest_first, measures, partial_area, random_edc, scored,
 };
-use crate::research::train_deep::{self, Sample, Set};
-use crate::research::train_quality::{
+use facegate_research::train_deep::{self, Sample, Set};
+use facegate_research::train_quality::{
     UNIFIED, VARIANTS, genuine_cosine_stats, genuine_match_rates, is_training, out_of_fold_logits, person_folds, train_model,
 };
+use facegate_vision::quality::{FEATURE_NAMES, QualityModel};
+use facegate_vision::recognize::dlib::DlibModel;
 
 /// Options both quality commands share.
 #[derive(clap::Args, Debug)]
@@ -23,7 +23,7 @@ pub struct QualityDataArgs {
     /// The research cache folder, where every photo's embedding and quality components are kept
     /// (under a key of the front end's model files, its code version and the photos: made again
     /// when any changes).
-    #[arg(long, default_value = crate::research::cache::DEFAULT_DIR)]
+    #[arg(long, default_value = facegate_research::cache::DEFAULT_DIR)]
     pub cache: PathBuf,
     /// Threads measuring photos.
     #[arg(long, default_value_t = 2)]
@@ -105,8 +105,8 @@ impl PolicyArgs {
 
 /// IMM, ORL and LFW with every photo measured (cached).
 fn samples_and_measurements(data: &QualityDataArgs) -> anyhow::Result<(Vec<Sample>, Vec<Option<Measured>>)> {
-    let samples = train_deep::list_samples(&crate::config::shared_dir())?;
-    let (models, sfm) = (crate::config::models_dir(), crate::config::sfm_dir());
+    let samples = train_deep::list_samples(&facegate_paths::shared_dir())?;
+    let (models, sfm) = (facegate_paths::models_dir(), facegate_paths::sfm_dir());
     let m = research::measurements(&data.cache, &models, &sfm, &samples, data.threads, &crate::cli::Bar::default())?;
     Ok((samples, m))
 }
@@ -118,7 +118,7 @@ fn threshold(model: &DlibModel) -> f32 {
 
 pub fn run_train(args: TrainQualityArgs) -> anyhow::Result<ExitCode> {
     let (samples, measured) = samples_and_measurements(&args.data)?;
-    let deep = DlibModel::load(&crate::config::models_dir().join(crate::recognize::dlib::FILE))?;
+    let deep = DlibModel::load(&facegate_paths::models_dir().join(facegate_vision::recognize::dlib::FILE))?;
     let photos = scored(&samples, &measured, &deep, &is_training);
     let t = threshold(&deep);
     let trained_on = format!(
@@ -129,7 +129,7 @@ pub fn run_train(args: TrainQualityArgs) -> anyhow::Result<ExitCode> {
         deep.version
     );
     let model = train_model(&photos, t, trained_on);
-    crate::core::model_file::write_model(&args.out, &model).map_err(anyhow::Error::msg)?;
+    facegate_core::model_file::write_model(&args.out, &model).map_err(anyhow::Error::msg)?;
     println!("{}: {}", args.out.display(), model.trained_on);
     println!("  bias {:+.3}", model.bias);
     for (k, name) in FEATURE_NAMES.iter().enumerate() {
@@ -145,9 +145,9 @@ fn discard_shares() -> Vec<f64> {
 
 pub fn run_eval(args: EvalQualityArgs) -> anyhow::Result<ExitCode> {
     let (samples, measured) = samples_and_measurements(&args.data)?;
-    let models = crate::config::models_dir();
-    let deep = DlibModel::load(&models.join(crate::recognize::dlib::FILE))?;
-    let model = QualityModel::load(&args.model.clone().unwrap_or_else(|| models.join(crate::quality::FILE)))?;
+    let models = facegate_paths::models_dir();
+    let deep = DlibModel::load(&models.join(facegate_vision::recognize::dlib::FILE))?;
+    let model = QualityModel::load(&args.model.clone().unwrap_or_else(|| models.join(facegate_vision::quality::FILE)))?;
     let t = threshold(&deep);
     println!("{} at its FMR 1e-3 threshold {t}; unified score: {}", deep.version, model.trained_on);
     std::fs::create_dir_all(&args.plots)?;
@@ -202,7 +202,7 @@ pub fn run_eval(args: EvalQualityArgs) -> anyhow::Result<ExitCode> {
 /// out-of-fold scores on LFW's training persons, beside each single component's on the same photos.
 pub fn run_eval_cv(args: EvalQualityCvArgs) -> anyhow::Result<ExitCode> {
     let (samples, measured) = samples_and_measurements(&args.data)?;
-    let deep = DlibModel::load(&crate::config::models_dir().join(crate::recognize::dlib::FILE))?;
+    let deep = DlibModel::load(&facegate_paths::models_dir().join(facegate_vision::recognize::dlib::FILE))?;
     let t = threshold(&deep);
     // IMM's and ORL's training persons first, then LFW's: the characteristic is read on LFW's.
     let mut photos = scored(&samples, &measured, &deep, &|s| is_training(s) && s.set != Set::Lfw);
@@ -239,11 +239,11 @@ pub fn run_eval_cv(args: EvalQualityCvArgs) -> anyhow::Result<ExitCode> {
         let adopted = if *variant == UNIFIED { " (models/quality.bin)" } else { "" };
         rows.push((format!("unified: {}{adopted}", variant.name), mean));
     }
-    let committed = crate::quality::QualityModel {
-        format: crate::quality::FORMAT,
-        mean: vec![0.0; crate::quality::FEATURES],
-        scale: vec![1.0; crate::quality::FEATURES],
-        weights: vec![0.0; crate::quality::FEATURES],
+    let committed = facegate_vision::quality::QualityModel {
+        format: facegate_vision::quality::FORMAT,
+        mean: vec![0.0; facegate_vision::quality::FEATURES],
+        scale: vec![1.0; facegate_vision::quality::FEATURES],
+        weights: vec![0.0; facegate_vision::quality::FEATURES],
         bias: 0.0,
         trained_on: String::new(),
     };
@@ -266,7 +266,7 @@ pub fn run_eval_cv(args: EvalQualityCvArgs) -> anyhow::Result<ExitCode> {
 /// Each component's 1st, 5th, 50th and 95th percentile per set (all persons): the scales in
 /// practice, from which the policy's limits are chosen.
 fn component_percentiles(samples: &[Sample], measured: &[Option<Measured>], model: &QualityModel) {
-    type Pick = fn(&crate::quality::Quality) -> Option<f32>;
+    type Pick = fn(&facegate_vision::quality::Quality) -> Option<f32>;
     let columns: [(&str, Pick); 11] = [
         ("score", |q| Some(q.score)),
         ("inter_eye_px", |q| Some(q.components.inter_eye_px)),

@@ -6,15 +6,17 @@ use std::process::ExitCode;
 use anyhow::Context;
 
 use crate::choices;
-use crate::pipeline::{Pipeline, PipelineConfig};
-use crate::recognize::calibration::DEFAULT_FMR;
-use crate::recognize::{ClassicalModel, ClassicalRecognizer, FeatureKind, Normalization, NormalizeParams, Photometric, RecognizerKind};
-use crate::research::dlda::DldaParams;
-use crate::research::eval::identification;
-use crate::research::eval::pairs::{read_pairs, score_pairs};
-use crate::research::eval::verification::{self, summarize};
-use crate::research::train_dlda::{self as train, AlignedFace, FaceRegion, FrontEnd, HeldOutReport, TrainConfig};
 use facegate_core::template::Template;
+use facegate_research::dlda::DldaParams;
+use facegate_research::eval::identification;
+use facegate_research::eval::pairs::{read_pairs, score_pairs};
+use facegate_research::eval::verification::{self, summarize};
+use facegate_research::train_dlda::{self as train, AlignedFace, FaceRegion, FrontEnd, HeldOutReport, TrainConfig};
+use facegate_vision::pipeline::{Pipeline, PipelineConfig};
+use facegate_vision::recognize::calibration::DEFAULT_FMR;
+use facegate_vision::recognize::{
+    ClassicalModel, ClassicalRecognizer, FeatureKind, Normalization, NormalizeParams, Photometric, RecognizerKind,
+};
 
 #[derive(clap::Args, Debug)]
 pub struct CompareArgs {
@@ -294,9 +296,9 @@ pub struct EvalIdentifyArgs {
 
 pub fn run_compare(args: CompareArgs) -> anyhow::Result<ExitCode> {
     let pipeline = Pipeline::load(&PipelineConfig { recognizer: args.recognizer.into(), ..crate::config::pipeline_config() })?;
-    let (a, b) = (crate::core::imaging::open(&args.a)?, crate::core::imaging::open(&args.b)?);
+    let (a, b) = (facegate_core::imaging::open(&args.a)?, facegate_core::imaging::open(&args.b)?);
     // `b` plays a subject enrolled with one photo; both templates come from the loaded model.
-    let d = crate::service::compare(&pipeline, &a, &b, args.fmr)
+    let d = facegate_service::compare(&pipeline, &a, &b, args.fmr)
         .map_err(|e| anyhow::Error::new(e.source).context([&args.a, &args.b][e.photo].display().to_string()))?;
     if args.json {
         crate::cli::print_json_line(&serde_json::json!({"score": d.score, "threshold": d.threshold, "fmr": d.fmr, "match": d.is_match}));
@@ -334,7 +336,7 @@ fn training_crops(args: &TrainDldaArgs, config: &TrainConfig) -> anyhow::Result<
         cache: args.crop_cache.clone(),
         threads: args.threads,
     };
-    let (models, sfm) = (crate::config::models_dir(), crate::config::sfm_dir());
+    let (models, sfm) = (facegate_paths::models_dir(), facegate_paths::sfm_dir());
     train::training_crops(&photos, config, &models, &sfm, &crate::cli::Bar::default())
 }
 
@@ -409,7 +411,7 @@ pub fn run_eval_pairs(args: EvalPairsArgs) -> anyhow::Result<ExitCode> {
     let pipeline = Pipeline::load(&PipelineConfig { recognizer: args.recognizer.into(), ..crate::config::pipeline_config() })?;
     let bar = crate::cli::progress(pairs.len() as u64, "pairs");
     let template_of = |path: &Path| -> anyhow::Result<Template> {
-        let photo = crate::core::imaging::open(path)?;
+        let photo = facegate_core::imaging::open(path)?;
         Ok(pipeline.analyze(&photo)?.template)
     };
     let stdout = std::io::stdout().lock();
@@ -433,14 +435,14 @@ const ENROLLED_PHOTOS: [usize; 4] = [1, 2, 3, 5];
 
 pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
     if RecognizerKind::from(args.recognizer) == RecognizerKind::Dlib {
-        let path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::dlib::FILE));
+        let path = args.model.clone().unwrap_or_else(|| facegate_paths::models_dir().join(facegate_vision::recognize::dlib::FILE));
         return crate::cli::embed::run_eval_verify_deep(&path, &args.deep, args.json);
     }
     if let Some(file) = RecognizerKind::from(args.recognizer).embedding_model_file() {
-        let path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(file));
+        let path = args.model.clone().unwrap_or_else(|| facegate_paths::models_dir().join(file));
         return crate::cli::networks::run_eval_verify_embedding(&path, &args.deep, args.json);
     }
-    let model_path = args.model.clone().unwrap_or_else(|| crate::config::models_dir().join(crate::recognize::MODEL_FILE));
+    let model_path = args.model.clone().unwrap_or_else(|| facegate_paths::models_dir().join(facegate_vision::recognize::MODEL_FILE));
     let recognizer = ClassicalRecognizer::load_file(&model_path)?;
     let model = recognizer.model();
     let mut faces = train::list_faces(&args.dirs)?;
@@ -449,8 +451,8 @@ pub fn run_eval_verify(args: EvalVerifyArgs) -> anyhow::Result<ExitCode> {
     }
     anyhow::ensure!(!faces.is_empty(), "no photos of held-out persons under {:?}", args.dirs);
     let paths = model.paths();
-    let sfm = paths.contains(&Normalization::Morph).then(crate::config::sfm_dir);
-    let front = FrontEnd::load(args.centre_origin.into(), &crate::config::models_dir(), sfm.as_deref()).with_threads(args.deep.threads);
+    let sfm = paths.contains(&Normalization::Morph).then(facegate_paths::sfm_dir);
+    let front = FrontEnd::load(args.centre_origin.into(), &facegate_paths::models_dir(), sfm.as_deref()).with_threads(args.deep.threads);
     let aligned = train::align_paths(None, &front, &faces, &paths, &model.normalize, &crate::cli::Bar::default())?;
     let templates: Vec<(String, Template, bool)> = aligned
         .iter()
@@ -535,9 +537,9 @@ pub fn run_eval_identify(args: EvalIdentifyArgs) -> anyhow::Result<ExitCode> {
     if RecognizerKind::from(args.recognizer) == RecognizerKind::Dlib {
         return crate::cli::embed::run_eval_identify_deep(args.distractors);
     }
-    let data = args.data.clone().unwrap_or_else(|| crate::config::shared_dir().join("data/imm"));
+    let data = args.data.clone().unwrap_or_else(|| facegate_paths::shared_dir().join("data/imm"));
     let faces = train::list_faces(std::slice::from_ref(&data))?;
-    let front = FrontEnd::load(args.centre_origin.into(), &crate::config::models_dir(), Some(&crate::config::sfm_dir()));
+    let front = FrontEnd::load(args.centre_origin.into(), &facegate_paths::models_dir(), Some(&facegate_paths::sfm_dir()));
     let mut normalizations = vec![Normalization::TwoD];
     if front.face_model.is_some() {
         normalizations.push(Normalization::Morph);

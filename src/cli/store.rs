@@ -9,17 +9,17 @@ use std::sync::Arc;
 use anyhow::Context;
 
 use crate::config::{DEFAULT_DATABASE, TemplateKeyArgs, TemplateProtectionArgs};
-use crate::liveness::LivenessModel;
-use crate::pipeline::{Pipeline, PipelineConfig};
-use crate::recognize::RecognizerKind;
-use crate::service::liveness_camera::{self, DEFAULT_BPCER, LivenessCalibration};
-use crate::service::protection::{ProtectedEngine, Renewal};
-use crate::service::site::{self, SiteCalibration};
-use crate::service::{FaceEngine, Matcher};
-use crate::store::{self, Store};
+use facegate_service::liveness_camera::{self, DEFAULT_BPCER, LivenessCalibration};
+use facegate_service::protection::{ProtectedEngine, Renewal};
+use facegate_service::site::{self, SiteCalibration};
+use facegate_service::{FaceEngine, Matcher};
+use facegate_store::Store;
+use facegate_vision::liveness::LivenessModel;
+use facegate_vision::pipeline::{Pipeline, PipelineConfig};
+use facegate_vision::recognize::RecognizerKind;
 
 use crate::choices::{Detector, Recognizer};
-use crate::detect::DetectorKind;
+use facegate_detect::DetectorKind;
 
 /// The database the command works on.
 #[derive(clap::Args, Debug)]
@@ -199,7 +199,7 @@ pub fn run_rekey(args: RekeyArgs) -> anyhow::Result<ExitCode> {
 }
 
 /// A protection key file's secret.
-fn protection_key(path: &Path) -> anyhow::Result<crate::service::protection::ProtectionKey> {
+fn protection_key(path: &Path) -> anyhow::Result<facegate_service::protection::ProtectionKey> {
     let args = TemplateProtectionArgs { template_protection_key_file: Some(path.to_path_buf()) };
     Ok(args.key()?.expect("a key file is given"))
 }
@@ -231,7 +231,7 @@ pub fn run_renew_protection(args: RenewProtectionArgs) -> anyhow::Result<ExitCod
         store.close().await;
         let report = report.with_context(|| format!("nothing was changed in {shown}"))?;
         let stored = stored?;
-        let new_suffix = format!("+{}-{}", crate::service::protection::SCHEME, renewal.new_key_id());
+        let new_suffix = format!("+{}-{}", facegate_service::protection::SCHEME, renewal.new_key_id());
         if report.versions.is_empty() && !stored.iter().any(|v| v.ends_with(&new_suffix)) {
             anyhow::bail!(
                 "{shown} holds no template {} (its model versions: {}): nothing renewed",
@@ -378,7 +378,7 @@ pub fn run_calibrate_liveness(args: CalibrateLivenessArgs) -> anyhow::Result<Exi
     let config = PipelineConfig { models_dir: args.models.clone().unwrap_or(config.models_dir), ..config };
     let pipeline = Pipeline::load(&config).context("cannot load the face pipeline")?;
     let model = pipeline.liveness.as_ref().with_context(|| {
-        format!("no liveness model ({}) in {}: nothing to calibrate", crate::liveness::FILE, config.models_dir.display())
+        format!("no liveness model ({}) in {}: nothing to calibrate", facegate_vision::liveness::FILE, config.models_dir.display())
     })?;
     let photos = if args.clear { Vec::new() } else { image_files(&args.live)? };
     anyhow::ensure!(args.clear || !photos.is_empty(), "no image files (.jpg, .jpeg, .png, .pgm, .ppm, .bmp, .webp) in {:?}", args.live);
@@ -415,7 +415,7 @@ async fn calibrate_liveness(
     let bar = super::progress(photos.len() as u64, "live captures");
     let (mut scores, mut not_read) = (Vec::with_capacity(photos.len()), 0usize);
     for path in photos {
-        let photo = crate::core::imaging::open(path).with_context(|| format!("cannot read {}", path.display()))?;
+        let photo = facegate_core::imaging::open(path).with_context(|| format!("cannot read {}", path.display()))?;
         match pipeline.analyze(&photo).map(|a| a.liveness) {
             Ok(Some(liveness)) => scores.push(liveness.score),
             Ok(None) => anyhow::bail!("the liveness model gave {} no score", path.display()),
@@ -514,7 +514,7 @@ pub fn run_backup(args: BackupArgs) -> anyhow::Result<ExitCode> {
 pub fn run_restore(args: RestoreArgs) -> anyhow::Result<ExitCode> {
     runtime()?.block_on(async {
         let (url, shown) = args.database.url()?;
-        let (subjects, templates) = store::restore(&args.backup, &url, args.force).await?;
+        let (subjects, templates) = facegate_store::restore(&args.backup, &url, args.force).await?;
         super::print_json_line(&serde_json::json!({"restored": shown, "subjects": subjects, "templates": templates}));
         Ok(ExitCode::SUCCESS)
     })

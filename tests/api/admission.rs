@@ -11,9 +11,9 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use facegate::core::imaging::DecodeLimits;
-use facegate::http::ApiConfig;
-use facegate::service::ServiceConfig;
+use facegate_core::imaging::DecodeLimits;
+use facegate_http::ApiConfig;
+use facegate_service::ServiceConfig;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpSocket, TcpStream};
 
@@ -237,7 +237,7 @@ async fn a_flood_of_half_open_connections_over_the_cap_does_not_starve_health() 
     // A cap of 40 connections and a 10 s header timeout; 60 attackers keep reopening half-open
     // connections. New connections past half the cap get 1 s for their head, so a
     // health probe gets a place within about that.
-    let limits = facegate::http::server::ServerLimits {
+    let limits = facegate_http::server::ServerLimits {
         max_connections: 40,
         header_timeout: Duration::from_secs(10),
         ..facegate::config::Settings::default().server_limits().unwrap()
@@ -275,7 +275,7 @@ async fn a_flood_of_half_open_connections_over_the_cap_does_not_starve_health() 
 
 #[tokio::test]
 async fn one_address_has_its_share_of_the_connections_and_the_others_are_served() {
-    let limits = facegate::http::server::ServerLimits {
+    let limits = facegate_http::server::ServerLimits {
         max_connections: 40,
         max_connections_per_address: 8,
         ..facegate::config::Settings::default().server_limits().unwrap()
@@ -316,7 +316,7 @@ async fn under_connection_pressure_the_slowest_bodies_are_cut_for_a_new_client()
     // rate, within a 30 s body timeout): before, a new client waited in the backlog until the
     // body timeout cut them.
     let limits =
-        facegate::http::server::ServerLimits { max_connections: 32, ..facegate::config::Settings::default().server_limits().unwrap() };
+        facegate_http::server::ServerLimits { max_connections: 32, ..facegate::config::Settings::default().server_limits().unwrap() };
     let patient = ApiConfig {
         max_uploads_per_address: 64,
         body_timeout: Duration::from_secs(30),

@@ -218,7 +218,7 @@ impl Page {
 }
 
 fn imm_path(name: &str) -> PathBuf {
-    let path = facegate::config::shared_dir().join("data/imm").join(name);
+    let path = facegate_paths::shared_dir().join("data/imm").join(name);
     assert!(path.is_file(), "{} is missing", path.display());
     path.canonicalize().unwrap()
 }
@@ -264,7 +264,7 @@ async fn the_console_enrolls_verifies_shows_the_avatar_and_deletes_in_chromium()
     assert!(page.text("#verify-result").await.contains("Quality score"));
     assert!(page.text("#verify-result").await.contains("best against enrolled photo"), "the enrolled photo that made the score");
     // The probe's liveness (reported by default), as the pipeline scores the photo.
-    let probe = facegate::core::imaging::decode(&std::fs::read(imm_path("02-4m.jpg")).unwrap(), &Default::default()).unwrap();
+    let probe = facegate_core::imaging::decode(&std::fs::read(imm_path("02-4m.jpg")).unwrap(), &Default::default()).unwrap();
     let pipeline = crate::pipeline::pipeline();
     let liveness = pipeline.analyze(&probe).unwrap().liveness.expect("the committed liveness model is loaded");
     let attack = liveness.score < pipeline.liveness.as_ref().expect("loaded").threshold;
@@ -554,7 +554,7 @@ async fn the_camera_view_on_real_video() {
     let driver = Driver::start(&chromedriver);
     let scratch = std::env::temp_dir().join(format!("facegate-camera-video-{}", std::process::id()));
     std::fs::create_dir_all(&scratch).unwrap();
-    let video = facegate::config::shared_dir().join("data/video");
+    let video = facegate_paths::shared_dir().join("data/video");
     let mut clips: Vec<PathBuf> = std::fs::read_dir(&video).unwrap().map(|e| e.unwrap().path()).filter(|p| p.is_dir()).collect();
     clips.sort();
     let (mut passed, mut lines) = (0, Vec::new());
@@ -570,7 +570,7 @@ async fn the_camera_view_on_real_video() {
             .iter()
             .chain(&mirrored)
             .filter_map(|rgb| {
-                let photo = facegate::core::imaging::Photo::from_dynamic(image::DynamicImage::ImageRgb8(rgb.clone()));
+                let photo = facegate_core::imaging::Photo::from_dynamic(image::DynamicImage::ImageRgb8(rgb.clone()));
                 let yaw = pipeline.analyze(&photo).ok()?.key_point_pose?.yaw;
                 Some((yaw.abs(), rgb))
             })

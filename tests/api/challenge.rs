@@ -14,8 +14,8 @@ use std::time::Duration;
 
 use facegate::choices::Liveness as Choice;
 use facegate::config::Settings;
-use facegate::http::ApiConfig;
-use facegate::service::ChallengeConfig;
+use facegate_http::ApiConfig;
+use facegate_service::ChallengeConfig;
 use reqwest::multipart::{Form, Part};
 use serde_json::{Value, json};
 

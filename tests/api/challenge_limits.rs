@@ -5,8 +5,8 @@
 //! issue removes a bounded number of expired challenges.
 
 use facegate::config::Settings;
-use facegate::http::ApiConfig;
-use facegate::store::{SWEEP_BATCH, Store};
+use facegate_http::ApiConfig;
+use facegate_store::{SWEEP_BATCH, Store};
 
 use crate::fail_closed::Scratch;
 use crate::support::*;

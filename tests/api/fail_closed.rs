@@ -15,11 +15,11 @@ use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use facegate::core::SubjectId;
-use facegate::http::ApiConfig;
 use facegate::startup::Application;
-use facegate::store::{KeyCheck, KeyRing, Store};
+use facegate_core::SubjectId;
 use facegate_core::template::Template;
+use facegate_http::ApiConfig;
+use facegate_store::{KeyCheck, KeyRing, Store};
 use serde_json::Value;
 
 use crate::on_both_backends;
@@ -212,9 +212,9 @@ fn liveness_that_cannot_be_enforced_stops_the_start_up() {
     // The committed models without liveness.bin (linked, not copied).
     let models = dir.0.join("models");
     std::fs::create_dir_all(&models).unwrap();
-    for entry in std::fs::read_dir(facegate::config::models_dir()).unwrap() {
+    for entry in std::fs::read_dir(facegate_paths::models_dir()).unwrap() {
         let entry = entry.unwrap();
-        if entry.file_name() != facegate::liveness::FILE {
+        if entry.file_name() != facegate_vision::liveness::FILE {
             std::os::unix::fs::symlink(entry.path().canonicalize().unwrap(), models.join(entry.file_name())).unwrap();
         }
     }

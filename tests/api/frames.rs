@@ -61,7 +61,7 @@ fn frame_scores(liveness: &Value) -> Vec<f64> {
 
 /// The liveness the pipeline itself gives the largest face of `photo`.
 fn own_score(photo: &[u8]) -> f32 {
-    let photo = facegate::core::imaging::decode(photo, &Default::default()).unwrap();
+    let photo = facegate_core::imaging::decode(photo, &Default::default()).unwrap();
     pipeline().analyze(&photo).unwrap().liveness.expect("a liveness model is loaded").score
 }
 

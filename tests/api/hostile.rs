@@ -6,10 +6,10 @@ use std::io::Write;
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
-use facegate::core::imaging::DecodeLimits;
-use facegate::http::ApiConfig;
-use facegate::http::server::ServerLimits;
-use facegate::service::ServiceConfig;
+use facegate_core::imaging::DecodeLimits;
+use facegate_http::ApiConfig;
+use facegate_http::server::ServerLimits;
+use facegate_service::ServiceConfig;
 use serde_json::{Value, json};
 use sha2::Digest as _;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};

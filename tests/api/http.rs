@@ -5,9 +5,9 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use facegate::core::imaging::DecodeLimits;
-use facegate::http::ApiConfig;
-use facegate::service::ServiceConfig;
+use facegate_core::imaging::DecodeLimits;
+use facegate_http::ApiConfig;
+use facegate_service::ServiceConfig;
 use serde_json::json;
 use sqlx::Connection;
 
@@ -181,7 +181,7 @@ async fn every_analyzed_face_has_quality_and_enrollment_refuses_a_photo_below_th
     app.post_form("/enroll?quality=off", Some("erin"), std::slice::from_ref(&dark)).await.assert_problem(400, "malformed-request");
     // A server configured without a brightness floor enrols it.
     let strict = config();
-    let quality_policy = facegate::quality::QualityPolicy { min_brightness: None, ..strict.service.quality_policy };
+    let quality_policy = facegate_vision::quality::QualityPolicy { min_brightness: None, ..strict.service.quality_policy };
     let lenient = ApiConfig { service: ServiceConfig { quality_policy, ..strict.service }, ..strict };
     let relaxed = app.restarted_with(StandInEngine::new("stand-in-1"), lenient).await;
     assert_eq!(relaxed.post_form("/enroll", Some("erin"), std::slice::from_ref(&dark)).await.status, 201);
@@ -244,8 +244,8 @@ async fn templates_of_another_model_version_are_not_compared(db: Db) {
     assert_eq!(first.post_form("/enroll", Some("frank"), &[photo.clone()]).await.status, 201);
     // The same database served by a newer model.
     let app = TestApp::start_on(db, StandInEngine::new("v2"), config()).await;
-    let old = first.store.templates(&facegate::core::SubjectId::parse("frank").unwrap()).await.unwrap().unwrap();
-    app.store.enroll(&facegate::core::SubjectId::parse("frank").unwrap(), &old).await.unwrap();
+    let old = first.store.templates(&facegate_core::SubjectId::parse("frank").unwrap()).await.unwrap().unwrap();
+    app.store.enroll(&facegate_core::SubjectId::parse("frank").unwrap(), &old).await.unwrap();
     app.post_form("/verify", Some("frank"), &[photo.clone()]).await.assert_problem(409, "model-mismatch");
     let r = app.post_form("/identify", None, &[photo.clone()]).await;
     assert_eq!((r.status, r.json()["subjects_searched"].as_u64()), (200, Some(0)));
@@ -308,7 +308,7 @@ async fn health_metrics_and_openapi_are_served(db: Db) {
     assert!(text.contains(r#"facegate_pipeline_stage_duration_seconds_count{stage="decode"} 1"#), "{text}");
     assert!(text.contains("facegate_subjects 1") && text.contains("facegate_templates 1"), "{text}");
     let r = app.get("/openapi.yaml").await;
-    assert_eq!(r.body, facegate::http::OPENAPI_YAML.as_bytes());
+    assert_eq!(r.body, facegate_http::OPENAPI_YAML.as_bytes());
 }
 
 on_both_backends!(identify_follows_enroll_and_delete_and_tampered_templates_are_refused);
@@ -319,7 +319,7 @@ async fn identify_follows_enroll_and_delete_and_tampered_templates_are_refused(d
     let plain = TestApp::start_on(db, StandInEngine::new("v1"), config()).await;
     assert_eq!(plain.get("/health").await.json()["templates_encrypted"], false);
 
-    let keys = facegate::store::KeyRing::parse(&"5a".repeat(32)).unwrap();
+    let keys = facegate_store::KeyRing::parse(&"5a".repeat(32)).unwrap();
     let app = TestApp::start_with_keys(db, StandInEngine::new("v1"), config(), Some(keys)).await;
     assert_eq!(app.get("/health").await.json()["templates_encrypted"], true);
     let (alice, bob, carol) = (pattern_jpeg(320, 240, 1), pattern_jpeg(320, 240, 9), pattern_jpeg(320, 240, 5));
@@ -465,7 +465,7 @@ async fn the_console_is_served_at_the_root_and_other_paths_stay_problems() {
         assert!(r.body.len() > 1000, "{path}");
     }
     // Nothing the page loads comes from elsewhere.
-    for asset in facegate::http::console::ASSETS {
+    for asset in facegate_http::console::ASSETS {
         let text = String::from_utf8_lossy(asset.body);
         for pattern in ["src=\"http", "href=\"http", "import(\"http", "from\"http", "from 'http", "url(http"] {
             assert!(!text.contains(pattern), "{} refers to {pattern}…", asset.path);

@@ -5,8 +5,8 @@
 
 use std::sync::atomic::Ordering;
 
-use facegate::http::ApiConfig;
-use facegate::service::ServiceConfig;
+use facegate_http::ApiConfig;
+use facegate_service::ServiceConfig;
 use serde_json::json;
 
 use crate::support::*;

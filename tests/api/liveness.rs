@@ -8,7 +8,7 @@
 
 use facegate::choices::Liveness as Choice;
 use facegate::config::Settings;
-use facegate::pipeline::Pipeline;
+use facegate_vision::pipeline::Pipeline;
 use serde_json::{Value, json};
 
 use crate::pipeline::pipeline;
@@ -16,7 +16,7 @@ use crate::support::*;
 
 /// A NUAA frame from the shared data (read from its path, never copied).
 pub(crate) fn nuaa(name: &str) -> Vec<u8> {
-    let path = facegate::config::shared_dir().join("data/nuaa").join(name);
+    let path = facegate_paths::shared_dir().join("data/nuaa").join(name);
     std::fs::read(&path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()))
 }
 
@@ -32,8 +32,8 @@ fn settings(liveness: Choice, liveness_threshold: Option<f32>) -> Settings {
 }
 
 /// The liveness the pipeline itself gives the largest face of `photo`.
-fn scored(pipeline: &Pipeline, photo: &[u8]) -> facegate::liveness::Liveness {
-    let photo = facegate::core::imaging::decode(photo, &Default::default()).unwrap();
+fn scored(pipeline: &Pipeline, photo: &[u8]) -> facegate_vision::liveness::Liveness {
+    let photo = facegate_core::imaging::decode(photo, &Default::default()).unwrap();
     pipeline.analyze(&photo).unwrap().liveness.expect("a liveness model is loaded")
 }
 

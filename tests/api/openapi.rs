@@ -12,7 +12,7 @@ pub struct Spec {
 
 pub fn spec() -> &'static Spec {
     static SPEC: OnceLock<Spec> = OnceLock::new();
-    SPEC.get_or_init(|| Spec { doc: serde_norway::from_str(facegate::http::OPENAPI_YAML).expect("openapi.yaml parses as YAML") })
+    SPEC.get_or_init(|| Spec { doc: serde_norway::from_str(facegate_http::OPENAPI_YAML).expect("openapi.yaml parses as YAML") })
 }
 
 const METHODS: [&str; 5] = ["get", "post", "put", "patch", "delete"];
@@ -167,7 +167,7 @@ impl Spec {
 #[test]
 fn the_document_lists_exactly_the_served_operations() {
     let served: BTreeSet<(String, String)> =
-        facegate::http::operations().iter().map(|o| (o.method.to_string(), o.path.to_string())).collect();
+        facegate_http::operations().iter().map(|o| (o.method.to_string(), o.path.to_string())).collect();
     assert_eq!(spec().operations(), served);
 }
 
@@ -179,7 +179,7 @@ fn the_document_lists_every_problem_type() {
         .iter()
         .map(|v| v.as_str().unwrap().to_string())
         .collect();
-    let served: BTreeSet<String> = facegate::http::ProblemKind::ALL.iter().map(|k| k.type_uri()).collect();
+    let served: BTreeSet<String> = facegate_http::ProblemKind::ALL.iter().map(|k| k.type_uri()).collect();
     assert_eq!(documented, served);
 }
 

@@ -3,8 +3,8 @@
 
 use std::sync::{Arc, OnceLock};
 
-use facegate::pipeline::{Pipeline, PipelineConfig};
-use facegate::recognize::RecognizerKind;
+use facegate_vision::pipeline::{Pipeline, PipelineConfig};
+use facegate_vision::recognize::RecognizerKind;
 use serde_json::json;
 
 use crate::support::*;
@@ -174,7 +174,7 @@ async fn analyze_avatar_and_frontalize_a_real_photo() {
     let app = app().await;
     // A turned face (IMM view 3): the landmarks come from the 3D-ASM, the 3DMM reads the yaw.
     let name = "01-3m.jpg";
-    let path = facegate::config::shared_dir().join("data/imm").join(name);
+    let path = facegate_paths::shared_dir().join("data/imm").join(name);
     let r = app.post_form("/analyze?faces=all", None, &[imm(name)]).await;
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let a = r.json();
@@ -235,7 +235,7 @@ async fn analyze_avatar_and_frontalize_a_real_photo() {
     // pipeline reads it turned that way (a 400-pixel render on black, as `/analyze` would get it).
     for (yaw, side) in [("25", 1.0), ("-25", -1.0)] {
         let png = cli(&["frontalize", "--yaw", yaw, "--size", "400", path.to_str().unwrap()], &dir.join("turned.png"));
-        let photo = facegate::core::imaging::decode(&png, &Default::default()).unwrap();
+        let photo = facegate_core::imaging::decode(&png, &Default::default()).unwrap();
         let read = pipeline().analyze(&photo).unwrap().pose.expect("posed").yaw;
         assert!(side * read > 12.0 && side * read < 40.0, "rendered at {yaw}°, read {read}°");
     }

@@ -4,8 +4,8 @@
 //! database of plain templates, of protected ones without the key, or of another secret's stops the
 //! start-up with a message saying what to do.
 
-use facegate::core::SubjectId;
-use facegate::store::Store;
+use facegate_core::SubjectId;
+use facegate_store::Store;
 use serde_json::Value;
 
 use crate::fail_closed::{Scratch, Served, serve_is_refused};
@@ -84,7 +84,7 @@ async fn protected_templates_verify_as_plain_ones_and_hold_nothing_of_them() {
 
 /// alice's stored templates (model version, vector) opened with `template_key` when sealed.
 async fn stored_with(database: &str, template_key: Option<&str>) -> Vec<(String, Vec<f32>)> {
-    let keys = template_key.map(|k| facegate::store::KeyRing::parse(k).unwrap());
+    let keys = template_key.map(|k| facegate_store::KeyRing::parse(k).unwrap());
     let store = Store::connect(database, keys).await.unwrap();
     let templates = store.templates(&SubjectId::parse("alice").unwrap()).await.unwrap().unwrap();
     store.close().await;
@@ -102,7 +102,7 @@ fn renew(args: &[&str]) -> (bool, Value, String) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_new_secret_renews_the_stored_templates_without_the_photos() {
-    use facegate::service::protection::ProtectionKey;
+    use facegate_service::protection::ProtectionKey;
     let dir = Scratch::new("renewal");
     let key_a = dir.file("protection-a.key", SECRET_A);
     let key_b = dir.file("protection-b.key", SECRET_B);

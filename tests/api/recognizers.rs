@@ -6,8 +6,8 @@
 
 use std::sync::{Arc, OnceLock};
 
-use facegate::pipeline::{Pipeline, PipelineConfig};
-use facegate::recognize::{Recognizer, RecognizerKind};
+use facegate_vision::pipeline::{Pipeline, PipelineConfig};
+use facegate_vision::recognize::{Recognizer, RecognizerKind};
 use serde_json::json;
 
 use crate::support::*;
@@ -27,7 +27,7 @@ fn loaded(kind: RecognizerKind) -> Arc<Pipeline> {
 }
 
 fn template(pipeline: &Pipeline, photo: &[u8]) -> Vec<f32> {
-    let photo = facegate::core::imaging::decode(photo, &Default::default()).unwrap();
+    let photo = facegate_core::imaging::decode(photo, &Default::default()).unwrap();
     pipeline.analyze(&photo).unwrap().template.vector
 }
 
@@ -73,14 +73,14 @@ fn a_fusion_whose_network_changed_is_refused_at_load() {
     // A copy of the models folder whose fusion model names another SFace file hash.
     let dir = std::env::temp_dir().join(format!("facegate-recognizers-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let models = facegate::config::models_dir();
+    let models = facegate_paths::models_dir();
     for f in ["embedding.bin", "sface.onnx", "sface.json"] {
         std::fs::copy(models.join(f), dir.join(f)).unwrap();
     }
-    let mut model = facegate::recognize::embedding::EmbeddingModel::load(&models.join("fusion.bin")).unwrap();
+    let mut model = facegate_vision::recognize::embedding::EmbeddingModel::load(&models.join("fusion.bin")).unwrap();
     model.members[1].sha256 = "0".repeat(64);
-    facegate::core::model_file::write_model(&dir.join("fusion.bin"), &model).unwrap();
-    let err = facegate::recognize::EmbeddingRecognizer::load(&dir, "fusion.bin").err().expect("refused");
+    facegate_core::model_file::write_model(&dir.join("fusion.bin"), &model).unwrap();
+    let err = facegate_vision::recognize::EmbeddingRecognizer::load(&dir, "fusion.bin").err().expect("refused");
     assert!(err.to_string().contains("is not the one the model was calibrated with"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }

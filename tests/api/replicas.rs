@@ -130,16 +130,16 @@ async fn two_replicas_on_one_database_agree_at_once() {
 /// still sees the enrolment.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_gallery_reloads_after_its_listening_connection_is_cut() {
-    use facegate::core::SubjectId;
-    use facegate::service::gallery::LiveGallery;
-    use facegate::store::Store;
+    use facegate_core::SubjectId;
     use facegate_core::template::Template;
+    use facegate_service::gallery::LiveGallery;
+    use facegate_store::Store;
     use sqlx::Connection;
 
     let url = postgres_or_skip!("replicas::the_gallery_reloads_after_its_listening_connection_is_cut");
     let here = Store::connect(&url, None).await.unwrap();
     let other = Store::connect(&url, None).await.unwrap();
-    let live = LiveGallery::new(here.clone(), "v1", facegate::service::gallery::Precision::Quantised);
+    let live = LiveGallery::new(here.clone(), "v1", facegate_service::gallery::Precision::Quantised);
     live.load().await.unwrap();
     let template = |seed: f32| Template::new("v1", (0..16).map(|i| (i as f32 + seed).sin()).collect());
     let id = |s: &str| SubjectId::parse(s).unwrap();

@@ -1,9 +1,9 @@
 //! `facegate calibrate`: the real binary measures the enrolled subjects' impostor pairs and stores
 //! the site calibration; `facegate serve` raises its thresholds to it, and `--clear` takes it back.
 
-use facegate::core::SubjectId;
-use facegate::store::Store;
+use facegate_core::SubjectId;
 use facegate_core::template::Template;
+use facegate_store::Store;
 use serde_json::{Value, json};
 
 use crate::fail_closed::{Scratch, Served};

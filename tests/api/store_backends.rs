@@ -4,12 +4,12 @@
 
 use std::time::Duration;
 
-use facegate::core::SubjectId;
-use facegate::service::Matcher;
-use facegate::service::liveness_camera::{self, LivenessCalibration};
-use facegate::service::site::{self, SiteStatus};
-use facegate::store::{Backend, CipherError, KeyRing, RekeyReport, Store, StoreChange, StoreError, VersionCount};
+use facegate_core::SubjectId;
 use facegate_core::template::{OperatingPoint, Template};
+use facegate_service::Matcher;
+use facegate_service::liveness_camera::{self, LivenessCalibration};
+use facegate_service::site::{self, SiteStatus};
+use facegate_store::{Backend, CipherError, KeyRing, RekeyReport, Store, StoreChange, StoreError, VersionCount};
 use sqlx::AnyPool;
 
 const K1: &str = "000102030405060708090a0b0c0d0e0f101112131415161718191a1b1c1d1e1f";
@@ -458,7 +458,7 @@ async fn concurrent_connects_migrate_once() {
 }
 
 /// Waits for the next change, failing the test rather than hanging.
-async fn next_change(feed: &mut facegate::store::ChangeFeed) -> StoreChange {
+async fn next_change(feed: &mut facegate_store::ChangeFeed) -> StoreChange {
     tokio::time::timeout(Duration::from_secs(20), feed.next()).await.expect("a change within 20 s").unwrap()
 }
 
@@ -550,7 +550,7 @@ async fn backup_and_restore_refuse_postgres() {
     let refused = store.backup(&dir.0.join("b.db")).await;
     assert!(matches!(refused, Err(StoreError::Refused(ref m)) if m.contains("pg_dump")), "{refused:?}");
     assert!(!dir.0.join("b.db").exists());
-    let refused = facegate::store::restore(&dir.0.join("b.db"), &url, true).await;
+    let refused = facegate_store::restore(&dir.0.join("b.db"), &url, true).await;
     assert!(matches!(refused, Err(StoreError::Refused(ref m)) if m.contains("pg_restore")), "{refused:?}");
     store.close().await;
 }

@@ -2,9 +2,9 @@
 
 use std::path::Path;
 
-use facegate::core::SubjectId;
-use facegate::store::{KeyRing, Store};
+use facegate_core::SubjectId;
 use facegate_core::template::Template;
+use facegate_store::{KeyRing, Store};
 use serde_json::Value;
 
 /// Run `facegate` with `args`; its exit status and stdout's JSON line (null when none).

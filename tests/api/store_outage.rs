@@ -7,9 +7,9 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use facegate::core::imaging::DecodeLimits;
-use facegate::http::ApiConfig;
-use facegate::service::ServiceConfig;
+use facegate_core::imaging::DecodeLimits;
+use facegate_http::ApiConfig;
+use facegate_service::ServiceConfig;
 use tokio::net::{TcpListener, TcpStream};
 
 use crate::support::*;

@@ -9,21 +9,21 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
 use facegate::config::Settings;
-use facegate::core::face::EyeMouthCentres;
-use facegate::core::geometry::Rect;
-use facegate::core::imaging::Photo;
-use facegate::detect::Face;
-use facegate::http::server::ServerLimits;
-use facegate::http::{self, ApiConfig};
-use facegate::landmarks::Landmarks;
-use facegate::morph::AvatarFormat;
-use facegate::pipeline::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, PipelineError, StageTimings};
-use facegate::quality::Quality;
-use facegate::service::FaceEngine;
-use facegate::service::{LivenessPoint, Matcher};
 use facegate::startup::{Application, ApplicationBuilder};
-use facegate::store::{KeyRing, Store};
+use facegate_core::face::EyeMouthCentres;
+use facegate_core::geometry::Rect;
+use facegate_core::imaging::Photo;
 use facegate_core::template::{OperatingPoint, Template};
+use facegate_detect::Face;
+use facegate_http::ApiConfig;
+use facegate_http::server::ServerLimits;
+use facegate_morph::AvatarFormat;
+use facegate_service::FaceEngine;
+use facegate_service::{LivenessPoint, Matcher};
+use facegate_store::{KeyRing, Store};
+use facegate_vision::landmarks::Landmarks;
+use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, PipelineError, StageTimings};
+use facegate_vision::quality::Quality;
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
 
@@ -89,7 +89,7 @@ impl Reply {
     pub fn problem(&self) -> String {
         assert_eq!(self.headers["content-type"], "application/problem+json", "{} {}", self.status, String::from_utf8_lossy(&self.body));
         let t = self.json()["type"].as_str().unwrap().to_string();
-        t.strip_prefix(http::problem::PROBLEM_BASE).unwrap().to_string()
+        t.strip_prefix(facegate_http::problem::PROBLEM_BASE).unwrap().to_string()
     }
 
     /// Assert status and problem type together (the message shows the body when they differ).
@@ -250,7 +250,7 @@ pub fn pattern_jpeg(width: u32, height: u32, seed: u32) -> Vec<u8> {
 
 /// An IMM photo from the shared data (read from its path, never copied).
 pub fn imm(name: &str) -> Vec<u8> {
-    let path = facegate::config::shared_dir().join("data/imm").join(name);
+    let path = facegate_paths::shared_dir().join("data/imm").join(name);
     std::fs::read(&path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()))
 }
 
@@ -294,7 +294,7 @@ impl FaceEngine for StandInEngine {
         let faces_found = if w >= 2.0 * h { 2 } else { 1 };
         let centres = EyeMouthCentres { left_eye: [0.35 * w, 0.4 * h], right_eye: [0.65 * w, 0.4 * h], mouth: [0.5 * w, 0.75 * h] };
         let landmarks = Landmarks { points: vec![[0.5 * w, 0.5 * h]; 58], centres };
-        let components = facegate::pipeline::quality_components(photo, &landmarks, None, None).1;
+        let components = facegate_vision::pipeline::quality_components(photo, &landmarks, None, None).1;
         let quality = Quality { score: (10.0 * components.sharpness).min(100.0), components };
         Ok(FaceAnalysis {
             face: Face { rect: Rect::new(0.0, 0.0, w, h), score: 1.0, points: None },

@@ -132,7 +132,7 @@ impl CacheKey {
         let mut hasher = Sha256::new();
         field(&mut hasher, b"facegate research cache");
         hasher.update(FRONT_END_VERSION.to_le_bytes());
-        field(&mut hasher, format!("{:?}", facegate_vision::embed::Arithmetic::detect()).as_bytes());
+        field(&mut hasher, format!("{:?}", facegate_nn::Arithmetic::detect()).as_bytes());
         field(&mut hasher, kind.as_bytes());
         hasher.update((models.inputs.len() as u64).to_le_bytes());
         for input in &models.inputs {

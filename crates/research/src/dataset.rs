@@ -1,11 +1,11 @@
 //! Readers for the annotated face sets the project trains and measures on: IMM `.asf` shapes,
 //! IMM and ORL folder layouts, and plain labelled folders (one folder per person).
 //! The 58-point layout and the eye and mouth centres are the stages' own types
-//! ([`facegate_core::face`]), re-exported here for the readers' callers.
+//! ([`facegate_core::face`]); callers import them from there.
 
 use std::path::{Path, PathBuf};
 
-pub use facegate_core::face::*;
+use facegate_core::face::*;
 use facegate_core::geometry::Point;
 
 /// One annotated point of an `.asf` file.

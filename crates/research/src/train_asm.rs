@@ -3,8 +3,10 @@
 //! placement of the mean shape relative to the face boxes. Deterministic: the same photos give the
 //! same model, byte for byte.
 
-use crate::dataset::{self, INTERNAL, ImmSample, JAW};
+use crate::dataset::{self, ImmSample};
+
 use crate::landmark_models::{train_full_gaussian, train_pca_gaussian, train_shape_model};
+use facegate_core::face::{INTERNAL, JAW};
 use facegate_core::geometry::{Point, Rect, Similarity};
 use facegate_core::imaging::{self, GrayF32};
 use facegate_detect::Detector;
@@ -38,7 +40,7 @@ impl Default for TrainOptions {
 /// A box for a training photo from the detector: the detection holding both annotated eye
 /// centres and the mouth centre (`None` when the detector missed the face).
 pub fn detector_box(detector: &Detector, gray: &GrayF32, shape: &[Point]) -> Option<Rect> {
-    let k = dataset::EyeMouthCentres::from_imm(shape);
+    let k = facegate_core::face::EyeMouthCentres::from_imm(shape);
     detector
         .detect(gray)
         .iter()
@@ -206,7 +208,7 @@ mod tests {
         let samples = dataset::list_imm(&facegate_paths::shared_dir().join("data/imm")).unwrap();
         assert_eq!(samples.len(), 180);
         let first = neighbours(&samples[0]).unwrap();
-        assert_eq!(first.len(), dataset::IMM_POINTS);
+        assert_eq!(first.len(), facegate_core::face::IMM_POINTS);
         // The jaw is an open contour (its ends are their own neighbours), the eyes are closed.
         assert_eq!(first[0], [0, 1]);
         assert_eq!(first[12], [11, 12]);

@@ -168,7 +168,7 @@ fn view_textures(v: &ViewSamples, p: &SearchParams, neighbours: &[[u16; 2]], opt
         let (x0, x1) = full.mean[range].iter().fold((f32::MAX, f32::MIN), |(a, b), q| (a.min(q[0]), b.max(q[0])));
         train_shape_model(&sub, x1 - x0, options.shape_variance, options.constrain)
     };
-    let (contour, internal) = (group(JAW), group(dataset::INTERNAL));
+    let (contour, internal) = (group(JAW), group(facegate_core::face::INTERNAL));
     let profiles = v.profiles.iter().map(|lv| lv.iter().map(|s| train_full_gaussian(s, options.profile_ridge)).collect()).collect();
     let sifts = v
         .sifts

@@ -15,7 +15,8 @@ use super::cache::{self, CacheKey, ModelFiles, map_samples};
 use super::dataset::{self, Split, imm_is_test_person, lfw_split};
 use super::eval::protocol::{all_pairs_by, enrollment_scores_by};
 use facegate_morph::FaceModel;
-use facegate_vision::embed::{Embedder, face_embedding};
+use facegate_nn::Embedder;
+use facegate_vision::embed::face_embedding;
 use facegate_vision::pipeline::{FaceFinder, load_face_model};
 use facegate_vision::recognize::Combine;
 use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
@@ -216,7 +217,7 @@ pub fn train(
         .filter_map(|(s, e)| {
             e.photo
                 .as_deref()
-                .map(|v| (s.label.as_str(), model.template(&facegate_vision::embed::Embedding(v.try_into().expect("128 values"))).vector))
+                .map(|v| (s.label.as_str(), model.template(&facegate_nn::Embedding(v.try_into().expect("128 values"))).vector))
         })
         .collect();
     let source =

@@ -78,7 +78,7 @@ pub fn onnx_embeddings(
             let Ok(located) = finder.locate(&photo.gray) else { return OnnxPhotoEmbeddings::default() };
             let k = &located.landmarks.centres;
             let chip = network.chip(&photo.rgb, k, located.face.points.as_ref());
-            let plain = |chip: &facegate_vision::embed::FaceChip| network.embed_once(chip);
+            let plain = |chip: &facegate_nn::FaceChip| network.embed_once(chip);
             OnnxPhotoEmbeddings {
                 five_points: Some(plain(&chip)),
                 five_points_mirrored: Some(plain(&chip.mirrored())),

@@ -117,7 +117,7 @@ fn synthetic_views_put_the_landmarks_on_the_rendered_face() {
         assert!(facegate_core::geometry::distance(same.points[i], shape[i]) < 0.5, "point {i}: {:?} vs {:?}", same.points[i], shape[i]);
     }
     // Nose tip (IMM 52 lies on the nose ridge/tip region) moves to the image right with positive yaw.
-    let nose = |v: &SyntheticView| centroid(&v.points[dataset::NOSE]);
+    let nose = |v: &SyntheticView| centroid(&v.points[facegate_core::face::NOSE]);
     assert!(nose(&right)[0] > nose(&left)[0] + 10.0);
     for v in [&left, &right] {
         // Every internal landmark is on the rendered face (not the black background).

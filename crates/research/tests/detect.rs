@@ -2,9 +2,10 @@ use facegate_detect::*;
 use facegate_paths::{models_dir, shared_dir};
 use std::path::PathBuf;
 
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::Rect;
 use facegate_core::imaging::{GrayF32, open};
-use facegate_research::dataset::{EyeMouthCentres, list_imm};
+use facegate_research::dataset::list_imm;
 
 fn imm_dir() -> PathBuf {
     shared_dir().join("data/imm")

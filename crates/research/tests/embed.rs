@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::Similarity;
 use facegate_nn::weights;
+use facegate_nn::{Arithmetic, Embedder, Embedding, FaceChip};
 use facegate_research::convert::convert_dlib;
 use facegate_research::dataset::list_imm;
 use facegate_vision::embed::*;

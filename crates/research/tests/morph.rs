@@ -1,8 +1,9 @@
 use facegate_core::geometry::Point;
 use rand::{Rng, SeedableRng};
 
+use facegate_core::face::JAW;
 use facegate_morph::*;
-use facegate_research::dataset::{JAW, list_imm};
+use facegate_research::dataset::list_imm;
 
 fn model() -> FaceModel {
     FaceModel::load(&facegate_paths::sfm_dir()).expect("the Surrey Face Model is in ../shared/models/sfm")

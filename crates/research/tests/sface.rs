@@ -3,16 +3,17 @@
 // onnxruntime's embeddings of the central 112×112 pixels of three LFW photos;
 // `scripts/sface-reference.sh` rebuilds it.
 use facegate_core::geometry::Similarity;
-use facegate_vision::embed::Arithmetic;
+use facegate_nn::Arithmetic;
+use facegate_nn::onnx::EngineChoice;
 use facegate_vision::embed::chip;
-use facegate_vision::embed::onnx::{EngineChoice, OnnxEmbedder};
+use facegate_vision::embed::onnx::OnnxEmbedder;
 
 fn reference() -> serde_json::Value {
     let path = facegate_paths::repository_dir().join("tests/data/sface-reference.json");
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
 
-fn central_chip(photo: &str) -> facegate_vision::embed::FaceChip {
+fn central_chip(photo: &str) -> facegate_nn::FaceChip {
     let rgb = facegate_core::imaging::open(&facegate_paths::shared_dir().join(format!("data/lfw/{photo}.jpg"))).unwrap().rgb;
     chip::extract(&rgb, &Similarity { a: 1.0, b: 0.0, tx: 69.0, ty: 69.0 }, 112)
 }

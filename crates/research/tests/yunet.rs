@@ -4,9 +4,10 @@
 use facegate_detect::{DetectOptions, Detector, DetectorKind, Face, YUNET_MODEL};
 use facegate_paths::{models_dir, shared_dir};
 
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::{Rect, distance};
 use facegate_core::imaging::{GrayF32, open};
-use facegate_research::dataset::{EyeMouthCentres, list_imm};
+use facegate_research::dataset::list_imm;
 
 fn yunet() -> Detector {
     Detector::load_kind(&models_dir(), DetectorKind::Yunet).unwrap()
@@ -23,7 +24,7 @@ fn holds_points(face: &Face) -> bool {
 #[test]
 fn the_model_file_is_the_converted_one() {
     let bytes = std::fs::read(models_dir().join(YUNET_MODEL)).unwrap();
-    assert_eq!(facegate_research::convert::yunet::sha256_hex(&bytes), facegate_research::convert::yunet::SHA256);
+    assert_eq!(facegate_vision::embed::onnx::sha256_hex(&bytes), facegate_research::convert::yunet::SHA256);
     assert_eq!(bytes, facegate_detect::EMBEDDED_YUNET);
 }
 

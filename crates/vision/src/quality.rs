@@ -14,9 +14,9 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::embed::{FaceChip, MirrorPair};
 use facegate_core::face::EyeMouthCentres;
 use facegate_morph::Pose;
+use facegate_nn::{FaceChip, MirrorPair};
 
 /// The inner face of the 150-pixel chip (eyebrows to chin, cheek to cheek), where the image
 /// components are measured: the chip's corners are background or black padding.
@@ -369,9 +369,9 @@ mod tests {
 
     fn mirror_pair(direct: [f32; 2], mirrored: [f32; 2]) -> MirrorPair {
         let embed = |v: [f32; 2]| {
-            let mut e = [0.0; crate::embed::EMBEDDING_DIMS];
+            let mut e = [0.0; facegate_nn::EMBEDDING_DIMS];
             e[..2].copy_from_slice(&v);
-            crate::embed::Embedding(e)
+            facegate_nn::Embedding(e)
         };
         MirrorPair { direct: embed(direct), mirrored: embed(mirrored) }
     }

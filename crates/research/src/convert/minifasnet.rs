@@ -12,7 +12,7 @@ use facegate_nn::minifasnet::{self, Bottleneck, ConvLayer, Layer, Linear, MiniFa
 use facegate_vision::liveness::minifasnet::{V1SE_FILE, V2_FILE};
 
 use super::torch_legacy::{self, Tensor, TorchError};
-use super::wheel::sha256_hex;
+use facegate_vision::embed::onnx::sha256_hex;
 
 pub const REPOSITORY: &str = "minivision-ai/Silent-Face-Anti-Spoofing";
 pub const COMMIT: &str = "b6d5f04ad78778917853b25c778acef6d5626d15";

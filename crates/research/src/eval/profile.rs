@@ -7,7 +7,9 @@ use std::io::Write;
 
 use serde::Serialize;
 
-use crate::dataset::{EyeMouthCentres, ImmSample};
+use crate::dataset::ImmSample;
+
+use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::{Point, distance};
 use facegate_core::imaging::GrayF32;
 use facegate_detect::{Detector, Face};

@@ -17,7 +17,7 @@ use crate::cache::{self, CacheKey, map_samples};
 use crate::dataset::Split;
 use crate::train_deep::{FrontEndModels, Sample, Set, cache_id};
 use facegate_morph::FaceModel;
-use facegate_vision::embed::Embedder;
+use facegate_nn::Embedder;
 use facegate_vision::pipeline::FaceFinder;
 use facegate_vision::quality::{Components, QualityModel};
 
@@ -108,7 +108,7 @@ pub fn scored<'a>(
         .filter(|(s, _)| keep(s))
         .filter_map(|(s, m)| {
             let m = m.as_ref()?;
-            let embedding = facegate_vision::embed::Embedding(m.embedding.as_slice().try_into().ok()?);
+            let embedding = facegate_nn::Embedding(m.embedding.as_slice().try_into().ok()?);
             Some(Scored { label: s.label.as_str(), template: model.template(&embedding).vector, components: m.components })
         })
         .collect()

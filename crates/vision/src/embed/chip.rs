@@ -10,9 +10,7 @@
 use image::RgbImage;
 
 use facegate_core::geometry::{Point, Similarity};
-
-/// The chip type is the networks' input, so it lives with them.
-pub use facegate_nn::FaceChip;
+use facegate_nn::FaceChip;
 
 /// dlib's mean face shape (points 36–59 of the 68-point iBUG template, in the unit square of the
 /// face; `dlib/image_transforms/interpolation.h`, Boost Software License): x then y.

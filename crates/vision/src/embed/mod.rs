@@ -13,9 +13,8 @@ use std::path::Path;
 
 use facegate_core::face::EyeMouthCentres;
 
-pub use chip::FaceChip;
 use facegate_nn::weights;
-pub use facegate_nn::{Arithmetic, EMBEDDING_DIMS, Embedder, Embedding, MirrorPair, NetworkFile, Workspace};
+use facegate_nn::{Embedder, Embedding, FaceChip, MirrorPair, NetworkFile};
 
 /// Side of the chips the network takes.
 pub const CHIP_SIZE: usize = 150;

@@ -9,9 +9,11 @@ use std::path::Path;
 use facegate_nn::onnx::OnnxNet;
 use serde::{Deserialize, Serialize};
 
-use super::chip::{self, FaceChip};
+use super::chip;
 use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::{Point, Similarity};
+use facegate_nn::FaceChip;
+use facegate_nn::onnx::EngineChoice;
 
 /// The ArcFace 112×112 template of the five points (image-left eye, image-right eye, nose tip,
 /// image-left and image-right mouth corner), as InsightFace aligns its training faces
@@ -140,8 +142,6 @@ pub fn input_to_photo(manifest: &Manifest, centres: &EyeMouthCentres, points: Op
         }
     }
 }
-
-pub use facegate_nn::onnx::EngineChoice;
 
 /// An ONNX embedding network compiled for one face at a time. `Send + Sync`.
 pub struct OnnxEmbedder {

@@ -9,11 +9,11 @@ use facegate_core::imaging::{GrayF32, Photo};
 
 use super::PipelineError;
 use super::finder::FaceFinder;
-use crate::embed::FaceChip;
 use crate::landmarks::Landmarks;
 use crate::quality::Components;
 use crate::recognize::Normalization;
 use facegate_morph::{FaceModel, FitOptions, Pose};
+use facegate_nn::FaceChip;
 
 /// The face [`FaceModel`] when `sfm_dir` holds one; `None` (with a warning) when it does not:
 /// 2D alignment only.

@@ -99,7 +99,7 @@ fn deep_and_classical_templates_carry_their_own_versions() {
     let p = photo("05-1m.jpg");
     let (a, b) = (deep.analyze(&p).unwrap(), classical.analyze(&p).unwrap());
     assert!(a.template.model_version.starts_with("deep-") && b.template.model_version.starts_with("dlda-"));
-    assert_eq!(a.template.vector.len(), crate::embed::EMBEDDING_DIMS);
+    assert_eq!(a.template.vector.len(), facegate_nn::EMBEDDING_DIMS);
     assert_eq!((a.face, &a.landmarks), (b.face, &b.landmarks), "one front end for both");
     // The mirror agreement exists where the chip is embedded (deep), not on the classical path,
     // whose other components are the same (one chip for both).
@@ -120,9 +120,9 @@ fn the_default_fusion_joins_both_networks_and_keeps_the_mirror_agreement() {
     assert_eq!(fusion.recognizer.kind(), RecognizerKind::Fusion);
     let a = fusion.analyze(&photo("05-1m.jpg")).unwrap();
     assert!(a.template.model_version.starts_with("emb-"), "{}", a.template.model_version);
-    assert_eq!(a.template.vector.len(), 2 * crate::embed::EMBEDDING_DIMS, "dlib's 128 values and SFace's 128");
+    assert_eq!(a.template.vector.len(), 2 * facegate_nn::EMBEDDING_DIMS, "dlib's 128 values and SFace's 128");
     // dlib's half carries √0.8 of the unit vector, SFace's √0.2.
-    let (dlib, sface) = a.template.vector.split_at(crate::embed::EMBEDDING_DIMS);
+    let (dlib, sface) = a.template.vector.split_at(facegate_nn::EMBEDDING_DIMS);
     let norm = |v: &[f32]| v.iter().map(|x| x * x).sum::<f32>();
     assert!((norm(dlib) - 0.8).abs() < 1e-3 && (norm(sface) - 0.2).abs() < 1e-3, "{} {}", norm(dlib), norm(sface));
     assert!(a.quality.components.mirror_agreement.is_some_and(|m| m > 0.5), "dlib's mirror pair feeds the quality score");

@@ -12,9 +12,9 @@ use serde::{Deserialize, Serialize};
 use super::calibration::{Calibration, EnrolledCalibration};
 use super::template::Combine;
 use super::{Dlda, OperatingPoint, RecognizeError, Template};
-use crate::embed::{Embedder, Embedding};
 use facegate_core::face::EyeMouthCentres;
 use facegate_core::model_file::read_model;
+use facegate_nn::{Embedder, Embedding};
 
 pub const FILE: &str = "deep.bin";
 pub const FORMAT: u32 = 1;
@@ -64,7 +64,7 @@ impl DlibModel {
         let fail = |message: String| RecognizeError::Model { path: path.display().to_string(), message };
         let model: DlibModel =
             read_model(path, "deep recognition model", FORMAT, "facegate train deep (see models/deep.md)").map_err(fail)?;
-        if model.projection.as_ref().is_some_and(|d| !d.accepts(crate::embed::EMBEDDING_DIMS)) {
+        if model.projection.as_ref().is_some_and(|d| !d.accepts(facegate_nn::EMBEDDING_DIMS)) {
             return Err(fail("the projection does not take 128-value embeddings".into()));
         }
         Ok(model)
@@ -122,13 +122,13 @@ impl DlibRecognizer {
 
     /// The template of a chip already cut ([`crate::embed::face_chip`]): what [`Self::template`]
     /// computes, for a caller that also measures the chip.
-    pub fn template_of_chip(&self, chip: &crate::embed::FaceChip) -> Template {
+    pub fn template_of_chip(&self, chip: &facegate_nn::FaceChip) -> Template {
         self.template_and_mirror_pair(chip).0
     }
 
     /// [`Self::template_of_chip`] and the two embeddings its mean was made of (the chip's and its
     /// mirror image's), for the quality components that compare them.
-    pub fn template_and_mirror_pair(&self, chip: &crate::embed::FaceChip) -> (Template, crate::embed::MirrorPair) {
+    pub fn template_and_mirror_pair(&self, chip: &facegate_nn::FaceChip) -> (Template, facegate_nn::MirrorPair) {
         let pair = crate::embed::chip_mirror_pair(&self.network, chip);
         (self.model.template(&pair.mean()), pair)
     }

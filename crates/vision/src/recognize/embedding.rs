@@ -16,10 +16,10 @@ use super::dlib::DeepProvenance;
 use super::template::Combine;
 use super::{OperatingPoint, RecognizeError, Template};
 use crate::embed::onnx::OnnxEmbedder;
-use crate::embed::{Embedder, FaceChip, MirrorPair};
 use facegate_core::face::EyeMouthCentres;
 use facegate_core::geometry::Point;
 use facegate_core::model_file::read_model;
+use facegate_nn::{Embedder, FaceChip, MirrorPair};
 
 pub const FORMAT: u32 = 1;
 

@@ -5,7 +5,9 @@ use std::io::Write;
 
 use serde::Serialize;
 
-use crate::dataset::{EyeMouthCentres, ImmSample};
+use crate::dataset::ImmSample;
+
+use facegate_core::face::EyeMouthCentres;
 use facegate_detect::Detector;
 use facegate_vision::landmarks::{Landmarker, Variant};
 
