@@ -1,6 +1,6 @@
 //! SQLite's files: sealed bytes in the file, erasure, durability settings, backup and restore.
 //!
-//! A module of the crate root, not of `sqlite`, so the tests keep the names docs/service.md cites
+//! A module of the crate root, not of `sqlite`, so the tests keep the names docs/storage.md cites
 //! (`at_rest::…`).
 
 use std::path::PathBuf;

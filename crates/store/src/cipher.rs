@@ -16,7 +16,7 @@
 //! a dead PostgreSQL tuple) cannot be opened. A copy of the database made *before* the deletion (a
 //! backup) still holds the subject's wrapped data key next to its templates, and opens with the
 //! master key that wrapped it: such copies are erased only once that master key is retired (rotated
-//! away with `facegate rekey`, then destroyed). docs/service.md, "Erasure: what it covers".
+//! away with `facegate rekey`, then destroyed). docs/storage.md, "Erasure: what it covers".
 //!
 //! Sealed bytes: a 12-byte nonce, then the ciphertext, then the 16-byte Poly1305 tag.
 

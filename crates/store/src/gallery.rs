@@ -1,6 +1,6 @@
 //! The gallery's reads, the same on both backends: every subject's templates of one model version
 //! streamed in subject id order ([`Store::gallery`]), cut into parts that several connections
-//! read at once ([`GalleryPart`], [`Store::gallery_parts`], [`Store::gallery_part`]; on a SQLite
+//! read at once ([`crate::gallery_part`], [`Store::gallery_parts`], [`Store::gallery_part`]; on a SQLite
 //! file through [`crate::sqlite_scan`]), and the templates of a few subjects
 //! ([`Store::templates_of`]).
 
@@ -12,6 +12,7 @@ use facegate_core::SubjectId;
 use facegate_core::template::Template;
 
 use crate::codec::{Sealing, StoredRow, open_vector};
+use crate::gallery_part::{GalleryPart, gallery_statement};
 use crate::{Backend, Store, StoreError, sqlite_scan};
 
 /// A subject being read by [`Store::gallery`]: its id, how its vectors are stored (none when its
@@ -24,45 +25,6 @@ struct AbandonOnDrop(Arc<std::sync::atomic::AtomicBool>);
 impl Drop for AbandonOnDrop {
     fn drop(&mut self) {
         self.0.store(true, std::sync::atomic::Ordering::Relaxed);
-    }
-}
-
-/// The gallery read of `part` (the columns [`StoredRow::of`] takes), its parameters named by
-/// `placeholder` (`$n` for sqlx, `?n` for SQLite's C API): 1 the model version, 2 the lower bound
-/// ('' sorts before every id, and ids are never empty), 3 the upper bound, left out of the
-/// statement when there is none so that the index range ends where the part does.
-pub(crate) fn gallery_statement(part: &GalleryPart, placeholder: impl Fn(usize) -> String) -> String {
-    let through = match part.through {
-        Some(_) => format!("AND t.subject_id <= {}", placeholder(3)),
-        None => String::new(),
-    };
-    format!(
-        "SELECT t.id, t.subject_id, t.model_version, t.dimension, t.vector, s.key_id, s.data_key
-         FROM templates t JOIN subjects s ON s.id = t.subject_id
-         WHERE t.model_version = {} AND t.subject_id > {} {through}
-         ORDER BY t.subject_id, t.id",
-        placeholder(1),
-        placeholder(2)
-    )
-}
-
-/// The subjects with ids after `after` and up to `through` (inclusive); `None` is unbounded.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct GalleryPart {
-    pub after: Option<String>,
-    pub through: Option<String>,
-    /// About how many templates the part holds (0: not known), so that its reader can reserve
-    /// its memory once rather than grow it by doubling.
-    pub expected_templates: usize,
-}
-
-impl GalleryPart {
-    /// The parts that `cuts` (increasing subject ids) make: up to the first, between each two,
-    /// after the last.
-    pub fn between(cuts: &[String]) -> Vec<GalleryPart> {
-        let bounds: Vec<Option<String>> =
-            std::iter::once(None).chain(cuts.iter().cloned().map(Some)).chain(std::iter::once(None)).collect();
-        bounds.windows(2).map(|w| GalleryPart { after: w[0].clone(), through: w[1].clone(), expected_templates: 0 }).collect()
     }
 }
 
@@ -141,7 +103,7 @@ impl Store {
         let mut tx = self.pool.begin().await?;
         if self.backend == Backend::Postgres {
             // Read in the index's order (model version, subject, id): PostgreSQL's planner
-            // otherwise scans the whole table and sorts the part's rows, per part (docs/service.md,
+            // otherwise scans the whole table and sorts the part's rows, per part (docs/gallery.md,
             // start-up: 64 s against 30 s at ten million).
             sqlx::query("SET LOCAL enable_sort = off").execute(&mut *tx).await?;
         }

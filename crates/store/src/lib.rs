@@ -11,7 +11,7 @@
 //! transaction: either all of its templates are stored or none. No photo is ever stored, only
 //! templates: each is a little-endian f32 vector with the recognition model version that made it.
 //!
-//! At rest (docs/service.md): with a [`KeyRing`] each subject's vectors are sealed under its own
+//! At rest (docs/storage.md): with a [`KeyRing`] each subject's vectors are sealed under its own
 //! data key ([`cipher`], backend-neutral); a vector that fails authentication is refused
 //! ([`StoreError::CorruptTemplate`]), never scored. Without a key, vectors are stored plain.
 //!
@@ -24,7 +24,7 @@
 //! subject id (`LISTEN`/`NOTIFY`), so the others can follow ([`Store::watch`]). The migrator holds
 //! an advisory lock while migrating, so replicas starting together migrate once. A deleted row
 //! stays in the table's heap file until its page is reused (VACUUM does not zero it): see
-//! docs/service.md for what that means for erasure.
+//! docs/storage.md for what that means for erasure.
 //!
 //! Queries are checked at run time (`sqlx::query`), not by the `query!` macros, so a clean clone
 //! builds without a database.
@@ -44,6 +44,7 @@ pub mod cipher;
 mod codec;
 mod feed;
 mod gallery;
+mod gallery_part;
 mod redact;
 mod rekey;
 mod renew;
@@ -77,7 +78,7 @@ pub use challenge::{SWEEP_BATCH, TakenChallenge};
 pub use cipher::{CipherError, KeyRing};
 pub use codec::{KeyCheck, SealingCounts, blob_to_vector, vector_to_blob};
 pub use feed::{ChangeFeed, StoreChange};
-pub use gallery::GalleryPart;
+pub use gallery_part::GalleryPart;
 pub use redact::redact_url;
 pub use rekey::RekeyReport;
 pub use renew::{RenewReport, RenewedVersion, Renewing};

@@ -13,8 +13,8 @@ use std::ptr::{NonNull, null, null_mut};
 
 use libsqlite3_sys as ffi;
 
-use crate::GalleryPart;
 use crate::codec::StoredRow;
+use crate::gallery_part::{GalleryPart, gallery_statement};
 
 /// An open read-only connection, closed on drop.
 struct Connection(NonNull<ffi::sqlite3>);
@@ -128,7 +128,7 @@ pub(crate) fn read_gallery_part(
     mut each: impl FnMut(StoredRow<'_>) -> bool,
 ) -> Result<(), String> {
     let connection = Connection::open(path)?;
-    let mut statement = connection.prepare(&crate::gallery::gallery_statement(part, |n| format!("?{n}")))?;
+    let mut statement = connection.prepare(&gallery_statement(part, |n| format!("?{n}")))?;
     statement.bind_text(1, model_version)?;
     statement.bind_text(2, part.after.as_deref().unwrap_or(""))?;
     if let Some(through) = &part.through {

@@ -58,7 +58,7 @@ pub struct LivenessReport {
     /// frame, measured on NUAA's real prints and live frames.
     pub reverse: Option<ReverseCheck>,
     /// Real video's live frames refused at the EER threshold, per clip.
-    pub video_refused: Vec<crate::liveness::video::VideoRefusal>,
+    pub video_refused: Vec<crate::liveness::video_refusals::VideoRefusal>,
     /// Platt's calibration of the out-of-fold logits.
     pub calibration: (f32, f32),
     /// The same frames fused [`SEQUENCE_FRAMES`] at a time: the mean logit of consecutive frames
@@ -431,7 +431,7 @@ pub fn evaluate(data: &LivenessData, name: &str, recipe: &Recipe, progress: &dyn
         simulated_accepted: simulated_acceptance(data, recipe, &full, &f, calibration),
         camera_thresholds: camera_thresholds(data, recipe, &unseen_fits, &f, calibration),
         reverse: reverse_check(data, recipe),
-        video_refused: crate::liveness::video::video_refusals(
+        video_refused: crate::liveness::video_refusals::video_refusals(
             data,
             recipe,
             &full,
