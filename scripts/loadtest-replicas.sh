@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Scale-out numbers on 127.0.0.1 only, bounded in time and count (docs/service.md, "Several
+# Scale-out numbers on 127.0.0.1 only, bounded in time and count (docs/gallery.md, "Several
 # replicas on PostgreSQL"):
 #
 #   1. POST /verify with wrk: one replica on SQLite, then two replicas on one PostgreSQL database

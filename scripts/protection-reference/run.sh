@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The one-off reference measurement behind the choice of the protected template scheme
-# (docs/service.md, "Protected templates"): the service's own fused templates of every LFW, IMM and
+# (docs/template-protection.md): the service's own fused templates of every LFW, IMM and
 # ORL photo, then BioHashing, Index-of-Max hashing, top-k signs, quantised and plain keyed
 # rotations against the plain templates: EER and FNMR at FMR 1e-3 on LFW test persons,
 # unlinkability (D<->sys, Gomez-Barrero et al. 2018) across two secrets and with one, the best

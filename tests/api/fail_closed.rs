@@ -7,7 +7,7 @@
 //!   it knows. `--liveness enforce` without the liveness model, and a liveness threshold outside
 //!   (0, 1), stop it too.
 //! - `DELETE /subjects/{id}` answers 204 with `Facegate-Erasure`, and `/health` repeats it.
-//! - The statement of docs/service.md ("Erasure: what it covers"): a backup taken before a DELETE
+//! - The statement of docs/storage.md ("Erasure: what it covers"): a backup taken before a DELETE
 //!   and restored with the same key brings the subject back, and it verifies; once the key is
 //!   rotated away (`facegate rekey`) and the old key destroyed, that backup opens no more.
 
@@ -338,7 +338,7 @@ fn facegate_ok(args: &[&str]) -> Value {
     serde_json::from_str(String::from_utf8_lossy(&out.stdout).lines().last().unwrap()).unwrap()
 }
 
-/// docs/service.md, "Erasure: what it covers": a DELETE reaches the live database, not a backup
+/// docs/storage.md, "Erasure: what it covers": a DELETE reaches the live database, not a backup
 /// taken before it; restored with the same key, the backup brings the subject back and it
 /// verifies. Rotating the key (`facegate rekey`) and destroying the old one is what closes the
 /// backup, and then all of it: the service refuses to start on it.

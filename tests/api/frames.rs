@@ -120,7 +120,7 @@ async fn enforce_judges_a_print_with_live_frames_by_the_fused_score() {
     // Enforce decides by that fused score: refused with it when below the threshold, else
     // answered (the print alone is refused: tests/api/liveness.rs). With the committed model the
     // two confident live frames outvote the print (scores about 3e-5, 0.999997 and 0.9996 fuse to
-    // 0.97): the capture is answered, as docs/service.md says.
+    // 0.97): the capture is answered, as docs/http-api.md says.
     let enforce =
         report.restarted_with(pipeline.clone(), Settings { liveness: Choice::Enforce, ..Settings::default() }.api_config().unwrap()).await;
     let r = verify_frames(&enforce, &nuaa(PRINT), &live_frames()).await;

@@ -597,7 +597,7 @@ fn wal_files(data: &str) -> Vec<u8> {
 /// readable in the tables' files after DELETE, some of them after VACUUM (which frees the space
 /// without zeroing it), and in the WAL; VACUUM FULL rewrites the tables into new files without
 /// them. With a template key the files never hold a plain vector; what a deletion leaves is
-/// sealed bytes and the subject's data key wrapped by the master key. (docs/service.md.)
+/// sealed bytes and the subject's data key wrapped by the master key. (docs/storage.md.)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn postgres_erasure_leaves_what_the_docs_say() {
     let test = "store_backends::postgres_erasure_leaves_what_the_docs_say";

@@ -207,7 +207,7 @@ pub async fn delete_subject(
 pub const ERASURE_HEADER: &str = "facegate-erasure";
 
 /// What a deletion erases on this store, then what still holds the subject and until when
-/// (docs/service.md, "Erasure: what it covers"):
+/// (docs/storage.md, "Erasure: what it covers"):
 /// - `live-database`: SQLite's files (the database and its WAL) no longer hold any byte of it;
 ///   `queries`: on PostgreSQL no query, replica or later dump sees it, but its dead rows stay in
 ///   the server's files ("disk") until overwritten;

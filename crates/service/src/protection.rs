@@ -12,7 +12,7 @@
 //! It does *not* make a template irreversible for whoever also holds the secret: the rotation is
 //! inverted exactly. The families that lose information on purpose (BioHashing's sign
 //! quantisation, Index-of-Max hashing, quantised rotations) were measured before this was chosen
-//! (docs/service.md, "Protected templates"): every one accurate enough to use was inverted to an
+//! (docs/template-protection.md): every one accurate enough to use was inverted to an
 //! embedding that matches the person's other photos in 97–100 % of attempts by an attacker with the
 //! secret, at a cost of 0.15 to 1.6 points of FNMR. So the secret lives in a key file, never in the
 //! database, as the template keys do; sealing (`--template-key-file`) still encrypts the stored
@@ -311,7 +311,7 @@ pub fn check_stored_versions(stored: &[String], plain: &str, protected: Option<&
                     "the database holds plain templates of {plain}, and --template-protection-key-file asks for protected ones \
                      ({ours}): a database holds one or the other. Start without the key file, protect the stored templates with \
                      `facegate renew-protection --from-plain --new-key-file` (the service stopped), or enrol the subjects again into \
-                     a new database with it (docs/service.md, \"Protected templates\")"
+                     a new database with it (docs/template-protection.md)"
                 ));
             }
             Some(ours) if version.starts_with(&prefix) && version != ours => {

@@ -16,7 +16,7 @@ use facegate_store::{ChangeFeed, Store, StoreChange, StoreError};
 const CATCH_UP_WAIT: Duration = Duration::from_secs(2);
 
 /// Connections that read the gallery at start-up, each a part of the subjects: one per core (2 to
-/// 8), so that the rows' decoding and quantising run on every core (docs/service.md measures the
+/// 8), so that the rows' decoding and quantising run on every core (docs/gallery.md measures the
 /// load).
 fn load_parts() -> usize {
     std::thread::available_parallelism().map_or(2, |n| n.get()).clamp(2, 8)

@@ -14,7 +14,7 @@
 //!
 //! Memory: per template, its values (exact: 4 bytes × dimension and an inverse norm; quantised:
 //! half a byte × dimension and a scale) and its subject slot (4 bytes); per subject, its id and
-//! an index entry (docs/service.md has the measured figures).
+//! an index entry (docs/gallery.md has the measured figures).
 
 pub mod codes;
 mod live;
@@ -63,7 +63,7 @@ pub enum Found {
 }
 
 /// Subjects shortlisted beyond the `k` asked for, so that a true top-`k` subject whose
-/// approximate score fell a little is still re-scored (docs/service.md measures the recall).
+/// approximate score fell a little is still re-scored (docs/gallery.md measures the recall).
 pub const SHORTLIST_MARGIN: usize = 32;
 
 /// The templates of one model version with their subjects: per template (row) its values and its
