@@ -36,9 +36,6 @@ const STEP: Duration = Duration::from_secs(30);
 /// each (the page's own timeout), a look at the camera taking an `/analyze` call, then `/verify`.
 const CHALLENGE: Duration = Duration::from_secs(240);
 
-/// One browser at a time: each test drives the real pipeline, and the machine's cores are few.
-static ONE_BROWSER: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
-
 fn first_existing(candidates: &[&str]) -> Option<PathBuf> {
     candidates.iter().map(PathBuf::from).find(|p| p.is_file())
 }
@@ -226,7 +223,6 @@ fn imm_path(name: &str) -> PathBuf {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_console_enrolls_verifies_shows_the_avatar_and_deletes_in_chromium() {
     let Some((chromium, chromedriver)) = browser_binaries() else { return };
-    let _one_browser = ONE_BROWSER.lock().await;
     let shots = screenshot_folder();
 
     let app = TestApp::start(crate::pipeline::pipeline(), facegate::config::Settings::default().api_config().unwrap()).await;
@@ -473,7 +469,6 @@ async fn script_i64(page: &Page, script: &str) -> i64 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_camera_view_passes_a_head_turn_challenge_and_fails_a_still_photo_in_chromium() {
     let Some((chromium, chromedriver)) = browser_binaries() else { return };
-    let _one_browser = ONE_BROWSER.lock().await;
     let app = TestApp::start(crate::pipeline::pipeline(), facegate::config::Settings::default().api_config().unwrap()).await;
     let enrolled = app.post_form("/enroll", Some("imm-05"), &[crate::support::imm("05-1m.jpg"), crate::support::imm("05-2m.jpg")]).await;
     assert_eq!(enrolled.status, 201, "{}", String::from_utf8_lossy(&enrolled.body));
@@ -547,7 +542,6 @@ const VIDEO_FPS: u32 = 10;
 #[ignore = "a measurement of about 25 minutes: docs/liveness-challenge.md"]
 async fn the_camera_view_on_real_video() {
     let Some((chromium, chromedriver)) = browser_binaries() else { return };
-    let _one_browser = ONE_BROWSER.lock().await;
     let pipeline = crate::pipeline::pipeline();
     let settings = facegate::config::Settings { liveness: facegate::choices::Liveness::Enforce, ..Default::default() };
     let app = TestApp::start(pipeline.clone(), settings.api_config().unwrap()).await;
