@@ -72,8 +72,9 @@ def main():
     parser.add_argument("before")
     parser.add_argument("after")
     args = parser.parse_args()
+    sent = requests(args.shared)
     different = 0
-    for method, path, fields, files in requests(args.shared):
+    for method, path, fields, files in sent:
         before = call(args.before, method, path, fields, files)
         after = call(args.after, method, path, fields, files)
         if before == after:
@@ -81,8 +82,7 @@ def main():
         else:
             different += 1
             print(f"different  {method} {path}\n  before {before[0]} {before[1][:600]}\n  after  {after[0]} {after[1][:600]}")
-    total = len(requests(args.shared))
-    print(f"{total - different} of {total} answers the same")
+    print(f"{len(sent) - different} of {len(sent)} answers the same")
     sys.exit(1 if different else 0)
 
 
