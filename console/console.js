@@ -383,7 +383,9 @@ const BURST_MAX = 5;
 const BURST_MIN = 3;
 /// Where a frame is well inside a step's range: |yaw| at most 6° ahead, 20° to 45° to the asked side.
 const BANDS = { front: [-6, 6], left: [20, 45], right: [-45, -20] };
-/// The pause between two looks at the camera (one /analyze at a time).
+/// The pause before looking again after a frame with no face or pose, or a busy server. After a
+/// frame read, the next look follows at once (one /analyze at a time): a pose held for a tenth of
+/// a second is caught, where a pause between all looks missed most such frames.
 const RETRY_MS = 300;
 /// The probe's range when the challenge has no `front` step to borrow one from.
 const FRONT = { turn: 'front', yaw_min: -10, yaw_max: 10 };
@@ -484,7 +486,7 @@ async function burstFor(run, step, want, seen) {
             const best = well.length > 0 ? well : taken.sort((a, b) => Math.abs(a.yaw - middle) - Math.abs(b.yaw - middle)).slice(0, want);
             return { frames: best, inRange: true, late: true };
         }
-        await sleep(RETRY_MS);
+        if (yaw === null) await sleep(RETRY_MS);
     }
 }
 

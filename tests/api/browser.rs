@@ -531,7 +531,7 @@ const VIDEO_FRAMES: usize = 80;
 const VIDEO_FPS: u32 = 10;
 
 /// A measurement, not a check (`cargo test --test api -- --ignored --nocapture
-/// the_camera_view_on_real_video`, about 25 minutes on 2 cores): the camera view under
+/// the_camera_view_on_real_video`, about 15 minutes on 2 cores): the camera view under
 /// `--liveness enforce`, on Chromium's fake camera playing each clip of `data/video` as a person
 /// answering at the camera would be seen: the clip's frames in order (80 evenly spaced, at 10 a
 /// second), then the same frames mirrored (the head turning the other way), in a loop. Each clip
@@ -539,7 +539,7 @@ const VIDEO_FPS: u32 = 10;
 /// the count passed (match and challenge); docs/liveness-challenge.md has the run. The clips are
 /// the development material: none is held out from the challenge's limits.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "a measurement of about 25 minutes: docs/liveness-challenge.md"]
+#[ignore = "a measurement of about 15 minutes: docs/liveness-challenge.md"]
 async fn the_camera_view_on_real_video() {
     let Some((chromium, chromedriver)) = browser_binaries() else { return };
     let pipeline = crate::pipeline::pipeline();
