@@ -2,7 +2,7 @@
 reliability.py, which imports this file).
 
 Both measure 4 legitimate clients on 127.0.0.1 verifying IMM 01-2m against the enrolled 01-1m, one
-new connection per request, first for 10 s unattacked, then for 20 s under the flood; the target
+new connection per request, first for 8 s unattacked, then for 12 s under the flood; the target
 is >= 95 % of their verifications answered 200 and >= 50 % of their unattacked throughput.
 
   head-flood   4,000 complete `POST /verify` heads without a body from 127.0.0.2, each opened
@@ -20,8 +20,8 @@ import threading
 import time
 
 LEGIT_CLIENTS = 4
-BASELINE_S = 10.0
-ATTACK_S = 20.0
+BASELINE_S = 8.0
+ATTACK_S = 12.0
 BIG = 16 * 1024 * 1024 - 1
 # The heads answered are opened again at most this often: about 0.8 Mbit/s of heads, four times
 # the flood the issue measured (0.2 Mbit/s). Unbounded, the script itself takes a whole core of a

@@ -16,9 +16,9 @@ checks its target and prints one result line; the script exits non-zero if any f
   stalled-heads
               86 request heads from 127.0.0.2 whose body never comes (8 declaring 16 MiB + 1 byte, over the limit;
               8 declaring 15 MiB; 70 declaring 125,000 bytes, over /verify /enroll /identify
-              /analyze), each opened again once answered, for 20 s, against --workers 2 --queue 4
-              --enrol-queue 2; meanwhile 4 clients run 80 verifications (IMM 01-1m enrolled, 01-2m
-              the probe) paced over those 20 s: >= 95 % answered 200, and the over-limit heads
+              /analyze), each opened again once answered, for 12 s, against --workers 2 --queue 4
+              --enrol-queue 2; meanwhile 4 clients run 48 verifications (IMM 01-1m enrolled, 01-2m
+              the probe) paced over those 12 s: >= 95 % answered 200, and the over-limit heads
               answered 413 within 1 s
   json-flood  a 15 MB JSON body {"subject":"a","images":["AA", ... 3,000,000 times]} POSTed to
               /enroll once, then 4 at once (from 4 addresses): each answered 400 `malformed-request`, the server's
@@ -27,7 +27,7 @@ checks its target and prints one result line; the script exits non-zero if any f
               the four bodies themselves, which the body budget counts, for the 4 at once), and
               /health (asked every 50 ms meanwhile) answered within 1 s
   trickle     8 connections that each send a `POST /verify` head declaring 16 MiB (the body limit)
-              and then one byte a second, each opened again once answered, for 20 s, while a client
+              and then one byte a second, each opened again once answered, for 12 s, while a client
               verifies IMM 01-2m against the enrolled 01-1m one request after another (waiting the
               Retry-After second after a 503): >= 95 % of the
               verifications answered 200; then the same with the trickles on /enroll while the
@@ -65,12 +65,12 @@ checks its target and prints one result line; the script exits non-zero if any f
               `store-unavailable` within 2 s, none of 10 enrolments after it acknowledged, and the
               restart on that path logs that it created a new, empty database
   head-flood  4,000 heads without a body from 127.0.0.2 (reopened <= 1,000/s) and 8 bodies of 16 MiB - 1 byte sent at
-              once then stalled from 127.0.0.3, all reopened when answered, for 20 s: 4 clients of
+              once then stalled from 127.0.0.3, all reopened when answered, for 12 s: 4 clients of
               127.0.0.1 (a new connection per request) get >= 95 % of their verifications answered
               200 at >= 50 % of their unattacked throughput, and VmHWM grows <= 200 MB
               (scripts/reliability/fairness.py)
   slow-bodies 64 addresses x 16 bodies at 8.5 KiB/s (just above the minimum rate), reopened when
-              answered, for 20 s: the 4 clients keep >= 50 % of their unattacked throughput
+              answered, for 12 s: the 4 clients keep >= 50 % of their unattacked throughput
   overload    (not in the default set: long, and its figures want a release build) hey with
               8 clients for 20 s (the peak), then 200 clients for 60 s: 0 responses other than
               200/503, successful verifications/s at 200 clients >= 90% of the rate at 8, peak
@@ -525,7 +525,7 @@ STALLED_ROUTES = ["/verify", "/enroll", "/identify", "/analyze"]
 
 
 def stalled_heads(args, work):
-    attack_s, legit_n, legit_clients, pace_s = 20.0, 80, 4, 1.0
+    attack_s, legit_n, legit_clients, pace_s = 12.0, 48, 4, 1.0
     heads = ([("over-limit", "/verify", BODY_LIMIT + 1)] * 8 + [("15 MiB", "/verify", 15 << 20)] * 8
              + [("125 kB", STALLED_ROUTES[i % len(STALLED_ROUTES)], 125_000) for i in range(70)])
     server = Server(args.bin, work, "--workers", "2", "--queue", "4", "--enrol-queue", "2")
@@ -770,7 +770,7 @@ def trickle(args, work):
 
 
 def trickle_run(args, work, route, n, length, source):
-    attack_s = 20.0
+    attack_s = 12.0
     server = Server(args.bin, work)
     trickles = None
     tally = {"verify": {}, "enroll": {}}
