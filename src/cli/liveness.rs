@@ -432,6 +432,9 @@ pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
         let why = report.live_refused.get(person).map_or(String::new(), |(_, r)| format!("; first refusal: {r}"));
         eprintln!("live {person}: {passed} of {n} pass{why}");
     }
+    for (clip, n) in report.video_other_faces.iter().filter(|(_, n)| **n > 0) {
+        eprintln!("{clip}: {n} frames whose largest face is another person's, left out");
+    }
     for (kind, [min, p5, median, p95, max]) in &report.yaw_quantiles {
         eprintln!("yaw {kind}: min {min:.1}° p5 {p5:.1}° median {median:.1}° p95 {p95:.1}° max {max:.1}°");
     }

@@ -102,6 +102,9 @@ pub struct ChallengeReport {
     pub live_refused: BTreeMap<String, (usize, String)>,
     /// Live attempts by person and kind: (attempts, passed under enforce).
     pub live_by_person: BTreeMap<String, (usize, usize)>,
+    /// Per video clip, its frames whose largest face is another person's (left out of its live
+    /// captures: `challenge_video::followed`).
+    pub video_other_faces: BTreeMap<String, usize>,
 }
 
 /// Each source's analysis, its time (ms) and its rendered-head check (with `render.bin`).
@@ -183,7 +186,8 @@ pub fn evaluate(pipeline: &Pipeline, config: &ChallengeEvalConfig, progress: &dy
     let mut analyses = analyze_sources(pipeline, candidates, config.threads, progress);
     let clips = {
         let yaw_of = |s: &Source| analyses.get(s).and_then(|(a, ..)| a.as_ref()).and_then(|a| a.key_point_pose).map(|p| p.yaw);
-        video::clips(config, &yaw_of)?
+        let face_of = |s: &Source| analyses.get(s).and_then(|(a, ..)| a.as_ref()).map(|a| a.face.rect);
+        video::clips(config, &yaw_of, &face_of)?
     };
     let adaptive = clips.iter().flat_map(|c| video::attack_candidates(&c.probe)).collect();
     analyses.extend(analyze_sources(pipeline, adaptive, config.threads, progress));
@@ -213,6 +217,7 @@ pub fn evaluate(pipeline: &Pipeline, config: &ChallengeEvalConfig, progress: &dy
         reused_attempts,
         live_refused: tally.live_refused,
         live_by_person: tally.live_by_person,
+        video_other_faces: clips.iter().map(|c| (c.name.clone(), c.other_faces)).collect(),
     })
 }
 
