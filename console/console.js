@@ -383,9 +383,10 @@ const BURST_MAX = 5;
 const BURST_MIN = 3;
 /// Where a frame is well inside a step's range: |yaw| at most 6° ahead, 20° to 45° to the asked side.
 const BANDS = { front: [-6, 6], left: [20, 45], right: [-45, -20] };
-/// The pause before looking again after a frame with no face or pose, or a busy server. After a
-/// frame read, the next look follows at once (one /analyze at a time): a pose held for a tenth of
-/// a second is caught, where a pause between all looks missed most such frames.
+/// The pause before looking again after a frame with no face or pose, another person's face
+/// (`followed`), or a busy server. After a frame read, the next look follows at once (one
+/// /analyze at a time): a pose held for a tenth of a second is caught, where a pause between all
+/// looks missed most such frames.
 const RETRY_MS = 300;
 /// The probe's range when the challenge has no `front` step to borrow one from.
 const FRONT = { turn: 'front', yaw_min: -10, yaw_max: 10 };
@@ -438,19 +439,44 @@ function grab(video) {
     });
 }
 
-/// The yaw /analyze reads in a frame, as the challenge judges it (`key_point_pose`): null when it
-/// finds no face or no pose (or is busy).
-async function yawOf(file) {
+/// The largest face /analyze finds in a frame, the one the server judges: its box and its yaw as
+/// the challenge judges it (`key_point_pose`; null without a pose). Null when it finds no face
+/// (or is busy).
+async function faceIn(file) {
     const body = new FormData();
     body.append('image', file, file.name);
     try {
         const r = await api('POST', '/analyze', body);
-        const yaw = r.faces[0]?.key_point_pose?.yaw;
-        return typeof yaw === 'number' ? yaw : null;
+        const face = r.faces[0];
+        if (!face) return null;
+        const yaw = face.key_point_pose?.yaw;
+        return { yaw: typeof yaw === 'number' ? yaw : null, box: face.face?.box ?? null };
     } catch (error) {
         if (error instanceof ApiError && (error.status === 422 || error.status === 503)) return null;
         throw error;
     }
+}
+
+/// Looks in a row at another face after which the page follows that one (the person left and came
+/// back elsewhere in the picture).
+const REFOLLOW_LOOKS = 10;
+
+/// Whether `box` is the face the page follows (`run.followed`): its centre within one face width of
+/// the last followed face's, as a person moves between two looks. A face further away is someone
+/// else's, larger than the person's in that frame: the server judges the largest face, so the
+/// frame is not taken. The first face seen is followed.
+function followed(run, box) {
+    if (!box) return true;
+    const centre = (b) => [b.x + b.width / 2, b.y + b.height / 2];
+    const last = run.followed;
+    const near = !last || Math.hypot(centre(box)[0] - centre(last)[0], centre(box)[1] - centre(last)[1]) <= last.width;
+    run.strayLooks = near ? 0 : (run.strayLooks ?? 0) + 1;
+    if (near || run.strayLooks >= REFOLLOW_LOOKS) {
+        run.followed = box;
+        run.strayLooks = 0;
+        return true;
+    }
+    return false;
 }
 
 /// The part of `step`'s range a frame should lie in: its band (BANDS) clamped into the range, or
@@ -472,13 +498,15 @@ async function burstFor(run, step, want, seen) {
     for (;;) {
         if (run.cancelled) throw new Cancelled();
         const file = await grab(run.video);
-        const yaw = await yawOf(file);
+        const face = await faceIn(file);
         if (run.cancelled) throw new Cancelled();
+        const stray = face !== null && !followed(run, face.box);
+        const yaw = face === null || stray ? null : face.yaw;
         const inRange = yaw !== null && yaw >= step.yaw_min && yaw <= step.yaw_max;
         const inside = inRange && yaw >= lo && yaw <= hi;
         if (inRange) taken.push({ file, yaw, inside });
         const well = taken.filter((t) => t.inside);
-        seen.textContent = yaw === null ? 'No face seen in the last frame' : `Seen: yaw ${degrees(yaw)}${inside ? ', well inside' : inRange ? `, in range: aim for ${lo}° to ${hi}°` : ''} (${well.length} of ${want} taken)`;
+        seen.textContent = stray ? 'Another face is larger than yours: keep only yourself in view' : yaw === null ? 'No face seen in the last frame' : `Seen: yaw ${degrees(yaw)}${inside ? ', well inside' : inRange ? `, in range: aim for ${lo}° to ${hi}°` : ''} (${well.length} of ${want} taken)`;
         if (well.length >= want || (well.length >= Math.min(BURST_MIN, want) && !inside)) return { frames: well, inRange: true };
         if (Date.now() >= deadline) {
             if (taken.length === 0) return { frames: [{ file, yaw }], inRange: false, late: true };
