@@ -461,12 +461,12 @@ async function faceIn(file) {
 /// back elsewhere in the picture).
 const REFOLLOW_LOOKS = 10;
 
-/// Whether `box` is the face the page follows (`run.followed`): its centre within one face width of
-/// the last followed face's, as a person moves between two looks. A face further away is someone
-/// else's, larger than the person's in that frame: the server judges the largest face, so the
-/// frame is not taken. The first face seen is followed.
+/// Whether `box` is the face the page follows (`run.followed`, from the probe photo on): its centre
+/// within one face width of the last followed face's, as a person moves between two looks. A face
+/// further away is someone else's, larger than the person's in that frame: the server judges the
+/// largest face, so the frame is not taken. Before the probe is taken every face counts.
 function followed(run, box) {
-    if (!box) return true;
+    if (!box || !run.followed) return true;
     const centre = (b) => [b.x + b.width / 2, b.y + b.height / 2];
     const last = run.followed;
     const near = !last || Math.hypot(centre(box)[0] - centre(last)[0], centre(box)[1] - centre(last)[1]) <= last.width;
@@ -504,7 +504,7 @@ async function burstFor(run, step, want, seen) {
         const yaw = face === null || stray ? null : face.yaw;
         const inRange = yaw !== null && yaw >= step.yaw_min && yaw <= step.yaw_max;
         const inside = inRange && yaw >= lo && yaw <= hi;
-        if (inRange) taken.push({ file, yaw, inside });
+        if (inRange) taken.push({ file, yaw, inside, box: face.box });
         const well = taken.filter((t) => t.inside);
         seen.textContent = stray ? 'Another face is larger than yours: keep only yourself in view' : yaw === null ? 'No face seen in the last frame' : `Seen: yaw ${degrees(yaw)}${inside ? ', well inside' : inRange ? `, in range: aim for ${lo}° to ${hi}°` : ''} (${well.length} of ${want} taken)`;
         if (well.length >= want || (well.length >= Math.min(BURST_MIN, want) && !inside)) return { frames: well, inRange: true };
@@ -568,6 +568,8 @@ async function runChallenge(run, subject, target) {
         $('.state', items[i]).textContent = !got.late ? ` · taken at yaw ${yaws}`
             : got.inRange ? ` · time up: the best frame(s) in range (yaw ${yaws}) go to the server` : ` · time up: the last frame (yaw ${yaws}) goes to the server`;
         taken.push(got.frames);
+        // The person is the one in the probe photo: the page follows that face from here on.
+        if (step.probe) run.followed = got.frames[0].box ?? null;
     }
     $('#camera-cancel').disabled = true;
     $('#camera-instruction').textContent = 'All frames taken.';

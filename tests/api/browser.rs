@@ -10,8 +10,10 @@
 //!
 //! The camera view ("Verify with the camera", the head-turn challenge) runs on Chromium's fake camera
 //! playing a Y4M clip of IMM photos the test writes to a temporary folder: a person looking ahead
-//! and turning to each side passes the challenge; a still photo fails it with the server's reason.
-//! The person is IMM 05 (held out of training). The page sends each step's burst of frames with
+//! and turning to each side passes the challenge; a still photo fails it with the server's reason;
+//! with another person's larger face beside them, turned before each of their turns, the page
+//! follows the person's face and still passes (taking the larger face's frames, it failed the
+//! same-person check). The person is IMM 05 (held out of training). The page sends each step's burst of frames with
 //! `frame_steps`; a clip whose turns never reach the bursts' band (20°–45°) has its in-range
 //! frames sent when a step's wait runs out.
 //!
@@ -522,6 +524,59 @@ async fn the_camera_view_passes_a_head_turn_challenge_and_fails_a_still_photo_in
     for name in ["camera-challenge", "camera-challenge-failed"] {
         let _ = std::fs::remove_dir_all(std::env::temp_dir().join(format!("facegate-chromium-{}-{name}", std::process::id())));
     }
+}
+
+/// A 640 × 480 camera frame of IMM photo `person` at half size on the left and, when `beside` is
+/// given, that photo at 0.7 of its size on the right: a second face, larger than the person's.
+fn two_faces(person: &str, beside: Option<&str>) -> image::RgbImage {
+    let photo = |name: &str, scale: f32| {
+        let rgb = image::open(imm_path(name)).unwrap().to_rgb8();
+        let (w, h) = ((640.0 * scale) as u32, (480.0 * scale) as u32);
+        image::imageops::resize(&rgb, w, h, image::imageops::FilterType::Triangle)
+    };
+    let mut frame = image::RgbImage::from_pixel(640, 480, image::Rgb([128, 128, 128]));
+    image::imageops::replace(&mut frame, &photo(person, 0.5), 0, 120);
+    if let Some(other) = beside {
+        image::imageops::replace(&mut frame, &photo(other, 0.7), 320, 72);
+    }
+    frame
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_camera_view_takes_no_frame_whose_larger_face_is_someone_elses_in_chromium() {
+    let Some((chromium, chromedriver)) = browser_binaries() else { return };
+    let app = TestApp::start(crate::pipeline::pipeline(), facegate::config::Settings::default().api_config().unwrap()).await;
+    let enrolled = app.post_form("/enroll", Some("imm-05"), &[crate::support::imm("05-1m.jpg"), crate::support::imm("05-2m.jpg")]).await;
+    assert_eq!(enrolled.status, 201, "{}", String::from_utf8_lossy(&enrolled.body));
+    let clips = std::env::temp_dir().join(format!("facegate-camera-beside-{}", std::process::id()));
+    std::fs::create_dir_all(&clips).unwrap();
+    let driver = Driver::start(&chromedriver);
+
+    // IMM person 05 on the left, looking ahead, turning left, ahead, turning right; before each
+    // of their turns, IMM person 01 beside them, larger, turned that way already. The server
+    // judges the largest face, so a page that took person 01's turned frames would fail the
+    // same-person check; the page follows person 05's face from the probe on and waits for their
+    // own turns.
+    let frames = [
+        two_faces("05-5m.jpg", None),
+        two_faces("05-5m.jpg", Some("01-4m.jpg")),
+        two_faces("05-4m.jpg", None),
+        two_faces("05-6m.jpg", None),
+        two_faces("05-6m.jpg", Some("01-3m.jpg")),
+        two_faces("05-3m.jpg", None),
+    ];
+    let clip = clips.join("beside.y4m");
+    y4m_frames(&clip, &frames, 4, 2);
+    let page = camera_challenge(&app, &driver, &chromium, &clip, "camera-challenge-beside", "imm-05").await;
+    let decision = page.text("#camera-result").await;
+    assert!(page.text("#camera-decision").await.starts_with("Match: imm-05"), "{decision}");
+    assert_eq!(page.text("#camera-challenge").await, "Challenge passed", "{decision}");
+    let errors = camera_errors(&page).await;
+    assert!(errors.is_empty(), "console errors: {errors:?}");
+    page.client.close().await.unwrap();
+    drop(driver);
+    let _ = std::fs::remove_dir_all(&clips);
+    let _ = std::fs::remove_dir_all(std::env::temp_dir().join(format!("facegate-chromium-{}-camera-challenge-beside", std::process::id())));
 }
 
 /// Frames per direction of a video clip played to the fake camera, and its rate: each direction
