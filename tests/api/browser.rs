@@ -468,15 +468,21 @@ async fn script_i64(page: &Page, script: &str) -> i64 {
     value.as_i64().unwrap_or_else(|| panic!("{script} is {value}"))
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_camera_view_passes_a_head_turn_challenge_and_fails_a_still_photo_in_chromium() {
-    let Some((chromium, chromedriver)) = browser_binaries() else { return };
+/// The camera tests' start: the app with IMM person 05 enrolled (photos 1 and 2), a scratch
+/// folder `facegate-<name>-<pid>` for the clips, and a chromedriver.
+async fn camera_setup(chromedriver: &Path, name: &str) -> (TestApp, PathBuf, Driver) {
     let app = TestApp::start(crate::pipeline::pipeline(), facegate::config::Settings::default().api_config().unwrap()).await;
     let enrolled = app.post_form("/enroll", Some("imm-05"), &[crate::support::imm("05-1m.jpg"), crate::support::imm("05-2m.jpg")]).await;
     assert_eq!(enrolled.status, 201, "{}", String::from_utf8_lossy(&enrolled.body));
-    let clips = std::env::temp_dir().join(format!("facegate-camera-{}", std::process::id()));
+    let clips = std::env::temp_dir().join(format!("facegate-{name}-{}", std::process::id()));
     std::fs::create_dir_all(&clips).unwrap();
-    let driver = Driver::start(&chromedriver);
+    (app, clips, Driver::start(chromedriver))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_camera_view_passes_a_head_turn_challenge_and_fails_a_still_photo_in_chromium() {
+    let Some((chromium, chromedriver)) = browser_binaries() else { return };
+    let (app, clips, driver) = camera_setup(&chromedriver, "camera").await;
 
     // IMM person 05 looking ahead, turned to their left (view 4), ahead, turned to their right
     // (view 3): every step of any challenge finds its pose within one loop of the clip.
@@ -545,12 +551,7 @@ fn two_faces(person: &str, beside: Option<&str>) -> image::RgbImage {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_camera_view_takes_no_frame_whose_larger_face_is_someone_elses_in_chromium() {
     let Some((chromium, chromedriver)) = browser_binaries() else { return };
-    let app = TestApp::start(crate::pipeline::pipeline(), facegate::config::Settings::default().api_config().unwrap()).await;
-    let enrolled = app.post_form("/enroll", Some("imm-05"), &[crate::support::imm("05-1m.jpg"), crate::support::imm("05-2m.jpg")]).await;
-    assert_eq!(enrolled.status, 201, "{}", String::from_utf8_lossy(&enrolled.body));
-    let clips = std::env::temp_dir().join(format!("facegate-camera-beside-{}", std::process::id()));
-    std::fs::create_dir_all(&clips).unwrap();
-    let driver = Driver::start(&chromedriver);
+    let (app, clips, driver) = camera_setup(&chromedriver, "camera-beside").await;
 
     // IMM person 05 on the left, looking ahead, turning left, ahead, turning right; before each
     // of their turns, IMM person 01 beside them, larger, turned that way already. The server
