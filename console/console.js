@@ -469,7 +469,7 @@ function followed(run, box) {
     if (!box || !run.followed) return true;
     const centre = (b) => [b.x + b.width / 2, b.y + b.height / 2];
     const last = run.followed;
-    const near = !last || Math.hypot(centre(box)[0] - centre(last)[0], centre(box)[1] - centre(last)[1]) <= last.width;
+    const near = Math.hypot(centre(box)[0] - centre(last)[0], centre(box)[1] - centre(last)[1]) <= last.width;
     run.strayLooks = near ? 0 : (run.strayLooks ?? 0) + 1;
     if (near || run.strayLooks >= REFOLLOW_LOOKS) {
         run.followed = box;

@@ -13,9 +13,9 @@
 //! and turning to each side passes the challenge; a still photo fails it with the server's reason;
 //! with another person's larger face beside them, turned before each of their turns, the page
 //! follows the person's face and still passes (taking the larger face's frames, it failed the
-//! same-person check). The person is IMM 05 (held out of training). The page sends each step's burst of frames with
-//! `frame_steps`; a clip whose turns never reach the bursts' band (20°–45°) has its in-range
-//! frames sent when a step's wait runs out.
+//! same-person check). The person is IMM 05 (held out of training). The page sends each step's
+//! burst of frames with `frame_steps`; a clip whose turns never reach the bursts' band (20°–45°)
+//! has its in-range frames sent when a step's wait runs out.
 //!
 //! Without Chromium the tests print why and pass, except under CI (`CI=true`), where they fail.
 

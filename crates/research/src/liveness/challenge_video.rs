@@ -5,9 +5,10 @@
 //!
 //! Each clip is one person, followed from its first frame by where the face is ([`followed`]): a
 //! news clip's largest face is sometimes another person's, and such frames are left out. Enrolled
-//! with its first frame whose key points read |yaw| ≤ 6°, the probe a later such frame; a step's frames are drawn among the rest, "well inside" the step's
-//! range as the console waits for them (front |yaw| ≤ 6°, a turn 20° to 45°), a burst being up
-//! to [`MAX_FRAMES_PER_STEP`] frames in a row.
+//! with its first frame whose key points read |yaw| ≤ 6°, the probe a later such frame; a step's
+//! frames are drawn among the rest, "well inside" the step's range as the console waits for them
+//! (front |yaw| ≤ 6°, a turn 20° to 45°), a burst being up to [`MAX_FRAMES_PER_STEP`] frames in a
+//! row.
 
 use std::path::{Path, PathBuf};
 
@@ -105,14 +106,15 @@ pub fn clips(
     for dir in clip_dirs(config)? {
         let frames = frames_of(&dir)?;
         // A mirrored frame shows the same person as the frame itself.
-        let person = followed(&frames.iter().map(|f| face_of(&Source::File(f.clone()))).collect::<Vec<_>>());
+        let faces: Vec<Option<Rect>> = frames.iter().map(|f| face_of(&Source::File(f.clone()))).collect();
+        let person = followed(&faces);
         let yaw = |s: Source, i: usize| {
             let y = if person[i] { yaw_of(&s) } else { None };
             (s, y)
         };
         let as_is: Vec<(Source, Option<f32>)> = frames.iter().enumerate().map(|(i, f)| yaw(Source::File(f.clone()), i)).collect();
         let mirrored = frames.iter().enumerate().map(|(i, f)| yaw(Source::Mirror(f.clone()), i)).collect();
-        let other_faces = (0..frames.len()).filter(|&i| !person[i] && face_of(&Source::File(frames[i].clone())).is_some()).count();
+        let other_faces = faces.iter().zip(&person).filter(|(face, own)| face.is_some() && !**own).count();
         // Enrolled and probe: the two frames nearest to frontal (|yaw| ≤ 12°), in clip order.
         let mut frontal: Vec<(usize, f32)> =
             as_is.iter().enumerate().filter_map(|(i, (_, y))| y.filter(|y| y.abs() <= FRONT_MAX).map(|y| (i, y.abs()))).collect();
