@@ -347,6 +347,7 @@ pub fn run_train_render(args: TrainRenderArgs) -> anyhow::Result<ExitCode> {
         imm: shared.join("data/imm"),
         orl: shared.join("data/orl"),
         lfw: shared.join("data/lfw"),
+        umist: shared.join("data/umist"),
         lfw_persons: args.lfw_persons,
         threads: args.threads.max(1),
     };

@@ -146,6 +146,13 @@ pub fn imm_is_test_person(person: u32) -> bool {
     person <= 3 || person % 5 == 0
 }
 
+/// UMIST's person-disjoint split: s06–s10 are never trained on; s01–s05 train the rendered-head
+/// detector (the one model that sees UMIST's small grey camera, `facegate train render`).
+/// `person` is the folder name (`s01` … `s10`); a name that is not one is a test person.
+pub fn umist_is_test_person(person: &str) -> bool {
+    person.strip_prefix('s').and_then(|n| n.parse::<u32>().ok()).is_none_or(|n| n > 5)
+}
+
 /// Which part of the person-disjoint split a person belongs to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum Split {
@@ -221,6 +228,13 @@ mod tests {
 
     pub(crate) fn shared_dir() -> PathBuf {
         facegate_paths::shared_dir()
+    }
+
+    #[test]
+    fn umist_splits_its_ten_persons_in_halves() {
+        let test: Vec<bool> = (1..=10).map(|n| umist_is_test_person(&format!("s{n:02}"))).collect();
+        assert_eq!(test, [false, false, false, false, false, true, true, true, true, true]);
+        assert!(umist_is_test_person("readme"), "a name that is not a person's is never trained on");
     }
 
     #[test]

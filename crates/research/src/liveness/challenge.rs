@@ -8,10 +8,10 @@
 //! and attacks (in bursts) [`video`]'s, and the counting by kind [`tally`]'s.
 //!
 //! Live: IMM (enrolled with view 1, the probe view 2, front steps views 5 and 1, left view 4,
-//! right view 3) and UMIST (enrolled with photo 18, the probe photo 19, turned steps drawn among
-//! photos 15–17 and their mirror images; UMIST turns to one side and has no frontal photo, so its
-//! challenges are the drawn ones without a front step, a left step answered by a photo and a
-//! right one by a mirror image). Attacks on IMM persons: the probe photo held still; the probe
+//! right view 3) and UMIST's test persons s06–s10 (enrolled with photo 18, the probe photo 19,
+//! turned steps drawn among photos 10–17 and their mirror images; UMIST turns to one side and has
+//! no frontal photo, so its challenges are the drawn ones without a front step). UMIST's
+//! probe photo's head rendered at whichever yaw reads inside each step's range is its attack. Attacks on IMM persons: the probe photo held still; the probe
 //! photo as a flat print turned by ±15…60° (perspective warp) or bent on a cylinder and turned;
 //! the right photos in the wrong order (left and right exchanged); another person's photo in one
 //! turned step; the probe photo's fitted 3D head rendered at each step's yaw (`frontalize
@@ -91,6 +91,10 @@ pub struct ChallengeReport {
     /// The yaw the pipeline read on each source kind (degrees): min, 5th percentile, median,
     /// 95th percentile, max.
     pub yaw_quantiles: BTreeMap<String, [f32; 5]>,
+    /// The rendered-head detector's score (probability of a camera's face) on each kind of
+    /// frame by data set (camera photos and frames, rendered heads, prints): min, 5th percentile,
+    /// median, 95th percentile, max. A frame passes at `challenge::RENDER_MIN`.
+    pub render_quantiles: BTreeMap<String, [f32; 5]>,
     /// Mean milliseconds of one photo's analysis (decode to liveness) and of one judgement.
     pub analysis_ms: f64,
     pub judge_ms: f64,
@@ -210,6 +214,7 @@ pub fn evaluate(pipeline: &Pipeline, config: &ChallengeEvalConfig, progress: &dy
         rows: tally.rows(),
         depth_by_kind: tally.depth,
         yaw_quantiles: yaw_quantiles(&analyses),
+        render_quantiles: render_quantiles(&analyses),
         analysis_ms: timed.iter().sum::<f64>() / timed.len().max(1) as f64,
         judge_ms: tally.judge_ms / tally.judged.max(1) as f64,
         mean_steps: tally.steps as f64 / tally.judged.max(1) as f64,
@@ -248,6 +253,43 @@ fn yaw_quantiles(analyses: &Analyses) -> BTreeMap<String, [f32; 5]> {
         };
         by.entry(key).or_default().push(yaw);
     }
+    quantiles(by)
+}
+
+/// The rendered-head detector's score on each kind of source, by data set.
+fn render_quantiles(analyses: &Analyses) -> BTreeMap<String, [f32; 5]> {
+    let mut by: BTreeMap<String, Vec<f32>> = BTreeMap::new();
+    for (source, (.., rendered)) in analyses {
+        let Some(rendered) = rendered else { continue };
+        by.entry(render_kind(source)).or_default().push(rendered.score);
+    }
+    quantiles(by)
+}
+
+/// A source's data set (where its photo lies) and what it shows: a camera's photo, a rendered
+/// head, a print, or a grey small copy.
+fn render_kind(source: &Source) -> String {
+    let set = |p: &std::path::Path| {
+        if p.components().any(|c| c.as_os_str() == "video") {
+            "video"
+        } else if p.extension().is_some_and(|e| e == "pgm") {
+            if p.components().any(|c| c.as_os_str() == "umist") { "UMIST" } else { "ORL" }
+        } else if p.components().any(|c| c.as_os_str() == "nuaa") {
+            "NUAA"
+        } else {
+            "IMM"
+        }
+    };
+    match source {
+        Source::File(p) | Source::Mirror(p) => format!("{} camera", set(p)),
+        Source::Print { path, .. } => format!("{} print", set(path)),
+        Source::Avatar { path, .. } => format!("{} rendered head", set(path)),
+        Source::Grey(inner) => format!("{} grey, small", render_kind(inner)),
+    }
+}
+
+/// Min, 5th percentile, median, 95th percentile and max of each key's values.
+fn quantiles(by: BTreeMap<String, Vec<f32>>) -> BTreeMap<String, [f32; 5]> {
     by.into_iter()
         .map(|(k, mut v)| {
             v.sort_by(f32::total_cmp);

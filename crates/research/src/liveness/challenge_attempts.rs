@@ -1,7 +1,7 @@
 //! The attempts of the challenge's protocol on photos (module documentation of [`super`]): the
 //! live sequences of IMM and UMIST persons, the attacks on IMM persons (prints, the wrong order,
-//! a stranger, rendered heads, and the attacker who watches the console's yaw) and NUAA's print
-//! captures.
+//! a stranger, rendered heads, and the attacker who watches the console's yaw), UMIST persons'
+//! rendered heads, and NUAA's print captures.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -197,15 +197,18 @@ fn console_pick(
     found.unwrap_or_else(|| candidates.last().expect("candidates")).clone()
 }
 
-/// UMIST's photos by person: the enrolled one (18), the probe (19) and the candidates for turned
-/// steps (10–17, further turned photos go to the profile) with their mirror images.
+/// UMIST's test persons' photos by person: the enrolled one (18), the probe (19) and the
+/// candidates for turned steps (10–17, further turned photos go to the profile) with their mirror
+/// images. Persons s01–s05 trained the rendered-head detector and are left out.
 fn umist_persons(config: &ChallengeEvalConfig) -> anyhow::Result<Vec<(String, PathBuf, PathBuf, Vec<Source>)>> {
     if !config.test_persons || !config.umist.is_dir() {
         return Ok(Vec::new());
     }
     let mut by_person: BTreeMap<String, Vec<PathBuf>> = BTreeMap::new();
     for p in crate::eval::pose::list_umist(&config.umist)? {
-        by_person.entry(p.person.clone()).or_default().push(p.path);
+        if crate::dataset::umist_is_test_person(&p.person) {
+            by_person.entry(p.person.clone()).or_default().push(p.path);
+        }
     }
     let mut out = Vec::new();
     for (person, paths) in by_person {
@@ -217,17 +220,19 @@ fn umist_persons(config: &ChallengeEvalConfig) -> anyhow::Result<Vec<(String, Pa
     Ok(out)
 }
 
-/// Every UMIST candidate frame, to be analysed before the UMIST attempts are made.
+/// Every UMIST candidate frame, to be analysed before the UMIST attempts are made: the persons'
+/// photos and their probe photos' rendered heads.
 pub fn umist_candidates(config: &ChallengeEvalConfig) -> anyhow::Result<Vec<Source>> {
-    Ok(umist_persons(config)?.into_iter().flat_map(|(.., c)| c).collect())
+    Ok(umist_persons(config)?.into_iter().flat_map(|(_, _, probe, c)| c.into_iter().chain(avatar_candidates(&probe))).collect())
 }
 
-/// UMIST persons (none was trained on), with the test split: live sequences of drawn challenges
-/// without a front step (UMIST has no frontal photo), each step's frame taken as the console
-/// takes it: the person's photos and mirror images are tried in a random order and the first
-/// whose yaw, as `/analyze` reads it, lies in the step's range is sent; when none does, the
-/// client's wait runs out and it sends the last one tried. UMIST's photos are not taken at fixed
-/// angles per number (photo 17 reads 3° to 94° across persons), so no photo number names a turn.
+/// UMIST's test persons, with the test split: live sequences of drawn challenges without a front
+/// step (UMIST has no frontal photo), each step's frame taken as the console takes it: the
+/// person's photos and mirror images are tried in a random order and the first whose yaw, as
+/// `/analyze` reads it, lies in the step's range is sent; when none does, the client's wait runs
+/// out and it sends the last one tried. UMIST's photos are not taken at fixed angles per number
+/// (photo 17 reads 3° to 94° across persons), so no photo number names a turn. Against each
+/// challenge, the attacker who renders the probe photo's head at the yaws the console wants.
 fn umist_attempts(
     config: &ChallengeEvalConfig,
     rng: &mut rand_chacha::ChaCha8Rng,
@@ -235,6 +240,7 @@ fn umist_attempts(
 ) -> anyhow::Result<Vec<Attempt>> {
     let mut out = Vec::new();
     for (person, enrolled, probe, mut candidates) in umist_persons(config)? {
+        let mut avatars = avatar_candidates(&probe);
         let mut made = 0;
         while made < config.challenges_per_person {
             let steps = rule::draw_steps(rng);
@@ -243,8 +249,11 @@ fn umist_attempts(
             }
             made += 1;
             let frames = steps.iter().map(|step| console_pick(&mut candidates, step, rng, yaw_of)).collect();
+            let rendered = steps.iter().map(|step| console_pick(&mut avatars, step, rng, yaw_of)).collect();
             let (enrolled, probe) = (Source::File(enrolled.clone()), Source::File(probe.clone()));
-            out.push(Attempt::single("live", &format!("umist-{person}"), &enrolled, &probe, &steps, frames));
+            let name = format!("umist-{person}");
+            out.push(Attempt::single("live", &name, &enrolled, &probe, &steps, frames));
+            out.push(Attempt::single("avatar turned until in range (UMIST)", &name, &enrolled, &probe, &steps, rendered));
         }
     }
     Ok(out)
@@ -326,6 +335,7 @@ mod tests {
             "flat print turned ±30°",
             "print turned until in range",
             "avatar turned until in range",
+            "avatar turned until in range (UMIST)",
         ] {
             assert!(kinds.contains(kind), "{kind} missing from {kinds:?}");
         }
@@ -351,8 +361,9 @@ mod tests {
                     assert!(expected.contains(&view), "{step:?} answered by {}", path.display());
                 }
             }
-            if a.person.starts_with("umist-") {
+            if let Some(person) = a.person.strip_prefix("umist-") {
                 assert!(a.steps.iter().all(|s| s.turn != Turn::Front), "UMIST has no frontal photo: {a:?}");
+                assert!(crate::dataset::umist_is_test_person(person), "{person} trained the render detector");
             }
         }
         // Persons never trained on only.

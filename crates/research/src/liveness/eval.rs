@@ -167,7 +167,7 @@ pub struct Refusals {
     pub imm_unseen: Option<f64>,
     pub orl_unseen: Option<f64>,
     pub lfw_unseen: Option<f64>,
-    /// UMIST's photos (s01–s10, profile to frontal; no model is trained with them).
+    /// UMIST's photos (s01–s10, profile to frontal; no passive model is trained with them).
     pub umist: f64,
 }
 

@@ -12,8 +12,10 @@
 //! (camera faces) and their views 1 and 2 rendered from −45° to 45°; their turned views (and
 //! mirror images) in grey at a quarter of their size against small grey renders at ±25°, ±45°; the ORL training subjects'
 //! ten grey photos and their photos 1 and 2 rendered at ±15° and ±30°; LFW training persons' first
-//! photos (camera faces) and every other one of them rendered at ±15° and ±30°. IMM's and ORL's
-//! test persons, LFW's other persons, UMIST and every video clip are never used.
+//! photos (camera faces) and every other one of them rendered at ±15° and ±30°; UMIST's training
+//! persons (s01–s05) every photo and mirror image against their photos 16–19 rendered at ±15°,
+//! ±30°, ±45°. IMM's, ORL's and UMIST's test persons, LFW's other persons and every video clip
+//! are never used.
 
 use std::path::PathBuf;
 
@@ -34,6 +36,10 @@ const RIDGE: f64 = 1e-2;
 const IMM_YAWS: [i32; 9] = [-45, -35, -25, -15, 0, 15, 25, 35, 45];
 /// Yaws the LFW training persons' photos (and ORL's photos 1 and 2) are rendered at.
 const LFW_YAWS: [i32; 4] = [-30, -15, 15, 30];
+/// Yaws UMIST's training persons' least turned photos are rendered at: a turned step's range.
+const UMIST_YAWS: [i32; 6] = [-45, -30, -15, 15, 30, 45];
+/// UMIST's least turned photos (about 30°–45°), the ones rendered.
+const UMIST_RENDERED: std::ops::RangeInclusive<u32> = 16..=19;
 /// Person folds for the out-of-fold logits Platt's calibration is fitted on.
 const FOLDS: u64 = 3;
 
@@ -43,6 +49,9 @@ pub struct RenderTrainConfig {
     /// ORL's grey 92 × 112 photos: a camera face need not be in colour or large.
     pub orl: PathBuf,
     pub lfw: PathBuf,
+    /// UMIST's grey 92 × 112 photos of heads turned from 30° to profile: its training persons
+    /// ([`crate::dataset::umist_is_test_person`]) are the small grey camera the others are not.
+    pub umist: PathBuf,
     /// LFW training persons taken (their first photo each).
     pub lfw_persons: usize,
     pub threads: usize,
@@ -53,7 +62,9 @@ pub struct RenderTrainConfig {
 pub struct RenderSample {
     pub source: Source,
     pub camera: bool,
-    pub lfw: bool,
+    /// Not one of IMM's large colour photos (ORL, LFW, UMIST, or an IMM photo made grey and
+    /// small): the half of each class's weight that is not IMM's studio camera.
+    pub not_imm_colour: bool,
     pub person: String,
 }
 
@@ -72,7 +83,7 @@ pub struct RenderReport {
 /// The training photos of `config`.
 pub fn samples(config: &RenderTrainConfig) -> anyhow::Result<Vec<RenderSample>> {
     let mut out = Vec::new();
-    let sample = |source, camera, lfw, person: &str| RenderSample { source, camera, lfw, person: person.to_string() };
+    let sample = |source, camera, not_imm_colour, person: &str| RenderSample { source, camera, not_imm_colour, person: person.to_string() };
     for person in (1..=40).filter(|&p| !crate::dataset::imm_is_test_person(p)) {
         let name = format!("imm-{person:02}");
         for view in 1..=6 {
@@ -105,6 +116,7 @@ pub fn samples(config: &RenderTrainConfig) -> anyhow::Result<Vec<RenderSample>> 
             }
         }
     }
+    out.extend(umist_samples(&config.umist)?);
     let mut persons: Vec<PathBuf> =
         std::fs::read_dir(&config.lfw)?.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.is_dir()).collect();
     persons.sort();
@@ -119,6 +131,30 @@ pub fn samples(config: &RenderTrainConfig) -> anyhow::Result<Vec<RenderSample>> 
         out.push(sample(Source::File(first.clone()), true, true, &name));
         if k % 2 == 0 {
             out.extend(LFW_YAWS.iter().map(|&yaw| sample(Source::Avatar { path: first.clone(), yaw }, false, true, &name)));
+        }
+    }
+    Ok(out)
+}
+
+/// UMIST's training persons: every photo and its mirror image (camera faces) against the least
+/// turned ones rendered across a turned step's range. None when UMIST is absent.
+fn umist_samples(dir: &std::path::Path) -> anyhow::Result<Vec<RenderSample>> {
+    if !dir.is_dir() {
+        return Ok(Vec::new());
+    }
+    let mut out = Vec::new();
+    for path in crate::liveness::train::list_umist(dir)? {
+        let person = path.parent().and_then(|p| p.file_name()).and_then(|n| n.to_str()).unwrap_or("").to_string();
+        if crate::dataset::umist_is_test_person(&person) {
+            continue;
+        }
+        let number = path.file_stem().and_then(|s| s.to_str()).and_then(|s| s.parse::<u32>().ok()).unwrap_or(0);
+        let name = format!("umist-{person}");
+        let sample = |source, camera| RenderSample { source, camera, not_imm_colour: true, person: name.clone() };
+        out.push(sample(Source::File(path.clone()), true));
+        out.push(sample(Source::Mirror(path.clone()), true));
+        if UMIST_RENDERED.contains(&number) {
+            out.extend(UMIST_YAWS.map(|yaw| sample(Source::Avatar { path: path.clone(), yaw }, false)));
         }
     }
     Ok(out)
@@ -156,8 +192,8 @@ pub fn train(pipeline: &Pipeline, config: &RenderTrainConfig, progress: &dyn Pro
     let fit_on = |rows: &[&(&RenderSample, &Vec<f32>)]| {
         let x: Vec<&[f32]> = rows.iter().map(|(_, f)| f.as_slice()).collect();
         let camera: Vec<bool> = rows.iter().map(|(s, _)| s.camera).collect();
-        let lfw: Vec<bool> = rows.iter().map(|(s, _)| s.lfw).collect();
-        fit_binary(&x, &camera, &balanced_weights(&camera, &lfw), RIDGE)
+        let not_imm_colour: Vec<bool> = rows.iter().map(|(s, _)| s.not_imm_colour).collect();
+        fit_binary(&x, &camera, &balanced_weights(&camera, &not_imm_colour), RIDGE)
     };
     let mut oof = vec![0.0f32; kept.len()];
     for fold in 0..FOLDS {
@@ -192,7 +228,7 @@ pub fn train(pipeline: &Pipeline, config: &RenderTrainConfig, progress: &dyn Pro
         0.5,
         "even odds (classes weighted equally)".to_string(),
         format!(
-            "IMM training persons' photos and mirror images against their views 1-2 rendered at ±45° (3DMM head of the photo), ORL training subjects' photos against renders of photos 1-2 at ±15°, ±30°, {} LFW training persons' first photos against renders at ±15°, ±30°; `facegate train render`",
+            "IMM training persons' photos and mirror images against their views 1-2 rendered at ±45° (3DMM head of the photo), ORL training subjects' photos against renders of photos 1-2 at ±15°, ±30°, {} LFW training persons' first photos against renders at ±15°, ±30°, UMIST s01-s05's photos against renders of photos 16-19 at ±15°, ±30°, ±45°; `facegate train render`",
             config.lfw_persons
         ),
     );

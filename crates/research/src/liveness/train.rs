@@ -262,7 +262,7 @@ pub struct LivenessData {
     pub nuaa_features: Vec<Option<Vec<f32>>>,
     pub others: Vec<crate::train_deep::Sample>,
     pub other_features: Vec<Option<Vec<f32>>>,
-    /// Live photos of a camera no model is trained with (UMIST, grey, profile to frontal).
+    /// Live photos of a camera no passive model is trained with (UMIST, grey, profile to frontal).
     pub unseen: Vec<PathBuf>,
     pub unseen_features: Vec<Option<Vec<f32>>>,
     /// Per [`AttackKind::ALL`], the other cameras' photos as that simulated attack: features at
