@@ -45,9 +45,13 @@ impl Attempt {
     }
 }
 
-/// The IMM persons `config` evaluates: the test persons, or the training ones.
+/// The IMM persons `config` evaluates: the test persons (with 31–40 where their photos are
+/// given), or the training ones.
 fn imm_persons(config: &ChallengeEvalConfig) -> Vec<u32> {
-    (1..=30).filter(|&p| crate::dataset::imm_is_test_person(p) == config.test_persons).collect()
+    (1..=40)
+        .filter(|&p| crate::dataset::imm_is_test_person(p) == config.test_persons)
+        .filter(|&p| imm_photo(&config.imm, p, 1).is_some())
+        .collect()
 }
 
 /// The frame answering `step` of a live IMM person: views 5 and 1 for the front (alternately), 4
