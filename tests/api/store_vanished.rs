@@ -49,7 +49,6 @@ async fn an_unlinked_sqlite_file_is_noticed_and_no_enrolment_is_acknowledged() {
     assert!(refused.headers.contains_key("retry-after"));
     // A file put back at the path is another file, not the one opened: still refused.
     std::fs::write(&file, b"").unwrap();
-    tokio::time::sleep(facegate_store::VANISH_CHECK_EVERY * 2).await;
     app.post_form("/enroll", Some("carol"), &[pattern_jpeg(320, 240, 3)]).await.assert_problem(503, "store-unavailable");
 }
 

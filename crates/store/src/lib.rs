@@ -83,7 +83,6 @@ pub use redact::redact_url;
 pub use rekey::RekeyReport;
 pub use renew::{RenewReport, RenewedVersion, Renewing};
 pub use sqlite::restore;
-pub use vanish::CHECK_EVERY as VANISH_CHECK_EVERY;
 
 /// Longest a query waits for a connection of the pool (sqlx's default is 30 s). A database that
 /// cannot be reached fails each request within this bound ([`StoreError::is_unavailable`]),

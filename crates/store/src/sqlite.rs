@@ -73,7 +73,7 @@ pub(crate) fn file_of(url: &str) -> Result<Option<PathBuf>, StoreError> {
 
 impl Store {
     /// `Err` ([`StoreError::Vanished`]) when the SQLite file opened at start is no longer at its
-    /// path (checked at most every [`crate::vanish::CHECK_EVERY`]); always `Ok` on PostgreSQL.
+    /// path (one `stat`); always `Ok` on PostgreSQL.
     pub(crate) fn still_there(&self) -> Result<(), StoreError> {
         self.file_watch.as_ref().map_or(Ok(()), |watch| watch.check())
     }
