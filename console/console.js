@@ -439,7 +439,7 @@ function grab(video) {
     });
 }
 
-/// The largest face /analyze finds in a frame, the one the server judges: its box and its yaw as
+/// The largest face /analyze finds in a frame: its box and its yaw as
 /// the challenge judges it (`key_point_pose`; null without a pose). Null when it finds no face
 /// (or is busy).
 async function faceIn(file) {
@@ -463,8 +463,9 @@ const REFOLLOW_LOOKS = 10;
 
 /// Whether `box` is the face the page follows (`run.followed`, from the probe photo on): its centre
 /// within one face width of the last followed face's, as a person moves between two looks. A face
-/// further away is someone else's, larger than the person's in that frame: the server judges the
-/// largest face, so the frame is not taken. Before the probe is taken every face counts.
+/// further away is someone else's, larger than the person's in that frame: its yaw is not the
+/// person's, so the frame is not taken (the server, following the person's face through the
+/// frames, would judge theirs). Before the probe is taken every face counts.
 function followed(run, box) {
     if (!box || !run.followed) return true;
     const centre = (b) => [b.x + b.width / 2, b.y + b.height / 2];

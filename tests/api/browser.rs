@@ -28,7 +28,7 @@ use fantoccini::wd::WebDriverCompatibleCommand;
 use fantoccini::{Client, ClientBuilder, Locator};
 use serde_json::{Value, json};
 
-use crate::support::TestApp;
+use crate::support::{TestApp, two_faces};
 
 const CHROMIUM: [&str; 2] = ["/usr/lib/chromium/chromium", "/usr/bin/chromium"];
 const CHROMEDRIVER: [&str; 2] = ["/usr/bin/chromedriver", "/usr/lib/chromium/chromedriver"];
@@ -530,22 +530,6 @@ async fn the_camera_view_passes_a_head_turn_challenge_and_fails_a_still_photo_in
     for name in ["camera-challenge", "camera-challenge-failed"] {
         let _ = std::fs::remove_dir_all(std::env::temp_dir().join(format!("facegate-chromium-{}-{name}", std::process::id())));
     }
-}
-
-/// A 640 × 480 camera frame of IMM photo `person` at half size on the left and, when `beside` is
-/// given, that photo at 0.7 of its size on the right: a second face, larger than the person's.
-fn two_faces(person: &str, beside: Option<&str>) -> image::RgbImage {
-    let photo = |name: &str, scale: f32| {
-        let rgb = image::open(imm_path(name)).unwrap().to_rgb8();
-        let (w, h) = ((640.0 * scale) as u32, (480.0 * scale) as u32);
-        image::imageops::resize(&rgb, w, h, image::imageops::FilterType::Triangle)
-    };
-    let mut frame = image::RgbImage::from_pixel(640, 480, image::Rgb([128, 128, 128]));
-    image::imageops::replace(&mut frame, &photo(person, 0.5), 0, 120);
-    if let Some(other) = beside {
-        image::imageops::replace(&mut frame, &photo(other, 0.7), 320, 72);
-    }
-    frame
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -7,8 +7,9 @@
 //! reason under `enforce`); a wrong number of frames is malformed; with liveness off there are no
 //! challenges. The JSON form takes the same fields. Bursts: `frame_steps` names each frame's
 //! step; a burst with a stranger's photo fails the one-person check, and ill-formed `frame_steps`
-//! are malformed. With `--require-challenge` a plain `/verify` is refused, and the audit log
-//! names each issued challenge and the verdict on its answer.
+//! are malformed. A larger face beside the person's is not taken for theirs: the server follows
+//! the person's face from the probe. With `--require-challenge` a plain `/verify` is refused, and
+//! the audit log names each issued challenge and the verdict on its answer.
 
 use std::time::Duration;
 
@@ -304,6 +305,41 @@ async fn bursts_with_frame_steps_pass_and_a_stranger_in_a_burst_does_not() {
     let r = report.send(report.client.post(report.url("/verify")).multipart(form)).await;
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     assert!(r.json()["liveness"].get("challenge").is_none(), "{}", String::from_utf8_lossy(&r.body));
+}
+
+/// The server follows the person's face from the probe through the frames: person 15 at half size
+/// on the left of each frame, and in the turned steps person 05 beside them, larger and turned
+/// the same way. Judged by the largest face, those steps would be person 05's (another person);
+/// followed, the capture is person 15's and passes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_server_follows_the_persons_face_past_a_larger_one_beside_it() {
+    let app = app(Choice::Enforce).await;
+    let c = challenge(&app).await;
+    let turns = turns_of(&c);
+    let jpeg = |frame: image::RgbImage| encode(&image::DynamicImage::ImageRgb8(frame), image::ImageFormat::Jpeg);
+    let mut fronts = 0;
+    let frames: Vec<Vec<u8>> = turns
+        .iter()
+        .map(|turn| match turn.as_str() {
+            "front" => {
+                fronts += 1;
+                jpeg(two_faces(if fronts % 2 == 1 { "15-5f.jpg" } else { "15-1f.jpg" }, None))
+            }
+            "left" => jpeg(two_faces("15-4f.jpg", Some("05-4m.jpg"))),
+            _ => jpeg(two_faces("15-3f.jpg", Some("05-3m.jpg"))),
+        })
+        .collect();
+    let mut form = Form::new()
+        .text("subject", SUBJECT)
+        .part("image", Part::bytes(jpeg(two_faces("15-2f.jpg", None))).file_name("probe.jpg"))
+        .text("challenge", c["challenge"].as_str().unwrap().to_string());
+    for (i, frame) in frames.iter().enumerate() {
+        form = form.part("frame", Part::bytes(frame.clone()).file_name(format!("frame{i}.jpg")));
+    }
+    let r = app.send(app.client.post(app.url("/verify")).multipart(form)).await;
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let body = r.json();
+    assert_eq!((body["liveness"]["challenge"]["passed"].as_bool(), body["match"].as_bool()), (Some(true), Some(true)), "{body}");
 }
 
 /// The audit events of this binary's log whose request id starts with `prefix`, by request id.

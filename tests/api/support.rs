@@ -22,7 +22,7 @@ use facegate_service::FaceEngine;
 use facegate_service::{LivenessPoint, Matcher};
 use facegate_store::{KeyRing, Store};
 use facegate_vision::landmarks::Landmarks;
-use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, PipelineError, StageTimings};
+use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, FaceReading, FollowedFace, PhotoReading, PipelineError, StageTimings};
 use facegate_vision::quality::Quality;
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
@@ -254,6 +254,22 @@ pub fn imm(name: &str) -> Vec<u8> {
     std::fs::read(&path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()))
 }
 
+/// A 640 × 480 camera frame of IMM photo `person` at half size on the left and, when `beside` is
+/// given, that photo at 0.7 of its size on the right: a second face, larger than the person's.
+pub fn two_faces(person: &str, beside: Option<&str>) -> image::RgbImage {
+    let photo = |name: &str, scale: f32| {
+        let rgb = image::load_from_memory(&imm(name)).unwrap().to_rgb8();
+        let (w, h) = ((640.0 * scale) as u32, (480.0 * scale) as u32);
+        image::imageops::resize(&rgb, w, h, image::imageops::FilterType::Triangle)
+    };
+    let mut frame = image::RgbImage::from_pixel(640, 480, image::Rgb([128, 128, 128]));
+    image::imageops::replace(&mut frame, &photo(person, 0.5), 0, 120);
+    if let Some(other) = beside {
+        image::imageops::replace(&mut frame, &photo(other, 0.7), 320, 72);
+    }
+    frame
+}
+
 /// A stand-in for the face pipeline, so the HTTP layer can be tested on its own: a uniform photo
 /// has no face, a photo at least twice as wide as high has two, any other one face. Its template
 /// is the photo's 8×8 thumbnail, centred and normalised; the score is the best cosine. Its quality
@@ -307,6 +323,11 @@ impl FaceEngine for StandInEngine {
             liveness: None,
             timings: StageTimings::default(),
         })
+    }
+
+    /// The stand-in sees one face filling the photo: there is nothing else to follow.
+    fn analyze_following(&self, photo: &Photo, _last: &FollowedFace) -> Result<FaceAnalysis, PipelineError> {
+        self.analyze(photo)
     }
 
     fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError> {

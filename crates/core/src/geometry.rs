@@ -31,6 +31,14 @@ impl Rect {
         p[0] >= self.x && p[0] <= self.x + self.width && p[1] >= self.y && p[1] <= self.y + self.height
     }
 
+    /// Whether this box's centre lies within `last`'s width of `last`'s centre: the same face a
+    /// moment later under one camera (a person moves a few pixels a frame; another person stands
+    /// a face width or more away).
+    pub fn follows(&self, last: &Rect) -> bool {
+        let ([x, y], [lx, ly]) = (self.center(), last.center());
+        (x - lx).hypot(y - ly) <= last.width
+    }
+
     /// Intersection over union of two boxes.
     pub fn iou(&self, other: &Rect) -> f32 {
         let x0 = self.x.max(other.x);

@@ -26,7 +26,7 @@ use serde::Serialize;
 use facegate_core::imaging::Photo;
 use facegate_core::template::{OperatingPoint, Template};
 use facegate_morph::AvatarFormat;
-use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, Pipeline, PipelineError};
+use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, FollowedFace, PhotoReading, Pipeline, PipelineError};
 use facegate_vision::quality::{Failure, Quality, QualityPolicy};
 use facegate_vision::recognize::{ClassicalRecognizer, Recognizer};
 
@@ -72,6 +72,10 @@ impl Matcher for ClassicalRecognizer {
 pub trait FaceEngine: Matcher + Send + Sync + 'static {
     /// Detect, landmark, pose-correct and template the largest face of `photo`.
     fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError>;
+    /// [`FaceEngine::analyze`] of the face followed from the last frame of a capture
+    /// ([`FollowedFace::pick`]): a challenge's frames, so that a larger face beside the person's
+    /// is not taken for theirs.
+    fn analyze_following(&self, photo: &Photo, last: &FollowedFace) -> Result<FaceAnalysis, PipelineError>;
     /// Every face (or the largest) with landmarks, pose and fit residual; no template.
     fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError>;
     /// The textured 3D head of the largest face: glTF binary, or the OBJ files zipped.
@@ -124,6 +128,9 @@ impl Matcher for Recognizer {
 impl FaceEngine for Pipeline {
     fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
         Pipeline::analyze(self, photo)
+    }
+    fn analyze_following(&self, photo: &Photo, last: &FollowedFace) -> Result<FaceAnalysis, PipelineError> {
+        Pipeline::analyze_following(self, photo, last)
     }
     fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError> {
         Pipeline::read_faces(self, photo, choice)

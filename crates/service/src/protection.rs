@@ -35,7 +35,7 @@ use facegate_core::imaging::Photo;
 use facegate_core::template::{OperatingPoint, Template};
 use facegate_morph::AvatarFormat;
 use facegate_vision::liveness::Liveness;
-use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, PhotoReading, PipelineError};
+use facegate_vision::pipeline::{FaceAnalysis, FaceChoice, FollowedFace, PhotoReading, PipelineError};
 
 use crate::{FaceEngine, LivenessPoint, Matcher};
 
@@ -279,6 +279,11 @@ impl Matcher for ProtectedEngine {
 impl FaceEngine for ProtectedEngine {
     fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
         let mut analysis = self.inner.analyze(photo)?;
+        analysis.template = self.protect(&analysis.template);
+        Ok(analysis)
+    }
+    fn analyze_following(&self, photo: &Photo, last: &FollowedFace) -> Result<FaceAnalysis, PipelineError> {
+        let mut analysis = self.inner.analyze_following(photo, last)?;
         analysis.template = self.protect(&analysis.template);
         Ok(analysis)
     }

@@ -76,17 +76,12 @@ pub fn frame_sources(config: &ChallengeEvalConfig) -> anyhow::Result<Vec<Source>
 /// the man beside him in 6 of 160 frames, about 150 pixels away; the person moves a few pixels a
 /// frame). A frame without a face breaks nothing: the next face is held to the last followed one.
 pub fn followed(faces: &[Option<Rect>]) -> Vec<bool> {
-    let centre = |r: &Rect| (r.x + r.width / 2.0, r.y + r.height / 2.0);
     let mut last: Option<Rect> = None;
     faces
         .iter()
         .map(|face| {
             let Some(face) = face else { return false };
-            let (x, y) = centre(face);
-            let near = last.is_none_or(|l| {
-                let (lx, ly) = centre(&l);
-                (x - lx).hypot(y - ly) <= l.width
-            });
+            let near = last.is_none_or(|l| face.follows(&l));
             if near {
                 last = Some(*face);
             }

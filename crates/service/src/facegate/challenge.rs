@@ -15,9 +15,9 @@ use facegate_core::SubjectId;
 use facegate_core::template::Template;
 use facegate_vision::liveness::Liveness;
 use facegate_vision::liveness::head_turn::Step;
-use facegate_vision::pipeline::FaceAnalysis;
+use facegate_vision::pipeline::{FaceAnalysis, FollowedFace};
 
-use super::{AnalyzedPhoto, Facegate, PhotoError, ServiceError, Verification, analyze_photo, capture_liveness, decode_and_analyze};
+use super::{AnalyzedPhoto, Facegate, PhotoError, ServiceError, Verification, capture_liveness, decode_and_analyze};
 use crate::challenge::{
     ChallengeOutcome, InvalidChallenge, IssuedChallenge, draw_steps, frame_steps_of, judge, new_challenge_id, one_person, well_formed_id,
 };
@@ -115,7 +115,9 @@ impl Facegate {
 
 /// Analyze a challenge's probe and frames (a frame with no usable face is refused with its
 /// index), hold every frame against the probe and the other steps ([`one_person`]) and judge
-/// the capture.
+/// the capture. The probe's face is its largest; each frame's is the face followed from the
+/// frame before (from the probe for the first: [`FollowedFace::pick`]), so that a larger face
+/// beside the person is not judged as theirs.
 fn challenge_photos(
     matcher: &crate::site::CalibratedMatcher<dyn FaceEngine>,
     steps: &[Step],
@@ -125,14 +127,16 @@ fn challenge_photos(
     limits: &facegate_core::imaging::DecodeLimits,
 ) -> Result<(AnalyzedPhoto, Vec<AnalyzedPhoto>, ChallengeOutcome), ServiceError> {
     let engine = matcher.inner.as_ref();
-    let probe = analyze_photo(engine, image, limits)?;
-    let (analyzed, rendered): (Vec<AnalyzedPhoto>, Vec<Option<Liveness>>) = frames
-        .iter()
-        .enumerate()
-        .map(|(i, bytes)| analyze_frame(engine, bytes, limits).map_err(|e| e.at_frame(i)))
-        .collect::<Result<Vec<_>, _>>()?
-        .into_iter()
-        .unzip();
+    let (photo, probe) = decode_and_analyze(engine, image, limits)?;
+    let mut last = FollowedFace::of(&probe.analysis.face.rect, photo.width(), photo.height());
+    drop(photo);
+    let (mut analyzed, mut rendered) = (Vec::with_capacity(frames.len()), Vec::with_capacity(frames.len()));
+    for (i, bytes) in frames.iter().enumerate() {
+        let (frame, render, followed) = analyze_frame(engine, bytes, limits, &last).map_err(|e| e.at_frame(i))?;
+        analyzed.push(frame);
+        rendered.push(render);
+        last = followed;
+    }
     let outcome = tracing::info_span!("challenge").in_scope(|| {
         let templates: Vec<&Template> = analyzed.iter().map(|p| &p.analysis.template).collect();
         let mismatch = one_person(matcher as &dyn Matcher, &probe.analysis.template, &templates, bursts);
@@ -143,13 +147,17 @@ fn challenge_photos(
     Ok((probe, analyzed, outcome))
 }
 
-/// A challenge frame analyzed as any photo, and checked for a rendered head.
+/// A challenge frame analyzed at the face followed from `last`, checked for a rendered head,
+/// and where its face is for the next frame.
 fn analyze_frame(
     engine: &dyn FaceEngine,
     bytes: &[u8],
     limits: &facegate_core::imaging::DecodeLimits,
-) -> Result<(AnalyzedPhoto, Option<Liveness>), PhotoError> {
-    let (photo, analyzed) = decode_and_analyze(engine, bytes, limits)?;
-    let rendered = engine.render_check(&photo, &analyzed.analysis);
-    Ok((analyzed, rendered))
+    last: &FollowedFace,
+) -> Result<(AnalyzedPhoto, Option<Liveness>, FollowedFace), PhotoError> {
+    let (photo, decode_ms) = crate::inspect::decode_photo(bytes, limits)?;
+    let analysis = engine.analyze_following(&photo, last).map_err(PhotoError::of_analysis)?;
+    let rendered = engine.render_check(&photo, &analysis);
+    let followed = FollowedFace::of(&analysis.face.rect, photo.width(), photo.height());
+    Ok((AnalyzedPhoto { analysis, decode_ms, liveness: None }, rendered, followed))
 }

@@ -8,6 +8,7 @@ use facegate_core::imaging::Photo;
 use serde::Serialize;
 
 use super::finder::FaceFinder;
+use super::follow::FollowedFace;
 use super::input::{RecognitionInput, load_face_model, quality_components, recognition_input, reconstruct};
 use super::{PipelineConfig, PipelineError, TWO_D_MODEL_FILE};
 use crate::landmarks::Landmarks;
@@ -33,7 +34,7 @@ pub struct StageTimings {
 /// Everything the pipeline learnt about the face it used.
 #[derive(Debug, Clone)]
 pub struct FaceAnalysis {
-    /// The face used: the largest one found.
+    /// The face used: the largest one found (or the followed one, [`Pipeline::analyze_following`]).
     pub face: Face,
     /// How many faces the detector found.
     pub faces_found: usize,
@@ -142,11 +143,25 @@ impl Pipeline {
     /// `liveness`; the classical recognizer's quality runs inside its `template`), which the
     /// service's traces carry.
     pub fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
+        self.analyze_chosen(photo, |_| 0)
+    }
+
+    /// [`Pipeline::analyze`] of the face a camera has been following ([`FollowedFace::pick`]):
+    /// a challenge's frames, each after the last.
+    pub fn analyze_following(&self, photo: &Photo, last: &FollowedFace) -> Result<FaceAnalysis, PipelineError> {
+        self.analyze_chosen(photo, |faces| last.pick(faces, photo.width(), photo.height()))
+    }
+
+    /// The analysis of the face `choose` picks among those found (largest first).
+    fn analyze_chosen(&self, photo: &Photo, choose: impl FnOnce(&[Face]) -> usize) -> Result<FaceAnalysis, PipelineError> {
         let mut timings = StageTimings::default();
         let t = Instant::now();
         let faces = tracing::info_span!("detect").in_scope(|| self.finder.detect(&photo.gray));
         timings.detect_ms = elapsed_ms(t);
-        let face = *faces.first().ok_or(PipelineError::NoFace)?;
+        if faces.is_empty() {
+            return Err(PipelineError::NoFace);
+        }
+        let face = faces[choose(&faces).min(faces.len() - 1)];
 
         let t = Instant::now();
         let landmarks = tracing::info_span!("landmarks").in_scope(|| self.finder.landmarks_of(&photo.gray, &face));

@@ -3,7 +3,8 @@
 //! tools alike. Everything here is synchronous and CPU-bound: callers in async code run it on a
 //! blocking pool.
 //!
-//! In three parts, re-exported here: `finder`, the face and its landmarks ([`FaceFinder`]);
+//! In four parts, re-exported here: `finder`, the face and its landmarks ([`FaceFinder`]);
+//! `follow`, which face of a frame is the person followed from the last ([`FollowedFace`]);
 //! `input`, what the recognizers are handed ([`recognition_input`], the quality's chip, the
 //! avatar); `analyze`, the stages assembled ([`Pipeline`]).
 
@@ -14,12 +15,14 @@ use facegate_detect::DetectorKind;
 
 mod analyze;
 mod finder;
+mod follow;
 mod input;
 #[cfg(test)]
 mod tests;
 
 pub use analyze::{FaceAnalysis, FaceChoice, FaceReading, PhotoReading, Pipeline, StageTimings};
 pub use finder::{CentreSource, FaceFinder, Located, cascade_like_box, centres_from_detector, detector_turn, seed_box};
+pub use follow::FollowedFace;
 pub use input::{RecognitionInput, load_face_model, quality_components, recognition_input, reconstruct};
 
 /// Where the pipeline's models are.
