@@ -439,19 +439,20 @@ function grab(video) {
     });
 }
 
-/// Every face /analyze finds in a frame, largest first: its box and its yaw as the challenge
-/// judges it (`key_point_pose`; null without a pose). Empty when it finds none (or is busy).
-async function facesIn(file) {
+/// The largest face /analyze finds in a frame: its box and its yaw as
+/// the challenge judges it (`key_point_pose`; null without a pose). Null when it finds no face
+/// (or is busy).
+async function faceIn(file) {
     const body = new FormData();
     body.append('image', file, file.name);
     try {
-        const r = await api('POST', '/analyze?faces=all', body);
-        return r.faces.map((face) => {
-            const yaw = face.key_point_pose?.yaw;
-            return { yaw: typeof yaw === 'number' ? yaw : null, box: face.face?.box ?? null };
-        });
+        const r = await api('POST', '/analyze', body);
+        const face = r.faces[0];
+        if (!face) return null;
+        const yaw = face.key_point_pose?.yaw;
+        return { yaw: typeof yaw === 'number' ? yaw : null, box: face.face?.box ?? null };
     } catch (error) {
-        if (error instanceof ApiError && (error.status === 422 || error.status === 503)) return [];
+        if (error instanceof ApiError && (error.status === 422 || error.status === 503)) return null;
         throw error;
     }
 }
@@ -460,25 +461,23 @@ async function facesIn(file) {
 /// back elsewhere in the picture).
 const REFOLLOW_LOOKS = 10;
 
-/// The person's face among `faces` (largest first), as the server picks it: before the probe photo
-/// is taken the largest; from then on the face nearest the one the page follows (`run.followed`),
-/// if its centre lies within one face width of it, as a person moves between two looks. Other
-/// faces (a bystander, larger or not) are someone else's and are not read. `stray`: faces were
-/// seen, none of them the person's (the frame is not taken); after REFOLLOW_LOOKS such looks the
-/// page follows the largest face.
-function personIn(run, faces) {
-    if (faces.length === 0) return { face: null, stray: false };
-    const last = run.followed;
-    if (!last) return { face: faces[0], stray: false };
+/// Whether `box` is the face the page follows (`run.followed`, from the probe photo on): its centre
+/// within one face width of the last followed face's, as a person moves between two looks. A face
+/// further away is someone else's, larger than the person's in that frame: its yaw is not the
+/// person's, so the frame is not taken (the server, following the person's face through the
+/// frames, would judge theirs). Before the probe is taken every face counts.
+function followed(run, box) {
+    if (!box || !run.followed) return true;
     const centre = (b) => [b.x + b.width / 2, b.y + b.height / 2];
-    const away = (f) => Math.hypot(centre(f.box)[0] - centre(last)[0], centre(f.box)[1] - centre(last)[1]);
-    const near = faces.filter((f) => f.box && away(f) <= last.width).sort((a, b) => away(a) - away(b));
-    run.strayLooks = near.length > 0 ? 0 : (run.strayLooks ?? 0) + 1;
-    const face = near[0] ?? (run.strayLooks >= REFOLLOW_LOOKS ? faces[0] : null);
-    if (!face) return { face: null, stray: true };
-    if (face.box) run.followed = face.box;
-    run.strayLooks = 0;
-    return { face, stray: false };
+    const last = run.followed;
+    const near = Math.hypot(centre(box)[0] - centre(last)[0], centre(box)[1] - centre(last)[1]) <= last.width;
+    run.strayLooks = near ? 0 : (run.strayLooks ?? 0) + 1;
+    if (near || run.strayLooks >= REFOLLOW_LOOKS) {
+        run.followed = box;
+        run.strayLooks = 0;
+        return true;
+    }
+    return false;
 }
 
 /// The part of `step`'s range a frame should lie in: its band (BANDS) clamped into the range, or
@@ -500,15 +499,15 @@ async function burstFor(run, step, want, seen) {
     for (;;) {
         if (run.cancelled) throw new Cancelled();
         const file = await grab(run.video);
-        const faces = await facesIn(file);
+        const face = await faceIn(file);
         if (run.cancelled) throw new Cancelled();
-        const { face, stray } = personIn(run, faces);
-        const yaw = face === null ? null : face.yaw;
+        const stray = face !== null && !followed(run, face.box);
+        const yaw = face === null || stray ? null : face.yaw;
         const inRange = yaw !== null && yaw >= step.yaw_min && yaw <= step.yaw_max;
         const inside = inRange && yaw >= lo && yaw <= hi;
         if (inRange) taken.push({ file, yaw, inside, box: face.box });
         const well = taken.filter((t) => t.inside);
-        seen.textContent = stray ? 'Your face is not where it was: stay in view' : yaw === null ? 'No face seen in the last frame' : `Seen: yaw ${degrees(yaw)}${inside ? ', well inside' : inRange ? `, in range: aim for ${lo}° to ${hi}°` : ''} (${well.length} of ${want} taken)`;
+        seen.textContent = stray ? 'Another face is larger than yours: keep only yourself in view' : yaw === null ? 'No face seen in the last frame' : `Seen: yaw ${degrees(yaw)}${inside ? ', well inside' : inRange ? `, in range: aim for ${lo}° to ${hi}°` : ''} (${well.length} of ${want} taken)`;
         if (well.length >= want || (well.length >= Math.min(BURST_MIN, want) && !inside)) return { frames: well, inRange: true };
         if (Date.now() >= deadline) {
             if (taken.length === 0) return { frames: [{ file, yaw }], inRange: false, late: true };

@@ -533,14 +533,15 @@ async fn the_camera_view_passes_a_head_turn_challenge_and_fails_a_still_photo_in
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_camera_view_reads_the_persons_face_not_a_larger_one_beside_it_in_chromium() {
+async fn the_camera_view_takes_no_frame_whose_larger_face_is_someone_elses_in_chromium() {
     let Some((chromium, chromedriver)) = browser_binaries() else { return };
     let (app, clips, driver) = camera_setup(&chromedriver, "camera-beside").await;
 
     // IMM person 05 on the left, looking ahead, turning left, ahead, turning right; before each
-    // of their turns, IMM person 01 beside them, larger, turned that way already. A page that
-    // read the largest face's yaw would take person 01's turn for person 05's; the page (and the
-    // server) follow person 05's face from the probe on, and wait for their own turns.
+    // of their turns, IMM person 01 beside them, larger, turned that way already. The server
+    // judges the largest face, so a page that took person 01's turned frames would fail the
+    // same-person check; the page follows person 05's face from the probe on and waits for their
+    // own turns.
     let frames = [
         two_faces("05-5m.jpg", None),
         two_faces("05-5m.jpg", Some("01-4m.jpg")),
