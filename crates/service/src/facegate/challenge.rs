@@ -19,7 +19,8 @@ use facegate_vision::pipeline::{FaceAnalysis, FollowedFace};
 
 use super::{AnalyzedPhoto, Facegate, PhotoError, ServiceError, Verification, capture_liveness, decode_and_analyze};
 use crate::challenge::{
-    ChallengeOutcome, InvalidChallenge, IssuedChallenge, draw_steps, frame_steps_of, judge, new_challenge_id, one_person, well_formed_id,
+    CAPTURE_FMR, ChallengeOutcome, InvalidChallenge, IssuedChallenge, draw_steps, frame_steps_of, judge, new_challenge_id, one_person,
+    well_formed_id,
 };
 use crate::liveness::LivenessPolicy;
 use crate::{FaceEngine, Matcher};
@@ -115,9 +116,10 @@ impl Facegate {
 
 /// Analyze a challenge's probe and frames (a frame with no usable face is refused with its
 /// index), hold every frame against the probe and the other steps ([`one_person`]) and judge
-/// the capture. The probe's face is its largest; each frame's is the face followed from the
-/// frame before (from the probe for the first: [`FollowedFace::pick`]), so that a larger face
-/// beside the person is not judged as theirs.
+/// the capture. The probe's face is its largest; each frame's is its largest too unless that is
+/// not the probe's person and the face followed from the frame before (from the probe for the
+/// first: [`FollowedFace::pick`]) is, so that a larger face beside the person is not judged as
+/// theirs ([`analyze_frame`]).
 fn challenge_photos(
     matcher: &crate::site::CalibratedMatcher<dyn FaceEngine>,
     steps: &[Step],
@@ -132,7 +134,8 @@ fn challenge_photos(
     drop(photo);
     let (mut analyzed, mut rendered) = (Vec::with_capacity(frames.len()), Vec::with_capacity(frames.len()));
     for (i, bytes) in frames.iter().enumerate() {
-        let (frame, render, followed) = analyze_frame(engine, bytes, limits, &last).map_err(|e| e.at_frame(i))?;
+        let (frame, render, followed) =
+            analyze_frame(engine, matcher, &probe.analysis.template, bytes, limits, &last).map_err(|e| e.at_frame(i))?;
         analyzed.push(frame);
         rendered.push(render);
         last = followed;
@@ -147,16 +150,32 @@ fn challenge_photos(
     Ok((probe, analyzed, outcome))
 }
 
-/// A challenge frame analyzed at the face followed from `last`, checked for a rendered head,
-/// and where its face is for the next frame.
+/// A challenge frame analyzed at the person's face, checked for a rendered head, and where its
+/// face is for the next frame. The person's face is the largest, as in any photo, unless the
+/// frame shows several faces, the largest is not the `probe`'s person (at [`CAPTURE_FMR`]) and
+/// the face followed from `last` is: a bystander larger than the person. Position alone would not
+/// do: a person who moves further than a face width between two frames sent (a camera that cut,
+/// a clip replayed mirrored) leaves another face where theirs was. Either face judged must pass
+/// every check of the challenge itself, so the choice gives an attacker nothing a single face
+/// would not.
 fn analyze_frame(
     engine: &dyn FaceEngine,
+    matcher: &dyn Matcher,
+    probe: &Template,
     bytes: &[u8],
     limits: &facegate_core::imaging::DecodeLimits,
     last: &FollowedFace,
 ) -> Result<(AnalyzedPhoto, Option<Liveness>, FollowedFace), PhotoError> {
     let (photo, decode_ms) = crate::inspect::decode_photo(bytes, limits)?;
-    let analysis = engine.analyze_following(&photo, last).map_err(PhotoError::of_analysis)?;
+    let probes_person = |a: &FaceAnalysis| crate::decide(matcher, &a.template, std::slice::from_ref(probe), CAPTURE_FMR).is_match;
+    let mut analysis = engine.analyze(&photo).map_err(PhotoError::of_analysis)?;
+    if analysis.faces_found > 1 && !probes_person(&analysis) {
+        if let Some(followed) =
+            engine.analyze_following(&photo, last).ok().filter(|f| f.face.rect != analysis.face.rect && probes_person(f))
+        {
+            analysis = followed;
+        }
+    }
     let rendered = engine.render_check(&photo, &analysis);
     let followed = FollowedFace::of(&analysis.face.rect, photo.width(), photo.height());
     Ok((AnalyzedPhoto { analysis, decode_ms, liveness: None }, rendered, followed))
