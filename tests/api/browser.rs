@@ -538,10 +538,10 @@ async fn the_camera_view_takes_no_frame_whose_larger_face_is_someone_elses_in_ch
     let (app, clips, driver) = camera_setup(&chromedriver, "camera-beside").await;
 
     // IMM person 05 on the left, looking ahead, turning left, ahead, turning right; before each
-    // of their turns, IMM person 01 beside them, larger, turned that way already. The server
-    // judges the largest face, so a page that took person 01's turned frames would fail the
-    // same-person check; the page follows person 05's face from the probe on and waits for their
-    // own turns.
+    // of their turns, IMM person 01 beside them, larger, turned that way already. A page that
+    // took person 01's turned frames for person 05's would send frames where person 05 is not
+    // turned (when the page judged by the largest face only, it failed the same-person check);
+    // the page follows person 05's face from the probe on and waits for their own turns.
     let frames = [
         two_faces("05-5m.jpg", None),
         two_faces("05-5m.jpg", Some("01-4m.jpg")),

@@ -73,8 +73,8 @@ pub trait FaceEngine: Matcher + Send + Sync + 'static {
     /// Detect, landmark, pose-correct and template the largest face of `photo`.
     fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError>;
     /// [`FaceEngine::analyze`] of the face followed from the last frame of a capture
-    /// ([`FollowedFace::pick`]): a challenge's frames, so that a larger face beside the person's
-    /// is not taken for theirs.
+    /// ([`FollowedFace::pick`]; `NoFace` when none lies there): a challenge's frames, so that a
+    /// larger face beside the person's is not taken for theirs.
     fn analyze_following(&self, photo: &Photo, last: &FollowedFace) -> Result<FaceAnalysis, PipelineError>;
     /// Every face (or the largest) with landmarks, pose and fit residual; no template.
     fn read_faces(&self, photo: &Photo, choice: FaceChoice) -> Result<PhotoReading, PipelineError>;

@@ -9,7 +9,7 @@
 //! acknowledged into the unlinked file after `/health` had already answered 503 (in CI).
 
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use crate::StoreError;
 
@@ -21,7 +21,7 @@ pub(crate) struct FileWatch {
     /// The file kept open: while it is, its inode is not reused, so a file later made at the path
     /// can never have the opened one's identity.
     _held: std::fs::File,
-    gone_before: Mutex<bool>,
+    gone_before: AtomicBool,
 }
 
 /// The device and inode of the file at `path`, and whether it is empty.
@@ -37,7 +37,7 @@ impl FileWatch {
         let io = |source| StoreError::Io { path: path.to_path_buf(), source };
         let held = std::fs::File::open(path).map_err(io)?;
         let (identity, _) = identity(path).map_err(io)?;
-        Ok(FileWatch { path: path.to_path_buf(), identity, _held: held, gone_before: Mutex::new(false) })
+        Ok(FileWatch { path: path.to_path_buf(), identity, _held: held, gone_before: AtomicBool::new(false) })
     }
 
     /// `Err` when the path no longer holds the file opened at start.
@@ -50,14 +50,13 @@ impl FileWatch {
             Ok(_) => Some(format!("{} was replaced by another file", self.path.display())),
             Err(e) => Some(format!("{} is gone ({e})", self.path.display())),
         };
-        let mut gone_before = self.gone_before.lock().expect("file watch lock");
-        if let Some(why) = gone.as_ref().filter(|_| !*gone_before) {
+        let gone_before = self.gone_before.swap(gone.is_some(), Ordering::Relaxed);
+        if let Some(why) = gone.as_ref().filter(|_| !gone_before) {
             tracing::error!(
                 "the SQLite database file opened at start is no longer at its path: {why}; every write and /health are refused \
                  (503) until it is back or the service restarts on the right file"
             );
         }
-        *gone_before = gone.is_some();
         gone.map_or(Ok(()), |why| Err(StoreError::Vanished(why)))
     }
 }

@@ -11,8 +11,9 @@
 //! right view 3) and UMIST's test persons s06–s10 (enrolled with photo 18, the probe photo 19,
 //! turned steps drawn among photos 10–17 and their mirror images; UMIST turns to one side and has
 //! no frontal photo, so its challenges are the drawn ones without a front step). UMIST's
-//! probe photo's head rendered at whichever yaw reads inside each step's range is its attack. Attacks on IMM persons: the probe photo held still; the probe
-//! photo as a flat print turned by ±15…60° (perspective warp) or bent on a cylinder and turned;
+//! probe photo's head rendered at whichever yaw reads inside each step's range is its attack.
+//! Attacks on IMM persons: the probe photo held still; the probe photo as a flat print turned by
+//! ±15…60° (perspective warp) or bent on a cylinder and turned;
 //! the right photos in the wrong order (left and right exchanged); another person's photo in one
 //! turned step; the probe photo's fitted 3D head rendered at each step's yaw (`frontalize
 //! --yaw`); and the attacker who watches the console's yaw, holding the print (or rendering the
@@ -234,14 +235,11 @@ fn yaw_quantiles(analyses: &Analyses) -> BTreeMap<String, [f32; 5]> {
         let key = match source {
             Source::File(p) | Source::Mirror(p) => {
                 let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
-                let kind = if p.components().any(|c| c.as_os_str() == "video") {
-                    "video frames".to_string()
-                } else if name.len() > 4 && name.as_bytes()[2] == b'-' {
-                    format!("IMM view {}", &name[3..4])
-                } else if name.ends_with(".pgm") {
-                    format!("UMIST {}", &name[..2])
-                } else {
-                    "NUAA frames".into()
+                let kind = match data_set(p) {
+                    "video" => "video frames".to_string(),
+                    "IMM" => format!("IMM view {}", name.get(3..4).unwrap_or("?")),
+                    "UMIST" => format!("UMIST {}", name.get(..2).unwrap_or("?")),
+                    other => format!("{other} frames"),
                 };
                 if matches!(source, Source::Mirror(_)) { format!("{kind} mirrored") } else { kind }
             }
@@ -266,24 +264,27 @@ fn render_quantiles(analyses: &Analyses) -> BTreeMap<String, [f32; 5]> {
     quantiles(by)
 }
 
-/// A source's data set (where its photo lies) and what it shows: a camera's photo, a rendered
-/// head, a print, or a grey small copy.
+/// The data set a photo lies in, by its folder: `video`, `UMIST`, `ORL`, `NUAA` or `IMM`.
+fn data_set(path: &std::path::Path) -> &'static str {
+    let under = |folder: &str| path.components().any(|c| c.as_os_str() == folder);
+    if under("video") {
+        "video"
+    } else if path.extension().is_some_and(|e| e == "pgm") {
+        if under("umist") { "UMIST" } else { "ORL" }
+    } else if under("nuaa") {
+        "NUAA"
+    } else {
+        "IMM"
+    }
+}
+
+/// A source's data set and what it shows: a camera's photo, a rendered head, a print, or a grey
+/// small copy.
 fn render_kind(source: &Source) -> String {
-    let set = |p: &std::path::Path| {
-        if p.components().any(|c| c.as_os_str() == "video") {
-            "video"
-        } else if p.extension().is_some_and(|e| e == "pgm") {
-            if p.components().any(|c| c.as_os_str() == "umist") { "UMIST" } else { "ORL" }
-        } else if p.components().any(|c| c.as_os_str() == "nuaa") {
-            "NUAA"
-        } else {
-            "IMM"
-        }
-    };
     match source {
-        Source::File(p) | Source::Mirror(p) => format!("{} camera", set(p)),
-        Source::Print { path, .. } => format!("{} print", set(path)),
-        Source::Avatar { path, .. } => format!("{} rendered head", set(path)),
+        Source::File(p) | Source::Mirror(p) => format!("{} camera", data_set(p)),
+        Source::Print { path, .. } => format!("{} print", data_set(path)),
+        Source::Avatar { path, .. } => format!("{} rendered head", data_set(path)),
         Source::Grey(inner) => format!("{} grey, small", render_kind(inner)),
     }
 }

@@ -143,25 +143,24 @@ impl Pipeline {
     /// `liveness`; the classical recognizer's quality runs inside its `template`), which the
     /// service's traces carry.
     pub fn analyze(&self, photo: &Photo) -> Result<FaceAnalysis, PipelineError> {
-        self.analyze_chosen(photo, |_| 0)
+        self.analyze_chosen(photo, |_| Some(0))
     }
 
     /// [`Pipeline::analyze`] of the face a camera has been following ([`FollowedFace::pick`]):
-    /// a challenge's frames, each after the last.
+    /// a challenge's frames, each after the last. [`PipelineError::NoFace`] when no face found
+    /// lies where the followed one was.
     pub fn analyze_following(&self, photo: &Photo, last: &FollowedFace) -> Result<FaceAnalysis, PipelineError> {
         self.analyze_chosen(photo, |faces| last.pick(faces, photo.width(), photo.height()))
     }
 
-    /// The analysis of the face `choose` picks among those found (largest first).
-    fn analyze_chosen(&self, photo: &Photo, choose: impl FnOnce(&[Face]) -> usize) -> Result<FaceAnalysis, PipelineError> {
+    /// The analysis of the face `choose` picks among those found (largest first); `NoFace` when
+    /// it picks none.
+    fn analyze_chosen(&self, photo: &Photo, choose: impl FnOnce(&[Face]) -> Option<usize>) -> Result<FaceAnalysis, PipelineError> {
         let mut timings = StageTimings::default();
         let t = Instant::now();
         let faces = tracing::info_span!("detect").in_scope(|| self.finder.detect(&photo.gray));
         timings.detect_ms = elapsed_ms(t);
-        if faces.is_empty() {
-            return Err(PipelineError::NoFace);
-        }
-        let face = faces[choose(&faces).min(faces.len() - 1)];
+        let face = *choose(&faces).and_then(|i| faces.get(i)).ok_or(PipelineError::NoFace)?;
 
         let t = Instant::now();
         let landmarks = tracing::info_span!("landmarks").in_scope(|| self.finder.landmarks_of(&photo.gray, &face));

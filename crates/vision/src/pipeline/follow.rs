@@ -28,9 +28,8 @@ impl FollowedFace {
 
     /// The index in `faces` (largest first) of the person's face in a `width` × `height` frame:
     /// the face nearest the followed one among those within one face width of it
-    /// ([`Rect::follows`]), or the largest (0) when none is: the person left or jumped, and
-    /// whoever is largest is judged (a challenge's same-person check then decides).
-    pub fn pick(&self, faces: &[Face], width: u32, height: u32) -> usize {
+    /// ([`Rect::follows`]); `None` when none is (the person left or jumped).
+    pub fn pick(&self, faces: &[Face], width: u32, height: u32) -> Option<usize> {
         let last = self.in_frame(width, height);
         let [lx, ly] = last.center();
         let distance = |f: &Face| {
@@ -42,7 +41,7 @@ impl FollowedFace {
             .enumerate()
             .filter(|(_, f)| f.rect.follows(&last))
             .min_by(|a, b| distance(a.1).total_cmp(&distance(b.1)))
-            .map_or(0, |(i, _)| i)
+            .map(|(i, _)| i)
     }
 }
 
@@ -60,15 +59,15 @@ mod tests {
         let last = FollowedFace::of(&Rect::new(60.0, 150.0, 100.0, 100.0), 640, 480);
         // A larger face at the right (first: largest), the person moved 20 px.
         let faces = [face(360.0, 100.0, 180.0), face(80.0, 155.0, 96.0)];
-        assert_eq!(last.pick(&faces, 640, 480), 1);
+        assert_eq!(last.pick(&faces, 640, 480), Some(1));
         // The same frame at half size: shares, not pixels.
         let half = [face(180.0, 50.0, 90.0), face(40.0, 77.5, 48.0)];
-        assert_eq!(last.pick(&half, 320, 240), 1);
-        // The person gone: the largest face is judged.
-        assert_eq!(last.pick(&faces[..1], 640, 480), 0);
+        assert_eq!(last.pick(&half, 320, 240), Some(1));
+        // The person gone: no face is theirs.
+        assert_eq!(last.pick(&faces[..1], 640, 480), None);
         // Two faces near: the nearer one.
         let near = [face(110.0, 150.0, 100.0), face(62.0, 150.0, 100.0)];
-        assert_eq!(last.pick(&near, 640, 480), 1);
-        assert_eq!(last.pick(&[], 640, 480), 0);
+        assert_eq!(last.pick(&near, 640, 480), Some(1));
+        assert_eq!(last.pick(&[], 640, 480), None);
     }
 }
