@@ -2,7 +2,7 @@
 //! shortlist's recall of the exact best subject, on N synthetic templates of DIMS values (one per
 //! subject, ids like the service's), each size in a fresh process.
 //!
-//!   cargo run --release --example gallery_scale -- [--dims 256] [--probes 100] [--exact] N...
+//!   cargo run --release --example gallery_scale -- [--dims 256] [--probes 100] [--exact] [--protected] N...
 //!
 //! Per size it prints the resident-set growth of loading the gallery (`/proc/self/statm`) and
 //! bytes per template, then for each probe (100 unless `--probes`) the search's wall time on this one thread (median and
@@ -14,6 +14,11 @@
 //! chunk of them against all probes is one matrix product), so
 //! the exact gallery is never held. `--exact` holds the exact float gallery instead (the
 //! `Precision::Exact` search, for the memory and time it costs at the same N).
+//!
+//! `--protected` holds what a service with protected templates holds (`--template-protection-key-file`):
+//! every template turned by a keyed rotation (`service::protection`, a fixed secret here), and
+//! each probe turned inside the timed search, as the protected engine turns it before the
+//! gallery sees it. Rotations keep cosines, so the exact best is the same subject.
 //!
 //! `--database URL --version MODEL_VERSION` instead times the service's start-up load of a
 //! store's gallery (`LiveGallery::load`, quantised) and its resident growth, then a search
@@ -62,8 +67,12 @@ fn id(i: usize) -> String {
     format!("subject-{i:08}")
 }
 
-fn one_size(n: usize, dims: usize, exact: bool, probe_count: usize) {
+/// The fixed secret `--protected` turns templates under.
+const SECRET: &str = "5e1f0c3a9b7d2e4f6a8c0b1d3e5f7a9c2b4d6e8f0a1c3e5d7f9b0a2c4e6d8f1a";
+
+fn one_size(n: usize, dims: usize, exact: bool, probe_count: usize, protected: bool) {
     let precision = if exact { Precision::Exact } else { Precision::Quantised };
+    let rotation = protected.then(|| facegate_service::protection::ProtectionKey::parse(SECRET).expect("a key").rotation(dims));
     // Probes: even ones a noisy copy of an enrolled template, odd ones random.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(99);
     let mut genuine_rows = std::collections::BTreeMap::<usize, Vec<usize>>::new();
@@ -78,7 +87,8 @@ fn one_size(n: usize, dims: usize, exact: bool, probe_count: usize) {
     let started = std::time::Instant::now();
     let mut gallery = Gallery::with_precision("bench", precision);
     templates(n, dims, |i, v| {
-        gallery.add(&id(i), &[Template::new("bench", v.to_vec())]);
+        let stored = rotation.as_ref().map_or_else(|| v.to_vec(), |r| r.apply(v));
+        gallery.add(&id(i), &[Template::new("bench", stored)]);
         for &p in genuine_rows.get(&i).into_iter().flatten() {
             probes[p] = v.iter().map(|x| x + rng.random_range(-1.0f32..1.0)).collect();
         }
@@ -130,7 +140,8 @@ fn one_size(n: usize, dims: usize, exact: bool, probe_count: usize) {
     let (mut times, mut found) = (Vec::new(), [0usize; 2]);
     for (p, probe) in probes.iter().enumerate() {
         let t = std::time::Instant::now();
-        let (result, _) = gallery.search(&MaxCosine("bench".into()), probe, 1e-3, 1).expect("readable");
+        let turned = rotation.as_ref().map(|r| Template::new("bench", r.apply(&probe.vector)));
+        let (result, _) = gallery.search(&MaxCosine("bench".into()), turned.as_ref().unwrap_or(probe), 1e-3, 1).expect("readable");
         times.push(t.elapsed().as_secs_f64() * 1e3);
         let hit = match result {
             Found::Shortlist(subjects) => subjects.contains(&id(best[p].1)),
@@ -141,7 +152,8 @@ fn one_size(n: usize, dims: usize, exact: bool, probe_count: usize) {
     times.sort_by(f64::total_cmp);
     let mean_genuine = best.iter().step_by(2).map(|b| b.0).sum::<f32>() / (probe_count / 2) as f32;
     println!(
-        "| {n} | {dims} | {precision:?} | {:.0} MB | {:.0} | {load_s:.1} s | {:.2} ms | {:.2} ms | {}/{} (best cosine {mean_genuine:.2}) | {}/{} |",
+        "| {n} | {dims} | {precision:?}{} | {:.0} MB | {:.0} | {load_s:.1} s | {:.2} ms | {:.2} ms | {}/{} (best cosine {mean_genuine:.2}) | {}/{} |",
+        if protected { ", protected" } else { "" },
         growth as f64 / 1e6,
         growth as f64 / n as f64,
         times[probe_count / 2],
@@ -156,6 +168,7 @@ fn one_size(n: usize, dims: usize, exact: bool, probe_count: usize) {
 fn main() {
     let mut args: Vec<String> = std::env::args().skip(1).collect();
     let exact = args.iter().position(|a| a == "--exact").map(|i| args.remove(i)).is_some();
+    let protected = args.iter().position(|a| a == "--protected").map(|i| args.remove(i)).is_some();
     let probes: usize = match args.iter().position(|a| a == "--probes") {
         Some(i) => {
             args.remove(i);
@@ -177,7 +190,7 @@ fn main() {
     }
     let sizes: Vec<usize> = args.iter().map(|a| a.parse().expect("a template count")).collect();
     if let (Ok(_), [n]) = (std::env::var("GALLERY_SCALE_CHILD"), &sizes[..]) {
-        one_size(*n, dims, exact, probes);
+        one_size(*n, dims, exact, probes, protected);
         return;
     }
     println!(
@@ -189,6 +202,9 @@ fn main() {
         child.env("GALLERY_SCALE_CHILD", "1").args(["--dims", &dims.to_string(), "--probes", &probes.to_string(), &n.to_string()]);
         if exact {
             child.arg("--exact");
+        }
+        if protected {
+            child.arg("--protected");
         }
         assert!(child.status().expect("runs").success());
     }

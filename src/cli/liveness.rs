@@ -401,6 +401,7 @@ pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
         seed: args.seed,
         threads: args.threads.max(1),
         video: shared.join("data/video"),
+        lfw: shared.join("data/lfw"),
     };
     let pipeline = facegate_vision::pipeline::Pipeline::load(&crate::config::pipeline_config())?;
     anyhow::ensure!(pipeline.face_model.is_some(), "the challenge is judged on the 3D fit: the Surrey Face Model is needed");
@@ -410,6 +411,13 @@ pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
         super::print_json_line(&serde_json::to_value(&report)?);
         return Ok(ExitCode::SUCCESS);
     }
+    print_challenge_report(&report);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The challenge report as tables on stderr: the rows by kind, each person's live passes, the
+/// yaw and depth quantiles, the limits and the CPU.
+fn print_challenge_report(report: &facegate_research::liveness::challenge::ChallengeReport) {
     eprintln!("persons: {}; mean steps {:.2}", report.persons, report.mean_steps);
     eprintln!("{:<44} {:>8} {:>16} {:>16} {:>7} {:>6}  first reasons", "kind", "attempts", "pass challenge", "pass enforce", "shift", "z");
     for row in &report.rows {
@@ -429,6 +437,12 @@ pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
         );
     }
     eprintln!("reused challenge: {} of {} given out a second time", report.reused_passed, report.reused_attempts);
+    if let Some(s) = &report.stranger_steps {
+        eprintln!(
+            "stranger in one step, LFW test persons ({} persons, {} captures): {} of {} attempts pass ({} matched the probe alone)",
+            s.persons, s.captures, s.passed, s.attempts, s.matched_probe
+        );
+    }
     for (person, (n, passed)) in &report.live_by_person {
         let why = report.live_refused.get(person).map_or(String::new(), |(_, r)| format!("; first refusal: {r}"));
         eprintln!("live {person}: {passed} of {n} pass{why}");
@@ -440,26 +454,7 @@ pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
         eprintln!("yaw {kind}: min {min:.1}° p5 {p5:.1}° median {median:.1}° p95 {p95:.1}° max {max:.1}°");
     }
     for (kind, depth) in &report.depth_by_kind {
-        let q = |i: usize, p: f64| {
-            let mut v: Vec<f64> = depth.iter().map(|d| [d.0, d.1, d.2][i]).collect();
-            v.sort_by(f64::total_cmp);
-            v.get(((v.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(f64::NAN)
-        };
-        eprintln!(
-            "depth, poses right, {kind} (n {}): shift min {:.3} p5 {:.3} median {:.3} max {:.3}; z min {:.1} p5 {:.1} median {:.1} max {:.1}; excess turn median {:.1}° p95 {:.1}° max {:.1}°",
-            depth.len(),
-            q(0, 0.0),
-            q(0, 0.05),
-            q(0, 0.5),
-            q(0, 1.0),
-            q(1, 0.0),
-            q(1, 0.05),
-            q(1, 0.5),
-            q(1, 1.0),
-            q(2, 0.5),
-            q(2, 0.95),
-            q(2, 1.0)
-        );
+        print_depth_quantiles(kind, depth);
     }
     eprintln!(
         "limits: excess turn <= {:.0}°, shift >= {:.3}, z >= {:.1} (noise floor {:.3}), identity at FMR {:e}",
@@ -476,5 +471,28 @@ pub fn run_eval_challenge(args: EvalChallengeArgs) -> anyhow::Result<ExitCode> {
         report.mean_steps,
         report.mean_steps + 1.0 + report.judge_ms / report.analysis_ms
     );
-    Ok(ExitCode::SUCCESS)
+}
+
+/// One kind's depth test readings (shift, z, excess turn) as quantiles on stderr.
+fn print_depth_quantiles(kind: &str, depth: &[(f64, f64, f64)]) {
+    let q = |i: usize, p: f64| {
+        let mut v: Vec<f64> = depth.iter().map(|d| [d.0, d.1, d.2][i]).collect();
+        v.sort_by(f64::total_cmp);
+        v.get(((v.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(f64::NAN)
+    };
+    eprintln!(
+        "depth, poses right, {kind} (n {}): shift min {:.3} p5 {:.3} median {:.3} max {:.3}; z min {:.1} p5 {:.1} median {:.1} max {:.1}; excess turn median {:.1}° p95 {:.1}° max {:.1}°",
+        depth.len(),
+        q(0, 0.0),
+        q(0, 0.05),
+        q(0, 0.5),
+        q(0, 1.0),
+        q(1, 0.0),
+        q(1, 0.05),
+        q(1, 0.5),
+        q(1, 1.0),
+        q(2, 0.5),
+        q(2, 0.95),
+        q(2, 1.0)
+    );
 }

@@ -76,22 +76,7 @@ fn parse_centre_source(text: &str) -> anyhow::Result<CentreSource> {
 pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
     let data = args.data.clone().unwrap_or_else(|| facegate_paths::shared_dir().join("data/umist"));
     let photos = pose::list_umist(&data)?;
-    let mut config = crate::config::pipeline_config();
-    if let Some(recognizer) = args.recognizer {
-        config.recognizer = recognizer.into();
-    }
-    if let Some(d) = args.detector {
-        config = PipelineConfig { detector: d.into(), ..config };
-    }
-    let mut pipeline = Pipeline::load(&config)?;
-    if let Some(k) = &args.centre_source {
-        pipeline.finder.centre_source = parse_centre_source(k)?;
-    }
-    match args.detector_seed.as_deref() {
-        None => {}
-        Some("off") => pipeline.finder.detector_seed_min_yaw = None,
-        Some(yaw) => pipeline.finder.detector_seed_min_yaw = Some(yaw.parse()?),
-    }
+    let pipeline = pose_pipeline(&args)?;
     let threshold = pipeline.recognizer.operating_point(1e-3, 1).threshold;
     let readings = pose::read_photos(
         &pipeline,
@@ -123,74 +108,112 @@ pub fn run_eval(args: EvalPoseArgs) -> anyhow::Result<ExitCode> {
         println!("median fitted |yaw| by photo 01–19: {}", yaws.join(" "));
     }
     if args.band_thresholds {
-        let rows = pose::band_thresholds(&photos, &readings, 5, &score);
-        if args.json {
-            crate::cli::print_json_line(&serde_json::to_value(&rows)?);
-        } else {
-            println!("thresholds for FMR 1e-3 calibrated on the other persons (5 person folds), rates on the persons left out:\n");
-            println!("| pairs | genuine | impostor | per band: FMR / FNMR | one threshold: FMR / FNMR |");
-            println!("|---|---|---|---|---|");
-            for r in &rows {
-                println!(
-                    "| {} | {} | {} | {:.2}% / {:.2}% | {:.2}% / {:.2}% |",
-                    r.band,
-                    r.genuine,
-                    r.impostor,
-                    100.0 * r.fmr_band_threshold,
-                    100.0 * r.fnmr_band_threshold,
-                    100.0 * r.fmr_one_threshold,
-                    100.0 * r.fnmr_one_threshold
-                );
-            }
-        }
+        print_band_thresholds(&pose::band_thresholds(&photos, &readings, 5, &score), args.json)?;
     }
     if args.held_out {
         for (name, set) in pose::held_out_sets(&facegate_paths::shared_dir())? {
             let readings = pose::read_photos(&pipeline, &set, &[], false, args.threads, &crate::cli::Bar::default());
-            let r = pose::held_out(name, &set, &readings, threshold, &score);
-            if args.json {
-                crate::cli::print_json_line(&serde_json::to_value(&r)?);
-            } else {
-                println!(
-                    "{}: {} of {} faces found, EER {:.2}%, FNMR {:.2}% at FMR 1e-3, FMR {:.4}% at the service's 1e-3 threshold",
-                    r.set,
-                    r.found,
-                    r.photos,
-                    100.0 * r.eer,
-                    100.0 * r.fnmr_at_fmr_1e3,
-                    100.0 * r.fmr_at_service_threshold
-                );
-            }
+            print_held_out(&pose::held_out(name, &set, &readings, threshold, &score), args.json)?;
         }
     }
     if let Some(path) = &args.render_plot {
         render_curve(&pipeline, threshold, &args, path)?;
     }
     if let Some(path) = &args.plot {
-        let series: Vec<Series> = reports
-            .iter()
-            .map(|r| Series {
-                name: match r.strategy.as_str() {
-                    "own" => "photo's own template",
-                    "synthetic" => "with synthetic views",
-                    "at-probe-pose" => "enrolled head rendered at the probe's pose",
-                    _ => "frontal rendering beyond a yaw",
-                },
-                points: r.match_rate_by_photo.iter().enumerate().map(|(i, &m)| ((i + 1) as f64, m)).collect(),
-            })
-            .collect();
-        let chart = Chart {
-            title: "UMIST: genuine matches at the FMR 1e-3 threshold, probe against photos 12–19",
-            x_label: "probe photo (01 full profile … 19 near frontal)",
-            y_label: "share matched",
-            x_range: (1.0, 19.0),
-            y_range: (0.0, 1.0),
-            x_scale: Scale::Linear,
-            y_scale: Scale::Linear,
-        };
-        line_chart(path, &chart, &series)?;
+        plot_match_rates(&reports, path)?;
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The pipeline `eval pose` reads with: the settings', with the command's recognizer, detector,
+/// centre source and detector seed in place of theirs where given.
+fn pose_pipeline(args: &EvalPoseArgs) -> anyhow::Result<Pipeline> {
+    let mut config = crate::config::pipeline_config();
+    if let Some(recognizer) = args.recognizer {
+        config.recognizer = recognizer.into();
+    }
+    if let Some(d) = args.detector {
+        config = PipelineConfig { detector: d.into(), ..config };
+    }
+    let mut pipeline = Pipeline::load(&config)?;
+    if let Some(k) = &args.centre_source {
+        pipeline.finder.centre_source = parse_centre_source(k)?;
+    }
+    match args.detector_seed.as_deref() {
+        None => {}
+        Some("off") => pipeline.finder.detector_seed_min_yaw = None,
+        Some(yaw) => pipeline.finder.detector_seed_min_yaw = Some(yaw.parse()?),
+    }
+    Ok(pipeline)
+}
+
+/// `--band-thresholds`: the thresholds per pose band against one threshold, as JSON or a table.
+fn print_band_thresholds(rows: &[pose::BandThresholdResult], json: bool) -> anyhow::Result<()> {
+    if json {
+        crate::cli::print_json_line(&serde_json::to_value(rows)?);
+        return Ok(());
+    }
+    println!("thresholds for FMR 1e-3 calibrated on the other persons (5 person folds), rates on the persons left out:\n");
+    println!("| pairs | genuine | impostor | per band: FMR / FNMR | one threshold: FMR / FNMR |");
+    println!("|---|---|---|---|---|");
+    for r in rows {
+        println!(
+            "| {} | {} | {} | {:.2}% / {:.2}% | {:.2}% / {:.2}% |",
+            r.band,
+            r.genuine,
+            r.impostor,
+            100.0 * r.fmr_band_threshold,
+            100.0 * r.fnmr_band_threshold,
+            100.0 * r.fmr_one_threshold,
+            100.0 * r.fnmr_one_threshold
+        );
+    }
+    Ok(())
+}
+
+/// `--held-out`: one held-out set's rates, as JSON or a line.
+fn print_held_out(r: &pose::HeldOutResult, json: bool) -> anyhow::Result<()> {
+    if json {
+        crate::cli::print_json_line(&serde_json::to_value(r)?);
+    } else {
+        println!(
+            "{}: {} of {} faces found, EER {:.2}%, FNMR {:.2}% at FMR 1e-3, FMR {:.4}% at the service's 1e-3 threshold",
+            r.set,
+            r.found,
+            r.photos,
+            100.0 * r.eer,
+            100.0 * r.fnmr_at_fmr_1e3,
+            100.0 * r.fmr_at_service_threshold
+        );
+    }
+    Ok(())
+}
+
+/// `--plot`: each strategy's genuine match rate by UMIST probe photo.
+fn plot_match_rates(reports: &[pose::PoseReport], path: &std::path::Path) -> anyhow::Result<()> {
+    let series: Vec<Series> = reports
+        .iter()
+        .map(|r| Series {
+            name: match r.strategy.as_str() {
+                "own" => "photo's own template",
+                "synthetic" => "with synthetic views",
+                "at-probe-pose" => "enrolled head rendered at the probe's pose",
+                _ => "frontal rendering beyond a yaw",
+            },
+            points: r.match_rate_by_photo.iter().enumerate().map(|(i, &m)| ((i + 1) as f64, m)).collect(),
+        })
+        .collect();
+    let chart = Chart {
+        title: "UMIST: genuine matches at the FMR 1e-3 threshold, probe against photos 12–19",
+        x_label: "probe photo (01 full profile … 19 near frontal)",
+        y_label: "share matched",
+        x_range: (1.0, 19.0),
+        y_range: (0.0, 1.0),
+        x_scale: Scale::Linear,
+        y_scale: Scale::Linear,
+    };
+    line_chart(path, &chart, &series)?;
+    Ok(())
 }
 
 /// Genuine scores against yaw on renderings of LFW's test persons: printed, and plotted to `path`.

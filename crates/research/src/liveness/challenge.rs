@@ -39,6 +39,8 @@ use crate::Progress;
 mod attempts;
 #[path = "challenge_frames.rs"]
 mod frames;
+#[path = "challenge_strangers.rs"]
+mod strangers;
 #[path = "challenge_tally.rs"]
 mod tally;
 #[path = "challenge_video.rs"]
@@ -46,6 +48,7 @@ mod video;
 use attempts::adaptive_candidates;
 pub use attempts::{Attempt, attempts, umist_candidates};
 pub use frames::{Source, print_held, render_source};
+pub use strangers::{StrangerSteps, stranger_steps};
 use tally::Tally;
 
 /// The data sets and how many challenges each person answers.
@@ -62,6 +65,9 @@ pub struct ChallengeEvalConfig {
     pub threads: usize,
     /// Real video of people turning (`data/video/<clip>/NNNN.jpg`), used with `test_persons`.
     pub video: PathBuf,
+    /// LFW (`data/lfw/<person>/*.jpg`): its test persons' photos make the captures and strangers
+    /// of [`StrangerSteps`], with `test_persons`.
+    pub lfw: PathBuf,
 }
 
 /// Attempts of one kind and how many passed.
@@ -110,6 +116,9 @@ pub struct ChallengeReport {
     /// Per video clip, its frames whose largest face is another person's (left out of its live
     /// captures: `challenge_video::followed`).
     pub video_other_faces: BTreeMap<String, usize>,
+    /// A stranger's photo in one step at scale: LFW's test persons' captures against every other
+    /// person's photo (`None` with the training persons, or without LFW).
+    pub stranger_steps: Option<StrangerSteps>,
 }
 
 /// Each source's analysis, its time (ms) and its rendered-head check (with `render.bin`).
@@ -210,6 +219,8 @@ pub fn evaluate(pipeline: &Pipeline, config: &ChallengeEvalConfig, progress: &dy
     }
     let timed: Vec<f64> = analyses.values().filter(|(a, ..)| a.is_some()).map(|(_, ms, _)| *ms).collect();
     let (reused_passed, reused_attempts) = reused_challenges(attempts.len().min(50))?;
+    let stranger_steps =
+        if config.test_persons && config.lfw.is_dir() { Some(lfw_stranger_steps(pipeline, config, progress)?) } else { None };
     Ok(ChallengeReport {
         persons: if config.test_persons { "test".into() } else { "train".into() },
         rows: tally.rows(),
@@ -224,7 +235,28 @@ pub fn evaluate(pipeline: &Pipeline, config: &ChallengeEvalConfig, progress: &dy
         live_refused: tally.live_refused,
         live_by_person: tally.live_by_person,
         video_other_faces: clips.iter().map(|c| (c.name.clone(), c.other_faces)).collect(),
+        stranger_steps,
     })
+}
+
+/// [`stranger_steps`] on LFW's test persons' photos, each analysed by the pipeline.
+fn lfw_stranger_steps(pipeline: &Pipeline, config: &ChallengeEvalConfig, progress: &dyn Progress) -> anyhow::Result<StrangerSteps> {
+    use crate::dataset::{Split, lfw_split, list_labelled};
+    let photos: Vec<(String, PathBuf)> = list_labelled(&config.lfw)?
+        .into_iter()
+        .filter(|p| p.label.strip_prefix("lfw-").is_some_and(|person| lfw_split(person) == Split::Test))
+        .map(|p| (p.label, p.image))
+        .collect();
+    let analyses = analyze_sources(pipeline, photos.iter().map(|(_, path)| Source::File(path.clone())).collect(), config.threads, progress);
+    let templates: Vec<(String, String, Template)> = photos
+        .into_iter()
+        .filter_map(|(person, path)| {
+            let name = path.file_name()?.to_string_lossy().to_string();
+            let (analysis, ..) = analyses.get(&Source::File(path))?;
+            Some((person, name, analysis.as_ref()?.template.clone()))
+        })
+        .collect();
+    Ok(stranger_steps(pipeline, &templates))
 }
 
 /// The yaw read on each kind of source: min, 5th percentile, median, 95th percentile, max.

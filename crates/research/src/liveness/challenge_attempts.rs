@@ -320,6 +320,7 @@ mod tests {
             seed: 3,
             threads: 1,
             video: shared.join("data/video"),
+            lfw: shared.join("data/lfw"),
         };
         // A stand-in for `/analyze`: a print reads half its turn, an avatar its render's yaw.
         let yaw_of = |s: &Source| match s {
