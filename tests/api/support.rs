@@ -321,6 +321,7 @@ impl FaceEngine for StandInEngine {
             template: Template { model_version: self.version.clone(), vector },
             quality,
             liveness: None,
+            liveness_features: None,
             timings: StageTimings::default(),
         })
     }

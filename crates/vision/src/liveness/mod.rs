@@ -95,8 +95,18 @@ impl LivenessModel {
 
     /// The liveness of the face at `centres` in `photo`.
     pub fn assess(&self, photo: &RgbImage, centres: &EyeMouthCentres) -> Liveness {
-        let x = features::features(&features::crops(photo, centres), &self.blocks);
-        Liveness { score: self.probability(self.logit(&x)), model: self.name.clone() }
+        self.assess_features(&self.features(photo, centres))
+    }
+
+    /// The features of the face at `centres` in `photo`, the model's blocks in order.
+    pub fn features(&self, photo: &RgbImage, centres: &EyeMouthCentres) -> Vec<f32> {
+        features::features(&features::crops(photo, centres), &self.blocks)
+    }
+
+    /// The liveness of a face from its [`LivenessModel::features`] (of a model with the same
+    /// blocks: another model's features are reused only then).
+    pub fn assess_features(&self, x: &[f32]) -> Liveness {
+        Liveness { score: self.probability(self.logit(x)), model: self.name.clone() }
     }
 }
 

@@ -1,6 +1,7 @@
 //! The pipeline proper: the stages assembled, from a photo to a template, its quality and liveness
 //! ([`Pipeline::analyze`]), or to every face's reading without a template ([`Pipeline::read_faces`]).
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use facegate_core::elapsed_ms;
@@ -49,6 +50,9 @@ pub struct FaceAnalysis {
     pub quality: Quality,
     /// Live face or printed photo; `None` when no liveness model is loaded.
     pub liveness: Option<Liveness>,
+    /// The passive model's features of this face, kept for the rendered-head check
+    /// ([`Pipeline::render_check`]), which reads the same features where the passive model does.
+    pub liveness_features: Option<Arc<[f32]>>,
     pub timings: StageTimings,
 }
 
@@ -175,9 +179,20 @@ impl Pipeline {
             _ => self.embedding_template(photo, &face, &landmarks, key_point_fit, &mut timings)?,
         };
         let t = Instant::now();
-        let liveness = tracing::info_span!("liveness").in_scope(|| self.liveness_of(photo, &landmarks));
+        let (liveness, liveness_features) = tracing::info_span!("liveness").in_scope(|| self.liveness_of(photo, &landmarks)).unzip();
         timings.liveness_ms = elapsed_ms(t);
-        Ok(FaceAnalysis { face, faces_found: faces.len(), landmarks, pose, key_point_pose, template, quality, liveness, timings })
+        Ok(FaceAnalysis {
+            face,
+            faces_found: faces.len(),
+            landmarks,
+            pose,
+            key_point_pose,
+            template,
+            quality,
+            liveness,
+            liveness_features,
+            timings,
+        })
     }
 
     /// The deep recognizers' template (dlib's network, SFace, their fusion, a user's network)
@@ -254,7 +269,7 @@ impl Pipeline {
                 let (pose, fit_residual_px) = (fit.as_ref().map(|f| f.pose), fit.as_ref().map(|f| f.residual_px));
                 let visible = self.face_model.as_ref().zip(fit.as_ref()).map(|(m, f)| m.landmark_visibility(f));
                 let quality = self.quality.assess(quality_components(photo, &landmarks, pose, fit_residual_px).1);
-                let liveness = self.liveness_of(photo, &landmarks);
+                let liveness = self.liveness_of(photo, &landmarks).map(|(l, _)| l);
                 FaceReading { face, landmarks, pose, key_point_pose, fit_residual_px, visible, quality, liveness, landmarks_ms, morph_ms }
             })
             .collect();
@@ -290,12 +305,24 @@ impl Pipeline {
     /// measured where the liveness is (the eye and mouth centres of `analysis`); `None` without
     /// the model. Not part of [`Pipeline::analyze`]: only a challenge's frames need it.
     pub fn render_check(&self, photo: &Photo, analysis: &FaceAnalysis) -> Option<Liveness> {
-        self.render.as_ref().map(|model| model.assess(&photo.rgb, &analysis.landmarks.centres))
+        let model = self.render.as_ref()?;
+        // The detector is trained on the passive model's features: when the two read the same
+        // blocks, the analysis's features are scored again instead of computed again (they are
+        // most of either model's cost).
+        let shared = self.liveness.as_ref().is_some_and(|passive| passive.blocks == model.blocks);
+        Some(match analysis.liveness_features.as_deref().filter(|_| shared) {
+            Some(x) => model.assess_features(x),
+            None => model.assess(&photo.rgb, &analysis.landmarks.centres),
+        })
     }
 
-    /// The liveness of the face with `landmarks`, measured where the recognizer cuts its chip.
-    fn liveness_of(&self, photo: &Photo, landmarks: &Landmarks) -> Option<Liveness> {
-        self.liveness.as_ref().map(|model| model.assess(&photo.rgb, &landmarks.centres))
+    /// The liveness of the face with `landmarks`, measured where the recognizer cuts its chip,
+    /// and the features it was read from.
+    fn liveness_of(&self, photo: &Photo, landmarks: &Landmarks) -> Option<(Liveness, Arc<[f32]>)> {
+        self.liveness.as_ref().map(|model| {
+            let x = model.features(&photo.rgb, &landmarks.centres);
+            (model.assess_features(&x), x.into())
+        })
     }
 
     fn face_model(&self) -> Result<&FaceModel, PipelineError> {

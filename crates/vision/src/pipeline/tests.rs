@@ -77,6 +77,26 @@ fn liveness_tells_printed_photos_from_live_faces() {
     assert!(without.analyze(&photo("05-1m.jpg")).unwrap().liveness.is_none());
 }
 
+/// The rendered-head check scores the features the passive model read (the two models read the
+/// same blocks), and gives what it gives computing them again: on a camera's face and on a face
+/// whose features were never kept.
+#[test]
+fn the_render_check_reuses_the_passive_models_features() {
+    let pipeline = Pipeline::load(&pipeline_config()).unwrap();
+    let render = pipeline.render.as_ref().expect("models/render.bin is loaded");
+    assert_eq!(render.blocks, pipeline.liveness.as_ref().expect("models/liveness.bin is loaded").blocks);
+    for name in ["05-1m.jpg", "15-4f.jpg"] {
+        let photo = photo(name);
+        let analysis = pipeline.analyze(&photo).unwrap();
+        let kept = analysis.liveness_features.as_deref().expect("kept with a liveness model");
+        assert_eq!(kept, render.features(&photo.rgb, &analysis.landmarks.centres).as_slice(), "{name}");
+        let fresh = render.assess(&photo.rgb, &analysis.landmarks.centres);
+        assert_eq!(pipeline.render_check(&photo, &analysis), Some(fresh.clone()), "{name}");
+        let without = FaceAnalysis { liveness_features: None, ..analysis };
+        assert_eq!(pipeline.render_check(&photo, &without), Some(fresh), "{name}");
+    }
+}
+
 #[test]
 fn full_pipeline_reports_every_stage() {
     let pipeline = Pipeline::load(&pipeline_config()).unwrap();
