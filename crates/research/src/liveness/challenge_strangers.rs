@@ -33,8 +33,8 @@ pub struct StrangerSteps {
     pub passed_pairs: Vec<(String, String)>,
 }
 
-/// Every capture of `photos` (person, photo name, template) answered by every other person's photo in one
-/// step, judged by [`rule::one_person`] under `matcher`.
+/// Every capture of `photos` (person, photo name, template) answered by every other person's
+/// photo in one step, judged by [`rule::one_person`] under `matcher`.
 pub fn stranger_steps(matcher: &dyn Matcher, photos: &[(String, String, Template)]) -> StrangerSteps {
     let mut by_person: BTreeMap<&str, Vec<(&str, &Template)>> = BTreeMap::new();
     for (person, name, template) in photos {
@@ -96,9 +96,8 @@ mod tests {
 
     #[test]
     fn a_stranger_passes_only_when_near_the_probe_and_both_steps() {
-        // Person a's three photos lie within 0.1 rad; b's photo 0.05 rad from a's middle one
-        // matches all three at cos ≥ 0.98; c's photo matches a's probe alone when it is the
-        // photo at 0.0 but not the farther steps.
+        // Person a's photos lie at 0, 0.1 and 0.2 rad, and cos ≥ 0.98 is within 0.2 rad: b's
+        // photo, at a's middle one, matches all three; c's matches only a's photo at 0.
         let photo = |person: &str, angle: f32| (person.to_string(), format!("{person}{angle}"), unit(angle));
         let photos = vec![photo("a", 0.0), photo("a", 0.1), photo("a", 0.2), photo("b", 0.1), photo("c", -0.19)];
         let steps = stranger_steps(&Cosine(0.98), &photos);
