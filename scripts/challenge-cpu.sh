@@ -30,28 +30,23 @@ imm="$SHARED/data/imm"
 photo() { ls "$imm/15-$1"?.jpg | head -1; }
 enrol="$(photo 1)" probe="$(photo 2)" front="$(photo 5)" left="$(photo 4)" right="$(photo 3)"
 
-BIN="${BIN:-}"
-if [[ -z "$BIN" ]]; then
-    cargo build --release --bin facegate
-    BIN=target/release/facegate
-fi
 # shellcheck source=scripts/lib/scratch-server.sh
 source scripts/lib/scratch-server.sh
+release_bin
 FACEGATE_API_KEYS="" RUST_LOG=warn scratch_server "$BIN" "$PORT" --liveness enforce --challenge-rate 0
 
 curl -fsS -F subject=p15 -F "image=@$enrol" "$base/enroll" >/dev/null
-cpu_ticks() { awk '{print $14 + $15}' "/proc/$server_pid/stat"; }
 
 declare -A ticks=([probe]=0 [front]=0 [left]=0 [right]=0 [challenge]=0) sent=([front]=0 [left]=0 [right]=0)
 declare -A photo_of=([probe]="$probe" [front]="$front" [left]="$left" [right]="$right")
 plain_n=0 challenge_n=0 passed=0
 for _ in $(seq 1 "$ROUNDS"); do
     for kind in probe front left right; do
-        before="$(cpu_ticks)"
+        before="$(server_cpu_ticks)"
         for _ in $(seq 1 "$PLAIN"); do
             curl -fsS -F subject=p15 -F "image=@${photo_of[$kind]}" "$base/verify" >/dev/null
         done
-        ticks[$kind]=$((ticks[$kind] + $(cpu_ticks) - before))
+        ticks[$kind]=$((ticks[$kind] + $(server_cpu_ticks) - before))
     done
     plain_n=$((plain_n + PLAIN))
 
@@ -77,9 +72,9 @@ PY
             [[ "$field" == "frame=@${photo_of[$kind]}" ]] && sent[$kind]=$((sent[$kind] + 1))
         done
     done
-    before="$(cpu_ticks)"
+    before="$(server_cpu_ticks)"
     response="$(curl -sS -F subject=p15 -F "image=@$probe" "${args[@]}" "$base/verify")"
-    ticks[challenge]=$((ticks[challenge] + $(cpu_ticks) - before)) challenge_n=$((challenge_n + 1))
+    ticks[challenge]=$((ticks[challenge] + $(server_cpu_ticks) - before)) challenge_n=$((challenge_n + 1))
     if python3 -c 'import json,sys; sys.exit(0 if json.loads(sys.argv[1]).get("liveness", {}).get("challenge", {}).get("passed") else 1)' "$response"; then
         passed=$((passed + 1))
     fi

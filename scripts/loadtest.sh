@@ -28,13 +28,9 @@ command -v wrk >/dev/null || { echo "loadtest: wrk is missing (apt-get install w
 command -v curl >/dev/null || { echo "loadtest: curl is missing" >&2; exit 1; }
 for f in "$ENROL" "$PROBE"; do [[ -f "$f" ]] || { echo "loadtest: no photo $f" >&2; exit 1; }; done
 
-BIN="${BIN:-}"
-if [[ -z "$BIN" ]]; then
-    cargo build --release --bin facegate
-    BIN=target/release/facegate
-fi
 # shellcheck source=scripts/lib/scratch-server.sh
 source scripts/lib/scratch-server.sh
+release_bin
 FACEGATE_API_KEYS="" RUST_LOG=warn scratch_server "$BIN" "$PORT" --queue 256
 
 curl -fsS -F subject=loadtest -F "image=@$ENROL" "$base/enroll" >/dev/null
@@ -71,12 +67,9 @@ LUA
 echo "wrk: ${DURATION}s, $CONNECTIONS connections, $THREADS threads, POST /verify with $(basename "$PROBE") ($(python3 -c "import sys,struct;d=open(sys.argv[1],'rb').read();print(len(d))" "$PROBE") bytes)"
 echo "cores: $(nproc)"
 echo "load average before: $(cut -d' ' -f1-3 /proc/loadavg)"
-# Fields 14 and 15 of /proc/<pid>/stat: user and system time in clock ticks (the command name in
-# field 2 has no spaces here).
-cpu_ticks() { awk '{print $14 + $15}' "/proc/$server_pid/stat"; }
-ticks_before="$(cpu_ticks)"
+ticks_before="$(server_cpu_ticks)"
 PROBE="$PROBE" wrk -t "$THREADS" -c "$CONNECTIONS" -d "${DURATION}s" --timeout 10s -s "$tmp/verify.lua" "$base/verify" | tee "$tmp/wrk.txt"
-ticks_after="$(cpu_ticks)"
+ticks_after="$(server_cpu_ticks)"
 requests="$(awk '/^requests:/ {print $2}' "$tmp/wrk.txt")"
 python3 -c "import sys; t, hz, n = float(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3]); print(f'server CPU: {t / hz:.2f} s for {n} verifications = {1e3 * t / hz / max(n, 1):.1f} ms per verification')" \
     "$((ticks_after - ticks_before))" "$(getconf CLK_TCK)" "${requests:-0}"

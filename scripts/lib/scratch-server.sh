@@ -1,10 +1,13 @@
-# Sourced by scripts/loadtest.sh and scripts/memory.sh: `facegate serve` on a fresh SQLite
-# database in a temporary folder ($tmp), stopped and the folder removed when the script exits.
+# Sourced by scripts/loadtest.sh, scripts/memory.sh and scripts/challenge-cpu.sh: `facegate serve`
+# on a fresh SQLite database in a temporary folder ($tmp), stopped and the folder removed when the
+# script exits.
 #
 #   scratch_server BIN PORT [serve flags...]
 #
 # starts it, sets server_pid and base (http://127.0.0.1:PORT) and returns once /health answers;
 # a server that exits or does not answer within 60 s ends the script with its log.
+#   release_bin          sets BIN to the release build (built first) unless BIN is given.
+#   server_cpu_ticks     the server's user + system time so far, in clock ticks.
 tmp="$(mktemp -d)"
 server_pid=""
 cleanup() {
@@ -28,3 +31,14 @@ scratch_server() {
     cat "$tmp/server.log" >&2
     exit 1
 }
+
+release_bin() {
+    if [[ -z "${BIN:-}" ]]; then
+        cargo build --release --bin facegate
+        BIN=target/release/facegate
+    fi
+}
+
+# Fields 14 and 15 of /proc/<pid>/stat: user and system time in clock ticks (the command name in
+# field 2 has no spaces here).
+server_cpu_ticks() { awk '{print $14 + $15}' "/proc/$server_pid/stat"; }

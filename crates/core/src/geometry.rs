@@ -31,12 +31,17 @@ impl Rect {
         p[0] >= self.x && p[0] <= self.x + self.width && p[1] >= self.y && p[1] <= self.y + self.height
     }
 
+    /// Distance between this box's centre and `other`'s.
+    pub fn center_distance(&self, other: &Rect) -> f32 {
+        let ([x, y], [ox, oy]) = (self.center(), other.center());
+        (x - ox).hypot(y - oy)
+    }
+
     /// Whether this box's centre lies within `last`'s width of `last`'s centre: the same face a
     /// moment later under one camera (a person moves a few pixels a frame; another person stands
     /// a face width or more away).
     pub fn follows(&self, last: &Rect) -> bool {
-        let ([x, y], [lx, ly]) = (self.center(), last.center());
-        (x - lx).hypot(y - ly) <= last.width
+        self.center_distance(last) <= last.width
     }
 
     /// Intersection over union of two boxes.

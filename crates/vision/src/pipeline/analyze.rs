@@ -179,7 +179,8 @@ impl Pipeline {
             _ => self.embedding_template(photo, &face, &landmarks, key_point_fit, &mut timings)?,
         };
         let t = Instant::now();
-        let (liveness, liveness_features) = tracing::info_span!("liveness").in_scope(|| self.liveness_of(photo, &landmarks)).unzip();
+        let (liveness, features) = tracing::info_span!("liveness").in_scope(|| self.liveness_of(photo, &landmarks)).unzip();
+        let liveness_features = features.map(Arc::from);
         timings.liveness_ms = elapsed_ms(t);
         Ok(FaceAnalysis {
             face,
@@ -318,10 +319,10 @@ impl Pipeline {
 
     /// The liveness of the face with `landmarks`, measured where the recognizer cuts its chip,
     /// and the features it was read from.
-    fn liveness_of(&self, photo: &Photo, landmarks: &Landmarks) -> Option<(Liveness, Arc<[f32]>)> {
+    fn liveness_of(&self, photo: &Photo, landmarks: &Landmarks) -> Option<(Liveness, Vec<f32>)> {
         self.liveness.as_ref().map(|model| {
             let x = model.features(&photo.rgb, &landmarks.centres);
-            (model.assess_features(&x), x.into())
+            (model.assess_features(&x), x)
         })
     }
 

@@ -31,16 +31,11 @@ impl FollowedFace {
     /// ([`Rect::follows`]); `None` when none is (the person left or jumped).
     pub fn pick(&self, faces: &[Face], width: u32, height: u32) -> Option<usize> {
         let last = self.in_frame(width, height);
-        let [lx, ly] = last.center();
-        let distance = |f: &Face| {
-            let [x, y] = f.rect.center();
-            (x - lx).hypot(y - ly)
-        };
         faces
             .iter()
             .enumerate()
             .filter(|(_, f)| f.rect.follows(&last))
-            .min_by(|a, b| distance(a.1).total_cmp(&distance(b.1)))
+            .min_by(|a, b| a.1.rect.center_distance(&last).total_cmp(&b.1.rect.center_distance(&last)))
             .map(|(i, _)| i)
     }
 }
