@@ -340,7 +340,7 @@ pub fn run_eval_verify_embedding(model_path: &std::path::Path, data: &DeepDataAr
     if !json {
         println!("{} ({}; calibrated on {})", model.version, model.provenance.trained_on, model.calibration.source);
     }
-    let lines = facegate_research::eval::deep::held_out_report_of(&samples, &templates, &|fmr, k| model.operating_point(fmr, k).threshold);
+    let lines = facegate_research::eval::deep::held_out_report_of(&samples, &templates, &|fmr, k| model.operating_point(fmr, k));
     super::embed::print_held_out(&lines, json)?;
     Ok(ExitCode::SUCCESS)
 }

@@ -27,7 +27,7 @@ pub struct CompareArgs {
     /// Which recognizer compares the photos.
     #[arg(long, env = "FACEGATE_RECOGNIZER", value_enum, default_value_t = choices::Recognizer::from(RecognizerKind::default()))]
     pub recognizer: choices::Recognizer,
-    /// Operating point: the calibrated false match rate closest to this (1e-2, 1e-3 or 1e-4).
+    /// Operating point: the calibrated false match rate closest to this (1e-2, 1e-3, 1e-4, and 1e-5 where the model has it).
     #[arg(long, default_value_t = DEFAULT_FMR)]
     pub fmr: f64,
 }

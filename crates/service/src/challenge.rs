@@ -51,8 +51,9 @@ pub const Z_MIN: f64 = 4.0;
 /// print held still) do not make a small crossing count.
 pub const NOISE_FLOOR: f64 = 0.02;
 /// The operating point at which every frame must match the probe and the other steps' frames:
-/// the strictest calibrated one (the frames are seconds apart under one camera).
-pub const CAPTURE_FMR: f64 = 1e-4;
+/// the strictest calibrated one (the frames are seconds apart under one camera). A model
+/// calibrated down to 1e-4 only is held to its 1e-4 point.
+pub const CAPTURE_FMR: f64 = 1e-5;
 /// Most frames answering one step (`frame_steps`); announced as `max_frames_per_step`.
 pub const MAX_FRAMES_PER_STEP: usize = 5;
 /// Most steps a challenge has ([`draw_steps`]).
@@ -342,5 +343,38 @@ mod tests {
         for bad in ["", "0123", &a.to_uppercase(), &format!("{a}0"), "g0000000000000000000000000000000", "' OR 1=1 --"] {
             assert!(!well_formed_id(bad), "{bad:?}");
         }
+    }
+
+    #[test]
+    fn a_capture_is_held_at_the_strictest_point_the_model_has() {
+        /// Scores are 1 less the first coordinates' distance (the best enrolled); thresholds 0.80 at 1e-4 and 0.85 at 1e-5
+        /// (when the model has it), the closest point answering, as a calibration's does.
+        struct Points(bool);
+        impl Matcher for Points {
+            fn model_version(&self) -> &str {
+                "m"
+            }
+            fn score(&self, probe: &Template, enrolled: &[Template]) -> f32 {
+                enrolled.iter().map(|t| 1.0 - (probe.vector[0] - t.vector[0]).abs()).fold(f32::NEG_INFINITY, f32::max)
+            }
+            fn operating_point(&self, fmr: f64, _: usize) -> facegate_core::template::OperatingPoint {
+                use facegate_core::template::OperatingPoint;
+                if self.0 && fmr < 3e-5 {
+                    OperatingPoint { fmr: 1e-5, threshold: 0.85 }
+                } else {
+                    OperatingPoint { fmr: 1e-4, threshold: 0.80 }
+                }
+            }
+        }
+        let t = |x: f32| Template { model_version: "m".into(), vector: vec![x] };
+        let (probe, same, like) = (t(1.0), t(0.99), t(0.82));
+        let bursts = [vec![0], vec![1], vec![2]];
+        // A frame at 0.82 against the probe (0.83 against the others): a match at 1e-4, not at 1e-5.
+        let frames = [&like, &same, &same];
+        let miss = one_person(&Points(true), &probe, &frames, &bursts).expect("held at 1e-5");
+        assert_eq!((miss.frame, miss.against.as_str(), miss.threshold), (0, "the probe", 0.85));
+        // A model calibrated down to 1e-4 only holds it at its 1e-4 point.
+        assert_eq!(one_person(&Points(false), &probe, &frames, &bursts), None);
+        assert_eq!(one_person(&Points(true), &probe, &[&same, &same, &same], &bursts), None);
     }
 }

@@ -19,7 +19,7 @@
 //! whoever holds an enrolling key) makes genuine pairs look like impostors, and a few of those
 //! would drag every threshold up to genuine scores. A pair of subjects with a template pair at or
 //! above the model's duplicate threshold ([`duplicate_threshold`]: its impostor tail extrapolated a
-//! decade past its lowest calibrated rate) is therefore suspected to be one person: its pairs are
+//! decade past its 1e-4 point) is therefore suspected to be one person: its pairs are
 //! left out and reported ([`SuspectedDuplicate`]). Every pair kept scores below that threshold, so
 //! no count of enrolled look-alikes can raise a threshold past it.
 
@@ -229,17 +229,21 @@ fn points_pull(
 }
 
 /// The score at or above which two templates are taken for one person: the model's impostor tail
-/// extrapolated one decade past its lowest calibrated FMR (thresholds fall about linearly in
-/// log FMR), for a subject of one template ([`extrapolated_duplicate_threshold`]).
+/// extrapolated one decade past its 1e-4 point (thresholds fall about linearly in log FMR), for a
+/// subject of one template ([`extrapolated_duplicate_threshold`]).
 pub fn duplicate_threshold(matcher: &dyn Matcher) -> f32 {
     extrapolated_duplicate_threshold(|fmr| matcher.operating_point(fmr, 1))
 }
 
+/// The step [`extrapolated_duplicate_threshold`] extends: from the 1e-3 point to the 1e-4 point.
+/// Fixed rather than the table's lowest two, so the rule means the same for models calibrated
+/// down to 1e-4 only and for those with a 1e-5 point (whose duplicates it would otherwise move).
+const DUPLICATE_STEP: (f64, f64) = (1e-3, 1e-4);
+
 /// [`duplicate_threshold`] of a one-template threshold table (`point`: the operating point closest
-/// to an FMR). Infinite when the table lacks its two lowest calibrated rates: then nothing is
-/// suspected.
+/// to an FMR). Infinite when the table lacks the 1e-3 or the 1e-4 point: then nothing is suspected.
 pub fn extrapolated_duplicate_threshold(point: impl Fn(f64) -> OperatingPoint) -> f32 {
-    let (lowest, next) = (CALIBRATED_FMRS[CALIBRATED_FMRS.len() - 1], CALIBRATED_FMRS[CALIBRATED_FMRS.len() - 2]);
+    let (next, lowest) = DUPLICATE_STEP;
     let (at_lowest, at_next) = (point(lowest), point(next));
     let decade = at_lowest.threshold - at_next.threshold;
     if at_lowest.fmr != lowest || at_next.fmr != next || !decade.is_finite() {
@@ -366,7 +370,14 @@ pub async fn measure(store: &Store, matcher: &dyn Matcher) -> Result<SiteCalibra
 
 /// `matcher`'s one-template operating points at the calibrated FMRs it has.
 pub fn model_points(matcher: &dyn Matcher) -> Vec<OperatingPoint> {
-    CALIBRATED_FMRS.iter().map(|&fmr| matcher.operating_point(fmr, 1)).filter(|p| CALIBRATED_FMRS.contains(&p.fmr)).collect()
+    // The closest point answers a rate the model lacks (1e-5 of a model calibrated to 1e-4): skip it.
+    CALIBRATED_FMRS
+        .iter()
+        .map(|&fmr| matcher.operating_point(fmr, 1))
+        .zip(CALIBRATED_FMRS)
+        .filter(|(p, fmr)| p.fmr == *fmr)
+        .map(|(p, _)| p)
+        .collect()
 }
 
 /// Store `calibration` for its model version, replacing the one before. The suspected duplicates'
@@ -574,7 +585,9 @@ mod tests {
 
     #[test]
     fn the_duplicate_threshold_extrapolates_the_models_tail_a_decade() {
-        struct Table;
+        /// Thresholds 0.70, 0.75, 0.79 at 1e-2 … 1e-4, and at 1e-5 when given; asked for a rate it
+        /// lacks, the closest point answers, as a calibration's does.
+        struct Table(Option<f32>);
         impl Matcher for Table {
             fn model_version(&self) -> &str {
                 "m"
@@ -583,16 +596,16 @@ mod tests {
                 0.0
             }
             fn operating_point(&self, fmr: f64, _: usize) -> OperatingPoint {
-                let threshold = if fmr >= 1e-2 {
-                    0.70
-                } else if fmr >= 1e-3 {
-                    0.75
-                } else {
-                    0.79
-                };
-                OperatingPoint { fmr, threshold }
+                match (fmr, self.0) {
+                    (f, _) if f >= 1e-2 => OperatingPoint { fmr: 1e-2, threshold: 0.70 },
+                    (f, _) if f >= 1e-3 => OperatingPoint { fmr: 1e-3, threshold: 0.75 },
+                    (f, Some(threshold)) if f < 1e-4 => OperatingPoint { fmr: 1e-5, threshold },
+                    _ => OperatingPoint { fmr: 1e-4, threshold: 0.79 },
+                }
             }
         }
-        assert!((duplicate_threshold(&Table) - 0.83).abs() < 1e-6);
+        assert!((duplicate_threshold(&Table(None)) - 0.83).abs() < 1e-6);
+        // A 1e-5 point does not move it: the rule extends the 1e-3 → 1e-4 step for every model.
+        assert!((duplicate_threshold(&Table(Some(0.82))) - 0.83).abs() < 1e-6);
     }
 }
