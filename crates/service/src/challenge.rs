@@ -347,8 +347,9 @@ mod tests {
 
     #[test]
     fn a_capture_is_held_at_the_strictest_point_the_model_has() {
-        /// Scores are 1 less the first coordinates' distance (the best enrolled); thresholds 0.80 at 1e-4 and 0.85 at 1e-5
-        /// (when the model has it), the closest point answering, as a calibration's does.
+        /// Scores are 1 less the first coordinates' distance (the best enrolled); thresholds 0.80
+        /// at 1e-4 and 0.85 at 1e-5 (when the model has it), the closest point answering, as a
+        /// calibration's does.
         struct Points(bool);
         impl Matcher for Points {
             fn model_version(&self) -> &str {

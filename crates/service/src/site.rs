@@ -30,7 +30,7 @@ use serde::{Deserialize, Serialize};
 
 use facegate_core::template::{OperatingPoint, Template};
 use facegate_store::{Store, StoreError};
-use facegate_vision::recognize::calibration::{CALIBRATED_FMRS, threshold_at};
+use facegate_vision::recognize::calibration::{CALIBRATED_FMRS, calibrated_points, threshold_at};
 
 use crate::Matcher;
 
@@ -370,14 +370,7 @@ pub async fn measure(store: &Store, matcher: &dyn Matcher) -> Result<SiteCalibra
 
 /// `matcher`'s one-template operating points at the calibrated FMRs it has.
 pub fn model_points(matcher: &dyn Matcher) -> Vec<OperatingPoint> {
-    // The closest point answers a rate the model lacks (1e-5 of a model calibrated to 1e-4): skip it.
-    CALIBRATED_FMRS
-        .iter()
-        .map(|&fmr| matcher.operating_point(fmr, 1))
-        .zip(CALIBRATED_FMRS)
-        .filter(|(p, fmr)| p.fmr == *fmr)
-        .map(|(p, _)| p)
-        .collect()
+    calibrated_points(|fmr| matcher.operating_point(fmr, 1))
 }
 
 /// Store `calibration` for its model version, replacing the one before. The suspected duplicates'

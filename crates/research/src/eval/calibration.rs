@@ -16,7 +16,7 @@ use crate::train_deep::{Sample, Set};
 use facegate_core::vector::dot;
 use facegate_service::site::{self, SiteCalibration, SiteRows};
 use facegate_vision::recognize::Calibration;
-use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
+use facegate_vision::recognize::calibration::{CALIBRATED_FMRS, calibrated_points};
 use facegate_vision::recognize::score_norm::{Cohort, CohortStats, s_norm};
 
 /// How a comparison is scored.
@@ -210,14 +210,9 @@ pub fn report_with_site_calibration(samples: &[Sample], templates: &[Option<Vec<
     for ((set, keep), site_persons) in checked_sets().into_iter().zip(sites()) {
         let calibration = site_calibration(&kept(samples, templates, &site_persons), duplicate_threshold);
         let (g, i) = pair_scores(samples, templates, None, &keep);
-        // Only the rates the shipped table has (a model calibrated down to 1e-4 has no 1e-5 row).
-        for &fmr in &CALIBRATED_FMRS {
-            let point = shipped.operating_point(fmr);
-            if point.fmr != fmr {
-                continue;
-            }
+        for point in calibrated_points(|fmr| shipped.operating_point(fmr)) {
             let threshold = calibration.raise(point, point.threshold).threshold;
-            rows.push(observed(set, fmr, &g, &i, threshold));
+            rows.push(observed(set, point.fmr, &g, &i, threshold));
         }
     }
     CandidateReport { scoring: Scoring::CosineWithSiteCalibration, calibration: CalibrationPersons::Disjoint, rows }

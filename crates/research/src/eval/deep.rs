@@ -17,7 +17,7 @@ use facegate_vision::embed::{CHIP_SIZE, chip};
 use facegate_vision::pipeline::FaceFinder;
 use facegate_vision::recognize::Combine;
 use facegate_vision::recognize::Dlda;
-use facegate_vision::recognize::calibration::CALIBRATED_FMRS;
+use facegate_vision::recognize::calibration::calibrated_points;
 use facegate_vision::recognize::dlib::DlibModel;
 
 /// How two embeddings are scored (higher: more alike).
@@ -179,8 +179,8 @@ pub struct HeldOutLine {
     /// takes), so a reader sees whether the calibration holds on persons it never saw.
     pub fnmr_at_threshold: f64,
     pub fmr_at_threshold: f64,
-    /// At each calibrated FMR the model has (1e-2 … 1e-4, and 1e-5 where calibrated): the stated FMR, the FMR observed at its
-    /// threshold, and the impostor comparisons it was counted over.
+    /// At each calibrated FMR the model has (1e-2 … 1e-4, and 1e-5 where calibrated): the stated
+    /// FMR, the FMR observed at its threshold, and the impostor comparisons it was counted over.
     pub observed: Vec<ObservedFmr>,
 }
 
@@ -240,12 +240,8 @@ pub fn held_out_report_of(
                 continue;
             }
             let t = point(1e-3, k).threshold;
-            let observed = CALIBRATED_FMRS
-                .iter()
-                .map(|&fmr| point(fmr, k))
-                .zip(CALIBRATED_FMRS)
-                .filter(|(p, asked)| p.fmr == *asked)
-                .map(|(p, _)| p)
+            let observed = calibrated_points(|fmr| point(fmr, k))
+                .into_iter()
                 .map(|OperatingPoint { fmr, threshold: t }| {
                     let false_matches = i.iter().filter(|&&s| s >= t).count();
                     ObservedFmr { stated: fmr, observed: false_matches as f64 / i.len().max(1) as f64, impostors: i.len(), false_matches }

@@ -8,6 +8,13 @@ use super::OperatingPoint;
 /// The false match rates every model is calibrated at. Models written before 1e-5 was added have
 /// the first three only; asked for 1e-5, they answer at their 1e-4 point and say so.
 pub const CALIBRATED_FMRS: [f64; 4] = [1e-2, 1e-3, 1e-4, 1e-5];
+/// The points of a threshold table (`point`: its operating point closest to an FMR) at the
+/// calibrated FMRs it has. A rate it lacks is answered by its closest point, which is left out
+/// rather than repeated under the rate it does not hold (1e-5 of a model calibrated to 1e-4).
+pub fn calibrated_points(point: impl Fn(f64) -> OperatingPoint) -> Vec<OperatingPoint> {
+    CALIBRATED_FMRS.iter().filter_map(|&fmr| Some(point(fmr)).filter(|p| p.fmr == fmr)).collect()
+}
+
 /// The operating point used when none is asked for.
 pub const DEFAULT_FMR: f64 = 1e-3;
 
@@ -143,7 +150,12 @@ mod tests {
             assert_eq!(cal.operating_point(1e-3).fmr, 1e-3);
             assert_eq!(cal.operating_point(2e-4).fmr, 1e-4);
             assert_eq!(cal.operating_point(1e-6).fmr, 1e-5);
+            assert_eq!(calibrated_points(|fmr| cal.operating_point(fmr)).len(), 4);
         }
+        // A table calibrated down to 1e-4 only: its 1e-4 point once, not again under 1e-5.
+        let older = Calibration::from_scores(&genuine, &impostor, &CALIBRATED_FMRS[..3], "older");
+        let points = calibrated_points(|fmr| older.operating_point(fmr));
+        assert_eq!(points.iter().map(|p| p.fmr).collect::<Vec<_>>(), CALIBRATED_FMRS[..3]);
         // Few impostors: flagged, and the threshold is above all of them.
         let cal = Calibration::from_scores(&genuine, &impostor[..500], &CALIBRATED_FMRS, "few");
         assert!(cal.points[1].under_sampled);
